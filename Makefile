@@ -1,0 +1,37 @@
+# Two commands do all set-up on a fresh Debian/Ubuntu machine with Python 3:
+#   make demo   -> .venv, install, run the main job on the simulated sensor
+#   make test   -> .venv, install test extras (+ Node packages), run the whole suite
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+DEMO_OUT ?= out/demo
+
+.PHONY: demo test install install-test clean bench
+
+$(PY):
+	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
+	$(PIP) install --upgrade pip
+
+$(VENV)/.installed: $(PY) pyproject.toml
+	$(PIP) install -e '.[host]'
+	touch $@
+
+$(VENV)/.installed-test: $(VENV)/.installed pyproject.toml
+	$(PIP) install -e '.[host,test]'
+	touch $@
+
+install: $(VENV)/.installed
+install-test: $(VENV)/.installed-test
+
+demo: $(VENV)/.installed
+	$(VENV)/bin/host demo --out $(DEMO_OUT)
+
+test: $(VENV)/.installed-test
+	$(PY) -m pytest
+
+bench: $(VENV)/.installed
+	$(VENV)/bin/host bench sim --json
+
+clean:
+	rm -rf $(VENV) out build *.egg-info .pytest_cache .hypothesis

@@ -1,0 +1,444 @@
+"""First stages of the TacTip marker pipeline: dome ROI, threshold, pin blobs.
+
+Runs on the Pi (numpy + OpenCV only). Everything here is a plain function over
+numpy arrays, plus one small object (:class:`PinDetector`) that owns the
+preallocated buffers for the per-frame hot path.
+
+Image conventions: ``gray`` is a 2-D ``uint8`` array; points are ``(x, y)`` in
+pixels with the origin at the top-left pixel centre, as OpenCV reports them.
+
+Pipeline per frame::
+
+    to_gray -> (optional Gaussian pre-blur) -> binarise (adaptive mean-C
+    threshold inside the dome mask) -> extract_pins (connected components;
+    blobs larger than ``max_area_px`` are glare, smaller than ``min_area_px``
+    are noise)
+
+``find_dome`` is run once at start-up (or when the view changes), not per frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "VisionParams",
+    "ROBOSKIN_PARAMS",
+    "TACTIP_SHEAR_PARAMS",
+    "to_gray",
+    "find_dome",
+    "dome_mask",
+    "binarise",
+    "components",
+    "extract_pins",
+    "PinDetector",
+]
+
+
+# --------------------------------------------------------------------------
+# Parameters
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class VisionParams:
+    """Parameters of the marker front end.
+
+    block: side of the adaptive-threshold neighbourhood, px (odd, >= 3).
+    offset: a pixel is "pin" when it is more than ``offset`` gray levels above
+        the mean of its ``block`` x ``block`` neighbourhood.
+    blur_sigma_px: Gaussian pre-blur before thresholding (0 disables). A light
+        blur removes MPEG block noise that otherwise breaks pins into pieces.
+    min_area_px: blobs smaller than this are noise, not pins.
+    max_area_px: blobs larger than this are glare (LED reflections), not pins.
+    roi_shrink: the pin search disc is ``roi_shrink`` times the dome radius;
+        below 1 it keeps the bright specular glints on the dome rim out.
+    """
+
+    block: int = 15
+    offset: float = 12.0
+    blur_sigma_px: float = 1.0
+    min_area_px: int = 10
+    max_area_px: int = 100
+    roi_shrink: float = 0.75
+
+    def __post_init__(self) -> None:
+        _check_int("block", self.block, lo=3)
+        if self.block % 2 != 1:
+            raise ValueError(f"block must be odd, got block={self.block!r}")
+        _check_real("offset", self.offset, lo=-255.0, hi=255.0)
+        _check_real("blur_sigma_px", self.blur_sigma_px, lo=0.0, hi=50.0)
+        _check_int("min_area_px", self.min_area_px, lo=1)
+        _check_int("max_area_px", self.max_area_px, lo=1)
+        if self.max_area_px < self.min_area_px:
+            raise ValueError(
+                f"max_area_px must be >= min_area_px, got max_area_px={self.max_area_px!r} "
+                f"with min_area_px={self.min_area_px!r}"
+            )
+        _check_real("roi_shrink", self.roi_shrink, lo=0.0, hi=1.5)
+        if self.roi_shrink <= 0.0:
+            raise ValueError(f"roi_shrink must be > 0, got roi_shrink={self.roi_shrink!r}")
+
+
+def _check_int(name: str, value, lo: int | None = None) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer, got {name}={value!r}")
+    if lo is not None and value < lo:
+        raise ValueError(f"{name} must be >= {lo}, got {name}={value!r}")
+
+
+def _check_real(name: str, value, lo: float, hi: float) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number, got {name}={value!r}")
+    if not math.isfinite(float(value)) or not (lo <= float(value) <= hi):
+        raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {name}={value!r}")
+
+
+#: Tuned on the roboskin recordings (640x480, pins ~6 px across, ~12 px apart).
+ROBOSKIN_PARAMS = VisionParams()
+
+#: For the already-binarised 445x440 tactip_shear images (pins ~13 px across).
+TACTIP_SHEAR_PARAMS = VisionParams(
+    block=31, offset=20.0, blur_sigma_px=0.0, min_area_px=40, max_area_px=400, roi_shrink=1.0
+)
+
+
+# --------------------------------------------------------------------------
+# Grayscale
+# --------------------------------------------------------------------------
+
+
+def to_gray(frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Return a 2-D uint8 gray image from a gray (H,W), (H,W,1), BGR or BGRA frame.
+
+    Non-uint8 input is clipped to [0, 255] (NaN becomes 0). With ``out`` given
+    (uint8, shape (H,W)) the result is written there and ``out`` returned.
+    """
+    a = np.asarray(frame)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise ValueError(f"frame must be (H,W), (H,W,1), (H,W,3) or (H,W,4), got shape={a.shape!r}")
+    if a.dtype != np.uint8:
+        a = np.nan_to_num(a.astype(np.float32, copy=False), nan=0.0, posinf=255.0, neginf=0.0)
+        a = np.clip(a, 0, 255).astype(np.uint8)
+    if a.ndim == 2:
+        if out is None:
+            return a if a.flags.c_contiguous else np.ascontiguousarray(a)
+        np.copyto(out, a)
+        return out
+    code = cv2.COLOR_BGR2GRAY if a.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+    if out is None:
+        return cv2.cvtColor(a, code)
+    cv2.cvtColor(a, code, dst=out)
+    return out
+
+
+# --------------------------------------------------------------------------
+# Dome (region of interest)
+# --------------------------------------------------------------------------
+
+_MIN_SIDE_PX = 32          # smaller frames cannot hold a usable dome
+_MIN_RADIUS_FRAC = 0.08    # dome radius relative to the shorter image side
+_MAX_RADIUS_FRAC = 0.6
+_MIN_FILL = 0.7            # contour area / enclosing-circle area
+_MIN_CONTRAST = 30.0       # surround minus dome interior, gray levels
+_MAX_BORDER_FRAC = 0.05    # share of the dome outline allowed on the image border (cables)
+_BINARY_FRAC = 0.97        # share of pixels at exactly 0 or 255 for "binary image"
+
+
+def find_dome(gray: np.ndarray) -> tuple[float, float, float] | None:
+    """Find the sensor dome: returns ``(cx, cy, r)`` in px, or None.
+
+    Two kinds of view are recognised:
+
+    * a camera view (e.g. roboskin): the dome is a dark disc inside a very
+      bright surround. The dark region of a blurred, Otsu-thresholded image
+      that does not touch the border and is nearly circular is taken; ``r`` is
+      its equivalent radius (sqrt(area/pi)) and the centre its centroid.
+    * an already binarised image (e.g. tactip_shear: white pins on black):
+      the dome is the disc filled with pins, found from local pin density.
+
+    Returns None for frames without a dome (uniform, saturated, noise, too
+    small). Never raises for 2-D/colour numeric input.
+    """
+    try:
+        g = to_gray(gray)
+    except (ValueError, TypeError, cv2.error):
+        return None
+    h, w = g.shape
+    if min(h, w) < _MIN_SIDE_PX:
+        return None
+    lo, hi = int(g.min()), int(g.max())
+    if hi - lo < 2 * _MIN_CONTRAST:
+        return None
+    n_extreme = int(np.count_nonzero(g == 0)) + int(np.count_nonzero(g == 255))
+    if n_extreme >= _BINARY_FRAC * g.size:
+        return _dome_from_binary(g)
+    return _dome_from_dark_disc(g)
+
+
+def _circle_ok(cnt: np.ndarray, h: int, w: int) -> tuple[float, float, float, float] | None:
+    """Centroid, equivalent radius and area of a contour if it is dome-like."""
+    area = float(cv2.contourArea(cnt))
+    if area <= 0.0:
+        return None
+    r_eq = math.sqrt(area / math.pi)
+    side = min(h, w)
+    if not (_MIN_RADIUS_FRAC * side <= r_eq <= _MAX_RADIUS_FRAC * side):
+        return None
+    (_, _), r_enc = cv2.minEnclosingCircle(cnt)
+    if r_enc <= 0 or area / (math.pi * r_enc * r_enc) < _MIN_FILL:
+        return None
+    m = cv2.moments(cnt)
+    if m["m00"] <= 0:
+        return None
+    return m["m10"] / m["m00"], m["m01"] / m["m00"], r_eq, area
+
+
+def _ring_means(g: np.ndarray, cx: float, cy: float, r: float) -> tuple[float, float]:
+    """Mean gray inside 0.8 r and in the annulus 1.15 r .. 1.4 r (clipped to image)."""
+    h, w = g.shape
+    mask = np.zeros((h, w), np.uint8)
+    c = (int(round(cx)), int(round(cy)))
+    cv2.circle(mask, c, max(1, int(round(1.4 * r))), 255, -1)
+    cv2.circle(mask, c, max(1, int(round(1.15 * r))), 0, -1)
+    outer = cv2.mean(g, mask=mask)[0] if cv2.countNonZero(mask) else float("nan")
+    mask[:] = 0
+    cv2.circle(mask, c, max(1, int(round(0.8 * r))), 255, -1)
+    inner = cv2.mean(g, mask=mask)[0] if cv2.countNonZero(mask) else float("nan")
+    return inner, outer
+
+
+def _dome_from_dark_disc(g: np.ndarray) -> tuple[float, float, float] | None:
+    h, w = g.shape
+    sigma = max(1.0, min(h, w) / 160.0)
+    b = cv2.GaussianBlur(g, (0, 0), sigma)
+    t, dark = cv2.threshold(b, 0, 255, cv2.THRESH_BINARY_INV + cv2.THRESH_OTSU)
+    contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    best = None
+    for cnt in contours:
+        pts = cnt.reshape(-1, 2)
+        on_border = (pts[:, 0] <= 0) | (pts[:, 1] <= 0) | (pts[:, 0] >= w - 1) | (pts[:, 1] >= h - 1)
+        if np.count_nonzero(on_border) > _MAX_BORDER_FRAC * len(pts):
+            continue  # vignetted corners and edges run along the border
+        fit = _circle_ok(cnt, h, w)
+        if fit is None:
+            continue
+        if best is None or fit[3] > best[3]:
+            best = fit
+    if best is None:
+        return None
+    cx, cy, r, _ = best
+    inner, outer = _ring_means(b, cx, cy, r)
+    if not (math.isfinite(inner) and math.isfinite(outer)) or outer - inner < _MIN_CONTRAST:
+        return None
+    return float(cx), float(cy), float(r)
+
+
+def _dome_from_binary(g: np.ndarray) -> tuple[float, float, float] | None:
+    h, w = g.shape
+    fg = (g > 127).astype(np.uint8)
+    n, _, stats, _ = cv2.connectedComponentsWithStats(fg, connectivity=8)
+    if n < 8:
+        return None
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    typical = areas[areas >= max(4, np.percentile(areas, 50))]
+    if typical.size == 0:
+        return None
+    d_pin = 2.0 * math.sqrt(float(np.median(typical)) / math.pi)
+    k = int(max(3, round(3.0 * d_pin))) | 1
+    density = cv2.blur(fg.astype(np.float32), (k, k))
+    peak = float(np.percentile(density, 99))
+    if peak <= 0.05:
+        return None
+    filled = (density >= 0.5 * peak).astype(np.uint8)
+    contours, _ = cv2.findContours(filled, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    best = None
+    for cnt in contours:
+        fit = _circle_ok(cnt, h, w)
+        if fit is not None and (best is None or fit[3] > best[3]):
+            best = fit
+    if best is None:
+        return None
+    cx, cy, r, _ = best
+    return float(cx), float(cy), float(r)
+
+
+def dome_mask(
+    shape: tuple[int, int],
+    dome: tuple[float, float, float] | None,
+    shrink: float = 1.0,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """uint8 mask (255 inside) of the disc ``shrink * r`` around the dome centre.
+
+    With ``dome`` None the whole frame is the region of interest.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    if out is None:
+        out = np.empty((h, w), np.uint8)
+    if dome is None:
+        out[:] = 255
+        return out
+    cx, cy, r = dome
+    out[:] = 0
+    rr = max(0, int(round(r * shrink)))
+    if rr > 0 and all(math.isfinite(v) for v in (cx, cy, r)):
+        cv2.circle(out, (int(round(cx)), int(round(cy))), rr, 255, -1)
+    return out
+
+
+# --------------------------------------------------------------------------
+# Threshold and blobs
+# --------------------------------------------------------------------------
+
+
+def binarise(
+    gray: np.ndarray,
+    block: int,
+    offset: float,
+    roi_mask: np.ndarray | None,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
+    """Adaptive mean-C threshold: 255 where a pixel exceeds its local mean by ``offset``.
+
+    ``gray`` uint8 (H,W); ``block`` odd >= 3; ``roi_mask`` uint8 (H,W) or None
+    (whole frame). Writes into ``out`` (uint8 (H,W)) when given.
+    """
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise ValueError(f"gray must be a 2-D uint8 array, got shape={gray.shape!r} dtype={gray.dtype}")
+    if isinstance(block, bool) or int(block) != block or block < 3 or block % 2 != 1:
+        raise ValueError(f"block must be an odd integer >= 3, got block={block!r}")
+    if out is None:
+        out = np.empty_like(gray)
+    cv2.adaptiveThreshold(
+        gray, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY, int(block), -float(offset), dst=out
+    )
+    if roi_mask is not None:
+        if roi_mask.shape != gray.shape:
+            raise ValueError(
+                f"roi_mask must have the frame's shape {gray.shape!r}, got roi_mask.shape={roi_mask.shape!r}"
+            )
+        cv2.bitwise_and(out, roi_mask, dst=out)
+    return out
+
+
+def components(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,)."""
+    if binary.ndim != 2:
+        raise ValueError(f"binary must be 2-D, got shape={binary.shape!r}")
+    b = binary if binary.dtype == np.uint8 else (binary != 0).astype(np.uint8)
+    n, _, stats, cents = cv2.connectedComponentsWithStats(b, connectivity=8, ltype=cv2.CV_32S)
+    if n <= 1:
+        return np.zeros((0, 2), np.float32), np.zeros((0,), np.int32)
+    return cents[1:].astype(np.float32), stats[1:, cv2.CC_STAT_AREA].astype(np.int32)
+
+
+def extract_pins(
+    binary: np.ndarray, min_area: int, max_area: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pin centroids float32 (n,2) as x,y and their areas int32 (n,).
+
+    Blobs with area > ``max_area`` (glare) or < ``min_area`` (noise) are dropped.
+    Zero pins gives arrays of shape (0,2) and (0,).
+    """
+    if max_area < min_area:
+        raise ValueError(f"max_area must be >= min_area, got max_area={max_area!r}, min_area={min_area!r}")
+    cents, areas = components(binary)
+    keep = (areas >= min_area) & (areas <= max_area)
+    return np.ascontiguousarray(cents[keep]), areas[keep]
+
+
+# --------------------------------------------------------------------------
+# Hot-path object
+# --------------------------------------------------------------------------
+
+
+class PinDetector:
+    """Per-frame pin extraction with preallocated buffers.
+
+    Works on the bounding box of the dome only (about 1/6 of a 640x480 frame
+    for roboskin), and returns centroids in full-frame coordinates.
+
+    >>> det = PinDetector(ROBOSKIN_PARAMS, (480, 640), dome=(326.0, 219.0, 145.0))  # doctest: +SKIP
+    >>> xy, areas = det.detect(frame)                                                # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        params: VisionParams,
+        frame_shape: tuple[int, int],
+        dome: tuple[float, float, float] | None = None,
+    ) -> None:
+        if not isinstance(params, VisionParams):
+            raise ValueError(f"params must be a VisionParams, got params={params!r}")
+        h, w = int(frame_shape[0]), int(frame_shape[1])
+        if h < 1 or w < 1:
+            raise ValueError(f"frame_shape must be positive, got frame_shape={frame_shape!r}")
+        self.params = params
+        self.frame_shape = (h, w)
+        self._gray_full = np.empty((h, w), np.uint8)
+        self.set_dome(dome)
+
+    def set_dome(self, dome: tuple[float, float, float] | None) -> None:
+        h, w = self.frame_shape
+        p = self.params
+        if dome is None:
+            x0, y0, x1, y1 = 0, 0, w, h
+        else:
+            cx, cy, r = (float(v) for v in dome)
+            if not all(math.isfinite(v) for v in (cx, cy, r)) or r <= 0:
+                raise ValueError(f"dome must be finite (cx, cy, r) with r > 0, got dome={dome!r}")
+            rr = r * p.roi_shrink + p.block  # margin so the local mean sees context
+            x0 = max(0, int(math.floor(cx - rr)))
+            y0 = max(0, int(math.floor(cy - rr)))
+            x1 = min(w, int(math.ceil(cx + rr)) + 1)
+            y1 = min(h, int(math.ceil(cy + rr)) + 1)
+            if x1 <= x0 or y1 <= y0:
+                x0, y0, x1, y1 = 0, 0, w, h
+        self.dome = dome
+        self.box = (x0, y0, x1, y1)
+        bh, bw = y1 - y0, x1 - x0
+        self._smooth = np.empty((bh, bw), np.uint8)
+        self._binary = np.empty((bh, bw), np.uint8)
+        self._origin = np.array([x0, y0], np.float32)
+        mask_full = dome_mask((h, w), dome, p.roi_shrink)
+        self._mask = np.ascontiguousarray(mask_full[y0:y1, x0:x1])
+
+    @property
+    def binary(self) -> np.ndarray:
+        """The last thresholded crop (view of the internal buffer)."""
+        return self._binary
+
+    def threshold(self, frame: np.ndarray) -> np.ndarray:
+        """Gray, blur and binarise the dome crop; returns the internal binary buffer."""
+        if frame.shape[:2] != self.frame_shape:
+            raise ValueError(f"frame shape must be {self.frame_shape!r}, got frame.shape={frame.shape!r}")
+        x0, y0, x1, y1 = self.box
+        gray = to_gray(frame, out=self._gray_full) if frame.ndim == 3 or frame.dtype != np.uint8 else frame
+        crop = gray[y0:y1, x0:x1]
+        p = self.params
+        if p.blur_sigma_px > 0:
+            cv2.GaussianBlur(crop, (0, 0), p.blur_sigma_px, dst=self._smooth)
+        else:
+            np.copyto(self._smooth, crop)
+        return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
+
+    def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,)."""
+        b = self.threshold(frame)
+        xy, areas = extract_pins(b, self.params.min_area_px, self.params.max_area_px)
+        xy += self._origin
+        return xy, areas
+
+    def detect_all(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """All blobs (pins, glare and noise) in frame px, for measurement."""
+        b = self.threshold(frame)
+        xy, areas = components(b)
+        xy += self._origin
+        return xy, areas

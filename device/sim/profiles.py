@@ -1,0 +1,163 @@
+"""Sensor profiles: the geometry and look of one TacTip build.
+
+A profile is a TOML file (see ``docs/simulator.md``). Two ship with tacfoot:
+
+* ``roboskin``  - the seed paper's sensor: 133 pins on a radial layout, a dark
+  dome in the middle of a 640x480 frame with a bright surround, LED-ring glare.
+* ``tactip331`` - a 331-pin hexagonal dome, binarised 445x440 images.
+
+All lengths ending in ``_px`` are at the profile's native resolution; the
+simulator scales them when a scene asks for another frame size.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import ConfigError, Fields, read_toml
+
+PROFILE_DIR = Path(__file__).with_name("profiles")
+
+
+@dataclass(frozen=True)
+class GlareSpec:
+    count: int = 0
+    ring_radius_px: float = 0.0
+    sigma_px: float = 10.0
+    peak: float = 0.0
+    phase_deg: float = 0.0
+
+
+@dataclass(frozen=True)
+class SensorProfile:
+    name: str
+    width: int
+    height: int
+    dome_centre_px: tuple[float, float]
+    dome_radius_px: float          # radius of the visible dome (dark disc / mask)
+    px_per_mm: float
+    dome_radius_mm: float          # curvature radius R used in a = sqrt(R d)
+    pin_diameter_px: float
+    style: str                     # "camera" (grey, glare) or "binary" (0/255 mask)
+    dome_level: float
+    pin_level: float
+    surround_level: float
+    vignette: float                # fractional darkening of the dome towards its rim
+    pins_px: np.ndarray = field(repr=False)   # (M, 2) rest positions, native px
+    glare: GlareSpec = GlareSpec()
+    # contact mechanics
+    modulus_n_per_mm2: float = 0.35        # effective Hertz modulus E*
+    skin_stiffness_n_per_mm: float = 3.0   # linearised normal stiffness of the skin
+    tangential_stiffness_n_per_mm: float = 2.0
+    normal_gain: float = 0.35      # pin spread (mm of pin travel per mm of indentation)
+    shear_gain: float = 0.5        # pin travel per mm of patch shear
+
+    @property
+    def n_pins(self) -> int:
+        return int(self.pins_px.shape[0])
+
+
+def radial_layout(rings: list[int], radii: list[float], phases_deg: list[float],
+                  centre: tuple[float, float]) -> np.ndarray:
+    pts = []
+    for n, r, ph in zip(rings, radii, phases_deg):
+        if n == 1 and r == 0:
+            pts.append((0.0, 0.0))
+            continue
+        ang = np.deg2rad(ph) + 2 * np.pi * np.arange(n) / n
+        pts.extend(zip(r * np.cos(ang), r * np.sin(ang)))
+    return np.asarray(pts, dtype=np.float64) + np.asarray(centre)
+
+
+def hex_layout(n_rings: int, pitch: float, centre: tuple[float, float]) -> np.ndarray:
+    """Centre pin plus ``n_rings`` hexagonal rings: 1 + 3 n (n + 1) pins."""
+    pts = []
+    for q in range(-n_rings, n_rings + 1):
+        for r in range(max(-n_rings, -q - n_rings), min(n_rings, -q + n_rings) + 1):
+            x = pitch * (q + r / 2.0)
+            y = pitch * (r * math.sqrt(3) / 2.0)
+            pts.append((x, y))
+    pts = np.asarray(pts, dtype=np.float64)
+    order = np.lexsort((np.arctan2(pts[:, 1], pts[:, 0]), np.round(np.hypot(*pts.T), 3)))
+    return pts[order] + np.asarray(centre)
+
+
+def builtin_profiles() -> list[str]:
+    return sorted(p.stem for p in PROFILE_DIR.glob("*.toml"))
+
+
+def load_profile(name_or_path: str | Path) -> SensorProfile:
+    """Load a built-in profile by name, or a custom one from a TOML path."""
+    p = Path(name_or_path)
+    if p.suffix != ".toml":
+        p = PROFILE_DIR / f"{name_or_path}.toml"
+        if not p.exists():
+            raise ConfigError(f"sensor.profile: unknown profile {str(name_or_path)!r}; "
+                              f"built-in profiles are {builtin_profiles()} or give a .toml path")
+    return parse_profile(read_toml(p), source=str(p))
+
+
+def parse_profile(doc: dict, source: str = "") -> SensorProfile:
+    top = Fields(doc, "", source)
+    f = top.sub("profile")
+    name = f.string("name")
+    width = f.integer("width", min=8, max=8192)
+    height = f.integer("height", min=8, max=8192)
+    centre = f.pair("dome_centre_px")
+    dome_r = f.number("dome_radius_px", min=1)
+    px_per_mm = f.number("px_per_mm", min=0, min_exclusive=True)
+    dome_r_mm = f.number("dome_radius_mm", min=0, min_exclusive=True)
+    pin_d = f.number("pin_diameter_px", min=0.5)
+    style = f.string("style", "camera", choices=("camera", "binary"))
+    dome_level = f.number("dome_level", 70, min=0, max=255)
+    pin_level = f.number("pin_level", 200, min=0, max=255)
+    surround_level = f.number("surround_level", 235, min=0, max=255)
+    vignette = f.number("vignette", 0.0, min=0, max=1)
+    mech = dict(
+        modulus_n_per_mm2=f.number("modulus_n_per_mm2", 0.35, min=0, min_exclusive=True),
+        skin_stiffness_n_per_mm=f.number("skin_stiffness_n_per_mm", 3.0, min=0, min_exclusive=True),
+        tangential_stiffness_n_per_mm=f.number("tangential_stiffness_n_per_mm", 2.0, min=0,
+                                               min_exclusive=True),
+        normal_gain=f.number("normal_gain", 0.35, min=0),
+        shear_gain=f.number("shear_gain", 0.5, min=0),
+    )
+    f.done()
+
+    lay = top.sub("layout")
+    kind = lay.string("kind", choices=("radial", "hex"))
+    if kind == "radial":
+        rings = lay.number_list("rings", integer=True, min=1)
+        radii = lay.number_list("ring_radii_px", min=0)
+        phases = lay.number_list("ring_phase_deg", [0.0] * len(rings))
+        if not (len(rings) == len(radii) == len(phases)):
+            lay.fail("layout.ring_radii_px", radii, f"must have one entry per ring ({len(rings)})")
+        pins = radial_layout(rings, radii, phases, centre)
+    else:
+        n_rings = lay.integer("hex_rings", min=0, max=60)
+        pitch = lay.number("pitch_px", min=0, min_exclusive=True)
+        pins = hex_layout(n_rings, pitch, centre)
+        # a hexagon's corners can stick out of a round dome: keep what fits
+        keep = np.hypot(*(pins - centre).T) <= dome_r - pin_d / 2
+        pins = pins[keep]
+    lay.done()
+
+    glare = GlareSpec()
+    if top.has("glare"):
+        g = top.sub("glare")
+        glare = GlareSpec(count=g.integer("count", 0, min=0, max=64),
+                          ring_radius_px=g.number("ring_radius_px", 0.0, min=0),
+                          sigma_px=g.number("sigma_px", 10.0, min=0.5),
+                          peak=g.number("peak", 60.0, min=0, max=255),
+                          phase_deg=g.number("phase_deg", 0.0))
+        g.done()
+    top.done()
+    if pins.shape[0] == 0:
+        raise ConfigError(f"{source}: layout gives no pins inside the dome")
+    return SensorProfile(name=name, width=width, height=height, dome_centre_px=centre,
+                         dome_radius_px=dome_r, px_per_mm=px_per_mm, dome_radius_mm=dome_r_mm,
+                         pin_diameter_px=pin_d, style=style, dome_level=dome_level,
+                         pin_level=pin_level, surround_level=surround_level, vignette=vignette,
+                         pins_px=pins, glare=glare, **mech)

@@ -1,0 +1,219 @@
+"""The ``host`` command: the tacfoot host toolkit.
+
+Every command that computes a result accepts ``--json``. Bad input (a bad
+scene file, a missing source) gives one clear line on stderr and exit status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EXIT_BAD_INPUT = 2
+
+
+class UserError(Exception):
+    """Bad input from the user: printed as one line, exit status 2."""
+
+
+def _emit(args, data, text: str | None = None):
+    if getattr(args, "json", False):
+        print(json.dumps(data, default=_json_default))
+    elif text is not None:
+        print(text)
+
+
+def _json_default(o):
+    import numpy as np
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(type(o).__name__)
+
+
+def _progress(total: int, desc: str, enabled: bool = True):
+    from tqdm import tqdm
+    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled or None,
+                file=sys.stderr, leave=False)
+
+
+# -- commands ------------------------------------------------------------------
+
+def cmd_scenes(args):
+    from device.sim import builtin_scenes, load_scene
+    rows = []
+    for name in builtin_scenes():
+        sc = load_scene(name)
+        rows.append({"name": name, "profile": sc.profile.name, "frames":
+                     int(round(sc.duration_s * sc.fps)), "duration_s": round(sc.duration_s, 3),
+                     "effects": list(sc.effect_names), "description": sc.description})
+    text = "\n".join(f"{r['name']:<15} {r['duration_s']:>5.2f}s  {r['description']}"
+                     for r in rows)
+    _emit(args, rows, text)
+
+
+def simulate_to_dataset(scene_ref: str, out: Path, seed: int = 0, trials: int = 1,
+                        progress: bool = True) -> dict:
+    import numpy as np
+
+    from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, load_scene
+    from host.dataset import DatasetWriter
+
+    scene = load_scene(scene_ref)
+    writer = DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
+                                      "texture_labels": list(TEXTURE_LABELS),
+                                      "source": "simulator"})
+    files = []
+    for k in range(trials):
+        sim = Simulator(scene, seed=seed + k)
+        frames = np.empty((sim.n_frames, sim.height, sim.width), np.uint8)
+        with _progress(sim.n_frames, f"{scene.name} seed {seed + k}", progress) as bar:
+            for i in range(sim.n_frames):
+                sim.render(i, frames[i])
+                bar.update(1)
+        truth = dict(sim.truth, rest_pins_px=sim.rest_pins_px)
+        info = {"scene": scene.name, "scene_file": scene.source, "seed": seed + k,
+                "fps": scene.fps, "width": sim.width, "height": sim.height,
+                "profile": scene.profile.name, "n_pins": scene.profile.n_pins,
+                "effects": list(scene.effect_names)}
+        files.append(str(writer.add_trial(frames, truth, info)))
+    return {"out": str(out), "trials": files, "frames": int(sum(
+        e["frames"] for e in writer.index["trials"][-trials:]))}
+
+
+def cmd_simulate(args):
+    res = simulate_to_dataset(args.scene, Path(args.out), args.seed, args.trials,
+                              progress=not args.json)
+    _emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}")
+
+
+def _frames_and_truth(src: str, seed: int):
+    """(frames list, truth dict | None, rest pins | None, fps) for a scene or dataset."""
+    from device.sim import Simulator, load_scene
+    from host.dataset import is_dataset, load_trial
+
+    if is_dataset(src):
+        tr = load_trial(src, 0)
+        truth = {k: v for k, v in tr.items() if k not in ("frames", "info")}
+        return tr["frames"], truth, tr.get("rest_pins_px"), float(tr["info"].get("fps", 30))
+    sim = Simulator(load_scene(src), seed=seed)
+    frames = [sim.render(i) for i in range(sim.n_frames)]
+    return frames, sim.truth, sim.rest_pins_px, sim.fps
+
+
+def cmd_view(args):
+    import numpy as np
+
+    from host.view import draw_vectors, pick_frames, save_images, truth_caption
+
+    if Path(args.out).suffix.lower() not in (".gif", ".png"):
+        raise UserError(f"--out must end in .gif or .png, got {args.out!r}")
+    frames, truth, rest, fps = _frames_and_truth(args.source, args.seed)
+    out = Path(args.out)
+    most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
+    contact = np.flatnonzero(truth["contact"]) if out.suffix.lower() == ".png" else []
+    if len(contact) and not args.max_frames:
+        picks = contact[pick_frames(len(contact), most)]   # a contact sheet shows touches
+    else:
+        picks = pick_frames(len(frames), most)
+    images = [draw_vectors(frames[i], rest, truth["pins_px"][i], truth["visible"][i],
+                           gain=args.gain, text=truth_caption(truth, i)) for i in picks]
+    save_images(images, out, fps=min(fps, 15.0))
+    _emit(args, {"out": str(out), "frames": [int(i) for i in picks]},
+          f"wrote {out} ({len(picks)} frames)")
+
+
+def cmd_demo(args):
+    from device.sim import Simulator, load_scene
+    from host.view import draw_vectors, pick_frames, save_images, truth_caption, truth_plot
+
+    out = Path(args.out)
+    scene = load_scene(args.scene)
+    sim = Simulator(scene, seed=args.seed)
+    picks = pick_frames(sim.n_frames, 180)
+    images = []
+    with _progress(len(picks), f"simulating {scene.name}", not args.json) as bar:
+        for i in picks:
+            images.append(draw_vectors(sim.render(i), sim.rest_pins_px, sim.truth["pins_px"][i],
+                                       sim.truth["visible"][i], text=truth_caption(sim.truth, i)))
+            bar.update(1)
+    preview = save_images(images, out / "preview.gif", fps=20)
+    plot = truth_plot(sim.truth, out / "ground_truth.png",
+                      title=f"scene {scene.name}, seed {args.seed}: ground truth")
+    t = sim.truth
+    res = {"scene": scene.name, "frames": sim.n_frames, "preview": str(preview),
+           "ground_truth_plot": str(plot), "contact_frames": int(t["contact"].sum()),
+           "slip_frames": int(t["slip"].sum())}
+    _emit(args, res, f"simulated walk: {sim.n_frames} frames, {res['contact_frames']} in "
+                     f"contact, {res['slip_frames']} slipping\n"
+                     f"preview:      {preview}\nground truth: {plot}")
+
+
+def cmd_bench(args):
+    from host import bench
+    if args.what == "sim":
+        res = bench.bench_sim(repeats=args.repeats)
+        _emit(args, res, bench.format_sim(res))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="host", description="tacfoot host toolkit")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("scenes", help="list the built-in simulator scenes")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_scenes)
+
+    s = sub.add_parser("simulate", help="render a scene to a dataset folder")
+    s.add_argument("scene", help="built-in scene name or a scene .toml file")
+    s.add_argument("--out", required=True, help="dataset folder to write")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--trials", type=int, default=1, help="trials with seeds seed, seed+1, ...")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("view", help="draw frames with pin vectors to a GIF or PNG")
+    s.add_argument("source", help="scene name, scene .toml, or dataset folder")
+    s.add_argument("--out", required=True, help="preview.gif or preview.png")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--max-frames", type=int, default=0)
+    s.add_argument("--gain", type=float, default=2.0, help="arrow length per px of travel")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_view)
+
+    s = sub.add_parser("demo", help="the main job on the simulated sensor")
+    s.add_argument("--out", default="out/demo")
+    s.add_argument("--scene", default="walk")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
+    s.add_argument("what", choices=["sim"])
+    s.add_argument("--repeats", type=int, default=20)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    from device.sim.config import ConfigError
+    from host.dataset import DatasetError
+
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (ConfigError, DatasetError, UserError) as exc:
+        print(f"host {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except BrokenPipeError:
+        return 0
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

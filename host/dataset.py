@@ -1,0 +1,111 @@
+"""The tacfoot dataset folder (documented in docs/datasets.md).
+
+::
+
+    DIR/
+      dataset.json        index: format, version, label names, one entry per trial
+      trial_0000.npz      frames (F, H, W) uint8 + per-frame ground truth
+      trial_0001.npz      ...
+
+Every file is written to a temporary name in the same folder and then renamed,
+so a crash loses at most the trial being written, and ``dataset.json`` always
+lists only complete trials.
+"""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "tacfoot-dataset"
+VERSION = 1
+INDEX = "dataset.json"
+
+
+class DatasetError(ValueError):
+    pass
+
+
+def atomic_write(path: Path, write) -> None:
+    """Call ``write(fh)`` on a temp file beside ``path``, fsync, then rename."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write(path, lambda fh: fh.write(text.encode()))
+
+
+class DatasetWriter:
+    """Append trials to a dataset folder, one atomic file each."""
+
+    def __init__(self, out_dir: Path | str, meta: dict | None = None):
+        self.dir = Path(out_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        idx = self.dir / INDEX
+        if idx.exists():
+            self.index = read_index(self.dir)
+        else:
+            self.index = {"format": FORMAT, "version": VERSION, "trials": []}
+        self.index.update(meta or {})
+
+    @property
+    def n_trials(self) -> int:
+        return len(self.index["trials"])
+
+    def add_trial(self, frames: np.ndarray, truth: dict, info: dict) -> Path:
+        name = f"trial_{self.n_trials:04d}.npz"
+        arrays = {"frames": np.ascontiguousarray(frames)}
+        for k, v in truth.items():
+            arrays[k] = np.asarray(v)
+        atomic_write(self.dir / name, lambda fh: np.savez_compressed(fh, **arrays))
+        entry = {"file": name, "frames": int(frames.shape[0]), **info}
+        self.index["trials"].append(entry)
+        atomic_write_text(self.dir / INDEX, json.dumps(self.index, indent=1))
+        return self.dir / name
+
+
+def read_index(path: Path | str) -> dict:
+    path = Path(path)
+    idx = path / INDEX if path.is_dir() else path
+    try:
+        doc = json.loads(idx.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: not a tacfoot dataset (no {INDEX})") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{idx}: corrupt index: {exc}") from None
+    if doc.get("format") != FORMAT:
+        raise DatasetError(f"{idx}: format is {doc.get('format')!r}, expected {FORMAT!r}")
+    if int(doc.get("version", 0)) > VERSION:
+        raise DatasetError(f"{idx}: version {doc.get('version')} is newer than this "
+                           f"tacfoot reads ({VERSION})")
+    return doc
+
+
+def load_trial(dataset_dir: Path | str, i: int) -> dict:
+    doc = read_index(dataset_dir)
+    try:
+        entry = doc["trials"][i]
+    except IndexError:
+        raise DatasetError(f"{dataset_dir}: no trial {i} (has {len(doc['trials'])})") from None
+    with np.load(Path(dataset_dir) / entry["file"]) as z:
+        return {k: z[k] for k in z.files} | {"info": entry}
+
+
+def is_dataset(path: Path | str) -> bool:
+    return (Path(path) / INDEX).is_file()
