@@ -156,7 +156,7 @@ class Renderer:
                 & np.isfinite(x) & np.isfinite(y))
 
     # -- per frame -------------------------------------------------------------
-    def render(self, i: int, pins: np.ndarray, visible: np.ndarray, pin_speed_px_s: np.ndarray,
+    def render(self, i: int, pins: np.ndarray, visible: np.ndarray, pin_motion: np.ndarray,
                out: np.ndarray | None = None) -> np.ndarray:
         if out is None:
             out = np.empty((self.height, self.width), np.uint8)
@@ -176,7 +176,7 @@ class Renderer:
         if "glare" in fx:
             cv2.add(out, self.glare, dst=out)
         if "motion_blur" in fx:
-            self._motion_blur(out, pin_speed_px_s)
+            self._motion_blur(out, pin_motion)
         if "exposure_flicker" in fx:
             cv2.convertScaleAbs(out, dst=out, alpha=float(self.gains[i]))
         if "camera_noise" in fx:
@@ -188,18 +188,25 @@ class Renderer:
             cv2.threshold(out, 127, 255, cv2.THRESH_BINARY, dst=out)
         return out
 
-    def _motion_blur(self, out: np.ndarray, speed_px_s: np.ndarray):
+    def _motion_blur(self, out: np.ndarray, pin_motion: np.ndarray):
+        """Blur the dome by how far pins travel during the exposure: along the
+        mean pin velocity when the pins move together (shear), isotropically
+        when they spread (a press)."""
         exposure_s = self.effects["motion_blur"]["exposure_ms"] / 1000.0
-        v = np.asarray(speed_px_s, dtype=np.float64) * exposure_s
+        v = np.asarray(pin_motion[:2], dtype=np.float64) * exposure_s
+        speed = float(pin_motion[2]) * exposure_s
         length = float(np.hypot(*v))
-        if length < 0.5:
+        if speed < 0.5:
             return
-        n = int(min(64, math.ceil(length))) | 1
-        kern = np.zeros((n, n), np.float32)
+        n = int(min(64, math.ceil(speed))) | 1
         c = n // 2
-        ux, uy = v / length
-        for t in np.linspace(-c, c, 4 * n):
-            kern[int(round(c + t * uy)), int(round(c + t * ux))] = 1.0
+        if length >= 0.5 * speed:
+            kern = np.zeros((n, n), np.float32)
+            ux, uy = v / length
+            for t in np.linspace(-c, c, 4 * n):
+                kern[int(round(c + t * uy)), int(round(c + t * ux))] = 1.0
+        else:
+            kern = np.ones((n, n), np.float32)
         kern /= kern.sum()
         blurred = cv2.filter2D(out, -1, kern, borderType=cv2.BORDER_REPLICATE)
         np.copyto(blurred, self.background, where=self._outside)

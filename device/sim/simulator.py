@@ -69,9 +69,13 @@ class Simulator:
             n_dead = int(round(effects["pin_loss"]["fraction"] * M))
             dead = stream(self.seed, "pin_loss").choice(M, size=n_dead, replace=False)
             visible[:, dead] = False
-        # pin speed (px/s) drives motion blur: mean over the moving patch
-        vel = np.zeros_like(move)
-        vel[1:] = np.diff(move, axis=0) * self.fps
+        # pin motion in the image drives motion blur: per frame the mean velocity
+        # vector (px/s) and the mean speed (px/s) of all pins
+        vel = np.zeros((pins.shape[0], 3))
+        if pins.shape[0] > 1:
+            v = np.diff(pins, axis=0) * self.fps
+            vel[1:, :2] = v.mean(axis=1)
+            vel[1:, 2] = np.hypot(v[..., 0], v[..., 1]).mean(axis=1)
         imu = phys["imu_true"].copy()
         if "imu_noise" in effects:
             rng = stream(self.seed, "imu_noise")
@@ -96,7 +100,7 @@ class Simulator:
             "imu_true": phys["imu_true"],
             "imu": imu,
         }
-        self._pin_speed = vel
+        self._pin_motion = vel
         return truth
 
     # -- frames ----------------------------------------------------------------
@@ -106,7 +110,7 @@ class Simulator:
         if not 0 <= i < self.n_frames:
             raise IndexError(f"frame index {i} out of range 0..{self.n_frames - 1}")
         t = self.truth
-        return self.renderer.render(i, t["pins_px"][i], t["visible"][i], self._pin_speed[i],
+        return self.renderer.render(i, t["pins_px"][i], t["visible"][i], self._pin_motion[i],
                                     out=out)
 
     def frames(self):

@@ -1,0 +1,468 @@
+"""Measure TacTip frames the same way whether they are real or simulated.
+
+Every function here takes a sequence of frames (2-D gray or BGR uint8 arrays)
+and the :class:`device.pi.vision.VisionParams` of the front end, runs the very
+same Pi code (``device.pi.vision``) over them and returns a plain ``dict`` of
+finite numbers (JSON-ready). Comparing the dict of a real clip with the dict
+of a simulated clip tells how far the simulator is from reality.
+
+Hard cases (no dome found, no pins) give finite numbers (0.0) and a message in
+``faults``; nothing returns NaN.
+
+Units are in the key names: ``_px`` pixels, ``_px2`` square pixels, ``_gray``
+gray levels (0..255), ``_deg`` degrees.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Iterable, Sequence
+
+import cv2
+import numpy as np
+
+from device.pi.vision import (
+    PinDetector,
+    VisionParams,
+    dome_mask,
+    find_dome,
+    to_gray,
+)
+
+__all__ = [
+    "locate_dome",
+    "nearest_neighbour_px",
+    "pin_appearance",
+    "measure_static",
+    "track_pins",
+    "measure_drag_displacement",
+    "glare_blobs",
+    "measure_glare",
+    "radial_profile",
+]
+
+
+# --------------------------------------------------------------------------
+# Small helpers
+# --------------------------------------------------------------------------
+
+
+def _finite(x: float, default: float = 0.0) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else default
+
+
+def _stat(values: Sequence[float] | np.ndarray, fn, default: float = 0.0) -> float:
+    a = np.asarray(values, dtype=np.float64)
+    if a.size == 0:
+        return default
+    return _finite(fn(a), default)
+
+
+def _as_list(frames: Iterable[np.ndarray]) -> list[np.ndarray]:
+    out = [np.asarray(f) for f in frames]
+    if not out:
+        raise ValueError("frames must hold at least one frame, got frames=[] (0 frames)")
+    shape = out[0].shape[:2]
+    for i, f in enumerate(out):
+        if f.shape[:2] != shape:
+            raise ValueError(f"all frames must share one size, got frames[{i}].shape={f.shape!r} vs {shape!r}")
+    return out
+
+
+def locate_dome(frames: Sequence[np.ndarray], max_frames: int = 5) -> tuple[float, float, float] | None:
+    """Median dome (cx, cy, r) over the first few frames where one is found."""
+    found = []
+    for f in frames[: max(1, max_frames)]:
+        d = find_dome(f)
+        if d is not None:
+            found.append(d)
+    if not found:
+        return None
+    cx, cy, r = np.median(np.asarray(found), axis=0)
+    return float(cx), float(cy), float(r)
+
+
+def nearest_neighbour_px(xy: np.ndarray) -> np.ndarray:
+    """Distance from each point to its nearest other point, px (n,). Empty for n < 2."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(p) < 2:
+        return np.zeros((0,), np.float64)
+    d2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(-1)
+    np.fill_diagonal(d2, np.inf)
+    return np.sqrt(d2.min(axis=1))
+
+
+def pin_appearance(
+    gray: np.ndarray, xy: np.ndarray, inner_px: float = 5.0, outer_px: float = 8.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Peak gray (max of 3x3 at the centroid) and local background (median of the
+    annulus ``inner_px``..``outer_px``) for each pin. Pins too near the border are skipped.
+    """
+    g = to_gray(gray)
+    h, w = g.shape
+    ro = int(math.ceil(outer_px))
+    yy, xx = np.mgrid[-ro : ro + 1, -ro : ro + 1]
+    rr = np.hypot(xx, yy)
+    ring = (rr >= inner_px) & (rr <= outer_px)
+    peaks, bgs = [], []
+    for x, y in np.asarray(xy, dtype=np.float64).reshape(-1, 2):
+        xi, yi = int(round(x)), int(round(y))
+        if xi - ro < 0 or yi - ro < 0 or xi + ro >= w or yi + ro >= h:
+            continue
+        patch = g[yi - ro : yi + ro + 1, xi - ro : xi + ro + 1]
+        peaks.append(float(patch[ro - 1 : ro + 2, ro - 1 : ro + 2].max()))
+        bgs.append(float(np.median(patch[ring])))
+    return np.asarray(peaks), np.asarray(bgs)
+
+
+def _pin_profile_sigma(gray: np.ndarray, xy: np.ndarray, half: int = 6) -> float:
+    """Gaussian sigma (px) of the mean background-subtracted pin patch, 0 if unknown."""
+    g = to_gray(gray).astype(np.float32)
+    h, w = g.shape
+    acc = np.zeros((2 * half + 1, 2 * half + 1), np.float64)
+    n = 0
+    for x, y in np.asarray(xy, dtype=np.float64).reshape(-1, 2):
+        # resample the patch centred on the sub-pixel centroid
+        if x - half - 1 < 0 or y - half - 1 < 0 or x + half + 1 >= w or y + half + 1 >= h:
+            continue
+        patch = cv2.getRectSubPix(g, (2 * half + 1, 2 * half + 1), (float(x), float(y)))
+        acc += patch
+        n += 1
+    if n == 0:
+        return 0.0
+    acc /= n
+    yy, xx = np.mgrid[-half : half + 1, -half : half + 1]
+    r2 = (xx**2 + yy**2).astype(np.float64)
+    edge = acc[r2 >= (half - 1) ** 2]
+    amp = acc - float(np.median(edge))
+    peak = amp[half, half]
+    if peak <= 0:
+        return 0.0
+    sel = (amp > 0.15 * peak) & (r2 <= (half - 1) ** 2)
+    if np.count_nonzero(sel) < 4:
+        return 0.0
+    # log A - r^2 / (2 s^2): linear in r^2
+    slope, _ = np.polyfit(r2[sel], np.log(amp[sel]), 1)
+    if slope >= 0:
+        return 0.0
+    return _finite(math.sqrt(-1.0 / (2.0 * slope)))
+
+
+# --------------------------------------------------------------------------
+# Static appearance
+# --------------------------------------------------------------------------
+
+
+def measure_static(
+    frames: Iterable[np.ndarray],
+    params: VisionParams,
+    dome: tuple[float, float, float] | None = None,
+) -> dict:
+    """Pin count, size, spacing, brightness and glare of (rest) frames.
+
+    Returns a dict with:
+      dome_cx_px, dome_cy_px, dome_r_px: the region used (found on the frames if not given)
+      n_frames
+      pin_count_median, pin_count_iqr, pin_count_min, pin_count_max: pins per frame
+      pin_area_px2_median, pin_diameter_px_median: diameter = 2 sqrt(area / pi)
+      pin_spacing_px_median: median over frames of the median nearest-neighbour distance
+      pin_peak_gray_median, pin_background_gray_median, pin_contrast_gray_median
+      pin_sigma_px: Gaussian sigma of the mean pin profile
+      glare_area_px2_median: per-frame total area of blobs above max_area_px (removed
+          as glare) inside the ROI, median over frames
+      glare_count_median: number of such blobs per frame, median
+      faults: list of strings (empty when all went well)
+    """
+    fl = _as_list(frames)
+    faults: list[str] = []
+    if dome is None:
+        dome = locate_dome(fl)
+        if dome is None:
+            faults.append("no dome found; whole frame used")
+    det = PinDetector(params, fl[0].shape[:2], dome)
+    counts, areas_all, spacings = [], [], []
+    peaks, bgs, sigmas = [], [], []
+    glare_area, glare_count = [], []
+    for f in fl:
+        gray = to_gray(f)
+        xy, areas = det.detect_all(gray)
+        pin = (areas >= params.min_area_px) & (areas <= params.max_area_px)
+        big = areas > params.max_area_px
+        pxy = xy[pin]
+        counts.append(int(pin.sum()))
+        areas_all.extend(areas[pin].tolist())
+        nn = nearest_neighbour_px(pxy)
+        if nn.size:
+            spacings.append(float(np.median(nn)))
+        glare_area.append(float(areas[big].sum()))
+        glare_count.append(int(big.sum()))
+        if len(pxy):
+            pk, bg = pin_appearance(gray, pxy)
+            peaks.extend(pk.tolist())
+            bgs.extend(bg.tolist())
+            sigmas.append(_pin_profile_sigma(gray, pxy))
+    if sum(counts) == 0:
+        faults.append("no pins found in any frame")
+    a = np.asarray(areas_all, np.float64)
+    peaks_a, bgs_a = np.asarray(peaks), np.asarray(bgs)
+    cx, cy, r = dome if dome is not None else (fl[0].shape[1] / 2.0, fl[0].shape[0] / 2.0, 0.0)
+    return {
+        "dome_cx_px": _finite(cx),
+        "dome_cy_px": _finite(cy),
+        "dome_r_px": _finite(r),
+        "n_frames": len(fl),
+        "pin_count_median": _stat(counts, np.median),
+        "pin_count_iqr": _stat(counts, lambda v: np.percentile(v, 75) - np.percentile(v, 25)),
+        "pin_count_min": _stat(counts, np.min),
+        "pin_count_max": _stat(counts, np.max),
+        "pin_area_px2_median": _stat(a, np.median),
+        "pin_diameter_px_median": _stat(2.0 * np.sqrt(a / math.pi), np.median),
+        "pin_spacing_px_median": _stat(spacings, np.median),
+        "pin_peak_gray_median": _stat(peaks_a, np.median),
+        "pin_background_gray_median": _stat(bgs_a, np.median),
+        "pin_contrast_gray_median": _stat(peaks_a - bgs_a, np.median),
+        "pin_sigma_px": _stat([s for s in sigmas if s > 0], np.median),
+        "glare_area_px2_median": _stat(glare_area, np.median),
+        "glare_count_median": _stat(glare_count, np.median),
+        "faults": faults,
+    }
+
+
+# --------------------------------------------------------------------------
+# Displacement
+# --------------------------------------------------------------------------
+
+
+def _match(pred: np.ndarray, det: np.ndarray, max_px: float) -> np.ndarray:
+    """Mutual-nearest matching: index into ``det`` for each row of ``pred``, -1 if none."""
+    idx = np.full(len(pred), -1, np.int64)
+    if len(pred) == 0 or len(det) == 0:
+        return idx
+    d2 = ((pred[:, None, :] - det[None, :, :]) ** 2).sum(-1)
+    fwd = d2.argmin(axis=1)
+    back = d2.argmin(axis=0)
+    ok = (back[fwd] == np.arange(len(pred))) & (d2[np.arange(len(pred)), fwd] <= max_px * max_px)
+    idx[ok] = fwd[ok]
+    return idx
+
+
+def track_pins(
+    frames: Iterable[np.ndarray],
+    params: VisionParams,
+    dome: tuple[float, float, float] | None = None,
+    max_jump_px: float | None = None,
+) -> dict:
+    """Nearest-neighbour pin tracking from the first frame.
+
+    Each frame: tracked positions are first matched with a loose gate (to
+    estimate the median motion of the pin field), then shifted by that motion
+    and matched again with ``max_jump_px`` (default half the pin spacing).
+    Unmatched pins move with the field and are re-acquired later.
+
+    Returns ``ref_xy`` (n,2), ``xy`` (T,n,2) tracked positions, ``matched``
+    (T,n) bool, and ``dome``.
+    """
+    fl = _as_list(frames)
+    if dome is None:
+        dome = locate_dome(fl)
+    det = PinDetector(params, fl[0].shape[:2], dome)
+    ref, _ = det.detect(fl[0])
+    ref = ref.astype(np.float64)
+    n = len(ref)
+    T = len(fl)
+    xy = np.zeros((T, n, 2), np.float64)
+    matched = np.zeros((T, n), bool)
+    xy[0] = ref
+    matched[0] = True
+    if n == 0:
+        return {"ref_xy": ref, "xy": xy, "matched": matched, "dome": dome}
+    if max_jump_px is None:
+        nn = nearest_neighbour_px(ref)
+        spacing = float(np.median(nn)) if nn.size else 10.0
+        max_jump_px = 0.5 * spacing
+    cur = ref.copy()
+    for t in range(1, T):
+        found, _ = det.detect(fl[t])
+        found = found.astype(np.float64)
+        # pass 1: loose gate to find the field's motion
+        idx = _match(cur, found, 2.0 * max_jump_px)
+        ok = idx >= 0
+        shift = np.median(found[idx[ok]] - cur[ok], axis=0) if ok.sum() >= 3 else np.zeros(2)
+        pred = cur + shift
+        # pass 2: tight gate around the prediction
+        idx = _match(pred, found, max_jump_px)
+        ok = idx >= 0
+        cur = pred
+        cur[ok] = found[idx[ok]]
+        xy[t] = cur
+        matched[t] = ok
+    return {"ref_xy": ref, "xy": xy, "matched": matched, "dome": dome}
+
+
+def measure_drag_displacement(
+    frames: Iterable[np.ndarray],
+    params: VisionParams,
+    dome: tuple[float, float, float] | None = None,
+    max_jump_px: float | None = None,
+) -> dict:
+    """Pin displacement relative to the first frame, px.
+
+    Per frame: the median over tracked pins (matched in that frame) of
+    |position - first position|. Over frames: ``displacement_px_p90`` (the
+    typical maximum), ``displacement_px_max``, ``displacement_px_median``.
+    Also the per-frame series and the median share of pins matched.
+    """
+    fl = _as_list(frames)
+    tr = track_pins(fl, params, dome, max_jump_px)
+    xy, matched, ref = tr["xy"], tr["matched"], tr["ref_xy"]
+    faults: list[str] = []
+    per_frame = np.zeros(len(fl), np.float64)
+    if len(ref) == 0:
+        faults.append("no pins in the first frame")
+    else:
+        mag = np.hypot(*(xy - ref[None]).transpose(2, 0, 1))
+        for t in range(len(fl)):
+            m = matched[t]
+            per_frame[t] = float(np.median(mag[t, m])) if m.any() else (per_frame[t - 1] if t else 0.0)
+    frac = matched.mean(axis=1) if len(ref) else np.zeros(len(fl))
+    return {
+        "n_frames": len(fl),
+        "n_pins_ref": int(len(ref)),
+        "displacement_px_per_frame": [round(_finite(v), 3) for v in per_frame],
+        "displacement_px_p90": _stat(per_frame, lambda v: np.percentile(v, 90)),
+        "displacement_px_max": _stat(per_frame, np.max),
+        "displacement_px_median": _stat(per_frame, np.median),
+        "tracked_fraction_median": _stat(frac, np.median),
+        "faults": faults,
+    }
+
+
+# --------------------------------------------------------------------------
+# Glare (LED reflections) in detail
+# --------------------------------------------------------------------------
+
+
+def glare_blobs(
+    gray: np.ndarray,
+    dome: tuple[float, float, float],
+    pin_diameter_px: float = 6.0,
+    roi_shrink: float = 0.8,
+    min_amplitude_gray: float = 40.0,
+    background_px: int = 61,
+) -> list[dict]:
+    """Bright blurry blobs inside the dome, pins removed.
+
+    Pins are removed by a grey opening (disc of about two pin diameters); the
+    slowly varying dome background is a second opening with a
+    ``background_px`` disc. Local maxima of the difference above
+    ``min_amplitude_gray`` are glare blobs. For each: position (x, y and
+    radius/angle from the dome centre; angle in degrees from +x towards +y,
+    i.e. clockwise on screen), amplitude above background, peak gray,
+    background gray, area at half amplitude (px^2) and the sigma of a
+    Gaussian fitted to the blob (px).
+    """
+    g = to_gray(gray)
+    cx, cy, r = dome
+    k = int(max(3, round(2.0 * pin_diameter_px))) | 1
+    no_pins = cv2.morphologyEx(g, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k)))
+    no_pins = cv2.GaussianBlur(no_pins, (0, 0), 2.0)
+    kb = int(background_px) | 1
+    bg = cv2.morphologyEx(no_pins, cv2.MORPH_OPEN, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kb, kb)))
+    top = cv2.subtract(no_pins, bg)
+    mask = dome_mask(g.shape, dome, roi_shrink)
+    top = cv2.bitwise_and(top, mask)
+    # local maxima with a neighbourhood of about half the background scale
+    kd = max(3, kb // 2) | 1
+    dil = cv2.dilate(top, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd)))
+    ys, xs = np.nonzero((top == dil) & (top >= min_amplitude_gray))
+    # one maximum per plateau
+    seen = np.zeros(top.shape, np.uint8)
+    out = []
+    topf = top.astype(np.float64)
+    h, w = g.shape
+    half = kb // 2
+    for y, x in sorted(zip(ys, xs), key=lambda p: -int(top[p[0], p[1]])):
+        if seen[y, x]:
+            continue
+        cv2.circle(seen, (int(x), int(y)), kd // 2, 1, -1)
+        amp = float(top[y, x])
+        # half-amplitude area: the connected region around (x, y)
+        _, lab = cv2.connectedComponents((top >= 0.5 * amp).astype(np.uint8), connectivity=8)
+        area = float(np.count_nonzero(lab == lab[y, x]))
+        # Gaussian sigma: log-linear fit over the connected region above 30 % of
+        # the amplitude, inside a window around the peak
+        x0, x1 = max(0, x - half), min(w, x + half + 1)
+        y0, y1 = max(0, y - half), min(h, y + half + 1)
+        sub = top[y0:y1, x0:x1]
+        _, lab30 = cv2.connectedComponents((sub >= 0.3 * amp).astype(np.uint8), connectivity=8)
+        sel = lab30 == lab30[y - y0, x - x0]
+        gy, gx = np.nonzero(sel)
+        r2 = ((gx + x0 - x) ** 2 + (gy + y0 - y) ** 2).astype(np.float64)
+        sigma = 0.0
+        if r2.size >= 6:
+            slope, _ = np.polyfit(r2, np.log(topf[gy + y0, gx + x0]), 1)
+            if slope < 0:
+                sigma = _finite(math.sqrt(-1.0 / (2.0 * slope)))
+        dx, dy = x - cx, y - cy
+        out.append({
+            "x_px": float(x), "y_px": float(y),
+            "radius_px": _finite(math.hypot(dx, dy)),
+            "radius_frac": _finite(math.hypot(dx, dy) / r) if r > 0 else 0.0,
+            "angle_deg": _finite(math.degrees(math.atan2(dy, dx)) % 360.0),
+            "amplitude_gray": amp,
+            "peak_gray": float(no_pins[y, x]),
+            "background_gray": float(bg[y, x]),
+            "half_amplitude_area_px2": area,
+            "sigma_px": sigma,
+        })
+    return out
+
+
+def measure_glare(
+    frames: Iterable[np.ndarray],
+    dome: tuple[float, float, float] | None = None,
+    pin_diameter_px: float = 6.0,
+    roi_shrink: float = 0.8,
+    min_amplitude_gray: float = 40.0,
+) -> dict:
+    """Glare blob statistics over frames: count, size, brightness (medians) and
+    the blobs of the first frame in full."""
+    fl = _as_list(frames)
+    faults: list[str] = []
+    if dome is None:
+        dome = locate_dome(fl)
+    if dome is None:
+        return {"n_frames": len(fl), "glare_blob_count_median": 0.0, "blobs_first_frame": [],
+                "faults": ["no dome found"]}
+    per = [glare_blobs(f, dome, pin_diameter_px, roi_shrink, min_amplitude_gray) for f in fl]
+    flat = [b for bl in per for b in bl]
+
+    def med(key):
+        return _stat([b[key] for b in flat], np.median)
+
+    return {
+        "n_frames": len(fl),
+        "glare_blob_count_median": _stat([len(b) for b in per], np.median),
+        "glare_amplitude_gray_median": med("amplitude_gray"),
+        "glare_peak_gray_median": med("peak_gray"),
+        "glare_background_gray_median": med("background_gray"),
+        "glare_half_amplitude_area_px2_median": med("half_amplitude_area_px2"),
+        "glare_sigma_px_median": med("sigma_px"),
+        "glare_radius_frac_median": med("radius_frac"),
+        "blobs_first_frame": per[0],
+        "faults": faults,
+    }
+
+
+def radial_profile(gray: np.ndarray, centre: tuple[float, float], r_max: int) -> np.ndarray:
+    """Median gray at each integer radius 0..r_max-1 around ``centre`` (NaN-free; 0 if empty)."""
+    g = to_gray(gray)
+    h, w = g.shape
+    yy, xx = np.mgrid[:h, :w]
+    rr = np.hypot(xx - centre[0], yy - centre[1]).astype(np.int64)
+    out = np.zeros(int(r_max), np.float64)
+    for k in range(int(r_max)):
+        v = g[rr == k]
+        out[k] = float(np.median(v)) if v.size else 0.0
+    return out
