@@ -1,0 +1,103 @@
+"""host simulate / view / scenes / demo and the dataset folder."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from host import dataset
+from host.cli import main, simulate_to_dataset
+
+
+def test_simulate_writes_a_dataset_that_reads_back(tmp_path, capsys):
+    out = tmp_path / "ds"
+    rc = main(["simulate", "press-soft", "--out", str(out), "--seed", "4", "--trials", "2",
+               "--json"])
+    assert rc == 0
+    res = json.loads(capsys.readouterr().out)
+    assert len(res["trials"]) == 2
+    idx = dataset.read_index(out)
+    assert [t["seed"] for t in idx["trials"]] == [4, 5]
+    tr = dataset.load_trial(out, 1)
+    from device.sim import Simulator, load_scene
+    sim = Simulator(load_scene("press-soft"), seed=5)
+    assert tr["frames"].shape == (sim.n_frames, 480, 640)
+    assert np.array_equal(tr["frames"][30], sim.render(30))
+    assert np.array_equal(tr["pins_px"], sim.truth["pins_px"])
+    assert tr["info"]["profile"] == "roboskin" and tr["info"]["n_pins"] == 133
+    assert idx["surface_labels"][0] == "no-touch"
+
+
+def test_a_crash_mid_trial_loses_only_that_trial(tmp_path, monkeypatch):
+    out = tmp_path / "ds"
+    simulate_to_dataset("no-touch", out, seed=0, progress=False)
+    real = np.savez_compressed
+
+    def dying(fh, **arrays):
+        real(fh, **{k: v for k, v in list(arrays.items())[:2]})
+        raise KeyboardInterrupt("power cut")
+
+    monkeypatch.setattr(np, "savez_compressed", dying)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_to_dataset("no-touch", out, seed=1, progress=False)
+    monkeypatch.undo()
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["dataset.json", "trial_0000.npz"]          # no temp file left behind
+    assert len(dataset.read_index(out)["trials"]) == 1
+    assert dataset.load_trial(out, 0)["frames"].shape[0] > 0
+    simulate_to_dataset("no-touch", out, seed=1, progress=False)   # and it carries on
+    assert len(dataset.read_index(out)["trials"]) == 2
+
+
+def test_reading_a_non_dataset_is_a_clear_error(tmp_path):
+    with pytest.raises(dataset.DatasetError, match="not a tacfoot dataset"):
+        dataset.read_index(tmp_path)
+    (tmp_path / "dataset.json").write_text("{broken")
+    with pytest.raises(dataset.DatasetError, match="corrupt index"):
+        dataset.read_index(tmp_path)
+
+
+@pytest.mark.parametrize("suffix", ["gif", "png"])
+def test_view_draws_scene_and_dataset(tmp_path, suffix, capsys):
+    out = tmp_path / f"p.{suffix}"
+    assert main(["view", "drag-90", "--out", str(out), "--max-frames", "4"]) == 0
+    from PIL import Image
+    im = Image.open(out)
+    assert im.size[0] > 100
+    if suffix == "gif":
+        assert getattr(im, "n_frames", 1) == 4
+    ds = tmp_path / "ds"
+    simulate_to_dataset("drag-90", ds, progress=False)
+    out2 = tmp_path / f"d.{suffix}"
+    assert main(["view", str(ds), "--out", str(out2)]) == 0
+    assert out2.stat().st_size > 1000
+
+
+def test_view_bad_suffix_is_exit_2(tmp_path, capsys):
+    assert main(["view", "drag-90", "--out", str(tmp_path / "x.jpg")]) == 2
+    assert ".gif or .png" in capsys.readouterr().err
+
+
+def test_scenes_json_lists_every_builtin(capsys):
+    assert main(["scenes", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    names = {r["name"] for r in rows}
+    assert {"walk", "no-touch", "slip-onset"} <= names
+    assert all(r["frames"] > 0 for r in rows)
+
+
+def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert (tmp_path / "preview.gif").stat().st_size > 10_000
+    assert (tmp_path / "ground_truth.png").stat().st_size > 10_000
+    assert res["contact_frames"] > 0 and res["slip_frames"] > 0
+
+
+def test_python_dash_m_host_works():
+    r = subprocess.run([sys.executable, "-m", "host", "scenes"], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and "walk" in r.stdout
