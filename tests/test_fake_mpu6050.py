@@ -526,3 +526,30 @@ def test_real_concrete_gyro_round_trip():
         v = burst(bus)
         np.testing.assert_allclose(np.array(v[:3]) / 16384, motion[i, :3], atol=0.5 / 16384 + 1e-12)
         np.testing.assert_allclose(np.array(v[4:]) / 65.5, motion[i, 3:], atol=0.5 / 65.5 + 1e-12)
+
+
+def test_from_scene_reads_the_walks_steps_and_slip_jerks():
+    """Driven by the simulator: touchdowns and slip jerks show in the burst reads."""
+    import struct
+
+    from device.sim import Simulator, load_scene
+    from device.sim.fake_mpu6050 import FakeMPU6050
+
+    truth = Simulator(load_scene("slip-onset"), seed=0).truth
+    imu = FakeMPU6050.from_scene("slip-onset", seed=0, clock=None)
+    imu.write_byte_data(0x68, 0x6B, 0x00)               # wake
+    imu.write_byte_data(0x68, 0x1C, 0x08)               # +-4 g
+    az, gz = [], []
+    for i in range(imu.n_frames):
+        imu.seek(i)
+        raw = struct.unpack(">hhhhhhh", bytes(imu.read_i2c_block_data(0x68, 0x3B, 14)))
+        az.append(raw[2] / 8192.0)
+        gz.append(raw[6] / 131.0)
+    az, gz = np.array(az), np.array(gz)
+    touch = np.flatnonzero(truth["contact"][1:] & ~truth["contact"][:-1]) + 1
+    onset = np.flatnonzero(truth["slip"][1:] & ~truth["slip"][:-1]) + 1
+    assert len(touch) == 2 and len(onset) >= 2
+    assert np.all(az[touch] > 1.05)                      # touchdown impact above 1 g
+    assert np.median(az[~truth["contact"]]) == pytest.approx(1.0, abs=0.01)
+    assert np.all(np.abs(gz[onset]) > 10)                # slip jerk
+    assert np.abs(gz[~truth["slip"]]).max() < 1.0

@@ -289,6 +289,16 @@ class FakeMPU6050:
         """Build from a recorded ``(F, 6)`` .npy file (e.g. roboskin/concrete_gyro.npy)."""
         return cls(np.load(Path(path), allow_pickle=False), fps, **kwargs)
 
+    @classmethod
+    def from_scene(cls, scene, seed: int = 0, **kwargs) -> "FakeMPU6050":
+        """Readings from a simulator scene's motion (name, path or Scene): steps,
+        drag vibration and slip jerks, with ``imu_noise`` if the scene names it."""
+        from .scene import Scene, load_scene
+        from .simulator import Simulator
+        sc = scene if isinstance(scene, Scene) else load_scene(scene)
+        sim = Simulator(sc, seed=seed)
+        return cls(sim.truth["imu"], sc.fps, **kwargs)
+
     # ------------------------------------------------------------ test controls
     @property
     def n_frames(self) -> int:
