@@ -1,0 +1,110 @@
+"""Deployable model artefacts: one ONNX file plus a JSON manifest.
+
+A pickle is never loaded on the Pi. The manifest names the ONNX file, its SHA-256,
+the feature-spec version the model was trained against, and the input layout.
+:func:`load_model` refuses a model whose checksum or feature-spec version does not
+match, or whose files are missing, truncated or corrupt, with a message that names
+the file.
+
+manifest.json (keys the loader needs; writers add more, e.g. metrics)::
+
+    {"format": "tacfoot-model", "version": 1, "kind": "localiser",
+     "feature_spec": 1, "onnx": "model.onnx", "sha256": {"model.onnx": "..."},
+     "input": {"name": "x", "shape": [null, 1200], "dtype": "float32"},
+     "outputs": ["y"], ...}
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "tacfoot-model"
+VERSION = 1
+#: bump when the feature code changes what a model sees
+FEATURE_SPEC_VERSION = 1
+MANIFEST = "manifest.json"
+
+
+class ModelError(ValueError):
+    """A model artefact cannot be used; the message names the file."""
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def read_manifest(path: Path | str) -> tuple[dict, Path]:
+    """(manifest, folder) from a model folder or a manifest path."""
+    path = Path(path)
+    mpath = path / MANIFEST if path.is_dir() else path
+    try:
+        doc = json.loads(mpath.read_text())
+    except FileNotFoundError:
+        raise ModelError(f"{mpath}: model manifest not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelError(f"{mpath}: corrupt manifest ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ModelError(f"{mpath}: not a tacfoot model manifest (format "
+                         f"{doc.get('format') if isinstance(doc, dict) else doc!r})")
+    if int(doc.get("version", 0)) > VERSION:
+        raise ModelError(f"{mpath}: manifest version {doc.get('version')} is newer than "
+                         f"this runtime reads ({VERSION})")
+    for key in ("onnx", "sha256", "feature_spec", "input"):
+        if key not in doc:
+            raise ModelError(f"{mpath}: manifest lacks {key!r}")
+    return doc, mpath.parent
+
+
+@dataclass
+class Model:
+    """An ONNX Runtime session (single thread) with its manifest."""
+    manifest: dict
+    path: Path
+    session: object
+    input_name: str
+
+    def run(self, x: np.ndarray) -> list[np.ndarray]:
+        return self.session.run(None, {self.input_name: x})
+
+    @property
+    def kind(self) -> str:
+        return self.manifest.get("kind", "")
+
+
+def load_model(path: Path | str, expect_kind: str | None = None,
+               feature_spec: int = FEATURE_SPEC_VERSION, threads: int = 1) -> Model:
+    import onnxruntime as ort
+
+    doc, folder = read_manifest(path)
+    if int(doc["feature_spec"]) != feature_spec:
+        raise ModelError(f"{folder / MANIFEST}: feature-spec version {doc['feature_spec']} "
+                         f"does not match this runtime's {feature_spec}; retrain the model")
+    if expect_kind is not None and doc.get("kind") != expect_kind:
+        raise ModelError(f"{folder / MANIFEST}: kind is {doc.get('kind')!r}, "
+                         f"expected {expect_kind!r}")
+    onnx_path = folder / doc["onnx"]
+    if not onnx_path.is_file():
+        raise ModelError(f"{onnx_path}: model file missing")
+    want = doc["sha256"].get(doc["onnx"]) if isinstance(doc["sha256"], dict) else None
+    got = sha256_file(onnx_path)
+    if want != got:
+        raise ModelError(f"{onnx_path}: checksum {got[:12]}... does not match the manifest "
+                         f"({str(want)[:12]}...); the file is corrupt, truncated or replaced")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    try:
+        sess = ort.InferenceSession(str(onnx_path), sess_options=so,
+                                    providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own exception types
+        raise ModelError(f"{onnx_path}: ONNX Runtime cannot load it ({exc})") from None
+    return Model(doc, folder, sess, sess.get_inputs()[0].name)

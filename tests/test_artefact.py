@@ -1,0 +1,75 @@
+"""ONNX + manifest artefacts: round trip, and refusal of bad files by name."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from sklearn.linear_model import Ridge
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import StandardScaler
+
+from device.pi.artefact import ModelError, load_model
+from host.export import sklearn_to_onnx, write_model
+
+
+@pytest.fixture()
+def ridge_dir(tmp_path):
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(200, 12)).astype(np.float32)
+    y = X @ rng.normal(size=(12, 3)) + 0.1
+    est = make_pipeline(StandardScaler(), Ridge(alpha=1.0)).fit(X, y)
+    out = write_model(sklearn_to_onnx(est, 12), tmp_path / "m", kind="pressure", n_features=12,
+                      extra={"targets": ["a", "b", "c"]})
+    return out, est, X
+
+
+def test_round_trip_matches_sklearn(ridge_dir):
+    out, est, X = ridge_dir
+    m = load_model(out, expect_kind="pressure")
+    y = m.run(X)[0]
+    assert np.allclose(y, est.predict(X), atol=1e-4)
+    assert m.manifest["targets"] == ["a", "b", "c"]
+
+
+def test_truncated_model_is_refused_by_name(ridge_dir):
+    out, _, _ = ridge_dir
+    p = out / "model.onnx"
+    p.write_bytes(p.read_bytes()[:100])
+    with pytest.raises(ModelError, match=r"model\.onnx: checksum"):
+        load_model(out)
+
+
+def test_corrupt_model_with_matching_checksum_is_refused(ridge_dir):
+    out, _, _ = ridge_dir
+    from device.pi.artefact import sha256_file
+    p = out / "model.onnx"
+    p.write_bytes(b"\x00garbage" * 10)
+    doc = json.loads((out / "manifest.json").read_text())
+    doc["sha256"]["model.onnx"] = sha256_file(p)
+    (out / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match=r"model\.onnx: ONNX Runtime cannot load"):
+        load_model(out)
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda d: d.update(feature_spec=99), "feature-spec version 99"),
+    (lambda d: d.update(format="other"), "not a tacfoot model"),
+    (lambda d: d.pop("sha256"), "lacks 'sha256'"),
+    (lambda d: d.update(kind="surface"), "expected 'pressure'"),
+])
+def test_bad_manifest_is_refused(ridge_dir, edit, match):
+    out, _, _ = ridge_dir
+    doc = json.loads((out / "manifest.json").read_text())
+    edit(doc)
+    (out / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match=match):
+        load_model(out, expect_kind="pressure")
+
+
+def test_missing_and_garbled_manifest(tmp_path):
+    with pytest.raises(ModelError, match="manifest not found"):
+        load_model(tmp_path)
+    (tmp_path / "manifest.json").write_text("{nope")
+    with pytest.raises(ModelError, match="corrupt manifest"):
+        load_model(tmp_path)
