@@ -160,6 +160,26 @@ def cmd_bench(args):
         _emit(args, res, bench.format_sim(res))
 
 
+def real_data_dir(given: str | None) -> Path:
+    import os
+    for cand in (given, os.environ.get("TACFOOT_REAL_DATA"),
+                 Path(__file__).resolve().parents[1].parent / "shared" / "data"):
+        if cand and Path(cand).is_dir():
+            return Path(cand)
+    raise UserError("real recordings not found: pass --data DIR or set TACFOOT_REAL_DATA")
+
+
+def cmd_realism(args):
+    from host.realism import realism_table, roboskin_realism, side_by_side_png
+    data = real_data_dir(args.data)
+    res = roboskin_realism(data, seed=args.seed)
+    if args.png:
+        res["png"] = side_by_side_png(data, args.png, seed=args.seed)
+    _emit(args, res, realism_table(res) + ("\nall compared figures within 20%: "
+                                           f"{'yes' if res['all_within_20pct'] else 'NO'}"))
+    return 0 if res["all_within_20pct"] else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="host", description="tacfoot host toolkit")
     sub = p.add_subparsers(dest="command", required=True)
@@ -192,6 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_demo)
 
+    s = sub.add_parser("realism", help="simulated roboskin against the real clips")
+    s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
+                                  "../shared/data)")
+    s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_realism)
+
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
     s.add_argument("what", choices=["sim"])
     s.add_argument("--repeats", type=int, default=20)
@@ -206,13 +234,13 @@ def main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     try:
-        args.func(args)
+        rc = args.func(args)
     except (ConfigError, DatasetError, UserError) as exc:
         print(f"host {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except BrokenPipeError:
         return 0
-    return 0
+    return int(rc or 0)
 
 
 if __name__ == "__main__":

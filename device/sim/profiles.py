@@ -29,6 +29,9 @@ class GlareSpec:
     sigma_px: float = 10.0
     peak: float = 0.0
     phase_deg: float = 0.0
+    centre_px: tuple[float, float] | None = None   # ring centre; default the dome centre
+    centre_peak: float = 0.0       # a weaker blob near the middle of the dome
+    centre_offset_px: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,7 @@ class SensorProfile:
     vignette: float                # fractional darkening of the dome towards its rim
     pins_px: np.ndarray = field(repr=False)   # (M, 2) rest positions, native px
     glare: GlareSpec = GlareSpec()
+    rim_radius_px: float = 0.0     # darkest ring of the dome wall (0: at dome_radius_px)
     # contact mechanics
     modulus_n_per_mm2: float = 0.35        # effective Hertz modulus E*
     skin_stiffness_n_per_mm: float = 3.0   # linearised normal stiffness of the skin
@@ -116,6 +120,7 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
     pin_level = f.number("pin_level", 200, min=0, max=255)
     surround_level = f.number("surround_level", 235, min=0, max=255)
     vignette = f.number("vignette", 0.0, min=0, max=1)
+    rim_r = f.number("rim_radius_px", 0.0, min=0)
     mech = dict(
         modulus_n_per_mm2=f.number("modulus_n_per_mm2", 0.35, min=0, min_exclusive=True),
         skin_stiffness_n_per_mm=f.number("skin_stiffness_n_per_mm", 3.0, min=0, min_exclusive=True),
@@ -128,17 +133,18 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
 
     lay = top.sub("layout")
     kind = lay.string("kind", choices=("radial", "hex"))
+    lay_centre = lay.pair("centre_px", centre)
     if kind == "radial":
         rings = lay.number_list("rings", integer=True, min=1)
         radii = lay.number_list("ring_radii_px", min=0)
         phases = lay.number_list("ring_phase_deg", [0.0] * len(rings))
         if not (len(rings) == len(radii) == len(phases)):
             lay.fail("layout.ring_radii_px", radii, f"must have one entry per ring ({len(rings)})")
-        pins = radial_layout(rings, radii, phases, centre)
+        pins = radial_layout(rings, radii, phases, lay_centre)
     else:
         n_rings = lay.integer("hex_rings", min=0, max=60)
         pitch = lay.number("pitch_px", min=0, min_exclusive=True)
-        pins = hex_layout(n_rings, pitch, centre)
+        pins = hex_layout(n_rings, pitch, lay_centre)
         # a hexagon's corners can stick out of a round dome: keep what fits
         keep = np.hypot(*(pins - centre).T) <= dome_r - pin_d / 2
         pins = pins[keep]
@@ -151,7 +157,10 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
                           ring_radius_px=g.number("ring_radius_px", 0.0, min=0),
                           sigma_px=g.number("sigma_px", 10.0, min=0.5),
                           peak=g.number("peak", 60.0, min=0, max=255),
-                          phase_deg=g.number("phase_deg", 0.0))
+                          phase_deg=g.number("phase_deg", 0.0),
+                          centre_px=g.pair("centre_px", centre),
+                          centre_peak=g.number("centre_peak", 0.0, min=0, max=255),
+                          centre_offset_px=g.pair("centre_offset_px", (0.0, 0.0)))
         g.done()
     top.done()
     if pins.shape[0] == 0:
@@ -160,4 +169,4 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
                          dome_radius_px=dome_r, px_per_mm=px_per_mm, dome_radius_mm=dome_r_mm,
                          pin_diameter_px=pin_d, style=style, dome_level=dome_level,
                          pin_level=pin_level, surround_level=surround_level, vignette=vignette,
-                         pins_px=pins, glare=glare, **mech)
+                         pins_px=pins, glare=glare, rim_radius_px=rim_r, **mech)

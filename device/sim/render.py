@@ -79,16 +79,18 @@ class Renderer:
             return np.full((h, w), p.dome_level if p.dome_level else 0, np.uint8)
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         r = np.hypot(xx - self.centre[0], yy - self.centre[1])
-        rn = r / self.dome_r
+        rim = (p.rim_radius_px or p.dome_radius_px) * self.scale
         img = np.full((h, w), p.surround_level, np.float32)
         # the surround dims towards the frame corners, as a wide-angle lens does
         far = np.clip((r - 1.6 * self.dome_r) / (2.2 * self.dome_r), 0, 1)
         img -= far ** 2 * 0.6 * p.surround_level
-        dome = p.dome_level * (1.0 - p.vignette * np.clip(rn, 0, 1) ** 2)
-        img = np.where(rn <= 1.0, dome, img)
-        # a dark rim where the dome's wall meets the surround
-        rim = np.exp(-((rn - 1.0) * self.dome_r / max(1.0, 4.0 * self.scale)) ** 2)
-        img = img * (1.0 - 0.7 * rim)
+        inner = p.dome_level * (1.0 - p.vignette * np.clip(r / rim, 0, 1) ** 2)
+        # the dome wall: darkest at the rim radius, dark out to the dome's edge
+        wall = 0.45 * p.dome_level
+        dip = np.exp(-((r - rim) / max(1.0, 5.0 * self.scale)) ** 2)
+        inner = inner * (1.0 - dip) + wall * dip
+        inner = np.where(r > rim, wall, inner)
+        img = np.where(r <= self.dome_r, inner, img)
         k = max(3, int(2 * round(2 * self.scale) + 1))
         img = cv2.GaussianBlur(img, (k, k), 0)
         return np.clip(img, 0, 255).astype(np.uint8)
@@ -103,26 +105,40 @@ class Renderer:
 
     def _glare_layer(self, params: dict) -> np.ndarray:
         g = self.profile.glare
+        sx, sy = self.width / self.profile.width, self.height / self.profile.height
         count = int(params["count"]) if params["count"] >= 0 else (g.count or 6)
         peak = params["peak"] if params["peak"] >= 0 else (g.peak or 70.0)
         ring = g.ring_radius_px * self.scale if g.count else 0.45 * self.dome_r
         sigma = (g.sigma_px * self.scale) if g.count else 0.08 * self.dome_r
+        if params["sigma_px"] > 0:
+            sigma = params["sigma_px"] * self.scale
+        centre = (np.array(g.centre_px) * (sx, sy) if g.centre_px is not None
+                  else self.centre)
+        blobs = [(centre[0] + ring * math.cos(th), centre[1] + ring * math.sin(th), peak)
+                 for th in (math.radians(g.phase_deg) + 2 * math.pi * k / max(count, 1)
+                            for k in range(count))]
+        if g.centre_peak > 0:
+            off = np.array(g.centre_offset_px) * (sx, sy)
+            blobs.append((self.centre[0] + off[0], self.centre[1] + off[1],
+                          g.centre_peak * peak / max(g.peak, 1e-9)))
         h, w = self.height, self.width
         yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
         layer = np.zeros((h, w), np.float32)
-        for k in range(count):
-            th = math.radians(g.phase_deg) + 2 * math.pi * k / max(count, 1)
-            cx = self.centre[0] + ring * math.cos(th)
-            cy = self.centre[1] + ring * math.sin(th)
-            layer += np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma * sigma))
-        layer = np.clip(layer * peak, 0, 255)
+        for cx, cy, amp in blobs:
+            layer += amp * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma * sigma))
+        # glare lights the dome, not the already-white surround
+        layer *= np.hypot(xx - self.centre[0], yy - self.centre[1]) <= self.dome_r
+        layer = np.clip(layer, 0, 255)
         if self.binary:
             layer = np.where(layer > 0.5 * peak, 255.0, 0.0)
         return layer.astype(np.uint8)
 
     def _build_sprites(self):
         rp = self.pin_r
-        c = int(math.ceil(rp)) + 1
+        # camera pins have a soft, Gaussian-like profile (sigma ~ diameter / 2.8,
+        # as measured on the real clips); binary pins are hard discs
+        sigma = 2.0 * rp / 2.8
+        c = int(math.ceil(rp)) + 1 if self.binary else int(math.ceil(2.5 * sigma))
         size = 2 * c + 1
         q = SUBPIXEL
         alphas, offsets = [], []
@@ -130,9 +146,11 @@ class Renderer:
         for fy in range(q):
             for fx in range(q):
                 d = np.hypot(xx - c - fx / q, yy - c - fy / q)
-                a = np.clip(rp + 0.5 - d, 0.0, 1.0)
                 if self.binary:
-                    a = (a >= 0.5).astype(np.float64)
+                    a = (d <= rp).astype(np.float64)
+                else:
+                    a = np.exp(-0.5 * (d / sigma) ** 2)
+                    a[a < 0.03] = 0.0
                 ys, xs = np.nonzero(a > 0)
                 if ys.size == 0:
                     ys, xs = np.array([c]), np.array([c])

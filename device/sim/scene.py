@@ -66,7 +66,8 @@ class Effect:
 
 # name -> {param: (default, min, max)}
 EFFECTS: dict[str, dict[str, tuple[float, float, float]]] = {
-    "glare": {"peak": (-1.0, -1.0, 255.0), "count": (-1.0, -1.0, 64.0)},
+    "glare": {"peak": (-1.0, -1.0, 255.0), "count": (-1.0, -1.0, 64.0),
+              "sigma_px": (-1.0, -1.0, 1000.0)},
     "camera_noise": {"sigma": (4.0, 0.0, 128.0)},
     "exposure_flicker": {"amplitude": (0.08, 0.0, 0.9)},
     "motion_blur": {"exposure_ms": (8.0, 0.0, 1000.0)},

@@ -51,10 +51,12 @@ class Simulator:
         safe_d = np.maximum(dist, 1e-9)
         safe_a = np.maximum(a, 1e-9)[:, None]
         inside = dist < safe_a
-        falloff = np.where(inside, 1.0, (safe_a / safe_d) ** 2)
-        spread = np.where(inside, dist / safe_a, falloff)
+        # normal spread falls off as (a/r)^2 outside the patch; shear carries
+        # further, since the skin is one membrane: 1 / (1 + ((r - a) / a)^2)
+        spread = np.where(inside, dist / safe_a, (safe_a / safe_d) ** 2)
+        carry = np.where(inside, 1.0, 1.0 / (1.0 + ((dist - safe_a) / safe_a) ** 2))
         pins = (rest[None] + (u_n[:, None] * spread / safe_d)[..., None] * rel
-                + falloff[..., None] * move[:, None, :])
+                + carry[..., None] * move[:, None, :])
         self.rest_pins_px = rest.astype(np.float32)
         if "lens_distortion" in effects:
             self.rest_pins_px = distort_points(rest, self.width, self.height,
