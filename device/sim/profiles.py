@@ -144,10 +144,16 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
     else:
         n_rings = lay.integer("hex_rings", min=0, max=60)
         pitch = lay.number("pitch_px", min=0, min_exclusive=True)
+        count = lay.integer("count", 0, min=0)
         pins = hex_layout(n_rings, pitch, lay_centre)
-        # a hexagon's corners can stick out of a round dome: keep what fits
+        # a hexagon's corners can stick out of a round dome: keep what fits, and
+        # with ``count`` the pins nearest the centre (a hex grid cut to a disc)
         keep = np.hypot(*(pins - centre).T) <= dome_r - pin_d / 2
         pins = pins[keep]
+        if count:
+            if count > len(pins):
+                lay.fail("layout.count", count, f"must be <= the {len(pins)} pins that fit")
+            pins = pins[np.argsort(np.hypot(*(pins - lay_centre).T), kind="stable")[:count]]
     lay.done()
 
     glare = GlareSpec()
