@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import ConfigError, Fields, read_toml
+from device.config import ConfigError, Fields, read_toml
 
-PROFILE_DIR = Path(__file__).with_name("profiles")
+PROFILE_DIR = Path(__file__).resolve().parents[1] / "profiles"
 
 
 @dataclass(frozen=True)
@@ -156,6 +156,7 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
             pins = pins[np.argsort(np.hypot(*(pins - lay_centre).T), kind="stable")[:count]]
     lay.done()
 
+    top.raw("vision")      # the pipeline's section (device/pi/profile.py)
     glare = GlareSpec()
     if top.has("glare"):
         g = top.sub("glare")

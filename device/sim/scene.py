@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from .config import ConfigError, Fields, read_toml
+from device.config import ConfigError, Fields, read_toml
 from .profiles import SensorProfile, load_profile
 
 SCENE_DIR = Path(__file__).with_name("scenes")

@@ -1,0 +1,118 @@
+"""Features from the binary image and the pin vectors (the paper's section III).
+
+* :class:`ContactGrid` - the receptive-field contact grid (the paper's eq. 1).
+* :func:`average_vector` - the mean pin vector: shear direction and magnitude.
+* :func:`magnitude_sum` - the sum of pin-vector magnitudes, P (the paper's eq. 3).
+
+All of them return finite numbers for any input, including empty or NaN vectors.
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+class ContactGrid:
+    """Where on the dome the binary image has changed since the reference.
+
+    Per frame ``t`` with binary images ``B`` (0/255):
+
+    1. ``D = |B_t - B_0| / 255``, the pixels that changed since the reference;
+    2. ``c_ij``, the mean of ``D`` over cell ``(i, j)`` of an ``n x n`` grid;
+    3. subtract the global mean change ``mean(D)``, which removes what the
+       whole dome does at once (exposure, a global shift);
+    4. the temporal dampener: ``G_t = max(0, max(c - mean(D), G_{t-1}) - gamma)``.
+       A stimulus registers at once and fades by ``gamma`` per frame after it
+       ends; steady changes smaller than ``gamma`` never register.
+
+    The cell means come from an area resize, so a grid larger than the image
+    or cells of less than one pixel never divide by zero.
+    """
+
+    def __init__(self, n: int = 8, gamma: float = 0.01, contact_threshold: float = 0.04):
+        if not isinstance(n, (int, np.integer)) or not 1 <= n <= 256:
+            raise ValueError(f"grid n must be a whole number in 1..256, got {n!r}")
+        for name, v in (("gamma", gamma), ("contact_threshold", contact_threshold)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v <= 1):
+                raise ValueError(f"{name} must be in 0..1, got {v!r}")
+        self.n = int(n)
+        self.gamma = float(gamma)
+        self.contact_threshold = float(contact_threshold)
+        self.grid = np.zeros((self.n, self.n), np.float32)
+        self._ref: np.ndarray | None = None
+        self._diff: np.ndarray | None = None
+        self._cells = np.zeros((self.n, self.n), np.float32)
+
+    @property
+    def has_reference(self) -> bool:
+        return self._ref is not None
+
+    def set_reference(self, binary: np.ndarray) -> None:
+        self._ref = np.array(binary, dtype=np.uint8, copy=True)
+        self._diff = np.empty_like(self._ref)
+        self.grid[:] = 0.0
+
+    def clear_reference(self) -> None:
+        self._ref = None
+        self.grid[:] = 0.0
+
+    def update(self, binary: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(grid (n, n) float32 in 0..1, contact flag). Without a reference, or
+        for an image of another size, the grid decays and reports no contact."""
+        ref = self._ref
+        if (ref is None or binary is None or binary.shape != ref.shape or binary.size == 0
+                or binary.dtype != np.uint8):
+            np.subtract(self.grid, self.gamma, out=self.grid)
+            np.maximum(self.grid, 0.0, out=self.grid)
+            return self.grid, False
+        cv2.absdiff(binary, ref, dst=self._diff)
+        small = cv2.resize(self._diff, (self.n, self.n), interpolation=cv2.INTER_AREA)
+        np.multiply(small, 1.0 / 255.0, out=self._cells, casting="unsafe")
+        glob = float(self._cells.mean())
+        self._cells -= glob
+        np.maximum(self._cells, self.grid, out=self.grid)
+        self.grid -= self.gamma
+        np.maximum(self.grid, 0.0, out=self.grid)
+        return self.grid, bool(self.grid.max() > self.contact_threshold)
+
+
+def _finite_rows(vectors: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    v = np.asarray(vectors, dtype=np.float64).reshape(-1, 2)
+    ok = np.isfinite(v).all(axis=1)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool).reshape(-1)
+    return v[ok]
+
+
+def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
+    """Mean (dx, dy) over the valid, finite pin vectors; (0, 0) when none."""
+    v = _finite_rows(vectors, valid)
+    if v.shape[0] == 0:
+        return 0.0, 0.0
+    m = v.mean(axis=0)
+    return float(m[0]), float(m[1])
+
+
+def direction_deg(dx: float, dy: float) -> float:
+    """Angle of a vector in image coordinates (x right, y down), degrees in [0, 360)."""
+    if not (math.isfinite(dx) and math.isfinite(dy)) or (dx == 0 and dy == 0):
+        return 0.0
+    return math.degrees(math.atan2(dy, dx)) % 360.0
+
+
+def magnitude_sum(vectors: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """P = sum of |v_i| over the valid, finite pin vectors (the paper's eq. 3)."""
+    v = _finite_rows(vectors, valid)
+    if v.shape[0] == 0:
+        return 0.0
+    return float(np.hypot(v[:, 0], v[:, 1]).sum())
+
+
+def vector_features(vectors: np.ndarray, lost: np.ndarray) -> np.ndarray:
+    """The regressors' input: all pin vectors flattened, then the lost flags,
+    as float32 with NaN/inf replaced by 0 (the lost flag carries that fact)."""
+    v = np.nan_to_num(np.asarray(vectors, dtype=np.float32).reshape(-1), nan=0.0,
+                      posinf=0.0, neginf=0.0)
+    return np.concatenate([v, np.asarray(lost, dtype=np.float32).reshape(-1)])

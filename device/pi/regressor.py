@@ -1,0 +1,48 @@
+"""A Ridge regressor (pressure or depth from all pin vectors) run through ONNX Runtime."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from device.pi.artefact import ModelError, load_model
+
+
+class Regressor:
+    """Loaded once; :meth:`predict_one` is the per-frame call.
+
+    Inputs are cleaned (NaN/inf -> 0) and clipped to the range seen in
+    training (stored in the manifest as ``input_clip``), so an extreme frame
+    cannot push the output to infinity; a non-finite output gives the
+    training mean instead and sets :attr:`fault`.
+    """
+
+    def __init__(self, model, kind: str = "pressure"):
+        self.model = model
+        m = model.manifest
+        self.n_features = int(m["input"]["shape"][1])
+        clip = m.get("input_clip")
+        self._lo = self._hi = None
+        if clip is not None:
+            self._lo = np.asarray(clip[0], np.float32)
+            self._hi = np.asarray(clip[1], np.float32)
+        self.fallback = float(m.get("target_mean", 0.0))
+        self._x = np.zeros((1, self.n_features), np.float32)
+        self.fault = False
+
+    @classmethod
+    def load(cls, path, kind: str = "pressure") -> "Regressor":
+        return cls(load_model(path, expect_kind=kind), kind)
+
+    def predict_one(self, features: np.ndarray) -> float:
+        x = self._x
+        f = np.asarray(features, dtype=np.float32).reshape(-1)
+        if f.size != self.n_features:
+            raise ModelError(f"{self.model.path}: expects {self.n_features} features, "
+                             f"got {f.size}")
+        x[0] = np.nan_to_num(f, nan=0.0, posinf=0.0, neginf=0.0)
+        if self._lo is not None:
+            np.clip(x, self._lo, self._hi, out=x)
+        y = float(np.asarray(self.model.run(x)[0]).reshape(-1)[0])
+        self.fault = not math.isfinite(y)
+        return self.fallback if self.fault else y
