@@ -78,12 +78,16 @@ class ContactGrid:
         return self.grid, bool(self.grid.max() > self.contact_threshold)
 
 
+#: no pin moves further than this; larger values are clipped so sums stay finite
+MAX_VECTOR_PX = 1e6
+
+
 def _finite_rows(vectors: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
     v = np.asarray(vectors, dtype=np.float64).reshape(-1, 2)
     ok = np.isfinite(v).all(axis=1)
     if valid is not None:
         ok &= np.asarray(valid, dtype=bool).reshape(-1)
-    return v[ok]
+    return np.clip(v[ok], -MAX_VECTOR_PX, MAX_VECTOR_PX)
 
 
 def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
@@ -113,6 +117,7 @@ def magnitude_sum(vectors: np.ndarray, valid: np.ndarray | None = None) -> float
 def vector_features(vectors: np.ndarray, lost: np.ndarray) -> np.ndarray:
     """The regressors' input: all pin vectors flattened, then the lost flags,
     as float32 with NaN/inf replaced by 0 (the lost flag carries that fact)."""
-    v = np.nan_to_num(np.asarray(vectors, dtype=np.float32).reshape(-1), nan=0.0,
-                      posinf=0.0, neginf=0.0)
+    v = np.asarray(vectors, dtype=np.float64).reshape(-1)
+    v = np.clip(np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0), -MAX_VECTOR_PX,
+                MAX_VECTOR_PX).astype(np.float32)
     return np.concatenate([v, np.asarray(lost, dtype=np.float32).reshape(-1)])

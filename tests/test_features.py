@@ -1,0 +1,100 @@
+"""Contact grid (eq. 1), average vector and magnitude sum (eq. 3): values and hard cases."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from device.pi.features import (ContactGrid, average_vector, direction_deg, magnitude_sum,
+                                vector_features)
+
+
+def test_grid_marks_the_changed_cell_and_fades_by_gamma():
+    g = ContactGrid(n=4, gamma=0.1, contact_threshold=0.2)
+    ref = np.zeros((40, 40), np.uint8)
+    g.set_reference(ref)
+    hit = ref.copy()
+    hit[:10, :10] = 255                      # cell (0, 0) changes completely
+    grid, contact = g.update(hit)
+    glob = 100 / 1600
+    assert grid[0, 0] == pytest.approx(1.0 - glob - 0.1, abs=0.01)
+    assert contact and grid[1:, 1:].max() == 0.0
+    # the stimulus ends: the cell fades by gamma a frame
+    first = float(grid[0, 0])
+    values = [float(g.update(ref)[0][0, 0]) for _ in range(3)]
+    assert np.allclose(np.diff([first] + values), -0.1, atol=0.011)
+    for _ in range(20):
+        grid, contact = g.update(ref)
+    assert grid.max() == 0.0 and not contact
+
+
+def test_grid_ignores_a_change_over_the_whole_dome():
+    g = ContactGrid(n=4, gamma=0.01)
+    ref = np.zeros((40, 40), np.uint8)
+    g.set_reference(ref)
+    grid, contact = g.update(np.full_like(ref, 255))
+    assert grid.max() == 0.0 and not contact     # the global mean is subtracted
+
+
+@pytest.mark.parametrize("shape,n", [((3, 2), 8), ((1, 1), 256), ((7, 640), 16)])
+def test_grid_larger_than_image_does_not_divide_by_zero(shape, n):
+    g = ContactGrid(n=n)
+    g.set_reference(np.zeros(shape, np.uint8))
+    grid, _ = g.update(np.full(shape, 255, np.uint8))
+    assert grid.shape == (n, n) and np.isfinite(grid).all()
+
+
+def test_grid_without_reference_or_with_a_new_size_reports_no_contact():
+    g = ContactGrid(n=4)
+    grid, contact = g.update(np.full((10, 10), 255, np.uint8))
+    assert not contact and np.isfinite(grid).all()
+    g.set_reference(np.zeros((10, 10), np.uint8))
+    grid, contact = g.update(np.full((12, 10), 255, np.uint8))
+    assert not contact
+
+
+@pytest.mark.parametrize("kw,match", [({"n": 0}, "grid n"), ({"gamma": -1}, "gamma"),
+                                      ({"contact_threshold": float("nan")}, "contact_threshold")])
+def test_grid_bad_parameters_name_the_field(kw, match):
+    with pytest.raises(ValueError, match=match):
+        ContactGrid(**kw)
+
+
+@settings(max_examples=60, deadline=None)
+@given(h=st.integers(1, 60), w=st.integers(1, 60), n=st.integers(1, 40),
+       seed=st.integers(0, 2**31), gamma=st.floats(0, 1))
+def test_grid_any_binary_images_stay_finite_and_bounded(h, w, n, seed, gamma):
+    rng = np.random.default_rng(seed)
+    g = ContactGrid(n=n, gamma=gamma)
+    g.set_reference((rng.random((h, w)) > 0.5).astype(np.uint8) * 255)
+    for _ in range(3):
+        grid, contact = g.update((rng.random((h, w)) > 0.5).astype(np.uint8) * 255)
+        assert np.isfinite(grid).all() and grid.min() >= 0 and grid.max() <= 1
+        assert isinstance(contact, bool)
+
+
+def test_average_vector_direction_and_magnitude_sum():
+    v = np.array([[3.0, 4.0], [1.0, 0.0], [np.nan, 1.0]])
+    valid = np.array([True, True, True])
+    assert average_vector(v, valid) == pytest.approx((2.0, 2.0))   # the NaN row is skipped
+    assert magnitude_sum(v, valid) == pytest.approx(6.0)
+    assert average_vector(v, np.array([False, True, True])) == pytest.approx((1.0, 0.0))
+    assert direction_deg(0.0, 1.0) == pytest.approx(90.0)          # image y points down
+    assert direction_deg(-1.0, 0.0) == pytest.approx(180.0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(0, 50), st.just(2)),
+              elements=st.floats(allow_nan=True, allow_infinity=True)))
+def test_vector_features_are_finite_for_any_input(v):
+    ax, ay = average_vector(v)
+    s = magnitude_sum(v)
+    finite = np.isfinite(v).all(axis=1)
+    assert math.isfinite(ax) and math.isfinite(ay) and math.isfinite(s)
+    assert math.isfinite(direction_deg(ax, ay))
+    f = vector_features(v, ~finite)
+    assert f.shape == (3 * len(v),) and np.isfinite(f).all()
