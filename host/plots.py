@@ -1,0 +1,83 @@
+"""Plots people would rather look at than read.
+
+``host plot directions`` draws average-vector directions as a scatter, like the
+paper's figure 5: one panel per input, points coloured by sensation (the
+direction the foot was pushed) and sized by pressure level.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+SENSATIONS = ("left", "right", "centre")
+
+
+def load_directions(path: Path | str) -> dict:
+    """Vectors from a paper-layout ``.npy`` (trials, sensations, pressures, 2) or
+    from ``host analyse`` JSON lines (contact frames' shear_x, shear_y)."""
+    path = Path(path)
+    if path.suffix == ".npy":
+        a = np.load(path, allow_pickle=False)
+        if a.ndim != 4 or a.shape[-1] != 2:
+            raise ValueError(f"{path}: expected shape (trials, sensations, pressures, 2), "
+                             f"got {a.shape}")
+        t, s, p, _ = a.shape
+        sens = np.broadcast_to(np.arange(s)[None, :, None], (t, s, p)).reshape(-1)
+        pres = np.broadcast_to(np.arange(p)[None, None, :], (t, s, p)).reshape(-1)
+        return {"label": path.stem, "xy": a.reshape(-1, 2), "sensation": sens, "pressure": pres}
+    xs = []
+    with open(path) as fh:
+        for n, line in enumerate(fh, 1):
+            try:
+                d = json.loads(line)
+            except json.JSONDecodeError:
+                raise ValueError(f"{path}:{n}: not a JSON line") from None
+            if d.get("summary") or not d.get("contact"):
+                continue
+            xs.append((d["shear_x"], d["shear_y"]))
+    xy = np.asarray(xs, dtype=float).reshape(-1, 2)
+    return {"label": path.stem, "xy": xy, "sensation": np.zeros(len(xy), int),
+            "pressure": np.zeros(len(xy), int)}
+
+
+def plot_directions(inputs: list[dict], out: Path | str, title: str = "") -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(inputs)
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.4), squeeze=False)
+    lim = max([float(np.nanmax(np.abs(d["xy"]))) if d["xy"].size else 1.0
+               for d in inputs] + [1e-6]) * 1.1
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+    for ax, d in zip(axes[0], inputs):
+        xy = d["xy"]
+        ok = np.isfinite(xy).all(axis=1)
+        groups = np.unique(d["sensation"])
+        for s in groups:
+            m = ok & (d["sensation"] == s)
+            if len(groups) == 1:
+                name = "contact frames"
+            else:
+                name = SENSATIONS[s] if s < len(SENSATIONS) else f"sensation {s}"
+            ax.scatter(xy[m, 0], xy[m, 1], s=12 + 14 * d["pressure"][m], alpha=0.6,
+                       color=colours[int(s) % len(colours)], label=name)
+        ax.axhline(0, color="0.8", lw=0.8)
+        ax.axvline(0, color="0.8", lw=0.8)
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(lim, -lim)          # image y points down
+        ax.set_aspect("equal")
+        ax.set_title(d["label"])
+        ax.set_xlabel("average vector x [px]")
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0][0].set_ylabel("average vector y [px] (down)")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
