@@ -158,6 +158,90 @@ def cmd_bench(args):
     if args.what == "sim":
         res = bench.bench_sim(repeats=args.repeats)
         _emit(args, res, bench.format_sim(res))
+    elif args.what == "pipeline":
+        try:
+            data = real_data_dir(args.data)
+        except UserError:
+            data = None
+            print("host bench: real recordings not found; timing simulated frames only",
+                  file=sys.stderr)
+        res = bench.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
+        _emit(args, res, bench.format_pipeline(res))
+
+
+def _open_stream(args):
+    from device.pi.artefact import ModelError
+    from device.pi.pipeline import MarkerStream
+    from device.pi.profile import load_pipeline_profile
+
+    profile = load_pipeline_profile(args.profile)
+    loc = pres = None
+    try:
+        if getattr(args, "localiser", None):
+            from device.pi.localiser import Localiser
+            loc = Localiser.load(args.localiser)
+        if getattr(args, "pressure", None):
+            from device.pi.regressor import Regressor
+            pres = Regressor.load(args.pressure)
+    except ModelError as exc:
+        raise UserError(str(exc)) from None
+    return MarkerStream(profile, localiser=loc, pressure=pres)
+
+
+def _open_source(source: str):
+    from device.pi.camera import CameraError, open_camera
+    try:
+        return open_camera(source)
+    except (CameraError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def cmd_analyse(args):
+    import numpy as np
+
+    from device.pi.pipeline import STAGES, fault_names
+
+    stream = _open_stream(args)
+    cam = _open_source(args.source)
+    out = open(args.out, "w") if args.out else sys.stdout
+    n = contact = 0
+    faults: dict[str, int] = {}
+    times = {k: [] for k in STAGES + ("total",)}
+    total = getattr(cam, "n_frames", None)
+    try:
+        with cam, _progress(total or 0, "analyse", not args.json and args.out is not None) as bar:
+            for fr in cam:
+                f = stream.process(fr.image, fr.t_s)
+                out.write(json.dumps(f.summary()) + "\n")
+                n += 1
+                contact += f.contact
+                for name in fault_names(f.faults):
+                    faults[name] = faults.get(name, 0) + 1
+                for k in times:
+                    if k in f.timings_ms:
+                        times[k].append(f.timings_ms[k])
+                bar.update(1)
+        summary = {"summary": True, "source": args.source, "profile": stream.profile.name,
+                   "frames": n, "contact_frames": contact, "fault_frames": faults,
+                   "reference_set": stream.reference is not None,
+                   "timings_ms": {k: {"median": float(np.median(v)),
+                                      "p99": float(np.percentile(v, 99))}
+                                  for k, v in times.items() if v}}
+        out.write(json.dumps(summary) + "\n")
+    finally:
+        if out is not sys.stdout:
+            out.close()
+
+
+def cmd_plot(args):
+    from host.plots import load_directions, plot_directions
+    try:
+        inputs = [load_directions(p) for p in args.inputs]
+    except (OSError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    out = plot_directions(inputs, args.out, title=args.title or "")
+    _emit(args, {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]},
+          f"wrote {out}")
 
 
 def real_data_dir(given: str | None) -> Path:
@@ -212,6 +296,25 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_demo)
 
+    s = sub.add_parser("analyse", help="run the marker pipeline over a video, image folder "
+                                       "or sim://SCENE; one JSON line per frame")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--profile", default="roboskin", help="sensor profile name or .toml")
+    s.add_argument("--localiser", help="localiser model folder (ONNX + manifest)")
+    s.add_argument("--pressure", help="pressure regressor model folder")
+    s.add_argument("--out", help="write the JSON lines here instead of stdout")
+    s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
+    s.set_defaults(func=cmd_analyse)
+
+    s = sub.add_parser("plot", help="plots: directions (the paper's figure 5)")
+    s.add_argument("kind", choices=["directions"])
+    s.add_argument("inputs", nargs="+", help="paper-layout .npy files (trials, sensations, "
+                                             "pressures, 2) or host analyse JSON lines")
+    s.add_argument("--out", required=True, help="PNG to write")
+    s.add_argument("--title")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_plot)
+
     s = sub.add_parser("realism", help="simulated roboskin against the real clips")
     s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
                                   "../shared/data)")
@@ -221,7 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_realism)
 
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim"])
+    s.add_argument("what", choices=["sim", "pipeline"])
+    s.add_argument("--data", help="real recordings folder (pipeline)")
     s.add_argument("--repeats", type=int, default=20)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
@@ -229,7 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from device.sim.config import ConfigError
+    from device.config import ConfigError
     from host.dataset import DatasetError
 
     args = build_parser().parse_args(argv)
