@@ -244,6 +244,28 @@ def cmd_plot(args):
           f"wrote {out}")
 
 
+def cmd_calibrate(args):
+    from host.calibrate import calibrate, write_profile
+    cam = _open_source(args.source)
+    frames = []
+    with cam:
+        for fr in cam:
+            frames.append(fr.image.copy())
+            if len(frames) >= args.frames:
+                break
+    if not frames:
+        raise UserError(f"{args.source}: no frames to calibrate from")
+    try:
+        res = calibrate(frames, name=args.name or Path(args.out).stem)
+    except ValueError as exc:
+        raise UserError(f"{args.source}: {exc}") from None
+    res["out"] = str(write_profile(res, args.out))
+    v = res["vision"]
+    _emit(args, res, f"wrote {args.out}: dome {v['dome_px']}, block {v['block']}, offset "
+                     f"{v['offset']}, pin area {v['min_area_px']}..{v['max_area_px']} px, "
+                     f"pitch {v['pitch_px']} px, {v['n_pins']} pins")
+
+
 def real_data_dir(given: str | None) -> Path:
     import os
     for cand in (given, os.environ.get("TACFOOT_REAL_DATA"),
@@ -305,6 +327,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="write the JSON lines here instead of stdout")
     s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
     s.set_defaults(func=cmd_analyse)
+
+    s = sub.add_parser("calibrate", help="fit a pipeline profile from a no-contact clip")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--out", required=True, help="profile .toml to write")
+    s.add_argument("--frames", type=int, default=16, help="leading frames to use (at rest)")
+    s.add_argument("--name", help="profile name (default: the file name)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_calibrate)
 
     s = sub.add_parser("plot", help="plots: directions (the paper's figure 5)")
     s.add_argument("kind", choices=["directions"])

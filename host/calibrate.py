@@ -1,0 +1,113 @@
+"""``host calibrate``: fit a pipeline profile from a no-contact clip.
+
+It finds the dome, then searches the adaptive-threshold block and offset for
+the setting under which the blobs look most like a pin lattice: many blobs, a
+steady count from frame to frame, and nearest-neighbour distances that agree
+with each other. Blob-size limits and the pin pitch follow from the blobs
+found with that setting. The result is a ``[vision]`` section
+(``device/pi/profile.py``) that the Pi loads as it is.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.vision import PinDetector, VisionParams, find_dome, to_gray
+
+BLOCKS = (7, 9, 11, 15, 21, 31)
+OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
+
+
+def _nn(xy: np.ndarray) -> np.ndarray:
+    if len(xy) < 2:
+        return np.zeros(0)
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1)
+
+
+def _score(frames, params, dome):
+    det = PinDetector(params, frames[0].shape, dome)
+    counts, areas, nns = [], [], []
+    for g in frames:
+        xy, a = det.detect(g)
+        counts.append(len(xy))
+        areas.append(a)
+        nns.append(_nn(xy))
+    counts = np.array(counts, float)
+    if counts.min() < 8:
+        return -1.0, None
+    nn = np.concatenate(nns)
+    med = np.median(nn)
+    regular = np.mean(np.abs(nn - med) <= 0.25 * med)
+    steady = 1.0 - min(1.0, counts.std() / counts.mean())
+    # a lattice of many, evenly spaced, steady blobs
+    score = np.median(counts) * regular ** 2 * steady
+    return float(score), {"count": float(np.median(counts)), "pitch_px": float(med),
+                          "area_px": float(np.median(np.concatenate(areas))),
+                          "regular": float(regular), "steady": float(steady)}
+
+
+def calibrate(frames: list[np.ndarray], name: str = "calibrated") -> dict:
+    """Fit ``[vision]`` parameters from no-contact frames (gray or BGR)."""
+    grays = [to_gray(f) for f in frames]
+    if not grays:
+        raise ValueError("calibrate needs at least one frame")
+    domes = [d for d in (find_dome(g) for g in grays[:5]) if d is not None]
+    if not domes:
+        raise ValueError("no dome found in the first frames: is the sensor in view?")
+    dome = tuple(float(v) for v in np.median(np.array(domes), axis=0))
+    g0 = grays[0]
+    binary_input = np.count_nonzero((g0 == 0) | (g0 == 255)) > 0.97 * g0.size
+    blur = 0.0 if binary_input else 1.0
+    shrink = 1.0 if binary_input else 0.75
+    best = (-1.0, None, None)
+    for block in BLOCKS:
+        for offset in OFFSETS:
+            p = VisionParams(block=block, offset=float(offset), blur_sigma_px=blur,
+                             min_area_px=3, max_area_px=5000, roi_shrink=shrink)
+            s, info = _score(grays, p, dome)
+            if s > best[0]:
+                best = (s, p, info)
+    score, p, info = best
+    if p is None:
+        raise ValueError("no threshold setting found pins: is this a TacTip clip?")
+    area = info["area_px"]
+    vision = {"block": p.block, "offset": p.offset, "blur_sigma_px": blur,
+              "min_area_px": int(max(3, round(0.3 * area))),
+              "max_area_px": int(max(round(3.0 * area), round(0.3 * area) + 1)),
+              "roi_shrink": shrink, "pitch_px": round(info["pitch_px"], 2),
+              "n_pins": int(round(info["count"])),
+              "dome_px": [round(v, 1) for v in dome]}
+    # the count with the final area limits
+    final = VisionParams(block=p.block, offset=p.offset, blur_sigma_px=blur,
+                         min_area_px=vision["min_area_px"], max_area_px=vision["max_area_px"],
+                         roi_shrink=shrink)
+    _, fin = _score(grays, final, dome)
+    if fin is not None:
+        vision["n_pins"] = int(round(fin["count"]))
+    return {"name": name, "vision": vision, "frames": len(grays),
+            "fit": {"score": score, "regular_fraction": info["regular"],
+                    "count_steadiness": info["steady"], "median_pin_area_px": area}}
+
+
+def profile_toml(res: dict) -> str:
+    v = res["vision"]
+    lines = ["# Pipeline profile fitted by `host calibrate` from a no-contact clip.",
+             f"# {res['frames']} frames; {res['fit']['regular_fraction']:.0%} of pins at the "
+             f"lattice spacing; count steadiness {res['fit']['count_steadiness']:.3f}.",
+             "[profile]", f'name = "{res["name"]}"', "", "[vision]"]
+    for k in ("block", "offset", "blur_sigma_px", "min_area_px", "max_area_px", "roi_shrink",
+              "pitch_px", "n_pins"):
+        lines.append(f"{k} = {v[k]}")
+    lines.append(f"dome_px = [{', '.join(str(x) for x in v['dome_px'])}]")
+    return "\n".join(lines) + "\n"
+
+
+def write_profile(res: dict, out: Path | str) -> Path:
+    from host.dataset import atomic_write_text
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, profile_toml(res))
+    return out
