@@ -546,7 +546,7 @@ def test_from_scene_reads_the_walks_steps_and_slip_jerks():
         az.append(raw[2] / 8192.0)
         gz.append(raw[6] / 131.0)
     az, gz = np.array(az), np.array(gz)
-    touch = np.flatnonzero(truth["contact"][1:] & ~truth["contact"][:-1]) + 1
+    touch = np.flatnonzero(truth["touch"][1:] & ~truth["touch"][:-1]) + 1
     onset = np.flatnonzero(truth["slip"][1:] & ~truth["slip"][:-1]) + 1
     assert len(touch) == 2 and len(onset) >= 2
     assert np.all(az[touch] > 1.05)                      # touchdown impact above 1 g

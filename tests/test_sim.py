@@ -284,7 +284,7 @@ def test_imu_sees_gravity_touchdown_and_slip_jerk():
     imu = t["imu_true"]
     air = ~t["contact"]
     assert np.median(imu[air, 2]) == pytest.approx(1.0, abs=0.05)
-    touch = np.flatnonzero(t["contact"][1:] & ~t["contact"][:-1]) + 1
+    touch = np.flatnonzero(t["touch"][1:] & ~t["touch"][:-1]) + 1
     assert imu[touch[0], 2] > 1.05
     onset = np.flatnonzero(t["slip"][1:] & ~t["slip"][:-1]) + 1
     assert np.abs(imu[onset[0], 5]) > 10

@@ -27,6 +27,9 @@ class ContactGrid:
        A stimulus registers at once and fades by ``gamma`` per frame after it
        ends; steady changes smaller than ``gamma`` never register.
 
+    The contact flag is judged on the current frame's cells (step 3 minus
+    ``gamma``), so it drops as soon as the foot lifts while the grid fades.
+
     The cell means come from an area resize, so a grid larger than the image
     or cells of less than one pixel never divide by zero.
     """
@@ -72,10 +75,12 @@ class ContactGrid:
         np.multiply(small, 1.0 / 255.0, out=self._cells, casting="unsafe")
         glob = float(self._cells.mean())
         self._cells -= glob
+        # contact is judged on this frame's change; the grid keeps the fading trace
+        contact = bool(self._cells.max() - self.gamma > self.contact_threshold)
         np.maximum(self._cells, self.grid, out=self.grid)
         self.grid -= self.gamma
         np.maximum(self.grid, 0.0, out=self.grid)
-        return self.grid, bool(self.grid.max() > self.contact_threshold)
+        return self.grid, contact
 
 
 #: no pin moves further than this; larger values are clipped so sums stay finite

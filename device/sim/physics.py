@@ -32,6 +32,9 @@ from .scene import SURFACE_LABELS, TEXTURE_LABELS, Scene
 
 G_MM_S2 = 9806.65
 CONTACT_EPS_MM = 1e-3
+#: ground-truth ``contact`` means the foot carries at least this load; lighter
+#: touches (``touch``) are physically there but bear almost nothing (~50 g)
+CONTACT_FLOOR_N = 0.5
 
 
 def stream(seed: int, name: str) -> np.random.Generator:
@@ -93,7 +96,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
     jitter = np.zeros((F, 2))
     bump = np.zeros(F)                 # extra indentation from Lego studs
     slip = np.zeros(F, dtype=bool)
-    contact = np.zeros(F, dtype=bool)
+    touch = np.zeros(F, dtype=bool)
     slide_speed = np.zeros(F)          # mm/s of skin sliding over the surface
     s = np.zeros(2)
     sliding = False
@@ -109,7 +112,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
             s[:] = 0.0
             sliding = False
             continue
-        contact[i] = True
+        touch[i] = True
         N = 4.0 / 3.0 * E * np.sqrt(R) * d ** 1.5
         load[i] = N
         a_mm[i] = np.sqrt(R * d)
@@ -140,9 +143,10 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
 
     label_code = np.array([SURFACE_LABELS.index(x.label) for x in surfaces], dtype=np.int8)
     tex_code = np.array([TEXTURE_LABELS.index(x.texture) for x in surfaces], dtype=np.int8)
+    contact = touch & (load >= CONTACT_FLOOR_N)
     surface_code = np.where(contact, label_code[surf_idx], 0).astype(np.int8)
     texture_code = np.where(contact, tex_code[surf_idx], 0).astype(np.int8)
-    imu = imu_truth(scene, depth_cmd, body, contact, slip, shear, jitter, bump, seed)
+    imu = imu_truth(scene, depth_cmd, body, touch, slip, shear, jitter, bump, seed)
     return {
         "t_s": np.arange(F) / scene.fps,
         "depth_cmd_mm": depth_cmd,
@@ -157,6 +161,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
         "slip": slip,
         "slide_speed_mm_s": slide_speed,
         "contact": contact,
+        "touch": touch,
         "surface": surface_code,
         "texture": texture_code,
         "imu_true": imu,

@@ -14,7 +14,7 @@ from .scene import SURFACE_LABELS, TEXTURE_LABELS, Scene
 
 #: per-frame ground-truth keys written to datasets (all have the frame count as
 #: first dimension)
-TRUTH_KEYS = ("t_s", "pins_px", "visible", "contact", "contact_centre_px", "load_n",
+TRUTH_KEYS = ("t_s", "pins_px", "visible", "contact", "touch", "contact_centre_px", "load_n",
               "depth_mm", "depth_cmd_mm", "patch_radius_px", "shear_mm", "shear_px", "slip",
               "surface", "texture", "imu_true", "imu")
 
@@ -42,7 +42,7 @@ class Simulator:
         centre = r.centre + phys["contact_offset_mm"] * ppm                     # (F, 2)
         a = phys["patch_radius_mm"] * ppm                                        # (F,)
         contact = phys["contact"]
-        u_n = prof.normal_gain * (phys["depth_mm"] + phys["bump_mm"]) * ppm * contact
+        u_n = prof.normal_gain * (phys["depth_mm"] + phys["bump_mm"]) * ppm * phys["touch"]
         shear_px = prof.shear_gain * phys["shear_mm"] * ppm
         move = shear_px + prof.shear_gain * phys["jitter_mm"] * ppm              # (F, 2)
 
@@ -89,6 +89,7 @@ class Simulator:
             "pins_px": pins.astype(np.float32),
             "visible": visible,
             "contact": contact,
+            "touch": phys["touch"],
             "contact_centre_px": centre.astype(np.float32),
             "load_n": phys["load_n"],
             "depth_mm": phys["depth_mm"],
