@@ -7,7 +7,9 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 DEMO_OUT ?= out/demo
 
-.PHONY: demo test install install-test clean bench
+REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
+
+.PHONY: demo test install install-test clean bench models
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -32,6 +34,11 @@ test: $(VENV)/.installed-test
 
 bench: $(VENV)/.installed
 	$(VENV)/bin/host bench sim --json
+
+# Rebuild the shipped default models in models/ (needs the real recordings for
+# the localiser's real labels: REAL_DATA=path/to/data).
+models: $(VENV)/.installed
+	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
 
 clean:
 	rm -rf $(VENV) out build *.egg-info .pytest_cache .hypothesis
