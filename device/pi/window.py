@@ -1,0 +1,115 @@
+"""Windows of T frames and the model inputs built from them.
+
+The Pi runs these encoders on its rolling window; the host runs the same
+functions on windows cut from recordings, so a model sees exactly the same
+numbers in training and on the robot. The encoding has a version
+(:data:`device.pi.artefact.FEATURE_SPEC_VERSION`): change an encoder, bump it.
+
+Input layouts (the ``input_layout`` a model manifest names):
+
+* ``vectors``   - (T, M, 2) pin vectors quantised to ``VECTOR_STEP_PX``, flattened
+                  frame by frame, then (T, 6) IMU rows if the model uses IMU:
+                  (1, T*M*2 [+ T*6]) float32.
+* ``grids``     - (T, g, g) contact-grid maps, then their frame-to-frame
+                  differences (the fine shake that tells Lego from smooth):
+                  (1, 2*T*g*g) float32.
+* ``frames``    - (T, S, S) binary dome crops scaled to 0..1:
+                  (1, T, S, S) float32 (channels = frames), for the CNN.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: pin vectors are quantised to this step before they reach a model (the
+#: paper's quantised vectors); it also removes sub-pixel noise
+VECTOR_STEP_PX = 0.25
+#: no vector component beyond this reaches a model
+VECTOR_CLIP_PX = 64.0
+IMU_CLIP = np.array([16.0, 16.0, 16.0, 2000.0, 2000.0, 2000.0], np.float32)
+
+LAYOUTS = ("vectors", "grids", "frames")
+
+
+def _clean(a, clip) -> np.ndarray:
+    a = np.nan_to_num(np.asarray(a, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.clip(a, -clip, clip)
+
+
+def encode_vectors(vectors: np.ndarray, imu: np.ndarray | None = None) -> np.ndarray:
+    """(N, T, M, 2) or (T, M, 2) vectors [+ (N, T, 6) or (T, 6) IMU] -> (N, D) float32."""
+    v = _clean(vectors, VECTOR_CLIP_PX)
+    if v.ndim == 3:
+        v = v[None]
+    v = np.round(v / VECTOR_STEP_PX) * VECTOR_STEP_PX
+    x = v.reshape(v.shape[0], -1)
+    if imu is not None:
+        m = _clean(imu, IMU_CLIP)
+        if m.ndim == 2:
+            m = m[None]
+        x = np.concatenate([x, m.reshape(m.shape[0], -1)], axis=1)
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def encode_grids(grids: np.ndarray) -> np.ndarray:
+    """(N, T, g, g) or (T, g, g) grids -> (N, 2*T*g*g): the maps and their changes."""
+    g = _clean(grids, 1.0)
+    if g.ndim == 3:
+        g = g[None]
+    d = np.zeros_like(g)
+    d[:, 1:] = g[:, 1:] - g[:, :-1]
+    x = np.concatenate([g.reshape(g.shape[0], -1), d.reshape(d.shape[0], -1)], axis=1)
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def encode_frames(frames: np.ndarray) -> np.ndarray:
+    """(N, T, S, S) or (T, S, S) uint8 crops -> (N, T, S, S) float32 in 0..1."""
+    f = np.asarray(frames)
+    if f.ndim == 3:
+        f = f[None]
+    return np.ascontiguousarray(f, dtype=np.float32) * np.float32(1.0 / 255.0)
+
+
+def encode(layout: str, **parts) -> np.ndarray:
+    if layout == "vectors":
+        return encode_vectors(parts["vectors"], parts.get("imu"))
+    if layout == "grids":
+        return encode_grids(parts["grids"])
+    if layout == "frames":
+        return encode_frames(parts["frames"])
+    raise ValueError(f"input_layout must be one of {LAYOUTS}, got {layout!r}")
+
+
+class RollingWindow:
+    """The last T frames of per-frame features, preallocated; the Pi pushes one
+    frame at a time and encodes the window when it is full."""
+
+    def __init__(self, T: int, n_pins: int, grid_n: int = 8, frame_size: int = 32):
+        if not isinstance(T, (int, np.integer)) or T < 1:
+            raise ValueError(f"window T must be a whole number >= 1, got {T!r}")
+        self.T = int(T)
+        self.vectors = np.zeros((self.T, n_pins, 2), np.float32)
+        self.imu = np.zeros((self.T, 6), np.float32)
+        self.grids = np.zeros((self.T, grid_n, grid_n), np.float32)
+        self.frames = np.zeros((self.T, frame_size, frame_size), np.uint8)
+        self.count = 0
+
+    @property
+    def full(self) -> bool:
+        return self.count >= self.T
+
+    def clear(self) -> None:
+        self.count = 0
+
+    def push(self, vectors=None, imu=None, grid=None, frame=None) -> None:
+        for buf, new in ((self.vectors, vectors), (self.imu, imu), (self.grids, grid),
+                         (self.frames, frame)):
+            buf[:-1] = buf[1:]
+            if new is None:
+                buf[-1] = 0
+            else:
+                buf[-1] = np.nan_to_num(np.asarray(new, dtype=buf.dtype).reshape(buf.shape[1:]))
+        self.count += 1
+
+    def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
+        return encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
+                      grids=self.grids, frames=self.frames)
