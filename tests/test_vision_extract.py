@@ -221,7 +221,7 @@ def test_detector_crop_matches_full_frame_pipeline():
     p = SYNTH_PARAMS
     det = PinDetector(p, frame.shape[:2], dome)
     xy_crop, _ = det.detect(frame)
-    g = cv2.GaussianBlur(to_gray(frame), (0, 0), p.blur_sigma_px)
+    g = cv2.GaussianBlur(to_gray(frame), det.blur_ksize, p.blur_sigma_px)
     b = binarise(g, p.block, p.offset, dome_mask(g.shape, dome, p.roi_shrink))
     xy_full, _ = extract_pins(b, p.min_area_px, p.max_area_px)
     assert len(xy_crop) == len(xy_full)

@@ -331,19 +331,36 @@ def binarise(
     return out
 
 
-def components(binary: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,)."""
+def components(binary: np.ndarray, labels: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,).
+
+    Labels come from ``cv2.connectedComponents``; areas and centroids from
+    ``np.bincount`` over the foreground pixels only, which is several times
+    cheaper than OpenCV's per-component statistics on a sparse pin image.
+    Pass ``labels`` (int32, the binary's shape) to label without allocating.
+    """
     if binary.ndim != 2:
         raise ValueError(f"binary must be 2-D, got shape={binary.shape!r}")
     b = binary if binary.dtype == np.uint8 else (binary != 0).astype(np.uint8)
-    n, _, stats, cents = cv2.connectedComponentsWithStats(b, connectivity=8, ltype=cv2.CV_32S)
+    if labels is None or labels.shape != b.shape or labels.dtype != np.int32:
+        labels = np.empty(b.shape, np.int32)
+    n, _ = cv2.connectedComponents(b, labels, 8, cv2.CV_32S)
     if n <= 1:
         return np.zeros((0, 2), np.float32), np.zeros((0,), np.int32)
-    return cents[1:].astype(np.float32), stats[1:, cv2.CC_STAT_AREA].astype(np.int32)
+    flat = labels.reshape(-1)
+    idx = np.flatnonzero(flat)
+    lab = flat[idx]
+    w = b.shape[1]
+    area = np.bincount(lab, minlength=n)[1:]
+    ys, xs = np.divmod(idx, w)
+    cx = np.bincount(lab, weights=xs, minlength=n)[1:] / area
+    cy = np.bincount(lab, weights=ys, minlength=n)[1:] / area
+    return np.stack([cx, cy], axis=1).astype(np.float32), area.astype(np.int32)
 
 
 def extract_pins(
-    binary: np.ndarray, min_area: int, max_area: int
+    binary: np.ndarray, min_area: int, max_area: int, labels: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pin centroids float32 (n,2) as x,y and their areas int32 (n,).
 
@@ -352,7 +369,7 @@ def extract_pins(
     """
     if max_area < min_area:
         raise ValueError(f"max_area must be >= min_area, got max_area={max_area!r}, min_area={min_area!r}")
-    cents, areas = components(binary)
+    cents, areas = components(binary, labels)
     keep = (areas >= min_area) & (areas <= max_area)
     return np.ascontiguousarray(cents[keep]), areas[keep]
 
@@ -409,9 +426,18 @@ class PinDetector:
         bh, bw = y1 - y0, x1 - x0
         self._smooth = np.empty((bh, bw), np.uint8)
         self._binary = np.empty((bh, bw), np.uint8)
+        self._labels = np.empty((bh, bw), np.int32)
+        # a kernel of +-2 sigma (OpenCV's own default is +-3, which is slower)
+        k = max(3, 2 * int(math.ceil(2.0 * p.blur_sigma_px)) + 1)
+        self._ksize = (k, k)
         self._origin = np.array([x0, y0], np.float32)
         mask_full = dome_mask((h, w), dome, p.roi_shrink)
         self._mask = np.ascontiguousarray(mask_full[y0:y1, x0:x1])
+
+    @property
+    def blur_ksize(self) -> tuple[int, int]:
+        """The pre-blur kernel: +-2 sigma, odd."""
+        return self._ksize
 
     @property
     def binary(self) -> np.ndarray:
@@ -427,7 +453,7 @@ class PinDetector:
         crop = gray[y0:y1, x0:x1]
         p = self.params
         if p.blur_sigma_px > 0:
-            cv2.GaussianBlur(crop, (0, 0), p.blur_sigma_px, dst=self._smooth)
+            cv2.GaussianBlur(crop, self._ksize, p.blur_sigma_px, dst=self._smooth)
         else:
             np.copyto(self._smooth, crop)
         return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
@@ -435,7 +461,8 @@ class PinDetector:
     def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,)."""
         b = self.threshold(frame)
-        xy, areas = extract_pins(b, self.params.min_area_px, self.params.max_area_px)
+        xy, areas = extract_pins(b, self.params.min_area_px, self.params.max_area_px,
+                                 self._labels)
         xy += self._origin
         return xy, areas
 
