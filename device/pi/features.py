@@ -30,8 +30,8 @@ class ContactGrid:
     The contact flag is judged on the current frame's cells (step 3 minus
     ``gamma``), so it drops as soon as the foot lifts while the grid fades.
 
-    The cell means come from an area resize, so a grid larger than the image
-    or cells of less than one pixel never divide by zero.
+    The cell means come from an integral image; a grid larger than the image
+    gives empty cells whose mean is 0, never a division by zero.
     """
 
     def __init__(self, n: int = 8, gamma: float = 0.01, contact_threshold: float = 0.04):
@@ -55,6 +55,16 @@ class ContactGrid:
     def set_reference(self, binary: np.ndarray) -> None:
         self._ref = np.array(binary, dtype=np.uint8, copy=True)
         self._diff = np.empty_like(self._ref)
+        h, w = self._ref.shape
+        # cell edges; an image smaller than the grid gives empty cells, whose
+        # mean is 0 rather than a division by zero
+        self._ys = np.linspace(0, h, self.n + 1).round().astype(np.intp)
+        self._xs = np.linspace(0, w, self.n + 1).round().astype(np.intp)
+        area = np.outer(np.diff(self._ys), np.diff(self._xs)).astype(np.float32)
+        self._inv_area = np.where(area > 0, 1.0 / (255.0 * np.maximum(area, 1.0)),
+                                  0.0).astype(np.float32)
+        self._integral = np.empty((h + 1, w + 1), np.int32)
+        self._grid_ix = np.ix_(self._ys, self._xs)
         self.grid[:] = 0.0
 
     def clear_reference(self) -> None:
@@ -71,8 +81,11 @@ class ContactGrid:
             np.maximum(self.grid, 0.0, out=self.grid)
             return self.grid, False
         cv2.absdiff(binary, ref, dst=self._diff)
-        small = cv2.resize(self._diff, (self.n, self.n), interpolation=cv2.INTER_AREA)
-        np.multiply(small, 1.0 / 255.0, out=self._cells, casting="unsafe")
+        # cell sums from the integral image: four look-ups per cell
+        cv2.integral(self._diff, self._integral, cv2.CV_32S)
+        s = self._integral[self._grid_ix]
+        np.multiply(s[1:, 1:] - s[:-1, 1:] - s[1:, :-1] + s[:-1, :-1], self._inv_area,
+                    out=self._cells, casting="unsafe")
         glob = float(self._cells.mean())
         self._cells -= glob
         # contact is judged on this frame's change; the grid keeps the fading trace
