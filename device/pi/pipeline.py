@@ -1,0 +1,230 @@
+"""The marker pipeline as one stream object: frames in, per-frame features out.
+
+frames -> ROI (dome) -> adaptive threshold, glare-blob removal -> pin centroids
+-> reference frame -> tracking to per-pin vectors (and the fixed-count
+localiser) -> contact grid -> average vector, magnitude sum, pressure.
+
+The Pi runtime and the host (``host analyse``, training) use this one class; no
+stage is written twice. Nothing on the per-frame path raises: a bad frame gives
+finite numbers and fault bits.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from device.pi.features import ContactGrid, average_vector, magnitude_sum, vector_features
+from device.pi.profile import PipelineProfile, load_pipeline_profile
+from device.pi.tracking import Tracker, match_pins
+from device.pi.vision import PinDetector, find_dome, to_gray
+
+# fault bits (also carried in the SURFACE packet)
+FAULT_NO_DOME = 1
+FAULT_TOO_FEW_PINS = 2
+FAULT_NO_REFERENCE = 4
+FAULT_FRAME_SIZE_CHANGED = 8
+FAULT_BAD_FRAME = 16
+FAULT_LOCALISER = 32
+FAULT_NAMES = {FAULT_NO_DOME: "no_dome", FAULT_TOO_FEW_PINS: "too_few_pins",
+               FAULT_NO_REFERENCE: "reference_not_set",
+               FAULT_FRAME_SIZE_CHANGED: "frame_size_changed", FAULT_BAD_FRAME: "bad_frame",
+               FAULT_LOCALISER: "localiser"}
+
+STAGES = ("gray", "detect", "track", "localise", "grid", "features")
+
+
+def fault_names(bits: int) -> list[str]:
+    return [name for bit, name in FAULT_NAMES.items() if bits & bit]
+
+
+@dataclass
+class FrameFeatures:
+    index: int
+    t_s: float
+    pins: np.ndarray              # (n, 2) detected pin centroids, px
+    vectors: np.ndarray           # (m, 2) displacement of each reference pin, px
+    lost: np.ndarray              # (m,) reference pins not found in this frame
+    grid: np.ndarray              # (g, g) contact grid
+    contact: bool
+    shear_x: float                # the average vector, px
+    shear_y: float
+    magnitude: float              # |average vector|, px
+    magnitude_sum: float          # P, the sum of |v_i|, px
+    pressure: float | None        # from the pressure regressor, if one is loaded
+    localised: np.ndarray | None  # (N, 2) fixed-count pins, if a localiser is loaded
+    faults: int
+    timings_ms: dict = field(default_factory=dict)
+
+    @property
+    def direction_deg(self) -> float:
+        if self.magnitude == 0.0:
+            return 0.0
+        return math.degrees(math.atan2(self.shear_y, self.shear_x)) % 360.0
+
+    def summary(self) -> dict:
+        """The JSON line ``host analyse`` writes for this frame."""
+        return {"frame": self.index, "t": round(self.t_s, 6), "pins": int(len(self.pins)),
+                "contact": self.contact, "shear_x": round(self.shear_x, 4),
+                "shear_y": round(self.shear_y, 4), "magnitude": round(self.magnitude, 4),
+                "magnitude_sum": round(self.magnitude_sum, 3),
+                "pressure": None if self.pressure is None else round(self.pressure, 5),
+                "faults": fault_names(self.faults),
+                "timings_ms": {k: round(v, 4) for k, v in self.timings_ms.items()}}
+
+
+class MarkerStream:
+    """Per-frame features from a stream of TacTip frames.
+
+    The reference frame is chosen automatically: the first run of
+    ``warmup`` still frames (pins move less than ``still_px`` between them);
+    of those, the one whose pin count is closest to their median. Until then
+    the ``reference_not_set`` fault is raised. :meth:`rezero` picks a new one.
+    """
+
+    def __init__(self, profile: PipelineProfile | str = "roboskin", localiser=None,
+                 pressure=None, warmup: int = 5, still_px: float = 0.75):
+        self.profile = (profile if isinstance(profile, PipelineProfile)
+                        else load_pipeline_profile(profile))
+        self.localiser = localiser
+        self.pressure_model = pressure
+        self.warmup = max(1, int(warmup))
+        self.still_px = float(still_px)
+        p = self.profile
+        self.tracker = Tracker(max_dist_px=p.match_gate_px, pitch_px=p.pitch_px)
+        self.grid = ContactGrid(p.grid_n, p.grid_gamma, p.grid_contact)
+        self.shape: tuple[int, int] | None = None
+        self.detector: PinDetector | None = None
+        self.dome = None
+        self._dome_retry = 0
+        self.index = 0
+        self.reference: np.ndarray | None = None
+        self.reference_index = -1          # the frame the reference was taken from
+        self._candidates: list[tuple[np.ndarray, np.ndarray, int]] = []
+        self._empty2 = np.zeros((0, 2), np.float32)
+
+    # -- control ---------------------------------------------------------------
+    def rezero(self) -> None:
+        """Forget the reference; the next still frames choose a new one."""
+        self.reference = None
+        self._candidates.clear()
+        self.grid.clear_reference()
+
+    def _reset_geometry(self, shape: tuple[int, int]) -> None:
+        self.shape = shape
+        self.dome = self.profile.dome_px
+        self._dome_retry = 0
+        self.detector = None
+        self.rezero()
+
+    def _ensure_dome(self, gray: np.ndarray) -> bool:
+        if self.detector is not None:
+            return True
+        if self.dome is None:
+            if self._dome_retry > 0:
+                self._dome_retry -= 1
+                return False
+            self.dome = find_dome(gray)
+            if self.dome is None:
+                self._dome_retry = 10          # look again every 10 frames
+                return False
+        self.detector = PinDetector(self.profile.vision, self.shape, self.dome)
+        return True
+
+    def _maybe_choose_reference(self, pins: np.ndarray, binary: np.ndarray) -> None:
+        c = self._candidates
+        if c:
+            prev = c[-1][0]
+            idx = match_pins(prev, pins, self.profile.match_gate_px)
+            ok = idx >= 0
+            moved = (np.median(np.hypot(*(pins[idx[ok]] - prev[ok]).T)) if ok.sum() >= 3
+                     else np.inf)
+            if not moved <= self.still_px:
+                c.clear()
+        c.append((pins.copy(), binary.copy(), self.index - 1))
+        if len(c) < self.warmup:
+            return
+        counts = np.array([len(x[0]) for x in c])
+        best = int(np.argmin(np.abs(counts - np.median(counts))))
+        ref_pins, ref_binary, ref_index = c[best]
+        if len(ref_pins) < self.profile.min_pin_fraction * self.profile.n_pins:
+            c.clear()
+            return
+        self.reference = ref_pins
+        self.reference_index = ref_index
+        self.tracker.set_reference(ref_pins)
+        self.grid.set_reference(ref_binary)
+        c.clear()
+
+    # -- per frame ---------------------------------------------------------------
+    def process(self, frame, t_s: float | None = None) -> FrameFeatures:
+        clock = time.perf_counter
+        timings = {}
+        t0 = clock()
+        i = self.index
+        self.index += 1
+        t_s = float(i) if t_s is None or not math.isfinite(t_s) else float(t_s)
+        faults = 0
+        try:
+            gray = to_gray(np.asarray(frame))
+        except (ValueError, TypeError):
+            gray = None
+        if gray is None or gray.ndim != 2 or min(gray.shape) < 8:
+            return self._empty(i, t_s, FAULT_BAD_FRAME | FAULT_NO_DOME, timings)
+        if gray.shape != self.shape:
+            if self.shape is not None:
+                faults |= FAULT_FRAME_SIZE_CHANGED
+            self._reset_geometry(gray.shape)
+        t1 = clock()
+        timings["gray"] = (t1 - t0) * 1e3
+        if not self._ensure_dome(gray):
+            return self._empty(i, t_s, faults | FAULT_NO_DOME | FAULT_NO_REFERENCE, timings)
+        pins, _ = self.detector.detect(gray)
+        binary = self.detector.binary
+        t2 = clock()
+        timings["detect"] = (t2 - t1) * 1e3
+        if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
+            faults |= FAULT_TOO_FEW_PINS
+        if self.reference is None:
+            self._maybe_choose_reference(pins, binary)
+        if self.reference is None:
+            faults |= FAULT_NO_REFERENCE
+            vectors, lost = self._empty2, np.zeros(0, bool)
+        else:
+            vectors, lost = self.tracker.update(pins)
+        t3 = clock()
+        timings["track"] = (t3 - t2) * 1e3
+        localised = None
+        if self.localiser is not None:
+            localised, bad = self.localiser.locate(binary, self.dome, box=self.detector.box)
+            if bad:
+                faults |= FAULT_LOCALISER
+        t4 = clock()
+        timings["localise"] = (t4 - t3) * 1e3
+        grid, grid_contact = self.grid.update(binary)
+        grid = grid.copy()          # the grid object keeps updating its own buffer
+        t5 = clock()
+        timings["grid"] = (t5 - t4) * 1e3
+        valid = ~lost
+        sx, sy = average_vector(vectors, valid)
+        msum = magnitude_sum(vectors, valid)
+        n_valid = int(valid.sum())
+        mean_mag = msum / n_valid if n_valid else 0.0
+        contact = bool(self.reference is not None
+                       and (grid_contact or mean_mag > self.profile.contact_px))
+        pressure = None
+        if self.pressure_model is not None and self.reference is not None:
+            pressure = self.pressure_model.predict_one(vector_features(vectors, lost))
+        timings["features"] = (clock() - t5) * 1e3
+        timings["total"] = (clock() - t0) * 1e3
+        return FrameFeatures(i, t_s, pins, vectors, lost, grid, contact, sx, sy,
+                             math.hypot(sx, sy), msum, pressure, localised, faults, timings)
+
+    def _empty(self, i, t_s, faults, timings) -> FrameFeatures:
+        g = self.grid.update(None)[0]
+        m = 0 if self.reference is None else len(self.reference)
+        return FrameFeatures(i, t_s, self._empty2, np.zeros((m, 2), np.float32),
+                             np.ones(m, bool), g, False, 0.0, 0.0, 0.0, 0.0, None, None,
+                             faults, timings)

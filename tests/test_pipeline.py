@@ -1,0 +1,191 @@
+"""The marker pipeline stream: accuracy on simulated scenes, the real clips, and
+hard cases that must stay finite with the right fault bits."""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from device.pi.pipeline import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_NO_DOME,
+                                FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, MarkerStream,
+                                fault_names)
+from host.pipeline_eval import evaluate_scene, evaluate_sim, farneback_direction_check
+
+# -- simulated scenes with ground truth ---------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sim_eval():
+    return evaluate_sim(effects=("camera_noise",))
+
+
+def test_pin_recall_and_precision_on_sim(sim_eval):
+    s = sim_eval["summary"]
+    assert s["recall_min"] >= 0.98 and s["precision_min"] >= 0.98, s
+
+
+def test_centroid_error_median_half_a_pixel(sim_eval):
+    assert sim_eval["summary"]["centroid_err_px_median_max"] <= 0.5
+
+
+def test_identity_switches_during_drags(sim_eval):
+    assert sim_eval["summary"]["id_switch_rate_max_mean"] <= 0.005
+
+
+def test_direction_error_under_shear(sim_eval):
+    assert sim_eval["summary"]["direction_err_deg_median_max"] <= 5.0
+    assert all(r["direction_frames"] > 20 for r in sim_eval["scenes"]
+               if r["scene"].startswith("drag-"))
+
+
+def test_contact_f1(sim_eval):
+    assert sim_eval["summary"]["contact_f1_min"] >= 0.98
+
+
+def test_glare_costs_recall_but_not_tracking():
+    """Saturated glare hides some pins (as on the real sensor); what is found is
+    still placed and tracked right."""
+    r = evaluate_scene("drag-45", effects=("glare", "camera_noise"))
+    assert 0.9 <= r["recall"] < 0.98
+    assert r["precision"] >= 0.97
+    assert r["centroid_err_px_median"] <= 0.5
+    assert r["id_switch_rate_mean"] <= 0.005
+    assert r["direction_err_deg_median"] <= 5.0
+
+
+# -- the real clips ------------------------------------------------------------------
+
+def _clip(name, limit=None):
+    from realdata import real_data_dir
+    path = real_data_dir(f"roboskin/{name}") / "roboskin" / name
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while limit is None or len(frames) < limit:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(f)
+    cap.release()
+    return frames, path
+
+
+@pytest.mark.parametrize("name,rest", [("smooth.avi", 16), ("concrete.avi", 14)])
+def test_real_rest_pin_count_is_steady(name, rest):
+    frames, _ = _clip(name, rest)
+    stream = MarkerStream("roboskin")
+    counts = [len(stream.process(f).pins) for f in frames]
+    c = np.array(counts, float)
+    assert np.all(np.abs(c - c.mean()) <= 0.03 * c.mean()), counts
+
+
+@pytest.mark.parametrize("name", [
+    "north.avi",
+    pytest.param("east.avi", marks=pytest.mark.xfail(
+        strict=True, reason="known shortfall: tracking on east.avi gives a median of about "
+                            "19 deg against Farneback (goal 15); see the issue note")),
+])
+def test_real_direction_agrees_with_farneback(name):
+    _, path = _clip(name, 1)
+    res = farneback_direction_check(path, step=3)
+    assert res["compared_frames"] > 40
+    assert res["median_angle_err_deg"] <= 15.0, res
+
+
+# -- hard cases -------------------------------------------------------------------------
+
+def _check_finite(out):
+    for v in (out.shear_x, out.shear_y, out.magnitude, out.magnitude_sum):
+        assert math.isfinite(v)
+    assert np.isfinite(out.pins).all() and np.isfinite(out.vectors).all()
+    assert np.isfinite(out.grid).all()
+    assert out.pressure is None or math.isfinite(out.pressure)
+
+
+@pytest.mark.parametrize("kind", ["black", "white", "saturated", "noise"])
+def test_featureless_frames_raise_no_dome(kind):
+    rng = np.random.default_rng(0)
+    frame = {"black": np.zeros((480, 640), np.uint8),
+             "white": np.full((480, 640), 255, np.uint8),
+             "saturated": np.full((480, 640, 3), 255, np.uint8),
+             "noise": rng.integers(0, 256, (480, 640), dtype=np.uint8)}[kind]
+    s = MarkerStream("roboskin")
+    for _ in range(3):
+        out = s.process(frame)
+        _check_finite(out)
+        assert out.faults & FAULT_NO_DOME and not out.contact
+
+
+def test_reference_not_set_then_set_then_rezero():
+    from device.sim import Simulator, load_scene
+    sim = Simulator(load_scene("no-touch"))
+    s = MarkerStream("roboskin", warmup=5)
+    faults = [s.process(sim.render(i)).faults for i in range(8)]
+    assert all(f & FAULT_NO_REFERENCE for f in faults[:4])
+    assert not faults[-1] & FAULT_NO_REFERENCE
+    s.rezero()
+    assert s.process(sim.render(9)).faults & FAULT_NO_REFERENCE
+
+
+def test_frame_size_change_mid_stream():
+    from dataclasses import replace
+
+    from device.sim import Simulator, load_scene
+    big = Simulator(load_scene("no-touch"))
+    small = Simulator(replace(load_scene("no-touch"), width=320, height=240))
+    s = MarkerStream("roboskin")
+    for i in range(6):
+        s.process(big.render(i))
+    out = s.process(small.render(0))
+    _check_finite(out)
+    assert out.faults & FAULT_FRAME_SIZE_CHANGED and out.faults & FAULT_NO_REFERENCE
+    out = s.process(small.render(1))
+    assert not out.faults & FAULT_FRAME_SIZE_CHANGED
+
+
+def test_one_pin_and_merged_pins_give_too_few_pins():
+    frame = np.full((480, 640), 240, np.uint8)
+    cv2.circle(frame, (320, 240), 140, 90, -1)             # a dark dome
+    s = MarkerStream("roboskin")
+    one = frame.copy()
+    cv2.circle(one, (320, 240), 3, 220, -1)                 # a single pin
+    merged = frame.copy()
+    cv2.circle(merged, (320, 240), 30, 220, -1)             # pins merged into one blob
+    for f in (one, merged, one):
+        out = s.process(f)
+        _check_finite(out)
+        assert out.faults & FAULT_TOO_FEW_PINS
+    assert "too_few_pins" in fault_names(out.faults)
+
+
+@pytest.mark.parametrize("bad", [None, np.zeros((0, 0)), np.zeros((3, 3)), "frame",
+                                 np.full((10, 10), np.nan), np.zeros((5, 5, 5, 5))])
+def test_bad_frames_are_flagged_not_raised(bad):
+    out = MarkerStream("roboskin").process(bad)
+    _check_finite(out)
+    assert out.faults & FAULT_BAD_FRAME or out.faults & FAULT_NO_DOME
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(h=st.integers(8, 200), w=st.integers(8, 200), seed=st.integers(0, 2**31),
+       level=st.integers(0, 255), mode=st.sampled_from(["noise", "flat", "dome", "stripes"]))
+def test_any_frame_sequence_stays_finite(h, w, seed, level, mode):
+    rng = np.random.default_rng(seed)
+    s = MarkerStream("roboskin", warmup=2)
+    for k in range(4):
+        if mode == "noise":
+            f = rng.integers(0, 256, (h, w), dtype=np.uint8)
+        elif mode == "flat":
+            f = np.full((h, w), level, np.uint8)
+        elif mode == "stripes":
+            f = np.zeros((h, w), np.uint8)
+            f[:, ::4] = 255
+        else:
+            f = np.full((h, w), 240, np.uint8)
+            cv2.circle(f, (w // 2, h // 2), min(h, w) // 3, 80, -1)
+            for _ in range(20):
+                cv2.circle(f, (int(rng.integers(0, w)), int(rng.integers(0, h))), 2, 220, -1)
+        _check_finite(s.process(f, t_s=float(k) if k != 2 else float("nan")))
