@@ -9,7 +9,7 @@ DEMO_OUT ?= out/demo
 
 REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
 
-.PHONY: demo test install install-test clean bench models
+.PHONY: demo test install install-test install-cnn clean bench models
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -23,8 +23,14 @@ $(VENV)/.installed-test: $(VENV)/.installed pyproject.toml
 	$(PIP) install -e '.[host,test]'
 	touch $@
 
+$(VENV)/.installed-cnn: $(VENV)/.installed-test pyproject.toml
+	$(PIP) install -e '.[host,test,cnn]'
+	touch $@
+
 install: $(VENV)/.installed
 install-test: $(VENV)/.installed-test
+# the optional CNN extra: the CPU build of torch (CI installs it so the CNN tests run)
+install-cnn: $(VENV)/.installed-cnn
 
 demo: $(VENV)/.installed
 	$(VENV)/bin/host demo --out $(DEMO_OUT)
