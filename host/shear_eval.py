@@ -24,7 +24,9 @@ flags: ``d``; ``|d|``; ``d / (s + 1 px)`` and ``|d| / (s + 1 px)`` where
 independent of how deep the press is: shear is then visible in shallow presses
 too, which a linear model on raw vectors cannot scale); the lost flags.
 :func:`evaluate_tactip_shear` also reports the ratios for the raw features
-(``d`` and the lost flags only).
+(``d`` and the lost flags only). The derived features and the tracker's
+settings were chosen while looking at these same 400 images (there is no
+separate hold-out set), so the ratios are somewhat optimistic.
 
 >>> res = evaluate_tactip_shear("../shared/data")        # doctest: +SKIP
 >>> res["ratios"]["shear_x"]["ratio"]                      # doctest: +SKIP
@@ -166,7 +168,7 @@ def track_tactip_shear(data_dir, **track_kw) -> dict:
 
 
 def shear_features(disp_px: np.ndarray, lost: np.ndarray, scale_floor_px: float = 1.0) -> np.ndarray:
-    """Regression features per image (N, 6 m): d, |d|, d/(s+c), |d|/(s+c), lost.
+    """Regression features per image (N, 7 m): d, |d|, d/(s+c), |d|/(s+c), lost.
 
     ``s`` is the image's mean |d| and ``c = scale_floor_px``.
     """

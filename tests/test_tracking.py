@@ -430,12 +430,17 @@ def test_tracker_no_allocation_growth():
 
 # -- simulated drags: identity switches -----------------------------------------------
 
-def switch_counts(sim, tracker_input, ref_ids):
-    """Run a tracker over a simulated scene; per frame the number of reference
-    pins assigned to a current pin of another true identity."""
+def switch_counts(tracker_input):
+    """Track a simulated scene against its first frame; per frame the number of
+    reference pins assigned to a current pin of another true identity (an
+    identity switch), the share of pins lost, and the number of reference pins.
+
+    ``tracker_input`` yields (pins (n, 2), true identity of each pin (n,), -1
+    for none)."""
     tr = Tracker()
     counts = []
     lost = []
+    ref_ids = None
     for f, (cur, ids) in enumerate(tracker_input):
         if f == 0:
             tr.set_reference(cur)
@@ -470,7 +475,7 @@ def scene(name, profile):
 @pytest.mark.parametrize("name", DRAGS)
 def test_drag_identity_switches_true_pins(name, profile):
     sim = Simulator(scene(name, profile), seed=0)
-    counts, lost, m = switch_counts(sim, true_pins(sim, seed=len(name)), None)
+    counts, lost, m = switch_counts(true_pins(sim, seed=len(name)))
     rate = counts / m
     print(f"{profile} {name}: switches per frame mean {rate.mean():.4%} max {rate.max():.4%}, "
           f"lost mean {lost.mean():.2%}")
@@ -499,8 +504,8 @@ def detected_pins(sim):
 @pytest.mark.parametrize("name", DRAGS)
 def test_drag_identity_switches_detected_pins(name, profile):
     sim = Simulator(scene(name, profile), seed=0)
-    counts, lost, m = switch_counts(sim, detected_pins(sim), None)
-    assert m >= 0.9 * sim.truth["pins_px"].shape[1] * 0.5      # the detector found a layout
+    counts, lost, m = switch_counts(detected_pins(sim))
+    assert m >= 0.8 * sim.truth["visible"][0].sum()            # the detector found the layout
     rate = counts / m
     print(f"{profile} {name} (detected): switches per frame mean {rate.mean():.4%} "
           f"max {rate.max():.4%}, lost mean {lost.mean():.2%}")

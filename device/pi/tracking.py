@@ -44,11 +44,12 @@ __all__ = [
     "FAULT_NO_REFERENCE",
     "FAULT_BAD_INPUT",
     "FAULT_TOO_FEW_PINS",
+    "MAX_COORD_PX",
 ]
 
 #: Tracker fault bits (``Tracker.faults``).
 FAULT_NO_REFERENCE = 1   # update() before set_reference(): empty outputs
-FAULT_BAD_INPUT = 2      # current pins not an (n, 2) array, or rows with NaN/inf dropped
+FAULT_BAD_INPUT = 2      # current pins not an (n, 2) array, or rows with NaN/inf/huge dropped
 FAULT_TOO_FEW_PINS = 4   # fewer than ``min_tracked_frac`` of the reference pins tracked
 
 
@@ -345,9 +346,10 @@ def _neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np
 #: Annealing schedule of the coarse soft matching, in units of the pin pitch.
 _ANNEAL_START = 3.0
 _ANNEAL_END = 0.1
-_VEL_ALPHA = 0.5
 #: Passes with the full gate over the pins the half-gate growth left lost.
 _FINAL_ROUNDS = 4
+#: Weight of the newest change in the tracker's exponentially averaged velocity.
+_VEL_ALPHA = 0.5
 
 
 def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, disp: np.ndarray,
@@ -454,19 +456,23 @@ def track_with_neighbours(
        predicted displacement for every pin, starting from ``init_disp_px``
        (see ``_anneal``). Without it the prediction is ``init_disp_px`` (or
        zero).
-    2. Match: :func:`match_pins` of the predicted positions with the gate
-       ``gate_frac * pitch_px``.
-    3. Grow: each lost pin's displacement is predicted again as the median of
-       its tracked layout neighbours' displacements (needs ``min_support``
-       of them), and lost pins are matched one to one against the free
-       current pins at those positions; repeated, so tracking grows outward
-       from confident matches, until nothing new is found.
+    2. Match the predicted positions with :func:`match_pins`, first with
+       half the gate ``gate_frac * pitch_px`` (confident matches).
+    3. Grow: each lost pin is predicted again from its tracked layout
+       neighbours (needs ``min_support`` of them: its own prediction
+       corrected by their median prediction error, or their median
+       displacement when its own prediction disagrees with them by more
+       than the gate) and the lost pins are matched one to one against the
+       free current pins at those positions; repeated (up to
+       ``grow_rounds``), so tracking grows outward from the confident
+       matches. A few last passes use the full gate.
 
     Returns ``idx`` int64 (m,) (row of ``cur`` or -1 when lost) and
     ``disp_px`` float64 (m, 2): measured for tracked pins; for lost pins the
     neighbour prediction (or the coarse / prior prediction when no neighbour
-    is tracked), so every value is finite. Non-finite input rows are treated
-    as absent.
+    is tracked), so every value is finite. Rows with NaN, inf or a
+    coordinate beyond ``MAX_COORD_PX`` are treated as absent; ``idx`` indexes
+    the caller's ``cur``. Bad arguments raise ValueError naming the field.
     """
     pitch = _positive("pitch_px", pitch_px)
     gate_frac = _positive("gate_frac", gate_frac)
@@ -647,10 +653,11 @@ class Tracker:
     >>> vectors, lost = tr.update(pins)     # doctest: +SKIP
 
     Each frame the reference pins are predicted at their last displacement
-    plus its last change (constant velocity), and
-    matched one to one (:func:`match_pins`, gate ``max_dist_px``); lost pins
-    are then searched for again at the displacement predicted from their
-    tracked layout neighbours (growing outward). When fewer than
+    plus their recent change per frame (an exponentially averaged velocity)
+    and matched one to one (:func:`match_pins`), first with half the gate
+    ``max_dist_px``; lost pins are then searched for again at the
+    displacement predicted from their tracked layout neighbours (growing
+    outward), and last with the full gate. When fewer than
     ``reacquire_frac`` of the pins are within half the gate of their
     prediction (a jump, or the first frame after a long gap) the frame is
     tracked again with the coarse annealed matching of
@@ -663,16 +670,21 @@ class Tracker:
     * ``"predict"`` (default): their predicted vector - the last value
       (plus velocity) corrected by the median prediction error of their
       tracked layout neighbours, or those neighbours' median vector when the
-      two disagree by more than the gate; the last value when no neighbour
-      is tracked;
+      two disagree by more than the gate; without tracked neighbours, the
+      last value (plus velocity) corrected by the median error of all
+      tracked pins (uncorrected when fewer than 3 are tracked);
     * ``"hold"``: their last value;
     * ``"zero"``: 0.
 
     All outputs are finite. ``faults`` holds the fault bits of the last
     update: ``FAULT_NO_REFERENCE`` (no reference set: empty outputs),
     ``FAULT_BAD_INPUT`` (pins not an (n, 2) array: treated as no pins; or
-    rows with NaN/inf: dropped) and ``FAULT_TOO_FEW_PINS`` (fewer than
-    ``min_tracked_frac`` of the reference tracked). ``update`` never raises.
+    rows with NaN, inf or beyond ``MAX_COORD_PX``: dropped, and ``idx``
+    still indexes the caller's array) and ``FAULT_TOO_FEW_PINS`` (fewer than
+    ``min_tracked_frac`` of the reference tracked; such a frame does not
+    update the prediction). ``update`` never raises. After each update
+    ``idx`` (m,) holds the row of the current pins each reference pin was
+    matched to (-1 lost) and ``n_tracked`` their number.
 
     Parameters: ``max_dist_px`` the matching gate (default ``gate_frac`` x
     the layout pitch); ``pitch_px`` the pin spacing (default: measured from
