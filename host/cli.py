@@ -266,6 +266,77 @@ def cmd_calibrate(args):
                      f"pitch {v['pitch_px']} px, {v['n_pins']} pins")
 
 
+def _load_windows(args, task: str, window: int, min_classes: int = 2):
+    from host.data import DataError, load_specs
+    try:
+        return load_specs(args.data, task=task, window=window,
+                          contact_only=getattr(args, "contact_only", False),
+                          profile=args.profile, progress=not args.json,
+                          min_classes=min_classes)
+    except (DataError, FileNotFoundError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def _jsonable(res: dict) -> dict:
+    return {k: v for k, v in res.items() if k not in ("onnx", "estimator", "pipeline")}
+
+
+def cmd_train(args):
+    from host.train import TrainError
+    ws = _load_windows(args, args.task, args.window)
+    try:
+        if args.model == "cnn":
+            res = _train_cnn(args, ws)
+        else:
+            from host.train import train_model
+            res = train_model(args.task, args.model, ws, cv=args.cv, quantise=args.quantise,
+                              seed=args.seed, out_dir=args.out, progress=not args.json)
+    except TrainError as exc:
+        raise UserError(str(exc)) from None
+    res = _jsonable(res)
+    m = res.get("metrics", {})
+    m = m.get("test", m.get("held_out", m))
+    headline = ", ".join(f"held-out {k} {m[k]:.4g}" for k in ("accuracy", "macro_f1", "mae")
+                         if isinstance(m.get(k), (int, float)))
+    if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
+        headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
+    _emit(args, res, f"wrote {args.out}: {headline}")
+
+
+def _train_cnn(args, ws):
+    from host.cnn import quantise_cnn, train_cnn
+    from host.data import split_grouped
+    from host.train import TrainError
+    if args.task == "pressure":
+        raise TrainError("the CNN classifies; use --model ridge for --task pressure")
+    tr, te = split_grouped(ws, test_frac=0.3, seed=args.seed)
+    res = train_cnn(ws.subset(tr), ws.subset(te), seed=args.seed, out_dir=args.out,
+                    progress=not args.json)
+    if args.quantise:
+        res["int8"] = quantise_cnn(res["onnx_path"], ws.subset(tr),
+                                   Path(args.out) / "model.int8.onnx", seed=args.seed)
+    return res
+
+
+def cmd_eval(args):
+    import json as _json
+
+    from device.pi.artefact import ModelError, read_manifest
+    from host.evaluate import evaluate_model
+    try:
+        doc, _ = read_manifest(args.model_dir)
+    except ModelError as exc:
+        raise UserError(str(exc)) from None
+    task = doc.get("kind")
+    T = int(doc.get("T", doc.get("window", 1)))
+    ws = _load_windows(args, task, T, min_classes=1)
+    try:
+        res = evaluate_model(args.model_dir, ws, variant=args.variant)
+    except (ModelError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    _emit(args, res, _json.dumps(res, indent=1, default=_json_default))
+
+
 def real_data_dir(given: str | None) -> Path:
     import os
     for cand in (given, os.environ.get("TACFOOT_REAL_DATA"),
@@ -344,6 +415,32 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--title")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_plot)
+
+    s = sub.add_parser("train", help="train a surface/texture/slip/pressure model")
+    s.add_argument("--task", required=True, choices=["surface", "texture", "slip", "pressure"])
+    s.add_argument("--model", required=True,
+                   choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"])
+    s.add_argument("--window", type=int, default=3, help="T, frames per window")
+    s.add_argument("--data", action="append", required=True,
+                   help="CSV manifest, dataset folder or .npz (repeatable)")
+    s.add_argument("--cv", type=int, help="also report grouped K-fold CV metrics")
+    s.add_argument("--quantise", action="store_true", help="also write an int8 model")
+    s.add_argument("--contact-only", action="store_true",
+                   help="drop windows without contact instead of labelling them no-touch")
+    s.add_argument("--profile", default="roboskin")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True, help="model folder to write")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("eval", help="evaluate a model folder on data")
+    s.add_argument("model_dir")
+    s.add_argument("--data", action="append", required=True)
+    s.add_argument("--variant", choices=["float", "int8"])
+    s.add_argument("--contact-only", action="store_true")
+    s.add_argument("--profile", default="roboskin")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_eval)
 
     s = sub.add_parser("realism", help="simulated roboskin against the real clips")
     s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "

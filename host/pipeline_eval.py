@@ -173,3 +173,66 @@ def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px:
     return {"clip": str(clip_path), "frames": n, "compared_frames": len(errs),
             "median_angle_err_deg": float(np.median(errs)) if errs else None,
             "p90_angle_err_deg": float(np.percentile(errs, 90)) if errs else None}
+
+
+def chained_flow_direction_check(clip_path, profile: str = "roboskin",
+                                 min_flow_px: float = 1.0, step: int = 1,
+                                 snap_px: float = 2.0, margin_px: int = 48) -> dict:
+    """Average-vector direction against Farneback flow chained frame to frame.
+
+    From the reference frame on, each reference pin is carried along by the
+    flow between consecutive frames (sampled at the pin) and snapped to a
+    detected pin within ``snap_px``. Unlike flow straight from the reference,
+    this follows pins that have moved about half a pitch or more, where the pin
+    lattice makes the direct flow pick the wrong neighbour."""
+    import cv2
+
+    from device.pi.vision import to_gray
+
+    stream = MarkerStream(profile)
+    cap = cv2.VideoCapture(str(clip_path))
+    errs, recent = [], {}
+    prev = pos = ref = box = origin = None
+    n = 0
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        n += 1
+        g = to_gray(frame)
+        out = stream.process(g)
+        if stream.reference is None:
+            recent[out.index] = g.copy()
+            continue
+        if pos is None:
+            cx, cy, r = stream.dome
+            rr = r * stream.profile.vision.roi_shrink + margin_px
+            y0, x0 = max(0, int(cy - rr)), max(0, int(cx - rr))
+            box = (slice(y0, min(g.shape[0], int(cy + rr) + 1)),
+                   slice(x0, min(g.shape[1], int(cx + rr) + 1)))
+            origin = np.array([x0, y0], np.float64)
+            ref = stream.reference.astype(np.float64)
+            pos = ref.copy()
+            prev = recent.get(stream.reference_index, g)[box].copy()
+            recent.clear()
+        cur = g[box]
+        flow = cv2.calcOpticalFlowFarneback(prev, cur, None, *FARNEBACK)
+        local = (pos - origin).astype(np.float32)
+        f = cv2.remap(flow, local[:, 0].reshape(-1, 1), local[:, 1].reshape(-1, 1),
+                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 2)
+        pos += f
+        idx = match_pins(pos, out.pins, snap_px)
+        hit = idx >= 0
+        pos[hit] = out.pins[idx[hit]]
+        prev = cur.copy()
+        if not out.contact or out.index % step or out.magnitude == 0:
+            continue
+        ch = (pos - ref).mean(axis=0)
+        if math.hypot(*ch) <= min_flow_px:
+            continue
+        errs.append(_angle_err(math.degrees(math.atan2(out.shear_y, out.shear_x)),
+                               math.degrees(math.atan2(ch[1], ch[0]))))
+    cap.release()
+    return {"clip": str(clip_path), "frames": n, "compared_frames": len(errs),
+            "median_angle_err_deg": float(np.median(errs)) if errs else None,
+            "p90_angle_err_deg": float(np.percentile(errs, 90)) if errs else None}

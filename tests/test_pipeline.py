@@ -85,12 +85,24 @@ def test_real_rest_pin_count_is_steady(name, rest):
 @pytest.mark.parametrize("name", [
     "north.avi",
     pytest.param("east.avi", marks=pytest.mark.xfail(
-        strict=True, reason="known shortfall: tracking on east.avi gives a median of about "
-                            "19 deg against Farneback (goal 15); see the issue note")),
+        strict=True, reason="known shortfall: 19 deg against direct Farneback from the "
+                            "reference (goal 15). Pins sit ~half a pitch from rest there, "
+                            "where direct flow picks the wrong neighbour; flow chained frame "
+                            "to frame agrees with the tracker to 3.1 deg (test below)")),
 ])
 def test_real_direction_agrees_with_farneback(name):
     _, path = _clip(name, 1)
     res = farneback_direction_check(path, step=3)
+    assert res["compared_frames"] > 40
+    assert res["median_angle_err_deg"] <= 15.0, res
+
+
+def test_east_tracking_agrees_with_chained_flow():
+    """The independent check that holds on east.avi: Farneback flow chained frame to
+    frame, sampled at the tracked pins, agrees with the tracker's average vector."""
+    from host.pipeline_eval import chained_flow_direction_check
+    _, path = _clip("east.avi", 1)
+    res = chained_flow_direction_check(path, step=3)
     assert res["compared_frames"] > 40
     assert res["median_angle_err_deg"] <= 15.0, res
 

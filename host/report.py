@@ -1,0 +1,186 @@
+"""``host report``: what accuracy costs in time.
+
+For each task it crosses model kind x float/int8 x window T, trains on the same
+training windows and measures on the same held-out windows: accuracy (or MAE),
+per-decision compute latency (p50, p99, one thread), model size, and the decision
+delay T/fps at 30 and 120 fps. It writes one markdown table and one Pareto plot
+(PNG) per task.
+"""
+from __future__ import annotations
+
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+WINDOWS = (1, 2, 3, 5, 10)
+FPS = (30, 120)
+
+
+def _have_torch() -> bool:
+    try:
+        import torch  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def models_for(task: str) -> list[str]:
+    from host.train import TASK_MODELS
+    models = list(TASK_MODELS[task])
+    if task != "pressure" and _have_torch():
+        models.append("cnn")
+    return models
+
+
+def _train(task, model, tr, te, out, seed):
+    if model == "cnn":
+        from host.cnn import quantise_cnn, train_cnn
+        res = train_cnn(tr, te, seed=seed, out_dir=out, progress=False, epochs=15)
+        quantise_cnn(res["onnx_path"], tr, Path(out) / "model.int8.onnx", seed=seed)
+        return
+    from host.train import train_model
+    train_model(task, model, tr, te, quantise=model != "rule", seed=seed, out_dir=out,
+                progress=False)
+
+
+def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int = 0,
+             split: str = "grouped", contact_only: bool = False, label: str = "",
+             progress: bool = True) -> list[dict]:
+    """Rows of the report for one task and data source."""
+    from host.data import load_specs, split_grouped, split_time
+    from host.evaluate import evaluate_model
+    from host.train import TrainError
+
+    rows = []
+    cache: dict = {}
+    for T in windows:
+        ws = load_specs(train_specs, task=task, window=T, contact_only=contact_only,
+                        progress=False, cache=cache)
+        if test_specs:
+            tr, te = ws, load_specs(test_specs, task=task, window=T, contact_only=contact_only,
+                                    progress=False, cache=cache, min_classes=1)
+        else:
+            idx = (split_time(ws, 0.7, gap=T) if split == "time"
+                   else split_grouped(ws, 0.3, seed))
+            tr, te = ws.subset(idx[0]), ws.subset(idx[1])
+        for model in models_for(task):
+            with tempfile.TemporaryDirectory() as d:
+                t0 = time.perf_counter()
+                try:
+                    _train(task, model, tr, te, d, seed)
+                except (TrainError, ValueError) as exc:
+                    rows.append({"task": task, "data": label, "model": model, "T": T,
+                                 "error": str(exc)[:200]})
+                    continue
+                train_s = time.perf_counter() - t0
+                for variant in ("float", "int8"):
+                    if variant == "int8" and not (Path(d) / "model.int8.onnx").exists():
+                        continue
+                    r = evaluate_model(d, te, variant=variant)
+                    m = r["metrics"]
+                    rows.append({
+                        "task": task, "data": label, "model": model, "variant": variant,
+                        "T": T, "accuracy": m.get("accuracy"), "macro_f1": m.get("macro_f1"),
+                        "mae": m.get("mae"), "latency_p50_ms": r["latency_ms"]["p50"],
+                        "latency_p99_ms": r["latency_ms"]["p99"],
+                        "size_bytes": r["model_bytes"], "train_s": round(train_s, 2),
+                        "n_train": len(tr), "n_test": len(te),
+                        **{f"delay_{f}fps_ms": 1000.0 * T / f for f in FPS}})
+                if progress:
+                    print(f"  {label} {task} T={T} {model}: done", flush=True)
+    return rows
+
+
+def _score(r):
+    return r["mae"] if r.get("mae") is not None else r.get("accuracy")
+
+
+def pareto(rows: list[dict], lower_better: bool) -> set[int]:
+    """Indices of rows no other row beats on both score and total delay."""
+    pts = [(r["delay_120fps_ms"] + r["latency_p50_ms"], _score(r)) for r in rows]
+    keep = set()
+    for i, (t, s) in enumerate(pts):
+        dominated = any((t2 <= t and (s2 < s if lower_better else s2 > s)) or
+                        (t2 < t and s2 == s) for j, (t2, s2) in enumerate(pts) if j != i)
+        if not dominated:
+            keep.add(i)
+    return keep
+
+
+def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ok = [r for r in rows if "error" not in r]
+    lower = ok and ok[0].get("mae") is not None
+    front = pareto(ok, lower)
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    markers = {"rule": "s", "ridge": "D", "fnn": "o", "grid-fnn": "^", "cnn": "P"}
+    for i, r in enumerate(ok):
+        x = r["delay_120fps_ms"] + r["latency_p50_ms"]
+        ax.scatter(x, _score(r), marker=markers.get(r["model"], "o"), s=50,
+                   c=[plt.cm.viridis(min(r["T"], 10) / 10)],
+                   edgecolors="r" if i in front else "none",
+                   alpha=0.55 if r["variant"] == "float" else 0.95)
+    fr = sorted((ok[i] for i in front), key=lambda r: r["delay_120fps_ms"] + r["latency_p50_ms"])
+    ax.plot([r["delay_120fps_ms"] + r["latency_p50_ms"] for r in fr], [_score(r) for r in fr],
+            "r--", lw=1, label="Pareto front")
+    for m, mk in markers.items():
+        if any(r["model"] == m for r in ok):
+            ax.scatter([], [], marker=mk, c="gray", label=m)
+    ax.set_xlabel("time to a decision at 120 fps: T/fps + compute p50 [ms]")
+    ax.set_ylabel("MAE (lower is better)" if lower else "held-out accuracy")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, 10))
+    fig.colorbar(sm, ax=ax, label="window T [frames]")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    ok = [r for r in rows if "error" not in r]
+    lower = ok and ok[0].get("mae") is not None
+    front = pareto(ok, lower)
+    head = ("| model | variant | T | " + ("MAE" if lower else "accuracy") +
+            " | compute p50 ms | p99 ms | size KB | delay @30 fps ms | delay @120 fps ms | "
+            "Pareto |")
+    lines = [head, "|---|---|--:|--:|--:|--:|--:|--:|--:|:-:|"]
+    for i, r in enumerate(ok):
+        lines.append(f"| {r['model']} | {r['variant']} | {r['T']} | {_score(r):.4f} | "
+                     f"{r['latency_p50_ms']:.3f} | {r['latency_p99_ms']:.3f} | "
+                     f"{r['size_bytes'] / 1024:.1f} | {r['delay_30fps_ms']:.1f} | "
+                     f"{r['delay_120fps_ms']:.1f} | {'*' if i in front else ''} |")
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['model']} | - | {r['T']} | not trained: {r['error']} | | | | | | |")
+    return "\n".join(lines)
+
+
+def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
+                 command: str) -> Path:
+    """sections: (title, png name, rows). Writes the markdown and the PNGs beside it."""
+    from host.dataset import atomic_write_text
+
+    out = Path(out)
+    img_dir = out.parent / "img"
+    parts = ["# What accuracy costs in time", "",
+             f"Generated by `{command}`. Every row is trained on the same training windows "
+             "and measured on the same held-out windows; compute latency is ONNX Runtime, "
+             "one thread, per decision; the decision delay is the window's length T/fps. "
+             "`*` marks the Pareto front (no other row is both faster to a decision at "
+             "120 fps and more accurate).", ""]
+    for title, png, rows in sections:
+        p = plot_pareto(rows, img_dir / png, title)
+        parts += [f"## {title}", "", table(rows), "", f"![{title}](img/{p.name})", ""]
+    atomic_write_text(out, "\n".join(parts))
+    atomic_write_text(out.with_suffix(".json"), json.dumps(
+        [{"title": t, "rows": r} for t, _, r in sections], indent=1, default=float))
+    return out
