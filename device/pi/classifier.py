@@ -1,0 +1,226 @@
+"""The Pi-side classifier: a surface, texture or slip model run through ONNX Runtime.
+
+A model folder holds ``manifest.json`` and one or two ONNX files (float, and int8 when
+it was quantised; the manifest's ``onnx`` names the one loaded by default). The
+manifest says which classes the model outputs, how many frames ``T`` it sees, its
+``input_layout`` (``vectors``, ``grids`` or ``frames``, see :mod:`device.pi.window`)
+and whether it uses the IMU, so the caller builds its input with the same encoder as
+training did::
+
+    clf = Classifier.load("models/surface")
+    x = window.encode(clf.input_layout, with_imu=clf.uses_imu)   # a RollingWindow
+    class_id, probs = clf.predict(x)
+    clf.classes[class_id], probs[class_id]
+
+:meth:`Classifier.predict` is finite for any input: NaN and inf are cleaned before the
+model runs, and the output is cleaned after (probabilities clipped to 0..1 and
+renormalised, or logits through the stable :func:`softmax` / :func:`sigmoid`). A model
+that still gives nothing usable yields the uniform distribution and sets
+:attr:`Classifier.fault`. Bad artefacts are refused at load time by
+:func:`device.pi.artefact.load_model` with a message that names the file.
+
+A rule model (``"model": "rule"`` in the manifest, no ONNX file) loads as a
+:class:`device.pi.rules.RuleClassifier`, which has the same ``predict``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from device.pi.artefact import ModelError, load_model, read_manifest
+
+#: tasks a classifier serves
+CLASS_TASKS = ("surface", "texture", "slip")
+#: what the model's output holds: probabilities (default) or logits
+OUTPUT_KINDS = ("probabilities", "logits")
+#: logits are clipped to this before exp(); exp(-LOGIT_CLIP) underflows to 0 cleanly
+LOGIT_CLIP = 1.0e4
+#: no input value beyond this reaches a model
+INPUT_CLIP = 1.0e6
+
+
+# ----------------------------------------------------------------------------
+# Numerics
+# ----------------------------------------------------------------------------
+
+def _clean_logits(z) -> np.ndarray:
+    z = np.asarray(z, dtype=np.float64)
+    return np.clip(np.nan_to_num(z, nan=0.0, posinf=LOGIT_CLIP, neginf=-LOGIT_CLIP),
+                   -LOGIT_CLIP, LOGIT_CLIP)
+
+
+def softmax(z, axis: int = -1) -> np.ndarray:
+    """exp(z) / sum(exp(z)) along ``axis``, float64, finite for any input.
+
+    NaN counts as 0 (no evidence) and +-inf as +-LOGIT_CLIP; the maximum is
+    subtracted first, so the largest term is exp(0) = 1 and the sum is >= 1.
+    """
+    z = _clean_logits(z)
+    if z.size == 0:
+        return z
+    e = np.exp(z - z.max(axis=axis, keepdims=True))
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def sigmoid(z) -> np.ndarray:
+    """1 / (1 + exp(-z)), float64, finite for any input, without overflow:
+    exp() only ever sees -|z|."""
+    z = _clean_logits(z)
+    e = np.exp(-np.abs(z))
+    return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bool]:
+    """(probabilities, fault): NaN -> 0, clipped to 0..1, renormalised to sum 1. A
+    row with nothing left (all zero) becomes uniform and sets the fault flag."""
+    p = np.asarray(p, dtype=np.float64)
+    squeeze = p.ndim == 1
+    p = np.atleast_2d(p).copy()
+    if n_classes is not None and p.shape[1] != n_classes:
+        raise ValueError(f"probabilities have {p.shape[1]} columns, expected {n_classes}")
+    p = np.clip(np.nan_to_num(p, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    s = p.sum(axis=1, keepdims=True)
+    bad = ~(s > 0)
+    p = np.where(bad, 1.0 / max(p.shape[1], 1), p / np.where(bad, 1.0, s))
+    fault = bool(bad.any())
+    return (p[0] if squeeze else p), fault
+
+
+# ----------------------------------------------------------------------------
+# The classifier
+# ----------------------------------------------------------------------------
+
+def _check_manifest(doc: dict, where: str) -> dict:
+    """The classifier fields of a manifest, checked; a bad one names the file."""
+    classes = doc.get("classes")
+    if (not isinstance(classes, list) or len(classes) < 2
+            or not all(isinstance(c, str) and c for c in classes)):
+        raise ModelError(f"{where}: 'classes' must list at least 2 class names, got "
+                         f"{classes!r}")
+    layout = doc.get("input_layout")
+    if layout not in ("vectors", "grids", "frames"):
+        raise ModelError(f"{where}: input_layout must be vectors, grids or frames, got "
+                         f"{layout!r}")
+    T = doc.get("T")
+    if isinstance(T, bool) or not isinstance(T, int) or T < 1:
+        raise ModelError(f"{where}: T must be a whole number >= 1, got {T!r}")
+    out = doc.get("output_kind", "probabilities")
+    if out not in OUTPUT_KINDS:
+        raise ModelError(f"{where}: output_kind must be one of {list(OUTPUT_KINDS)}, got "
+                         f"{out!r}")
+    return {"classes": list(classes), "input_layout": layout, "T": T,
+            "uses_imu": bool(doc.get("uses_imu", False)), "output_kind": out}
+
+
+class Classifier:
+    """A loaded classifier; :meth:`predict` is the per-decision call.
+
+    Parameters are read from the manifest: ``classes``, ``T``, ``input_layout``,
+    ``uses_imu``, ``output_kind`` and ``output`` (the name of the output that holds
+    the probabilities or logits; default ``probabilities``, else the last output).
+    """
+
+    def __init__(self, model):
+        self.model = model
+        m = model.manifest
+        where = str(model.path / "manifest.json")
+        info = _check_manifest(m, where)
+        self.classes = info["classes"]
+        self.T = info["T"]
+        self.input_layout = info["input_layout"]
+        self.uses_imu = info["uses_imu"]
+        self.output_kind = info["output_kind"]
+        self.task = m.get("kind", "")
+        self.onnx_path = model.path / m["onnx"]
+        sess = model.session
+        shape = list(sess.get_inputs()[0].shape)
+        dims = [d if isinstance(d, int) else None for d in shape[1:]]
+        if not dims or any(d is None for d in dims):
+            mshape = m.get("input", {}).get("shape", [])
+            dims = [int(d) for d in mshape[1:]] if len(mshape) > 1 else dims
+        if not dims or any(d is None or d < 1 for d in dims):
+            raise ModelError(f"{self.onnx_path}: cannot tell the input shape ({shape})")
+        self.input_shape = tuple(int(d) for d in dims)
+        self.n_features = int(np.prod(self.input_shape))
+        names = [o.name for o in sess.get_outputs()]
+        want = m.get("output", "probabilities")
+        self._out_index = names.index(want) if want in names else len(names) - 1
+        self._out_name = names[self._out_index]
+        self._x = np.zeros((1,) + self.input_shape, np.float32)
+        self.fault = False
+
+    @classmethod
+    def load(cls, path, expect_kind: str | None = None):
+        """A classifier from a model folder (or its manifest). ``expect_kind`` (a task
+        name) is checked against the manifest's ``kind``. A rule manifest gives a
+        :class:`device.pi.rules.RuleClassifier`."""
+        doc, folder = read_manifest(path)
+        if doc.get("model") == "rule":
+            from device.pi.rules import RuleClassifier
+
+            return RuleClassifier.load(path, expect_kind=expect_kind)
+        kind = doc.get("kind")
+        if expect_kind is None and kind not in CLASS_TASKS:
+            raise ModelError(f"{folder / 'manifest.json'}: kind is {kind!r}, not a classifier "
+                             f"task ({', '.join(CLASS_TASKS)})")
+        return cls(load_model(path, expect_kind=expect_kind))
+
+    @property
+    def n_classes(self) -> int:
+        return len(self.classes)
+
+    def predict(self, window_input) -> tuple[int, np.ndarray]:
+        """(class id, probabilities (C,) float64) for one encoded window: (D,), (1, D)
+        or the layout's (1, T, S, S). Finite for any values; a wrong size raises
+        :class:`ModelError` naming the model file."""
+        a = np.asarray(window_input)
+        if a.size != self.n_features:
+            raise ModelError(f"{self.onnx_path}: expects an input of {self.n_features} values "
+                             f"{self.input_shape}, got {a.size} (shape {a.shape}); build it "
+                             f"with device.pi.window.encode({self.input_layout!r}, ...)")
+        x = self._x
+        x.reshape(-1)[:] = np.clip(np.nan_to_num(a.reshape(-1).astype(np.float32, copy=False),
+                                                 nan=0.0, posinf=INPUT_CLIP,
+                                                 neginf=-INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP)
+        try:
+            out = self.model.session.run([self._out_name], {self.model.input_name: x})[0]
+        except Exception as exc:  # onnxruntime's own exception types
+            raise ModelError(f"{self.onnx_path}: ONNX Runtime failed: {exc}") from None
+        probs = self.probabilities_from_output(out)
+        return int(np.argmax(probs)), probs
+
+    def probabilities_from_output(self, out) -> np.ndarray:
+        """The model's raw output for one window -> cleaned probabilities (C,)."""
+        o = np.asarray(out, dtype=np.float64).reshape(-1)
+        C = self.n_classes
+        if self.output_kind == "logits":
+            if o.size == C:
+                p = softmax(o)
+            elif o.size == 1 and C == 2:
+                s = float(sigmoid(o)[0])
+                p = np.array([1.0 - s, s])
+            else:
+                p = np.zeros(C)
+            fault = o.size not in (C, 1) or not np.isfinite(o).all()
+        else:
+            if o.size == C:
+                p, fault = clean_probabilities(o)
+                fault = fault or not np.isfinite(o).all()
+            elif o.size == 1 and C == 2:
+                s = float(np.clip(np.nan_to_num(o[0], nan=0.5), 0.0, 1.0))
+                p, fault = np.array([1.0 - s, s]), not math.isfinite(float(o[0]))
+            else:
+                p, fault = np.full(C, 1.0 / C), True
+        if not np.isfinite(p).all() or p.sum() <= 0:
+            p, fault = np.full(C, 1.0 / C), True
+        self.fault = bool(fault)
+        return p
+
+    def predict_window(self, window) -> tuple[int, np.ndarray]:
+        """:meth:`predict` on a :class:`device.pi.window.RollingWindow`, encoded the
+        way the model was trained. The window must hold T frames."""
+        if window.T != self.T:
+            raise ModelError(f"{self.onnx_path}: the model sees T={self.T} frames, the "
+                             f"window holds {window.T}")
+        return self.predict(window.encode(self.input_layout, with_imu=self.uses_imu))

@@ -1,0 +1,161 @@
+"""``host eval``: a model folder against windows, through the Pi's own loaders.
+
+:func:`evaluate_model` loads the model the way the Pi does
+(:class:`device.pi.classifier.Classifier`, :class:`device.pi.rules.RuleClassifier`
+or :class:`device.pi.regressor.Regressor`, all through
+:func:`device.pi.artefact.load_model` with ONNX Runtime on one thread), builds each
+window's input with :mod:`device.pi.window` and runs one decision per window. It
+reports accuracy, per-class F1 and the confusion matrix (slip: also the slip F1 and
+the detection latency in frames), or MAE for regression; the latency per decision
+(p50 / p99, single thread, one window per call, as on the Pi); the model size in
+bytes; and the fraction of windows kept when the data were cut.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.artefact import MANIFEST, ModelError, read_manifest
+
+__all__ = ["evaluate_model", "load_variant", "VARIANTS"]
+
+VARIANTS = ("float", "int8")
+
+
+def _manifest_for(model_dir, variant: str | None) -> Path:
+    """The manifest file that loads ``variant`` (None: the default)."""
+    from host.train import FLOAT_MANIFEST
+
+    doc, folder = read_manifest(model_dir)
+    mpath = Path(model_dir) if Path(model_dir).is_file() else folder / MANIFEST
+    if variant is None or doc.get("model") == "rule":
+        if variant == "int8" and doc.get("model") == "rule":
+            raise ModelError(f"{mpath}: a rule model has no int8 variant")
+        return mpath
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {list(VARIANTS)} or None, got "
+                         f"variant={variant!r}")
+    have = doc.get("variant", "float")
+    if have == variant:
+        return mpath
+    if variant == "float" and (folder / FLOAT_MANIFEST).is_file():
+        return folder / FLOAT_MANIFEST
+    raise ModelError(f"{mpath}: the model folder has no {variant} model"
+                     + (" (train with --quantise)" if variant == "int8" else ""))
+
+
+def load_variant(model_dir, variant: str | None = None):
+    """(predictor, manifest, kind) for a model folder: a Classifier, RuleClassifier
+    or Regressor, loaded with the Pi's code."""
+    from device.pi.classifier import Classifier
+    from device.pi.regressor import Regressor
+
+    mpath = _manifest_for(model_dir, variant)
+    doc, _ = read_manifest(mpath)
+    if doc.get("model") == "rule":
+        return Classifier.load(mpath), doc, "rule"
+    if doc.get("kind") == "pressure":
+        return Regressor.load(mpath, kind="pressure"), doc, "regressor"
+    return Classifier.load(mpath), doc, "classifier"
+
+
+def _percentiles(ms: list[float]) -> dict:
+    a = np.asarray(ms, np.float64)
+    if not len(a):
+        return {"p50": None, "p99": None, "mean": None, "n": 0}
+    return {"p50": round(float(np.percentile(a, 50)), 5),
+            "p99": round(float(np.percentile(a, 99)), 5),
+            "mean": round(float(a.mean()), 5), "n": int(len(a))}
+
+
+def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
+                   encode_samples: int = 200) -> dict:
+    """Metrics, latency, size and kept fraction of the model in ``model_dir`` on
+    the windows ``ws`` (a :class:`host.data.WindowSet` for the model's task and T).
+
+    ``variant``: None (the manifest's default: int8 when the model was quantised),
+    ``"float"`` or ``"int8"``. Raises :class:`device.pi.artefact.ModelError` for a
+    bad model folder and ValueError for windows that do not fit the model.
+    """
+    from host.train import (classification_metrics, model_inputs, regression_metrics,
+                            slip_latency, _label_ids)
+
+    pred_obj, doc, kind = load_variant(model_dir, variant)
+    task = doc.get("kind")
+    T = doc.get("T")
+    if len(ws) == 0:
+        raise ValueError("ws holds no windows")
+    if ws.task != task:
+        raise ValueError(f"the windows were loaded for task {ws.task!r}, the model is for "
+                         f"task {task!r}")
+    if T is not None and ws.window != T:
+        raise ValueError(f"the windows have T={ws.window} frames, the model sees T={T}")
+    layout = doc.get("input_layout", "vectors")
+    uses_imu = bool(doc.get("uses_imu", False))
+    if uses_imu and ws.imu is None:
+        raise ValueError("the model uses the IMU but the windows carry none")
+    X = model_inputs(ws, layout, uses_imu)
+    n_feat = int(doc["input"]["shape"][1])
+    if X.shape[1] != n_feat:
+        raise ValueError(f"the windows encode to {X.shape[1]} inputs, the model expects "
+                         f"{n_feat} (pin count or grid size differs)")
+
+    # -- one decision per window, timed as on the Pi --------------------------
+    if kind == "regressor":
+        def call(x):
+            return pred_obj.predict_one(x)
+    else:
+        def call(x):
+            return pred_obj.predict(x)
+    for i in range(min(warmup, len(X))):
+        call(X[i])
+    lat, outs = [], []
+    clock = time.perf_counter
+    for i in range(len(X)):
+        t0 = clock()
+        o = call(X[i])
+        lat.append((clock() - t0) * 1e3)
+        outs.append(o)
+    enc = []
+    idx = np.linspace(0, len(ws) - 1, min(encode_samples, len(ws))).astype(int)
+    from device.pi.window import encode
+
+    for i in idx:
+        parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],
+                 "imu": ws.imu[i] if uses_imu else None}
+        t0 = clock()
+        encode(layout, **parts)
+        enc.append((clock() - t0) * 1e3)
+
+    res = {"model_dir": str(model_dir), "task": task, "model": doc.get("model"),
+           "variant": doc.get("variant", "float") if kind != "rule" else "rule", "T": T,
+           "input_layout": layout, "uses_imu": uses_imu, "n_windows": int(len(ws))}
+    if kind == "regressor":
+        pred = np.array(outs, np.float64)
+        res["metrics"] = regression_metrics(ws.targets, pred)
+        res["faults"] = 0
+    else:
+        classes = list(pred_obj.classes)
+        probs = np.stack([o[1] for o in outs])
+        pred = np.array([o[0] for o in outs], np.int64)
+        if not np.isfinite(probs).all():
+            raise ModelError(f"{model_dir}: non-finite probabilities")  # never expected
+        true = _label_ids(ws.labels, classes)
+        res["classes"] = classes
+        res["metrics"] = classification_metrics(true, pred, classes, ws.labels)
+        if task == "slip" and "slip" in classes:
+            res["metrics"]["slip_f1"] = res["metrics"]["per_class"]["slip"]["f1"]
+            res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))
+    folder = Path(model_dir) if Path(model_dir).is_dir() else Path(model_dir).parent
+    onnx_name = doc.get("onnx")
+    res["model_bytes"] = int((folder / onnx_name).stat().st_size) if onnx_name else 0
+    res["manifest_bytes"] = int((folder / MANIFEST).stat().st_size)
+    res["latency_ms"] = _percentiles(lat)
+    res["encode_ms"] = _percentiles(enc)
+    res["threads"] = 1
+    res["kept_fraction"] = round(float(ws.kept_fraction), 6)
+    res["decision_delay_ms"] = {f"{fps}fps": round(1000.0 * ws.window / fps, 3)
+                                for fps in (30, 120)}
+    return res
