@@ -112,6 +112,8 @@ def cmd_view(args):
 
     if Path(args.out).suffix.lower() not in (".gif", ".png"):
         raise UserError(f"--out must end in .gif or .png, got {args.out!r}")
+    if _is_recording(args.source):
+        return _view_pipeline(args)
     frames, truth, rest, fps = _frames_and_truth(args.source, args.seed)
     out = Path(args.out)
     most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
@@ -125,6 +127,48 @@ def cmd_view(args):
     save_images(images, out, fps=min(fps, 15.0))
     _emit(args, {"out": str(out), "frames": [int(i) for i in picks]},
           f"wrote {out} ({len(picks)} frames)")
+
+
+def _is_recording(source: str) -> bool:
+    """A video, an image folder or sim:// (not a scene name or a dataset folder)."""
+    from host.dataset import is_dataset
+    p = Path(source)
+    return (source.startswith(("sim://", "file://", "v4l2://"))
+            or (p.is_file() and p.suffix.lower() != ".toml")
+            or (p.is_dir() and not is_dataset(p)))
+
+
+def _view_pipeline(args):
+    """Pins and vectors found by the Pi's pipeline drawn over the frames (the
+    paper's figure 3)."""
+    from device.pi.pipeline import fault_names
+    from host.view import draw_vectors, pick_frames, save_images
+
+    stream = _open_stream(args)
+    cam = _open_source(args.source)
+    out = Path(args.out)
+    most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
+    total = getattr(cam, "n_frames", None) or 0
+    keep = set(pick_frames(total, most).tolist()) if total else None
+    images, picked = [], []
+    with cam:
+        for fr in cam:
+            f = stream.process(fr.image, fr.t_s)
+            if stream.reference is None or (keep is not None and f.index not in keep):
+                continue
+            if keep is None and len(images) >= most:
+                break
+            ref = stream.reference
+            text = f"#{f.index} {'contact' if f.contact else 'no contact'} |v| {f.magnitude:.1f}px"
+            if f.faults:
+                text += " " + ",".join(fault_names(f.faults))
+            images.append(draw_vectors(fr.image, ref, ref + f.vectors, ~f.lost, gain=args.gain,
+                                       text=text))
+            picked.append(f.index)
+    if not images:
+        raise UserError(f"{args.source}: no frame had a reference (no dome or no still start)")
+    save_images(images, out, fps=15.0)
+    _emit(args, {"out": str(out), "frames": picked}, f"wrote {out} ({len(picked)} frames)")
 
 
 def cmd_demo(args):
@@ -374,7 +418,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("view", help="draw frames with pin vectors to a GIF or PNG")
-    s.add_argument("source", help="scene name, scene .toml, or dataset folder")
+    s.add_argument("source", help="scene name, scene .toml or dataset folder (true vectors); "
+                                  "a video, image folder or sim://SCENE (the pipeline's)")
+    s.add_argument("--profile", default="roboskin", help="pipeline profile (recordings)")
     s.add_argument("--out", required=True, help="preview.gif or preview.png")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--max-frames", type=int, default=0)

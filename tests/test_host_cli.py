@@ -101,3 +101,30 @@ def test_python_dash_m_host_works():
     r = subprocess.run([sys.executable, "-m", "host", "scenes"], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0 and "walk" in r.stdout
+
+
+def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
+    out = tmp_path / "p.gif"
+    assert main(["view", "sim://drag-45", "--out", str(out), "--max-frames", "6",
+                 "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert 3 <= len(res["frames"]) <= 6 and min(res["frames"]) >= 4   # after the reference
+    from realdata import real_data_dir
+    clip = real_data_dir("roboskin/north.avi") / "roboskin" / "north.avi"
+    png = tmp_path / "north.png"
+    assert main(["view", str(clip), "--out", str(png)]) == 0
+    assert png.stat().st_size > 50_000
+
+
+def test_analyse_writes_a_line_per_frame_and_a_summary(tmp_path):
+    out = tmp_path / "a.jsonl"
+    assert main(["analyse", "sim://drag-90", "--out", str(out)]) == 0
+    lines = [json.loads(x) for x in out.read_text().splitlines()]
+    from device.sim import Simulator, load_scene
+    n = Simulator(load_scene("drag-90")).n_frames
+    assert len(lines) == n + 1 and lines[-1]["summary"] and lines[-1]["frames"] == n
+    frames = lines[:-1]
+    assert {"frame", "t", "pins", "contact", "shear_x", "shear_y", "magnitude", "pressure",
+            "faults", "timings_ms"} <= set(frames[0])
+    assert any(f["contact"] for f in frames) and not frames[-1]["faults"]
+    assert lines[-1]["contact_frames"] == sum(f["contact"] for f in frames)
