@@ -381,6 +381,20 @@ def cmd_eval(args):
     _emit(args, res, _json.dumps(res, indent=1, default=_json_default))
 
 
+def cmd_report(args):
+    from host.report import build_report
+    data = None
+    try:
+        data = real_data_dir(args.data)
+    except UserError:
+        print("host report: real recordings not found; simulated data only", file=sys.stderr)
+    windows = tuple(int(x) for x in args.windows.split(","))
+    cmd = "host report --out " + args.out + (" --quick" if args.quick else "")
+    out = build_report(args.out, args.work, data, windows=windows, quick=args.quick,
+                       seed=args.seed, progress=not args.json, command=cmd)
+    _emit(args, {"out": str(out)}, f"wrote {out}")
+
+
 def real_data_dir(given: str | None) -> Path:
     import os
     for cand in (given, os.environ.get("TACFOOT_REAL_DATA"),
@@ -487,6 +501,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--profile", default="roboskin")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_eval)
+
+    s = sub.add_parser("report", help="what accuracy costs in time: tables + Pareto plots")
+    s.add_argument("--out", default="docs/accuracy-vs-time.md")
+    s.add_argument("--work", default="out/report", help="simulated data and scratch")
+    s.add_argument("--data", help="real recordings folder")
+    s.add_argument("--windows", default="1,2,3,5,10", help="window lengths T")
+    s.add_argument("--quick", action="store_true", help="fewer simulated trials")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("realism", help="simulated roboskin against the real clips")
     s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "

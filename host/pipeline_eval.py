@@ -123,6 +123,15 @@ def evaluate_sim(scenes=DRAGS + PRESSES, effects=("glare", "camera_noise"), seed
 FARNEBACK = (0.5, 5, 31, 3, 5, 1.1, 0)
 
 
+def _dome_box(stream, shape, margin_px: int):
+    """The slices and origin of the dome's bounding box plus a margin."""
+    cx, cy, r = stream.dome
+    rr = r * stream.profile.vision.roi_shrink + margin_px
+    y0, x0 = max(0, int(cy - rr)), max(0, int(cx - rr))
+    box = (slice(y0, min(shape[0], int(cy + rr) + 1)), slice(x0, min(shape[1], int(cx + rr) + 1)))
+    return box, np.array([x0, y0], np.float64)
+
+
 def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px: float = 1.0,
                               limit: int | None = None, step: int = 1,
                               margin_px: int = 48) -> dict:
@@ -153,11 +162,7 @@ def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px:
             continue
         if ref_gray is None:
             # flow is computed on the dome's bounding box only: the same field, less work
-            cx, cy, r = stream.dome
-            rr = r * stream.profile.vision.roi_shrink + margin_px
-            y0, y1 = max(0, int(cy - rr)), min(g.shape[0], int(cy + rr) + 1)
-            x0, x1 = max(0, int(cx - rr)), min(g.shape[1], int(cx + rr) + 1)
-            box = (slice(y0, y1), slice(x0, x1))
+            box, _ = _dome_box(stream, g.shape, margin_px)
             ref_gray = recent.get(stream.reference_index, g)[box].copy()
             recent.clear()
             mask = (dome_mask(g.shape, stream.dome, stream.profile.vision.roi_shrink) > 0)[box]
@@ -205,12 +210,7 @@ def chained_flow_direction_check(clip_path, profile: str = "roboskin",
             recent[out.index] = g.copy()
             continue
         if pos is None:
-            cx, cy, r = stream.dome
-            rr = r * stream.profile.vision.roi_shrink + margin_px
-            y0, x0 = max(0, int(cy - rr)), max(0, int(cx - rr))
-            box = (slice(y0, min(g.shape[0], int(cy + rr) + 1)),
-                   slice(x0, min(g.shape[1], int(cx + rr) + 1)))
-            origin = np.array([x0, y0], np.float64)
+            box, origin = _dome_box(stream, g.shape, margin_px)
             ref = stream.reference.astype(np.float64)
             pos = ref.copy()
             prev = recent.get(stream.reference_index, g)[box].copy()

@@ -674,19 +674,8 @@ REALISM_FIGURES = [
 
 
 def _read_clip(path, limit: int | None = None) -> list[np.ndarray]:
-    cap = cv2.VideoCapture(str(path))
-    frames = []
-    try:
-        while limit is None or len(frames) < limit:
-            ok, f = cap.read()
-            if not ok:
-                break
-            frames.append(to_gray(f))
-    finally:
-        cap.release()
-    if not frames:
-        raise FileNotFoundError(f"{path}: no frames could be read")
-    return frames
+    from host.localiser import read_clip
+    return read_clip(path, limit)
 
 
 def _sim_frames(scene_name: str, effects: tuple, seed: int) -> list[np.ndarray]:

@@ -184,3 +184,52 @@ def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
     atomic_write_text(out.with_suffix(".json"), json.dumps(
         [{"title": t, "rows": r} for t, _, r in sections], indent=1, default=float))
     return out
+
+
+#: the simulated scene kinds behind each task (host.train.simulate_scenes)
+TASK_KINDS = {"surface": ("hard", "soft", "wet", "no-touch"),
+              "texture": ("lego", "concrete", "smooth"),
+              "slip": ("slip",), "pressure": ("press-hard", "press-soft")}
+#: (train, test) trials per kind
+REPORT_TRIALS = {"full": {"surface": (8, 3), "texture": (6, 2), "slip": (10, 3),
+                          "pressure": (8, 3)},
+                 "quick": {"surface": (3, 1), "texture": (2, 1), "slip": (3, 1),
+                           "pressure": (3, 1)}}
+
+
+def real_manifest(data_dir, work: Path) -> Path:
+    """Concrete vs smooth from the real roboskin clips, as a CSV manifest."""
+    root = Path(data_dir) / "roboskin"
+    work.mkdir(parents=True, exist_ok=True)
+    path = work / "concrete-vs-smooth.csv"
+    path.write_text("path,label\n"
+                    f"{(root / 'smooth.avi').resolve()},smooth\n"
+                    f"{(root / 'concrete.avi').resolve()},concrete\n")
+    return path
+
+
+def build_report(out, work, data_dir=None, windows=WINDOWS, quick: bool = False,
+                 tasks=tuple(TASK_KINDS), seed: int = 0, progress: bool = True,
+                 command: str = "host report") -> Path:
+    from host.train import simulate_scenes
+
+    work = Path(work)
+    counts = REPORT_TRIALS["quick" if quick else "full"]
+    sections = []
+    for task in tasks:
+        n_tr, n_te = counts[task]
+        tr = simulate_scenes(work / f"{task}-train", TASK_KINDS[task], n_tr, 10 * seed + 1,
+                             False, progress)
+        te = simulate_scenes(work / f"{task}-test", TASK_KINDS[task], n_te, 10 * seed + 2,
+                             True, progress)
+        rows = run_task(task, [str(tr)], [str(te)], windows, seed, label="sim",
+                        progress=progress)
+        sections.append((f"{task} (simulated, unseen seeds and surfaces)", f"pareto-{task}.png",
+                         rows))
+    if data_dir is not None:
+        man = real_manifest(data_dir, work)
+        rows = run_task("texture", [str(man)], None, windows, seed, split="time",
+                        contact_only=True, label="real", progress=progress)
+        sections.append(("concrete vs smooth (real roboskin clips, first 70% / last 30%, "
+                         "contact windows)", "pareto-real-texture.png", rows))
+    return write_report(sections, out, command)

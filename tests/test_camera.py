@@ -19,15 +19,7 @@ from device.pi import camera
 from device.pi.camera import (CameraError, CameraSource, Frame, ImageFolderSource, SimSource,
                               V4L2Source, VideoFileSource, natural_key, open_camera)
 
-try:  # shared helper (tests/realdata.py), if a colleague has added it
-    from realdata import real_data_dir
-except ImportError:  # pragma: no cover - fallback with the same contract
-    def real_data_dir() -> Path:
-        env = os.environ.get("TACFOOT_REAL_DATA")
-        p = Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-        if not p.is_dir():
-            pytest.skip(f"real recordings not found at {p} (set TACFOOT_REAL_DATA)")
-        return p.resolve()
+from realdata import real_data_dir
 
 
 W, H, FPS, N = 64, 48, 25.0, 10

@@ -16,15 +16,7 @@ from hypothesis import strategies as st
 from device.sim import fake_mpu6050 as fm
 from device.sim.fake_mpu6050 import FakeMPU6050
 
-try:  # shared helper (tests/realdata.py), if a colleague has added it
-    from realdata import real_data_dir
-except ImportError:  # pragma: no cover - fallback with the same contract
-    def real_data_dir() -> Path:
-        env = os.environ.get("TACFOOT_REAL_DATA")
-        p = Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-        if not p.is_dir():
-            pytest.skip(f"real recordings not found at {p} (set TACFOOT_REAL_DATA)")
-        return p.resolve()
+from realdata import real_data_dir
 
 ADDR = 0x68
 MOTION = np.array(
