@@ -97,10 +97,10 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     if uses_imu and ws.imu is None:
         raise ValueError("the model uses the IMU but the windows carry none")
     X = model_inputs(ws, layout, uses_imu)
-    n_feat = int(doc["input"]["shape"][1])
-    if X.shape[1] != n_feat:
-        raise ValueError(f"the windows encode to {X.shape[1]} inputs, the model expects "
-                         f"{n_feat} (pin count or grid size differs)")
+    shape = [int(d) for d in doc["input"]["shape"][1:]]
+    if int(np.prod(X.shape[1:])) != int(np.prod(shape)):
+        raise ValueError(f"the windows encode to {tuple(X.shape[1:])} inputs, the model "
+                         f"expects {tuple(shape)} (pin count, grid or frame size differs)")
 
     # -- one decision per window, timed as on the Pi --------------------------
     if kind == "regressor":
@@ -124,6 +124,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
 
     for i in idx:
         parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],
+                 "frames": None if ws.frames is None else ws.frames[i],
                  "imu": ws.imu[i] if uses_imu else None}
         t0 = clock()
         encode(layout, **parts)

@@ -44,7 +44,6 @@ import contextlib
 import json
 import logging
 import math
-import os
 import sys
 import tempfile
 import time
@@ -54,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
-from device.pi.window import encode_grids, encode_vectors
+from device.pi.window import encode_frames, encode_grids, encode_vectors
 
 __all__ = [
     "TASKS", "MODELS", "TrainError", "QuantisationError", "model_inputs", "train_model",
@@ -100,8 +99,14 @@ def _check_choice(name: str, value, choices) -> str:
 
 
 def model_inputs(ws, layout: str, uses_imu: bool = False) -> np.ndarray:
-    """(N, D) float32 model inputs of a WindowSet, built by the Pi's encoders."""
-    _check_choice("input_layout", layout, ("vectors", "grids"))
+    """Model inputs of a WindowSet, built by the Pi's encoders: (N, D) float32 for
+    ``vectors`` and ``grids``, (N, T, S, S) for ``frames`` (the CNN's)."""
+    _check_choice("input_layout", layout, ("vectors", "grids", "frames"))
+    if layout == "frames":
+        if ws.frames is None:
+            raise TrainError("input_layout frames needs the binary crops; these windows have "
+                             "none (load them with a frame_size)")
+        return encode_frames(ws.frames)
     if layout == "grids":
         if ws.grids is None:
             raise TrainError("input_layout grids needs contact grids; these windows have none "
@@ -125,6 +130,86 @@ def _label_ids(labels, classes: list[str]) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------
+# Rotation augmentation
+# ----------------------------------------------------------------------------
+
+def layout_rotations(layout_px, tol_px: float = 0.5) -> list[tuple[int, np.ndarray]]:
+    """The rotations (whole degrees, 1..359) about the layout's centre that map the
+    pin layout onto itself, each with its permutation: pin i lands on pin perm[i].
+    For the roboskin layout (rings of 12 and 24 on common spokes) these are the
+    multiples of 30 degrees."""
+    p = np.asarray(layout_px, np.float64).reshape(-1, 2)
+    q = p - p.mean(axis=0)
+    out = []
+    for deg in range(1, 360):
+        th = math.radians(deg)
+        R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+        r = q @ R.T
+        d = np.hypot(r[:, None, 0] - q[None, :, 0], r[:, None, 1] - q[None, :, 1])
+        perm = d.argmin(axis=1)
+        if d[np.arange(len(q)), perm].max() <= tol_px and len(np.unique(perm)) == len(q):
+            out.append((deg, perm))
+    return out
+
+
+def rotate_windows(ws, deg: float, perm: np.ndarray):
+    """The windows as if every stimulus had come ``deg`` degrees rotated (image
+    axes): pin vectors rotated and moved to the pins ``perm`` says, the IMU's x/y
+    accelerations and x/y rates rotated (z unchanged). Grids and frames are dropped
+    (None): they are not rotated."""
+    from dataclasses import replace
+
+    perm = np.asarray(perm, np.int64)
+    if perm.shape != (ws.n_pins,):
+        raise TrainError(f"rotation permutation has {perm.size} pins, the windows {ws.n_pins}")
+    th = math.radians(deg)
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]], np.float32)
+    v = np.empty_like(ws.vectors)
+    v[:, :, perm] = ws.vectors @ R.T
+    lost = np.empty_like(ws.lost)
+    lost[:, :, perm] = ws.lost
+    imu = None
+    if ws.imu is not None:
+        imu = ws.imu.copy()
+        imu[..., 0:2] = ws.imu[..., 0:2] @ R.T
+        imu[..., 3:5] = ws.imu[..., 3:5] @ R.T
+    return replace(ws, vectors=v, lost=lost, imu=imu, grids=None, frames=None,
+                   source=dict(ws.source, rotated_deg=deg))
+
+
+def augment_rotations(ws, copies: int, profile: str = "roboskin"):
+    """``ws`` plus ``copies`` rotated copies of it (:func:`rotate_windows`), at
+    rotations spread evenly over the layout's symmetries; labels, targets and
+    groups are kept (a rotated window stays in its trial). For the ``vectors``
+    layout only (grids are not rotated)."""
+    from dataclasses import replace
+
+    from host.data import layout_for_profile
+
+    copies = _check_int("augment", copies, 0)
+    if copies == 0:
+        return ws
+    lay = layout_for_profile(profile)
+    if len(lay) != ws.n_pins:
+        raise TrainError(f"augment: profile {profile!r} has {len(lay)} pins, the windows "
+                         f"{ws.n_pins}")
+    rots = layout_rotations(lay)
+    if not rots:
+        raise TrainError(f"augment: the pin layout of profile {profile!r} has no rotational "
+                         f"symmetry to augment with")
+    pick = np.unique(np.linspace(0, len(rots), copies + 1, endpoint=False)[1:].astype(int)
+                     ) if copies < len(rots) else np.arange(len(rots))
+    parts = [replace(ws, grids=None, frames=None)] + [rotate_windows(ws, *rots[i]) for i in pick]
+    cat = {}
+    for k in ("vectors", "lost", "imu", "contact", "labels", "targets", "groups", "t_index",
+              "trial_len"):
+        vals = [getattr(p, k) for p in parts]
+        cat[k] = None if vals[0] is None else np.concatenate(vals)
+    return replace(ws, **cat, grids=None, frames=None,
+                   source=dict(ws.source, augmented_deg=[0] + [rots[i][0] for i in pick]))
+
+
+# ----------------------------------------------------------------------------
 # Estimators
 # ----------------------------------------------------------------------------
 
@@ -133,8 +218,8 @@ def _mlp(task: str, hidden, alpha: float, seed: int, n: int):
 
     # mini-batches of 128, smaller for small sets so an epoch takes >= 8 steps
     kw = dict(hidden_layer_sizes=tuple(hidden), activation="logistic", solver="adam",
-              alpha=alpha, batch_size=int(min(128, max(4, n // 8))), learning_rate_init=1e-3, random_state=seed,
-              shuffle=True)
+              alpha=alpha, batch_size=int(min(128, max(4, n // 8))), learning_rate_init=1e-3,
+              random_state=seed, shuffle=True)
     return MLPRegressor(**kw) if task == "pressure" else MLPClassifier(**kw)
 
 
@@ -436,6 +521,11 @@ def _quiet_logging():
 
 
 def _calibration_reader(X: np.ndarray, input_name: str, batch: int = 64):
+    """Calibration batches of exactly ``batch`` windows (the histogram calibrators
+    need equal shapes): the last, short batch is filled with earlier windows."""
+    if len(X) > batch and len(X) % batch:
+        X = np.concatenate([X, X[:batch - len(X) % batch]])
+    batch = min(batch, len(X))
     from onnxruntime.quantization import CalibrationDataReader
 
     class _Reader(CalibrationDataReader):
@@ -640,9 +730,11 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
 
 def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
                          uses_imu: bool | None = None, progress: bool = True,
-                         classes: list[str] | None = None, **hp) -> dict:
+                         classes: list[str] | None = None, augment: int = 0,
+                         profile: str = "roboskin", **hp) -> dict:
     """Grouped K-fold CV (whole trials per fold, :func:`host.data.group_kfold`):
-    pooled held-out metrics plus each fold's accuracy (or MAE)."""
+    pooled held-out metrics plus each fold's accuracy (or MAE). ``augment``
+    rotated copies are added to each fold's training part only."""
     from tqdm import tqdm
 
     from host.data import DataError, group_kfold
@@ -680,7 +772,13 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
             rc = _fit_rule(task, ws.subset(tr), classes)
             out = _rule_probs(rc, X[te])
         else:
-            pipe, _ = _fit(task, model, X[tr], y[tr], 0 if regression else len(classes), hp,
+            Xf, yf = X[tr], y[tr]
+            if augment:
+                a = augment_rotations(ws.subset(tr), augment, profile)
+                Xf = model_inputs(a, layout, uses_imu)
+                yf = (np.asarray(a.targets, np.float64) if regression
+                      else _label_ids(a.labels, classes))
+            pipe, _ = _fit(task, model, Xf, yf, 0 if regression else len(classes), hp,
                            seed, False, f"fold {f}")
             if regression:
                 out = pipe.predict(X[te]).reshape(-1)
@@ -760,7 +858,8 @@ def _holdout(ws, seed: int):
 def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = None,
                 quantise: bool = False, seed: int = 0, out_dir=None, progress: bool = True,
                 *, uses_imu: bool | None = None, hidden=None, alpha: float | None = None,
-                epochs: int | None = None, calibration_windows: int = 1000,
+                epochs: int | None = None, augment: int = 0, profile: str = "roboskin",
+                calibration_windows: int = 2000, calibrate_method: str = "minmax",
                 min_agreement: float = MIN_AGREEMENT) -> dict:
     """Train ``model`` for ``task`` on ``ws_train``; evaluate on ``ws_test`` (or a
     held-out part of ``ws_train``, see the module doc); write the model folder
@@ -771,7 +870,13 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     ``uses_imu``: None = the fnn uses the IMU when the windows carry it.
     ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32)), L2
     penalty (MLP 1e-3, ridge 150) and most epochs (300, with early stopping on the
-    training loss). Nothing is written when a check fails (:class:`TrainError`,
+    training loss). ``augment``: add this many rotated copies of the training
+    windows (:func:`augment_rotations`, rotations that map the ``profile``'s pin
+    layout onto itself), so a model need not see every drag direction; ``vectors``
+    layout only. ``calibration_windows`` training windows (a seeded random
+    choice) calibrate the int8 model with ``calibrate_method`` (minmax, percentile
+    or entropy); ``min_agreement`` is the argmax agreement it must reach on the
+    held-out windows. Nothing is written when a check fails (:class:`TrainError`,
     :class:`QuantisationError`).
     """
     from host.dataset import atomic_write, atomic_write_text
@@ -814,7 +919,13 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     hp = _hyper(model, hidden, alpha, epochs) if model != "rule" else {}
     regression = task == "pressure"
 
-    X = model_inputs(ws_train, layout, uses_imu)
+    augment = _check_int("augment", augment, 0)
+    if augment and layout != "vectors":
+        raise TrainError(f"augment={augment} rotates pin vectors; {model} reads {layout}")
+    if augment and model == "rule":
+        raise TrainError("augment: the rule has nothing to learn from rotated copies")
+    ws_fit = augment_rotations(ws_train, augment, profile) if augment else ws_train
+    X = model_inputs(ws_fit, layout, uses_imu)
     Xt = model_inputs(ws_test, layout, uses_imu) if ws_test is not None else None
     if not np.isfinite(X).all():
         raise TrainError("model inputs hold NaN or inf after encoding")
@@ -822,7 +933,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         raise TrainError(f"every input feature of the {len(X)} training windows has zero "
                          f"variance (the windows are all identical): nothing to learn")
     if regression:
-        y = np.asarray(ws_train.targets, np.float64)
+        y = np.asarray(ws_fit.targets, np.float64)
         classes = []
         yt = None if ws_test is None else np.asarray(ws_test.targets, np.float64)
         if not (y.std() > 0):
@@ -832,7 +943,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         if len(classes) < 2:
             raise TrainError(f"labels: task {task} needs training windows of at least 2 "
                              f"classes, the data hold {len(classes)}: {classes}")
-        y = _label_ids(ws_train.labels, classes)
+        y = _label_ids(ws_fit.labels, classes)
         yt = None if ws_test is None else _label_ids(ws_test.labels, classes)
     result = {"task": task, "model": model, "T": T, "input_layout": layout,
               "uses_imu": bool(uses_imu), "classes": classes, "seed": seed,
@@ -841,8 +952,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     if cv is not None:
         t0 = time.perf_counter()
         metrics["cv"] = cross_validate_model(task, model, ws_train, cv, seed, uses_imu, progress,
-                                             classes=classes or None, **{
-                                                 k: v for k, v in hp.items()})
+                                             classes=classes or None, augment=augment,
+                                             profile=profile, **hp)
         metrics["cv"]["cv_s"] = round(time.perf_counter() - t0, 3)
 
     # -- fit and export ------------------------------------------------------
@@ -872,14 +983,15 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     onnx_model = _to_onnx(pipe, X.shape[1], task)
     fbytes = onnx_model.SerializeToString()
     sess = _session(fbytes)
-    out_train = _run(sess, X)
+    n0 = len(ws_train)                     # the original windows come first in X
+    out_train = _run(sess, X[:n0])
     out_test = _run(sess, Xt) if Xt is not None else None
     if regression:
-        metrics["train"] = regression_metrics(y, out_train)
+        metrics["train"] = regression_metrics(y[:n0], out_train)
         if out_test is not None:
             metrics["test"] = regression_metrics(yt, out_test)
     else:
-        metrics["train"] = _class_report(task, ws_train, y, out_train, classes)
+        metrics["train"] = _class_report(task, ws_train, y[:n0], out_train, classes)
         if out_test is not None:
             metrics["test"] = _class_report(task, ws_test, yt, out_test, classes)
 
@@ -890,12 +1002,17 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         rng = np.random.default_rng(seed)
         n_cal = min(len(X), _check_int("calibration_windows", calibration_windows, 1))
         cal = X[np.sort(rng.choice(len(X), n_cal, replace=False))]
-        check_X = Xt if Xt is not None else X
-        check_y = yt if Xt is not None else y
+        check_X = Xt if Xt is not None else X[:n0]
+        check_y = yt if Xt is not None else y[:n0]
         with tempfile.TemporaryDirectory(prefix="tacfoot-int8-") as tmp:
             qpath = Path(tmp) / INT8_NAME
-            int8 = quantise_model(fbytes, cal, qpath, check_inputs=check_X,
-                                  check_targets=check_y, min_agreement=min_agreement)
+            try:
+                int8 = quantise_model(fbytes, cal, qpath, check_inputs=check_X,
+                                      check_targets=check_y, min_agreement=min_agreement,
+                                      calibrate_method=calibrate_method)
+            except QuantisationError as exc:      # name the file the user asked for
+                raise QuantisationError(str(exc).replace(str(qpath), str(out / INT8_NAME))
+                                        ) from None
             qbytes = qpath.read_bytes()
         int8.pop("path", None)
         sq = _session(qbytes)
@@ -921,7 +1038,9 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
              "variant": "int8" if qbytes is not None else "float",
              "metrics": metrics, "int8": int8,
              "training": _training_info(ws_train, ws_test, holdout, seed,
-                                        dict(hp, **fit_info))}
+                                        dict(hp, **fit_info, augment=augment,
+                                             augmented_deg=ws_fit.source.get("augmented_deg"),
+                                             fit_windows=int(len(X))))}
     if regression:
         extra.update({"target_mean": float(y.mean()),
                       "target_range": [float(y.min()), float(y.max())],
@@ -1263,19 +1382,28 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     def train(task, ws_tr, ws_te, name, model=None, **kw):
         m, hp = BENCH_MODELS[task]
         m = model or m
-        r = train_model(task, m, ws_tr, ws_te, quantise=True, seed=seed,
-                        out_dir=out / "models" / name, progress=progress, **dict(hp, **kw))
+        args = dict(seed=seed, out_dir=out / "models" / name, progress=progress, **dict(hp, **kw))
+        try:
+            r = train_model(task, m, ws_tr, ws_te, quantise=True, **args)
+        except QuantisationError as exc:     # report it, and measure the float model
+            r = train_model(task, m, ws_tr, ws_te, quantise=False, **args)
+            r["int8"] = {"failed": str(exc)}
         return r, out / "models" / name
 
     def summary(r, ev):
         return {"model": r["model"], "uses_imu": r["uses_imu"], "fit": r.get("fit"),
-                "train_s": r["train_s"],
+                "train_s": r["train_s"], "variant": ev["variant"],
                 "int8_check": {k: r["int8"][k] for k in ("agreement", "max_prob_diff",
                                                           "max_abs_diff", "mae_change",
-                                                          "saturation") if k in r["int8"]},
-                "float_bytes": r["files"]["model.onnx"]["size_bytes"],
-                "int8_bytes": r["files"][INT8_NAME]["size_bytes"],
-                "latency_ms_int8": ev["latency_ms"], "encode_ms": ev["encode_ms"]}
+                                                          "saturation", "failed")
+                               if k in r["int8"]},
+                "float_bytes": r["files"][FLOAT_NAME]["size_bytes"],
+                "int8_bytes": r["files"].get(INT8_NAME, {}).get("size_bytes"),
+                "latency_ms": ev["latency_ms"], "encode_ms": ev["encode_ms"]}
+
+    def float_eval(mdir, ws):
+        """The float model's evaluation (the same as the default without int8)."""
+        return evaluate_model(mdir, ws, variant="float")
 
     # -- surface -------------------------------------------------------------
     tr, te, sim_s = data("surface", ["hard", "soft", "wet", "no-touch"])
@@ -1284,7 +1412,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     load_s = time.perf_counter() - t0
     r, mdir = train("surface", ws_tr, ws_te, "surface")
     ev = evaluate_model(mdir, ws_te)
-    evf = evaluate_model(mdir, ws_te, variant="float")
+    evf = float_eval(mdir, ws_te)
     res["surface"] = dict(summary(r, ev), accuracy_int8=ev["metrics"]["accuracy"],
                           accuracy_float=evf["metrics"]["accuracy"],
                           per_class=ev["metrics"]["per_class"],
@@ -1314,7 +1442,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
         slide = sliding[keep_te] & contact
         r, mdir = train("texture", a, b, name)
         ev = evaluate_model(mdir, b)
-        evf = evaluate_model(mdir, b, variant="float")
+        evf = float_eval(mdir, b)
         entry = dict(summary(r, ev), accuracy_all_int8=ev["metrics"]["accuracy"],
                      accuracy_all_float=evf["metrics"]["accuracy"],
                      contact=_subset_accuracy(mdir, b, contact),
@@ -1349,7 +1477,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     load_s = time.perf_counter() - t0
     r, mdir = train("pressure", ws_tr, ws_te, "pressure")
     ev = evaluate_model(mdir, ws_te)
-    evf = evaluate_model(mdir, ws_te, variant="float")
+    evf = float_eval(mdir, ws_te)
     res["pressure"] = dict(summary(r, ev), int8=ev["metrics"], float=evf["metrics"],
                            windows={"train": len(ws_tr), "test": len(ws_te)},
                            sim_s=round(sim_s, 1), load_s=round(load_s, 1))
