@@ -210,6 +210,123 @@ def augment_rotations(ws, copies: int, profile: str = "roboskin"):
 
 
 # ----------------------------------------------------------------------------
+# The FNN's fixed first layer: frame-to-frame changes
+# ----------------------------------------------------------------------------
+
+def _temporal_class():
+    """:class:`TemporalFeatures`, defined on first use (sklearn is host-only)."""
+    global TemporalFeatures
+    if "TemporalFeatures" in globals():
+        return TemporalFeatures
+    from sklearn.base import BaseEstimator, TransformerMixin
+
+    class TemporalFeatures(TransformerMixin, BaseEstimator):
+        """The FNN's first, fixed layer over a ``vectors`` window input: it keeps
+        the input and appends, from the T frames of M pin vectors,
+
+        * the per-pin frame-to-frame changes, (T-1) x M x 2;
+        * the average vector of each frame, T x 2, and its changes, (T-1) x 2;
+        * the length of each average-vector change, T-1 (how far the patch moved);
+        * the mean length of the per-pin changes, T-1 (how much the pins shook);
+        * the mean pin displacement |v| of each frame, T (the pressure).
+
+        Texture shake, slip and a wet floor show in these changes, which are small
+        next to the vectors themselves; given explicitly, the MLP finds them from
+        few trials. No weights: in ONNX it is Slice / Sub / ReduceMean /
+        ReduceSumSquare / Sqrt / Concat (:func:`_temporal_to_onnx`), left in float
+        by the int8 quantiser.
+        """
+
+        def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False):
+            self.T = T
+            self.n_pins = n_pins
+            self.uses_imu = uses_imu
+
+        def _n_in(self) -> int:
+            return self.T * self.n_pins * 2 + (6 * self.T if self.uses_imu else 0)
+
+        def fit(self, X, y=None):
+            X = np.asarray(X)
+            if X.ndim != 2 or X.shape[1] != self._n_in():
+                raise TrainError(f"temporal features: expected (N, {self._n_in()}) inputs for "
+                                 f"T={self.T}, {self.n_pins} pins, imu={self.uses_imu}, got "
+                                 f"{X.shape}")
+            T, M = self.T, self.n_pins
+            self.n_features_in_ = X.shape[1]
+            self.n_features_out_ = (X.shape[1] + (T - 1) * M * 2 + 2 * T + 2 * (T - 1)
+                                    + 2 * (T - 1) + T)
+            return self
+
+        def transform(self, X):
+            X = np.asarray(X, np.float32)
+            T, M, N = self.T, self.n_pins, X.shape[0]
+            v = X[:, :T * M * 2].reshape(N, T, M, 2)
+            avg = v.mean(axis=2, dtype=np.float32)
+            parts = [X]
+            dv = v[:, 1:] - v[:, :-1]
+            davg = avg[:, 1:] - avg[:, :-1]
+            parts += [dv.reshape(N, -1), avg.reshape(N, -1), davg.reshape(N, -1),
+                      np.sqrt((davg * davg).sum(axis=2)),
+                      np.sqrt((dv * dv).sum(axis=3)).mean(axis=2),
+                      np.sqrt((v * v).sum(axis=3)).mean(axis=2)]
+            return np.concatenate(parts, axis=1).astype(np.float32)
+
+    globals()["TemporalFeatures"] = TemporalFeatures
+    _register_temporal(TemporalFeatures)
+    return TemporalFeatures
+
+
+def _register_temporal(cls) -> None:
+    from skl2onnx import update_registered_converter
+    from skl2onnx.common.data_types import FloatTensorType
+
+    def shape(operator):
+        operator.outputs[0].type = FloatTensorType([None, operator.raw_operator.n_features_out_])
+
+    update_registered_converter(cls, "TacfootTemporalFeatures", shape, _temporal_to_onnx)
+
+
+def _temporal_to_onnx(scope, operator, container):
+    """ONNX for :class:`TemporalFeatures` (the same numbers as its transform)."""
+    from onnx import TensorProto
+
+    op = operator.raw_operator
+    T, M = int(op.T), int(op.n_pins)
+
+    def const(values):
+        name = scope.get_unique_variable_name("c")
+        container.add_initializer(name, TensorProto.INT64, [len(values)], list(values))
+        return name
+
+    def node(op_type, inputs, **attrs):
+        out = scope.get_unique_variable_name(op_type.lower())
+        container.add_node(op_type, inputs, out, name=scope.get_unique_operator_name(op_type),
+                           **attrs)
+        return out
+
+    def frames(a, lo, hi):          # a[:, lo:hi] along axis 1
+        return node("Slice", [a, const([lo]), const([hi]), const([1])])
+
+    def flat(a, width):
+        return node("Reshape", [a, const([-1, width])])
+
+    x = operator.inputs[0].full_name
+    v = node("Reshape", [node("Slice", [x, const([0]), const([T * M * 2]), const([1])]),
+                         const([-1, T, M, 2])])
+    avg = node("ReduceMean", [v], axes=[2], keepdims=0)                       # (N, T, 2)
+    dv = node("Sub", [frames(v, 1, T), frames(v, 0, T - 1)])                  # (N, T-1, M, 2)
+    davg = node("Sub", [frames(avg, 1, T), frames(avg, 0, T - 1)])            # (N, T-1, 2)
+    parts = [x, flat(dv, (T - 1) * M * 2), flat(avg, 2 * T), flat(davg, 2 * (T - 1)),
+             node("Sqrt", [node("ReduceSumSquare", [davg], axes=[2], keepdims=0)]),
+             node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [dv], axes=[3],
+                                                    keepdims=0)])], axes=[2], keepdims=0),
+             node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [v], axes=[3],
+                                                   keepdims=0)])], axes=[2], keepdims=0)]
+    container.add_node("Concat", parts, operator.outputs[0].full_name, axis=1,
+                       name=scope.get_unique_operator_name("Concat"))
+
+
+# ----------------------------------------------------------------------------
 # Estimators
 # ----------------------------------------------------------------------------
 
@@ -224,15 +341,21 @@ def _mlp(task: str, hidden, alpha: float, seed: int, n: int):
 
 
 def _fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alpha: float,
-             seed: int, epochs: int, progress: bool, desc: str, patience: int = 15,
-             tol: float = 1e-4):
-    """Scaler + MLP fitted epoch by epoch (``partial_fit``), with a tqdm bar; stops
-    when the training loss has not improved by ``tol`` for ``patience`` epochs.
-    Returns (pipeline, epochs run, final loss)."""
+             seed: int, epochs: int, progress: bool, desc: str, temporal: dict | None = None,
+             patience: int = 15, tol: float = 1e-4):
+    """[TemporalFeatures +] scaler + MLP, the MLP fitted epoch by epoch
+    (``partial_fit``) with a tqdm bar; stops when the training loss has not
+    improved by ``tol`` for ``patience`` epochs. Returns (pipeline, epochs run,
+    final loss)."""
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import StandardScaler
     from tqdm import tqdm
 
+    steps = []
+    if temporal:
+        tf = _temporal_class()(**temporal).fit(X)
+        X = tf.transform(X)
+        steps.append(("temporal", tf))
     scaler = StandardScaler().fit(X)
     Xs = scaler.transform(X).astype(np.float32)
     mlp = _mlp(task, hidden, alpha, seed, len(X))
@@ -258,7 +381,7 @@ def _fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, al
                     stale += 1
                     if stale >= patience:
                         break
-    return Pipeline([("scaler", scaler), ("mlp", mlp)]), n, float(mlp.loss_)
+    return Pipeline(steps + [("scaler", scaler), ("mlp", mlp)]), n, float(mlp.loss_)
 
 
 def _fit(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes: int, hp: dict,
@@ -272,7 +395,7 @@ def _fit(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes: int, hp
         info = {}
     else:
         pipe, epochs, loss = _fit_mlp(task, X, y, n_classes, hp["hidden"], hp["alpha"], seed,
-                                      hp["epochs"], progress, desc)
+                                      hp["epochs"], progress, desc, hp.get("temporal"))
         info = {"epochs": epochs, "loss": round(loss, 6)}
     info["fit_s"] = round(time.perf_counter() - t0, 3)
     return pipe, info
@@ -293,8 +416,19 @@ def _to_onnx(pipe, n_features: int, task: str):
         kw["options"] = {id(est): {"zipmap": False}}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return convert_sklearn(pipe, initial_types=[("x", FloatTensorType([None, n_features]))],
-                               target_opset=17, **kw)
+        m = convert_sklearn(pipe, initial_types=[("x", FloatTensorType([None, n_features]))],
+                            target_opset=17, **kw)
+    # declare the type of the (ai.onnx.ml) Scaler's output, which ONNX shape inference
+    # cannot work out: without it the int8 quantiser leaves the next MatMul's input
+    # in float (weight-only int8)
+    from onnx import TensorProto, helper
+
+    typed = {v.name for v in m.graph.value_info} | {o.name for o in m.graph.output}
+    for node in m.graph.node:
+        if node.op_type == "Scaler" and node.output[0] not in typed:
+            m.graph.value_info.append(helper.make_tensor_value_info(
+                node.output[0], TensorProto.FLOAT, [None, None]))
+    return m
 
 
 # ----------------------------------------------------------------------------
@@ -810,7 +944,7 @@ def _default_imu(model: str, ws) -> bool:
     return model == "fnn" and ws.imu is not None
 
 
-def _hyper(model: str, hidden=None, alpha=None, epochs=None) -> dict:
+def _hyper(model: str, hidden=None, alpha=None, epochs=None, temporal=None) -> dict:
     hidden = tuple(DEFAULT_HIDDEN if hidden is None else hidden)
     if len(hidden) != 2 or not all(isinstance(h, (int, np.integer)) and h >= 1 for h in hidden):
         raise TrainError(f"hidden must be two layer sizes >= 1, got hidden={hidden!r}")
@@ -819,7 +953,8 @@ def _hyper(model: str, hidden=None, alpha=None, epochs=None) -> dict:
             math.isfinite(alpha) and alpha >= 0):
         raise TrainError(f"alpha must be a finite number >= 0, got alpha={alpha!r}")
     epochs = _check_int("epochs", DEFAULT_EPOCHS if epochs is None else epochs, 1)
-    return {"hidden": [int(h) for h in hidden], "alpha": float(alpha), "epochs": epochs}
+    return {"hidden": [int(h) for h in hidden], "alpha": float(alpha), "epochs": epochs,
+            "temporal": temporal}
 
 
 def _check_windows(ws, task: str, what: str) -> None:
@@ -858,7 +993,8 @@ def _holdout(ws, seed: int):
 def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = None,
                 quantise: bool = False, seed: int = 0, out_dir=None, progress: bool = True,
                 *, uses_imu: bool | None = None, hidden=None, alpha: float | None = None,
-                epochs: int | None = None, augment: int = 0, profile: str = "roboskin",
+                epochs: int | None = None, temporal: bool | None = None, augment: int = 0,
+                profile: str = "roboskin",
                 calibration_windows: int = 2000, calibrate_method: str = "minmax",
                 min_agreement: float = MIN_AGREEMENT) -> dict:
     """Train ``model`` for ``task`` on ``ws_train``; evaluate on ``ws_test`` (or a
@@ -870,7 +1006,9 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     ``uses_imu``: None = the fnn uses the IMU when the windows carry it.
     ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32)), L2
     penalty (MLP 1e-3, ridge 150) and most epochs (300, with early stopping on the
-    training loss). ``augment``: add this many rotated copies of the training
+    training loss). ``temporal``: the fnn's fixed first layer of frame-to-frame
+    changes (:class:`TemporalFeatures`); None = on for the fnn when T >= 2.
+    ``augment``: add this many rotated copies of the training
     windows (:func:`augment_rotations`, rotations that map the ``profile``'s pin
     layout onto itself), so a model need not see every drag direction; ``vectors``
     layout only. ``calibration_windows`` training windows (a seeded random
@@ -916,7 +1054,14 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         raise TrainError(f"uses_imu=True needs input_layout vectors; {model} reads {layout}")
     if uses_imu and ws_test is not None and ws_test.imu is None:
         raise TrainError("the model uses the IMU but the test windows carry none")
-    hp = _hyper(model, hidden, alpha, epochs) if model != "rule" else {}
+    if temporal is None:
+        temporal = model == "fnn" and T >= 2
+    if temporal and (model != "fnn" or T < 2):
+        raise TrainError(f"temporal=True needs the fnn and T >= 2 frames, got model={model!r} "
+                         f"T={T}")
+    tspec = ({"T": T, "n_pins": ws_train.n_pins, "uses_imu": bool(uses_imu)} if temporal
+             else None)
+    hp = _hyper(model, hidden, alpha, epochs, tspec) if model != "rule" else {}
     regression = task == "pressure"
 
     augment = _check_int("augment", augment, 0)
@@ -946,7 +1091,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         y = _label_ids(ws_fit.labels, classes)
         yt = None if ws_test is None else _label_ids(ws_test.labels, classes)
     result = {"task": task, "model": model, "T": T, "input_layout": layout,
-              "uses_imu": bool(uses_imu), "classes": classes, "seed": seed,
+              "uses_imu": bool(uses_imu), "temporal_features": bool(temporal),
+              "classes": classes, "seed": seed,
               "holdout": holdout, "out_dir": str(out_dir)}
     metrics: dict = {}
     if cv is not None:
@@ -1097,20 +1243,22 @@ def _plain(o):
 
 BENCH_FPS = 120
 #: surface parameters per scene kind: (training range, test range beyond it).
-#: The gait (depth, speeds, timings, direction) has one range for both.
+#: The gait (depth, speeds, timings, direction) has one range for both. Friction
+#: has one range for hard and soft, and one for the three textures, so that it
+#: tells nothing about the class; wet is low friction by definition.
 SURFACE_RANGES = {
     "hard": {"preset": "hard", "stiffness_n_per_mm": ((100, 300), (50, 600)),
              "mu": ((0.6, 1.0), (0.5, 1.2))},
     "soft": {"preset": "soft", "stiffness_n_per_mm": ((1.0, 2.0), (0.8, 2.4)),
-             "mu": ((0.8, 1.2), (0.7, 1.4))},
+             "mu": ((0.6, 1.0), (0.5, 1.2))},
     "wet": {"preset": "wet", "stiffness_n_per_mm": ((100, 300), (50, 600)),
             "mu": ((0.04, 0.12), (0.02, 0.15))},
     "no-touch": {"preset": "hard"},
-    "smooth": {"preset": "smooth", "mu": ((0.4, 0.6), (0.3, 0.7))},
-    "lego": {"preset": "lego", "mu": ((0.5, 0.7), (0.4, 0.8)),
+    "smooth": {"preset": "smooth", "mu": ((0.45, 0.75), (0.35, 0.85))},
+    "lego": {"preset": "lego", "mu": ((0.45, 0.75), (0.35, 0.85)),
              "texture_amplitude_mm": ((0.2, 0.3), (0.15, 0.35)),
              "stud_pitch_mm": ((7.0, 9.0), (6.0, 10.0))},
-    "concrete": {"preset": "concrete", "mu": ((0.7, 0.9), (0.6, 1.0)),
+    "concrete": {"preset": "concrete", "mu": ((0.45, 0.75), (0.35, 0.85)),
                  "texture_amplitude_mm": ((0.1, 0.15), (0.08, 0.18))},
     "slip": {"preset": "hard", "mu": ((0.3, 0.6), (0.25, 0.7)),
              "wet_mu": ((0.03, 0.1), (0.02, 0.14))},
