@@ -9,7 +9,7 @@ DEMO_OUT ?= out/demo
 
 REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
 
-.PHONY: demo test install install-test install-cnn clean bench models
+.PHONY: demo test install install-test install-cnn install-node clean bench models
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -27,15 +27,22 @@ $(VENV)/.installed-cnn: $(VENV)/.installed-test pyproject.toml
 	$(PIP) install -e '.[host,test,cnn]'
 	touch $@
 
+# the real MicroPython (WebAssembly port) that the MicroPython tests run on, under Node
+node_modules/.installed: package.json package-lock.json
+	@command -v npm >/dev/null || { echo "npm not found: install Node.js and npm (Debian: apt-get install nodejs npm)"; exit 1; }
+	npm ci --no-audit --no-fund
+	touch $@
+
+install-node: node_modules/.installed
 install: $(VENV)/.installed
-install-test: $(VENV)/.installed-test
+install-test: $(VENV)/.installed-test node_modules/.installed
 # the optional CNN extra: the CPU build of torch (CI installs it so the CNN tests run)
 install-cnn: $(VENV)/.installed-cnn
 
 demo: $(VENV)/.installed
 	$(VENV)/bin/host demo --out $(DEMO_OUT)
 
-test: $(VENV)/.installed-test
+test: $(VENV)/.installed-test node_modules/.installed
 	$(PY) -m pytest
 
 bench: $(VENV)/.installed
