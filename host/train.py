@@ -811,8 +811,9 @@ def compare_int8(float_onnx, int8_onnx, X: np.ndarray, y=None,
     (agreement >= ``min_agreement``; MAE change <= ``max_regression_change`` x the
     target range)."""
     X = np.asarray(X, np.float32)
-    if X.ndim != 2 or len(X) == 0:
-        raise TrainError(f"compare_int8 needs held-out windows (N, D), got shape {X.shape}")
+    if X.ndim < 2 or len(X) == 0:
+        raise TrainError(f"compare_int8 needs held-out windows (N, D) or (N, C, H, W), got "
+                         f"shape {X.shape}")
     sf, sq = _session(_model_bytes(float_onnx)), _session(_model_bytes(int8_onnx))
     pf, pq = _run(sf, X), _run(sq, X)
     if not np.isfinite(pq).all():
@@ -852,8 +853,9 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
                    check_targets=None, min_agreement: float = MIN_AGREEMENT,
                    calibrate_method: str = "minmax", per_channel: bool = True) -> dict:
     """Static int8 quantisation (QDQ, uint8 activations, int8 weights) of the
-    MatMuls of ``float_onnx`` (a path, bytes or ModelProto), calibrated on
-    ``calibration_inputs`` (N, D) training windows; writes ``out_path``.
+    MatMuls, Gemms and Convs of ``float_onnx`` (a path, bytes or ModelProto),
+    calibrated on ``calibration_inputs`` training windows (N, D), or (N, T, H, W)
+    frame stacks for the CNN; writes ``out_path``.
 
     Then checks the int8 model against the float one on ``check_inputs`` (held-out
     windows; default: the calibration windows) with :func:`compare_int8`, and
@@ -869,9 +871,9 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
                "entropy": CalibrationMethod.Entropy}
     _check_choice("calibrate_method", calibrate_method, tuple(methods))
     Xc = np.asarray(calibration_inputs, np.float32)
-    if Xc.ndim != 2 or len(Xc) == 0:
-        raise TrainError(f"calibration_inputs must be (N, D) windows with N >= 1, got shape "
-                         f"{Xc.shape}")
+    if Xc.ndim < 2 or len(Xc) == 0:
+        raise TrainError(f"calibration_inputs must be windows (N, D) or (N, C, H, W) with "
+                         f"N >= 1, got shape {Xc.shape}")
     if not np.isfinite(Xc).all():
         raise TrainError("calibration_inputs hold NaN or inf; encode them with "
                          "device.pi.window")
@@ -887,7 +889,7 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
             quantize_static(str(fpath), str(qpath), _calibration_reader(Xc, input_name),
                             quant_format=QuantFormat.QDQ, activation_type=QuantType.QUInt8,
                             weight_type=QuantType.QInt8, per_channel=per_channel,
-                            op_types_to_quantize=["MatMul", "Gemm"],
+                            op_types_to_quantize=["MatMul", "Gemm", "Conv"],
                             calibrate_method=methods[calibrate_method])
         qbytes = qpath.read_bytes()
     quant_s = time.perf_counter() - t0

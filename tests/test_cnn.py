@@ -193,3 +193,27 @@ def test_missing_torch_names_the_cnn_extra(monkeypatch):
         require_torch()
     with pytest.raises(ImportError, match="cnn"):
         FrameCNN().fit(np.zeros((4, T, 32, 32), np.float32), ["a", "b", "a", "b"])
+
+
+def test_int8_cnn_quantises_its_convs_and_agrees_with_float(data, trained, tmp_path):
+    """Static QDQ int8 of the CNN (Conv and Gemm/MatMul), calibrated on training
+    windows, agrees with the float model on held-out windows (>= 99 % argmax) and
+    is smaller; the calibration windows are 4-D frame stacks."""
+    import onnx
+
+    from host.cnn import quantise_cnn
+
+    ws_train, ws_test = data
+    res, out = trained
+    q = tmp_path / "model.int8.onnx"
+    rep = quantise_cnn(res["onnx_path"], ws_train, q, max_windows=256, seed=0)
+    assert q.is_file() and rep["passed"] and rep["kind"] == "classifier"
+    assert rep["agreement"] >= 0.99
+    ops = [n.op_type for n in onnx.load(str(q)).graph.node]
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    assert rep["int8_bytes"] < rep["float_bytes"]
+    # the int8 model runs on 4-D windows one at a time, as on the Pi
+    from host.train import _session
+    s = _session(q.read_bytes())
+    p = s.run(None, {s.get_inputs()[0].name: frames_input(ws_test.frames[:1])})[0]
+    assert p.shape == (1, 4) and np.isfinite(p).all()
