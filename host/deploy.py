@@ -1,0 +1,807 @@
+"""``host deploy``: install the Pi runtime on a Raspberry Pi over SSH.
+
+One deploy is a list of steps, each either local (build, stage) or one ``ssh``
+command running a small POSIX shell script on the Pi. Every step is logged with
+its command; ``--dry-run`` prints the same list and runs none of it.
+
+Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
+
+    PREFIX/releases/<release>/        one folder per deploy, never changed after
+        tacfoot-<ver>-py3-none-any.whl
+        venv/                         the runtime's virtualenv, wheel installed
+        models/  config/              the models and the config it runs with
+        tacfoot.service  tacfootctl   the systemd unit and the no-systemd starter
+        release.json  .complete       metadata; .complete is written last
+    PREFIX/current  -> releases/<r>   what the service runs (switched atomically)
+    PREFIX/previous -> releases/<r>   what ``--rollback`` goes back to
+    PREFIX/run/status.json            the runtime's status file (health check)
+
+Order: probe, build, stage, prepare, copy, install (venv + wheel, then
+``.complete``), switch (``current``), service (unit + restart), health (the
+service is active and ``packets_sent`` in the status file grows, from the
+service's own pid). A failed health check switches ``current`` back and
+restarts the old release. Everything before the switch writes only inside the
+new release's folder, so an interrupted deploy leaves the old release running.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import secrets
+import shlex
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+UNIT_TEMPLATE = REPO / "device" / "pi" / "tacfoot.service"
+MANAGERS = ("auto", "systemd", "none")
+
+
+class DeployError(Exception):
+    """A deploy step failed; the message names the step."""
+
+
+class DeployInputError(ValueError):
+    """Bad deploy options (a missing models folder, a bad --env ...)."""
+
+
+@dataclass
+class DeployOptions:
+    target: str                                  # [USER@]HOST
+    port: int | None = None
+    identity: str | None = None
+    ssh_options: list[str] = field(default_factory=list)   # extra "-o" values
+    prefix: str = "/opt/tacfoot"
+    models: str | None = None                    # default: the repo's models/
+    config: str | None = None                    # default: device/leg.toml if present
+    python: str = "python3"                      # the Pi's interpreter for the venv
+    service_manager: str = "auto"
+    service_name: str = "tacfoot"
+    service_user: str | None = None              # default: the SSH user unless root
+    unit_dir: str = "/etc/systemd/system"
+    system_site_packages: bool = False
+    no_deps: bool = False
+    camera: str = "v4l2:///dev/video0"
+    imu: str = "i2c://1/0x68"
+    serial: str = "/dev/serial0"
+    runtime_module: str = "device.pi"
+    runtime_args: list[str] = field(default_factory=list)
+    env: list[str] = field(default_factory=list)         # KEY=VALUE for the service
+    watchdog_s: int = 10
+    health_timeout_s: float = 60.0
+    keep: int = 3
+    release: str | None = None
+
+    def check(self):
+        if not self.target or self.target.startswith("-") or any(c.isspace()
+                                                                 for c in self.target):
+            raise DeployInputError(f"target must be [USER@]HOST, got {self.target!r}")
+        if self.port is not None and not 0 < self.port < 65536:
+            raise DeployInputError(f"--port must be 1..65535, got {self.port!r}")
+        if self.service_manager not in MANAGERS:
+            raise DeployInputError(f"--service-manager must be one of {MANAGERS}, "
+                                   f"got {self.service_manager!r}")
+        if not self.prefix.startswith("/") or self.prefix.rstrip("/") in ("", "/"):
+            raise DeployInputError(f"--prefix must be an absolute folder, got {self.prefix!r}")
+        if not self.unit_dir.startswith("/"):
+            raise DeployInputError(f"--unit-dir must be an absolute folder, got {self.unit_dir!r}")
+        if not self.service_name.replace("-", "").replace("_", "").isalnum():
+            raise DeployInputError(f"--service-name must be letters, digits, - or _, "
+                                   f"got {self.service_name!r}")
+        # these end up in the unit and in shell scripts: one line each
+        for name, vals in (("prefix", [self.prefix]), ("unit-dir", [self.unit_dir]),
+                           ("camera", [self.camera]), ("imu", [self.imu]),
+                           ("serial", [self.serial]), ("runtime-arg", self.runtime_args),
+                           ("env", self.env), ("python", [self.python]),
+                           ("service-user", [self.service_user or ""]),
+                           ("runtime-module", [self.runtime_module])):
+            for v in vals:
+                if any(ord(c) < 32 or 127 <= ord(c) < 160 or c in "\u2028\u2029" for c in v):
+                    raise DeployInputError(f"--{name} must not hold control characters "
+                                           f"(newline, tab...), got {v!r}")
+        for kv in self.env:
+            k, eq, _ = kv.partition("=")
+            if not eq or not k.replace("_", "").isalnum() or k[0].isdigit():
+                raise DeployInputError(f"--env must be KEY=VALUE, got {kv!r}")
+        if not self.watchdog_s >= 1:
+            raise DeployInputError(f"--watchdog-s must be >= 1, got {self.watchdog_s!r}")
+        if not (self.health_timeout_s > 0 and math.isfinite(self.health_timeout_s)):
+            raise DeployInputError(f"--health-timeout-s must be > 0, got "
+                                   f"{self.health_timeout_s!r}")
+        if self.keep < 2:
+            raise DeployInputError(f"--keep must be >= 2 (current and previous), got {self.keep}")
+        if self.release is not None and not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]*",
+                                                         self.release):
+            raise DeployInputError(f"--release must be letters, digits, . _ + - (a folder "
+                                   f"name), got {self.release!r}")
+        for name in ("models", "config"):
+            p = getattr(self, name)
+            if p is not None and not Path(p).exists():
+                raise DeployInputError(f"--{name}: {p} not found")
+        if self.models is not None and not Path(self.models).is_dir():
+            raise DeployInputError(f"--models must be a folder, got {self.models!r}")
+        if self.config is not None and not Path(self.config).is_file():
+            raise DeployInputError(f"--config must be a file, got {self.config!r}")
+
+    # -- derived ---------------------------------------------------------------
+    @property
+    def ssh_user(self) -> str | None:
+        return self.target.split("@", 1)[0] if "@" in self.target else None
+
+    def models_dir(self) -> Path | None:
+        if self.models:
+            return Path(self.models)
+        d = REPO / "models"
+        return d if d.is_dir() else None
+
+    def config_file(self) -> Path | None:
+        if self.config:
+            return Path(self.config)
+        f = REPO / "device" / "leg.toml"
+        return f if f.is_file() else None
+
+
+def project_version() -> str:
+    """The version in pyproject.toml (the wheel being built)."""
+    from device.config import tomllib
+    try:
+        with open(REPO / "pyproject.toml", "rb") as fh:
+            return str(tomllib.load(fh)["project"]["version"])
+    except (OSError, KeyError, ValueError):
+        return "0"
+
+
+def q(s) -> str:
+    return shlex.quote(str(s))
+
+
+# -- what runs on the Pi ---------------------------------------------------------
+
+def runtime_argv(o: DeployOptions) -> list[str]:
+    """The runtime command line the service runs (through PREFIX/current)."""
+    cur = f"{o.prefix}/current"
+    argv = [f"{cur}/venv/bin/python", "-m", o.runtime_module, "run",
+            "--camera", o.camera, "--imu", o.imu, "--serial", o.serial]
+    if o.models_dir() is not None:
+        argv += ["--models", f"{cur}/models"]
+    cfg = o.config_file()
+    if cfg is not None:
+        argv += ["--config", f"{cur}/config/{cfg.name}"]
+    argv += ["--status", status_path(o)]
+    return argv + list(o.runtime_args)
+
+
+def status_path(o: DeployOptions) -> str:
+    return f"{o.prefix}/run/status.json"
+
+
+def _systemd_word(arg: str) -> str:
+    """One word of a systemd command line: %, $ escaped; quoted if needed."""
+    s = arg.replace("%", "%%").replace("$", "$$")
+    if s and not any(c.isspace() or c in "\"'\\;" for c in s):
+        return s
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def render_unit(o: DeployOptions, template: str | None = None) -> str:
+    """The systemd unit for these options, from device/pi/tacfoot.service."""
+    text = template if template is not None else UNIT_TEMPLATE.read_text()
+    user = o.service_user if o.service_user is not None else o.ssh_user
+    env = "\n".join("Environment=" + _systemd_word(kv) for kv in o.env)
+    fields = {"SERVICE": o.service_name, "PREFIX": o.prefix,
+              "EXEC_START": " ".join(_systemd_word(a) for a in runtime_argv(o)),
+              "USER_LINE": f"User={user}" if user and user != "root" else "",
+              "ENVIRONMENT": env, "WATCHDOG_S": str(int(o.watchdog_s))}
+    # one pass, so a value that itself looks like @FIELD@ is left alone
+    return re.sub(r"@([A-Z_]+)@", lambda m: fields.get(m[1], m[0]), text)
+
+
+def render_ctl(o: DeployOptions) -> str:
+    """tacfootctl: start/stop/restart/pid with a pid file, for a Pi without
+    systemd (and the tests). Same command line and environment as the unit."""
+    run = f"{o.prefix}/run"
+    env = "".join(f"export {kv.partition('=')[0]}={q(kv.partition('=')[2])}\n" for kv in o.env)
+    return f"""#!/bin/sh
+# tacfootctl: runs the tacfoot runtime without systemd (pid file {run}/{o.service_name}.pid).
+# Written by host deploy; usage: tacfootctl start|stop|restart|pid
+PIDFILE={q(run + '/' + o.service_name + '.pid')}
+LOG={q(run + '/' + o.service_name + '.log')}
+alive() {{ kill -0 "$1" 2>/dev/null && ! grep -q '^[0-9]* ([^)]*) Z' /proc/"$1"/stat 2>/dev/null; }}
+getpid() {{ p=$(cat "$PIDFILE" 2>/dev/null) || return 1; [ -n "$p" ] && alive "$p" && echo "$p"; }}
+start() {{
+  mkdir -p {q(run)}
+  export PYTHONUNBUFFERED=1
+{env}  cd {q(o.prefix)}
+  nohup setsid sh -c 'echo $$ > "$0"; exec "$@"' "$PIDFILE" {shlex.join(runtime_argv(o))} \\
+    </dev/null >>"$LOG" 2>&1 &
+  i=0; while [ ! -s "$PIDFILE" ] && [ $i -lt 50 ]; do sleep 0.1; i=$((i+1)); done
+}}
+stop() {{
+  p=$(getpid) || {{ rm -f "$PIDFILE"; return 0; }}
+  kill -TERM "$p" 2>/dev/null
+  i=0; while alive "$p" && [ $i -lt 100 ]; do sleep 0.1; i=$((i+1)); done
+  alive "$p" && kill -KILL "$p" 2>/dev/null
+  rm -f "$PIDFILE"
+}}
+case "$1" in
+  start) getpid >/dev/null || {{ rm -f "$PIDFILE"; start; }} ;;
+  stop) stop ;;
+  restart) stop; start ;;
+  pid) getpid ;;
+  *) echo "usage: tacfootctl start|stop|restart|pid" >&2; exit 2 ;;
+esac
+"""
+
+
+HEALTH_PY = r"""
+import json, subprocess, sys, time
+status, pid_cmd, timeout_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
+dead_s = float(sys.argv[4])     # give up when not active this long (0: wait it out)
+t0 = time.monotonic()
+alive_t = t0
+base = None
+why = "no status file"
+out = {"ok": False}
+while time.monotonic() - t0 < timeout_s:
+    r = subprocess.run(pid_cmd, shell=True, capture_output=True, text=True)
+    pid = r.stdout.strip()
+    if r.returncode != 0 or not pid.isdigit() or int(pid) <= 0:
+        why = "service not active"
+        if dead_s > 0 and time.monotonic() - alive_t > dead_s:
+            break
+    else:
+        alive_t = time.monotonic()
+        try:
+            with open(status) as fh:
+                st = json.load(fh)
+        except (OSError, ValueError):
+            st = None
+        if not isinstance(st, dict):
+            why = "no status file"
+        elif st.get("pid") != int(pid):
+            why = "status file is not from the service process (pid %s)" % pid
+        else:
+            sent = st.get("packets_sent")
+            if not isinstance(sent, int):
+                why = "status file has no packets_sent"
+            elif base is None or base[0] != pid:
+                base = (pid, sent, time.monotonic())
+                why = "waiting for packets_sent to grow"
+            elif sent > base[1]:
+                out = {"ok": True, "pid": int(pid), "packets_sent": sent,
+                       "packets_per_s": round((sent - base[1]) /
+                                              max(time.monotonic() - base[2], 1e-3), 1),
+                       "faults": st.get("faults"), "fault_names": st.get("fault_names")}
+                break
+    time.sleep(0.2)
+out["waited_s"] = round(time.monotonic() - t0, 2)
+if not out["ok"]:
+    out["reason"] = why
+print(json.dumps(out))
+sys.exit(0 if out["ok"] else 1)
+"""
+
+_SUDO = 'SUDO=; [ "$(id -u)" = 0 ] || SUDO="sudo -n"\n'
+
+
+class Deployer:
+    """Runs (or, with dry_run, only lists) the steps of one deploy or rollback."""
+
+    def __init__(self, opts: DeployOptions, dry_run: bool = False, log=None):
+        opts.check()
+        self.o = opts
+        self.dry_run = dry_run
+        self.log = log if log is not None else (lambda msg: print(msg, file=sys.stderr))
+        self.steps: list[dict] = []
+        self.copy_hook = None          # called (proc, bytes_sent) while copying
+        self.manager = opts.service_manager
+        self.release = opts.release or ""
+        self._cm_dir: str | None = None          # ssh ControlMaster socket folder
+
+    # -- plumbing --------------------------------------------------------------
+    def _ssh_base(self) -> list[str]:
+        o = self.o
+        argv = ["ssh", "-o", "BatchMode=yes", "-o", "ConnectTimeout=15"]
+        if o.port is not None:
+            argv += ["-p", str(o.port)]
+        if o.identity:
+            argv += ["-i", o.identity, "-o", "IdentitiesOnly=yes"]
+        for opt in o.ssh_options:
+            argv += ["-o", opt]
+        if self._cm_dir is not None:
+            argv += ["-o", f"ControlPath={self._cm_dir}/cm", "-o", "ControlMaster=no"]
+        return argv
+
+    def open_connection(self):
+        """One SSH connection that every step reuses (ControlMaster); without it
+        (it failed, or a dry run) each step connects on its own."""
+        if self.dry_run or self._cm_dir is not None:
+            return
+        d = tempfile.mkdtemp(prefix="tfssh-")
+        argv = self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-o", "ControlMaster=yes",
+                                   "-o", "ControlPersist=600", "-f", "-N", self.o.target]
+        try:
+            r = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, timeout=60)
+            ok = r.returncode == 0 and os.path.exists(f"{d}/cm")
+        except subprocess.TimeoutExpired:
+            ok = False
+        if ok:
+            self._cm_dir = d
+        else:
+            shutil.rmtree(d, ignore_errors=True)
+
+    def close_connection(self):
+        if self._cm_dir is None:
+            return
+        d, self._cm_dir = self._cm_dir, None
+        subprocess.run(self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-O", "exit",
+                                           self.o.target],
+                       stdin=subprocess.DEVNULL, capture_output=True, timeout=30)
+        shutil.rmtree(d, ignore_errors=True)
+
+    def ssh_argv(self, script: str) -> list[str]:
+        return self._ssh_base() + [self.o.target, "--", "sh -c " + q("set -eu\n" + script)]
+
+    def _record(self, name, where, command, **extra) -> dict:
+        step = {"step": name, "where": where, "command": command, **extra}
+        self.steps.append(step)
+        shown = command.replace(q(HEALTH_PY), '"$HEALTH_CHECK_PY"')
+        self.log(f"[deploy] {name} ({where}): " + shown.strip().replace("\n", "; "))
+        return step
+
+    def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600):
+        step = self._record(name, "remote", script)
+        if self.dry_run:
+            return step
+        t0 = time.monotonic()
+        try:
+            r = subprocess.run(self.ssh_argv(script), capture_output=True, text=True,
+                               timeout=timeout_s, stdin=subprocess.DEVNULL)
+            rc, out, err = r.returncode, r.stdout, r.stderr
+        except subprocess.TimeoutExpired:
+            rc, out, err = -1, "", f"timed out after {timeout_s:.0f} s"
+        step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-2000:],
+                    stderr=err[-2000:])
+        if rc != 0:
+            self.log(f"[deploy] {name}: exit {rc}: {err.strip()[-500:]}")
+            if check:
+                raise DeployError(f"step {name} failed (exit {rc}): "
+                                  f"{err.strip().splitlines()[-1] if err.strip() else ''}")
+        return step
+
+    # -- scripts ---------------------------------------------------------------
+    def _pid_cmd(self) -> str:
+        o = self.o
+        if self.manager == "systemd":
+            return (f"systemctl is-active --quiet {q(o.service_name)} && "
+                    f"systemctl show -p MainPID --value {q(o.service_name)}")
+        return f"{q(o.prefix + '/current/tacfootctl')} pid"
+
+    def _service_script(self) -> str:
+        """Install the current release's unit and restart the service."""
+        o = self.o
+        cur = f"{o.prefix}/current"
+        if self.manager == "systemd":
+            return (_SUDO +
+                    f"$SUDO install -m 0644 {q(cur + '/tacfoot.service')} "
+                    f"{q(o.unit_dir + '/' + o.service_name + '.service')}\n"
+                    "$SUDO systemctl daemon-reload\n"
+                    f"$SUDO systemctl reset-failed {q(o.service_name)} 2>/dev/null || true\n"
+                    f"$SUDO systemctl enable --quiet {q(o.service_name)}\n"
+                    f"$SUDO systemctl restart {q(o.service_name)}\n")
+        return f"{q(cur + '/tacfootctl')} restart\n"
+
+    def _stop_script(self) -> str:
+        o = self.o
+        if self.manager == "systemd":
+            return _SUDO + f"$SUDO systemctl stop {q(o.service_name)} || true\n"
+        return (f"[ ! -x {q(o.prefix + '/current/tacfootctl')} ] || "
+                f"{q(o.prefix + '/current/tacfootctl')} stop\n")
+
+    def _link_script(self, link: str, target: str | None) -> str:
+        """Point PREFIX/link at target atomically (ln -s to a temp name, mv -T);
+        target None removes the link."""
+        p = q(self.o.prefix)
+        if target is None:
+            return f"rm -f {p}/{link}\n"
+        return (f"ln -sfn {q(target)} {p}/.{link}.tmp\n"
+                f"mv -T {p}/.{link}.tmp {p}/{link}\n")
+
+    def _health_script(self) -> str:
+        o = self.o
+        # systemd restarts a failed runtime (Restart=on-failure): wait the whole
+        # timeout; with a pid file nothing will, so 2 s not running is final
+        dead_s = 0 if self.manager == "systemd" else 2
+        return (f"{q(o.python)} -c {q(HEALTH_PY)} {q(status_path(o))} {q(self._pid_cmd())} "
+                f"{o.health_timeout_s:g} {dead_s}\n")
+
+    # -- local steps -------------------------------------------------------------
+    def build_wheel(self, out_dir: Path) -> Path:
+        """Build the tacfoot wheel from a clean copy of the source tree."""
+        cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
+               "-q", "-w", str(out_dir / "dist"), str(out_dir / "src")]
+        step = self._record("build", "local", shlex.join(cmd))
+        if self.dry_run:
+            return out_dir / "dist" / "tacfoot.whl"
+        t0 = time.monotonic()
+        src = out_dir / "src"
+        src.mkdir(parents=True)
+        ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build")
+        for name in ("pyproject.toml", "README.md"):
+            shutil.copy2(REPO / name, src / name)
+        for pkg in ("device", "host"):
+            shutil.copytree(REPO / pkg, src / pkg, ignore=ignore)
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        step.update(rc=r.returncode, seconds=round(time.monotonic() - t0, 3))
+        wheels = sorted((out_dir / "dist").glob("tacfoot-*.whl"))
+        if r.returncode != 0 or not wheels:
+            raise DeployError(f"step build failed: {r.stderr.strip()[-500:]}")
+        return wheels[0]
+
+    def stage(self, wheel: Path, out_dir: Path) -> Path:
+        o = self.o
+        st = out_dir / "stage"
+        models, cfg = o.models_dir(), o.config_file()
+        self._record("stage", "local", f"stage {wheel.name}"
+                     + (f", models {models}" if models else "")
+                     + (f", config {cfg}" if cfg else "") + ", tacfoot.service, tacfootctl")
+        if self.dry_run:
+            return st
+        st.mkdir()
+        shutil.copy2(wheel, st / wheel.name)
+        if models is not None:
+            shutil.copytree(models, st / "models",
+                            ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        if cfg is not None:
+            (st / "config").mkdir()
+            shutil.copy2(cfg, st / "config" / cfg.name)
+        (st / "tacfoot.service").write_text(render_unit(o))
+        (st / "tacfootctl").write_text(render_ctl(o))
+        (st / "tacfootctl").chmod(0o755)
+        (st / "release.json").write_text(json.dumps({
+            "release": self.release, "wheel": wheel.name,
+            "wheel_sha256": hashlib.sha256(wheel.read_bytes()).hexdigest(),
+            "built_unix": round(time.time(), 3), "runtime_argv": runtime_argv(o),
+            "service_manager": self.manager}, indent=1) + "\n")
+        return st
+
+    def copy(self, staged: Path):
+        """Stream the staged folder as a tar over one ssh into releases/R."""
+        rel = f"{self.o.prefix}/releases/{self.release}"
+        script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
+        step = self._record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
+                            + script.strip().replace("\n", "; "))
+        if self.dry_run:
+            return
+        t0 = time.monotonic()
+        with tempfile.TemporaryFile() as err:
+            proc = subprocess.Popen(self.ssh_argv(script), stdin=subprocess.PIPE,
+                                    stdout=subprocess.DEVNULL, stderr=err)
+            sent = 0
+            hook = self.copy_hook
+            try:
+                class _Counting:
+                    def write(_self, b):
+                        nonlocal sent
+                        proc.stdin.write(b)
+                        sent += len(b)
+                        if hook is not None:
+                            hook(proc, sent)
+                        return len(b)
+
+                    def flush(_self):
+                        proc.stdin.flush()
+
+                with tarfile.open(fileobj=_Counting(), mode="w|gz") as tar:
+                    tar.add(staged, arcname=".")
+                proc.stdin.close()
+            except (BrokenPipeError, OSError, ValueError):
+                pass
+            finally:
+                try:
+                    rc = proc.wait(timeout=600)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    rc = proc.wait()
+            err.seek(0)
+            msg = err.read().decode(errors="replace").strip()
+        step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3), stderr=msg[-2000:])
+        if rc != 0:
+            raise DeployError(f"step copy failed (exit {rc}) after {sent} bytes"
+                              + (f": {msg.splitlines()[-1]}" if msg else ""))
+
+    # -- the deploy ----------------------------------------------------------------
+    def probe(self) -> dict:
+        o = self.o
+        p = q(o.prefix)
+        script = (
+            "if [ -d /run/systemd/system ] && command -v systemctl >/dev/null; "
+            "then echo manager=systemd; else echo manager=none; fi\n"
+            f"echo current=$(readlink {p}/current 2>/dev/null || true)\n"
+            f"echo previous=$(readlink {p}/previous 2>/dev/null || true)\n"
+            "echo user=$(id -un)\n"
+            f"echo python=$({q(o.python)} -c 'import sys; print(sys.version.split()[0])' "
+            "2>/dev/null || echo missing)\n")
+        step = self.remote("probe", script)
+        info = {"manager": None, "current": "", "previous": "", "user": "", "python": ""}
+        for line in step.get("stdout", "").splitlines():
+            k, _, v = line.partition("=")
+            if k in info:
+                info[k] = v.strip()
+        if not self.dry_run and info["python"] in ("", "missing"):
+            raise DeployError(f"step probe: {o.python!r} does not run on {o.target} "
+                              "(set --python)")
+        return info
+
+    def _resolve_manager(self, info: dict):
+        if self.manager == "auto":
+            self.manager = info.get("manager") or "systemd"
+
+    def deploy(self) -> dict:
+        o = self.o
+        res = {"target": o.target, "prefix": o.prefix, "dry_run": self.dry_run,
+               "ok": False, "rolled_back": False}
+        info = self.probe()
+        if self.dry_run and self.manager == "auto":
+            res["note"] = "service manager auto: the probe decides; plan shown for systemd"
+        self._resolve_manager(info)
+        res["service_manager"] = self.manager
+        old = info["current"] or None
+        res["previous"] = old
+        if not self.release:
+            self.release = (f"{project_version()}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-"
+                            f"{secrets.token_hex(2)}")
+        res["release"] = self.release
+        rel = f"{o.prefix}/releases/{self.release}"
+        relname = f"releases/{self.release}"
+        with tempfile.TemporaryDirectory(prefix="tacfoot-deploy-") as tmp:
+            wheel = self.build_wheel(Path(tmp))
+            staged = self.stage(wheel, Path(tmp))
+            res["wheel"] = wheel.name
+            p = q(o.prefix)
+            self.remote("prepare", _SUDO +
+                        f"if [ ! -d {p} ]; then $SUDO mkdir -p {p}; "
+                        f"$SUDO chown \"$(id -u):$(id -g)\" {p}; fi\n"
+                        f"mkdir -p {p}/releases {p}/run\n"
+                        f"cd {p}/releases\n"
+                        # drop what an interrupted deploy left (never current/previous)
+                        "for d in *; do [ -d \"$d\" ] || continue\n"
+                        "  [ -f \"$d/.complete\" ] || rm -rf \"$d\"; done\n"
+                        f"[ ! -e {q(self.release)} ] || "
+                        f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
+            self.copy(staged)
+        self.remote("install", self._install_script(rel))
+        # -- from here on the old release has been touched: undo on any failure
+        switched = False
+        try:
+            switched = True         # from here undo, even if the switch itself broke off
+            self.remote("switch", f"cd {q(o.prefix)}\n"
+                        f"[ -f {q(relname + '/.complete')} ] || "
+                        f"{{ echo 'release {self.release} is incomplete' >&2; exit 3; }}\n"
+                        + self._link_script("current", relname))
+            self.remote("service", self._service_script())
+            h = self.health("health")
+            res["health"] = h
+            if self.dry_run or h.get("ok"):
+                # the new release runs: from here a failure is only a warning
+                if old and old != relname:
+                    st = self.remote("previous", self._link_script("previous", old), check=False)
+                    if st.get("rc"):
+                        res.setdefault("warnings", []).append("could not set previous")
+                st = self.remote("prune", self._prune_script(), check=False)
+                if st.get("rc"):
+                    res.setdefault("warnings", []).append("could not prune old releases")
+                res["ok"] = True
+                return res
+            raise DeployError(f"health check failed: {h.get('reason', 'unknown')}")
+        except BaseException as exc:          # Ctrl-C too: never leave a half switch
+            res["error"] = str(exc) or type(exc).__name__
+            if switched:
+                try:        # what the new release's runtime said before it is replaced
+                    res["log_tail"] = self.log_tail()
+                except BaseException:
+                    res["log_tail"] = []
+                if res["log_tail"] and isinstance(exc, DeployError):
+                    res["error"] += f"; the runtime said: {res['log_tail'][-1]}"
+                res["rolled_back"] = True
+                res["rollback"] = self._undo(old, relname)
+            if not isinstance(exc, DeployError):
+                raise
+            return res
+
+    def _install_script(self, rel: str) -> str:
+        o = self.o
+        r = q(rel)
+        venv_flags = " --system-site-packages --without-pip" if o.system_site_packages else ""
+        pip_flags = " --no-deps --no-index" if o.no_deps else ""
+        s = f"cd {r}\n[ ! -e .complete ]\n{q(o.python)} -m venv{venv_flags} venv\n"
+        if o.system_site_packages:
+            # the venv sees every site-packages folder --python sees (its system
+            # ones, and its own when --python is itself a venv); pip comes from there too
+            s += (f"site=$(venv/bin/python -c 'import sysconfig; print(sysconfig.get_paths()"
+                  "[\"purelib\"])')\n"
+                  f"{q(o.python)} -c 'import sys; print(\"\\n\".join(p for p in sys.path "
+                  "if p.endswith((\"site-packages\", \"dist-packages\"))))' "
+                  "> \"$site/_tacfoot_base.pth\"\n"
+                  "venv/bin/python -m pip --version >/dev/null 2>&1 || "
+                  "venv/bin/python -m ensurepip --default-pip >/dev/null\n")
+        s += (f"venv/bin/python -m pip install -q --disable-pip-version-check{pip_flags} "
+              "./tacfoot-*.whl\n"
+              # the installed code must import before this release may become current
+              "venv/bin/python -c 'import device.pi, device.pi.sdnotify'\n"
+              "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
+        return s
+
+    def _prune_script(self) -> str:
+        o = self.o
+        return (f"cd {q(o.prefix)}\n"
+                "cur=$(readlink current || true); prev=$(readlink previous || true)\n"
+                f"ls -1dt releases/*/ 2>/dev/null | sed 's#/$##' | tail -n +{o.keep + 1} | "
+                "while read -r d; do\n"
+                "  [ \"$d\" = \"$cur\" ] || [ \"$d\" = \"$prev\" ] || rm -rf \"$d\"; done\n")
+
+    def _undo(self, old: str | None, failed: str) -> dict:
+        """Switch current back to old (or remove it) and restart the old release."""
+        out = {"to": old}
+        try:
+            if old:
+                self.remote("rollback-switch", f"cd {q(self.o.prefix)}\n"
+                            + self._link_script("current", old)
+                            + f"touch {q(failed + '/.failed')}\n")
+                self.remote("rollback-service", self._service_script())
+                out["health"] = self.health("rollback-health")
+                out["ok"] = bool(out["health"].get("ok"))
+            else:
+                self.remote("rollback-stop", self._stop_script()
+                            + f"cd {q(self.o.prefix)}\n" + self._link_script("current", None)
+                            + f"touch {q(failed + '/.failed')}\n")
+                out["ok"] = True
+        except DeployError as exc:
+            out.update(ok=False, error=str(exc))
+        return out
+
+    def health(self, name: str) -> dict:
+        step = self.remote(name, self._health_script(), check=False,
+                           timeout_s=self.o.health_timeout_s + 60)
+        if self.dry_run:
+            return {"ok": None}
+        try:
+            return json.loads(step.get("stdout", "").strip().splitlines()[-1])
+        except (ValueError, IndexError):
+            return {"ok": False, "reason": "health check gave no answer: "
+                    + step.get("stderr", "").strip()[-300:]}
+
+    def log_tail(self, n: int = 20) -> list[str]:
+        """The service's last log lines (journal, or tacfootctl's log file)."""
+        o = self.o
+        if self.manager == "systemd":
+            script = (_SUDO + f"$SUDO journalctl -u {q(o.service_name)} -n {n} --no-pager "
+                      "-o cat 2>/dev/null || true\n")
+        else:
+            script = f"tail -n {n} {q(o.prefix + '/run/' + o.service_name + '.log')} || true\n"
+        st = self.remote("logs", script, check=False)
+        return [l for l in st.get("stdout", "").splitlines() if l.strip()]
+
+    def rollback(self) -> dict:
+        """Switch current back to previous (and previous to the one we left)."""
+        o = self.o
+        res = {"target": o.target, "prefix": o.prefix, "dry_run": self.dry_run, "ok": False}
+        info = self.probe()
+        self._resolve_manager(info)
+        res["service_manager"] = self.manager
+        cur, prev = info["current"] or None, info["previous"] or None
+        if not self.dry_run and not prev:
+            raise DeployError(f"no previous release under {o.prefix} to roll back to")
+        res.update(release=prev, previous=cur)
+        p = q(o.prefix)
+        self.remote("switch", f"cd {p}\nprev=$(readlink previous)\ncur=$(readlink current)\n"
+                    "[ -f \"$prev/.complete\" ] || "
+                    "{ echo \"previous release $prev is incomplete\" >&2; exit 3; }\n"
+                    "ln -sfn \"$prev\" .current.tmp\nmv -T .current.tmp current\n"
+                    "ln -sfn \"$cur\" .previous.tmp\nmv -T .previous.tmp previous\n")
+        self.remote("service", self._service_script())
+        res["health"] = self.health("health")
+        res["ok"] = True if self.dry_run else bool(res["health"].get("ok"))
+        if not res["ok"]:
+            res["error"] = f"health check failed: {res['health'].get('reason', 'unknown')}"
+        return res
+
+
+def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
+        log=None) -> dict:
+    """Deploy (or roll back); the result dict has ok, release, steps, health."""
+    d = Deployer(opts, dry_run=dry_run, log=log)
+    try:
+        d.open_connection()
+        res = d.rollback() if rollback else d.deploy()
+    except DeployError as exc:
+        res = {"target": opts.target, "ok": False, "dry_run": dry_run, "error": str(exc)}
+    finally:
+        d.close_connection()
+    res["steps"] = d.steps
+    return res
+
+
+def add_arguments(s):
+    """The ``host deploy`` options (shared with host/cli.py)."""
+    s.add_argument("target", help="USER@HOST of the Pi")
+    s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
+    s.add_argument("--rollback", action="store_true",
+                   help="switch current back to the previous release and restart")
+    s.add_argument("--port", type=int, help="SSH port")
+    s.add_argument("--identity", help="SSH private key file")
+    s.add_argument("--ssh-option", action="append", default=[], metavar="OPT",
+                   help="extra ssh -o option, e.g. StrictHostKeyChecking=no (repeatable)")
+    s.add_argument("--prefix", default="/opt/tacfoot", help="install folder on the Pi")
+    s.add_argument("--models", help="models folder to ship (default: models/)")
+    s.add_argument("--config", help="runtime config TOML to ship (default: device/leg.toml)")
+    s.add_argument("--python", default="python3", help="Python on the Pi to build the venv with")
+    s.add_argument("--service-manager", choices=MANAGERS, default="auto",
+                   help="systemd, or none (pid file + tacfootctl); auto probes the Pi")
+    s.add_argument("--service-name", default="tacfoot", help="systemd unit / pid file name")
+    s.add_argument("--service-user", help="User= of the unit (default: the SSH user)")
+    s.add_argument("--unit-dir", default="/etc/systemd/system",
+                   help="where the unit file is installed on the Pi")
+    s.add_argument("--system-site-packages", action="store_true",
+                   help="the venv sees the packages --python sees (e.g. apt's numpy/opencv)")
+    s.add_argument("--no-deps", action="store_true",
+                   help="pip install the wheel alone, offline (deps already on the Pi)")
+    s.add_argument("--camera", default="v4l2:///dev/video0", help="runtime --camera source")
+    s.add_argument("--imu", default="i2c://1/0x68", help="runtime --imu source")
+    s.add_argument("--serial", default="/dev/serial0", help="runtime --serial port or URL")
+    s.add_argument("--runtime-module", default="device.pi",
+                   help="module the service runs as `python -m MODULE run ...`")
+    s.add_argument("--runtime-arg", action="append", default=[], metavar="ARG",
+                   help="extra argument for the runtime (repeatable; use --runtime-arg=--x)")
+    s.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="environment variable for the service (repeatable)")
+    s.add_argument("--watchdog-s", type=int, default=10, help="WatchdogSec= of the unit")
+    s.add_argument("--health-timeout-s", type=float, default=60.0,
+                   help="how long the health check waits for packets to flow")
+    s.add_argument("--keep", type=int, default=3, help="releases kept on the Pi")
+    s.add_argument("--release", help="release folder name (default: VERSION-UTCSTAMP-RAND)")
+    s.add_argument("--json", action="store_true")
+
+
+def options_from_args(a) -> DeployOptions:
+    return DeployOptions(
+        target=a.target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
+        prefix=a.prefix, models=a.models, config=a.config, python=a.python,
+        service_manager=a.service_manager, service_name=a.service_name,
+        service_user=a.service_user, unit_dir=a.unit_dir,
+        system_site_packages=a.system_site_packages, no_deps=a.no_deps, camera=a.camera, imu=a.imu, serial=a.serial,
+        runtime_module=a.runtime_module, runtime_args=a.runtime_arg, env=a.env,
+        watchdog_s=a.watchdog_s, health_timeout_s=a.health_timeout_s, keep=a.keep,
+        release=a.release)
+
+
+def summary_text(res: dict) -> str:
+    if res.get("dry_run"):
+        lines = ["plan (dry run, nothing was run):"]
+        for s in res.get("steps", []):
+            lines.append(f"# {s['step']} ({s['where']})")
+            lines.append(s["command"].rstrip())
+        if res.get("note"):
+            lines.append("# " + res["note"])
+        return "\n".join(lines)
+    if res.get("ok"):
+        h = res.get("health", {})
+        return (f"{res.get('target')}: release {res.get('release')} running "
+                f"(pid {h.get('pid')}, {h.get('packets_per_s')} packets/s)"
+                + (f"; previous {res['previous']}" if res.get("previous") else ""))
+    msg = f"{res.get('target')}: FAILED: {res.get('error')}"
+    if res.get("rolled_back"):
+        rb = res.get("rollback", {})
+        msg += (f"; rolled back to {rb.get('to') or 'nothing (service stopped)'}"
+                f" ({'ok' if rb.get('ok') else 'rollback FAILED'})")
+    return msg

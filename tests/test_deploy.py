@@ -1,0 +1,598 @@
+"""host deploy against a real OpenSSH server on loopback, and device.pi.sdnotify.
+
+The deploy tests start sshd (tests/sshd_fixture.py) and deploy into a temporary
+PREFIX with --service-manager none (tacfootctl + pid file), a venv seeded from
+this interpreter (--system-site-packages --no-deps), and the real runtime on
+simulated hardware (sim://walk, loop://). The systemd unit itself is checked with
+``systemd-analyze verify`` when that is available.
+
+The tests that share the module's ``pi`` fixture are one story, in file order:
+deploy r1, deploy r2, a broken r3 rolled back, a killed copy, a failing prepare,
+--rollback to r1. Each says which earlier step it needs when run alone.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sshd_fixture import SshServer, missing_reason  # noqa: E402
+
+from device.pi import sdnotify  # noqa: E402
+from host import deploy as dp  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+# -- sdnotify --------------------------------------------------------------------
+
+
+def _dgram_server(addr):
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    s.bind(addr)
+    s.settimeout(2.0)
+    return s
+
+
+def test_notify_reaches_a_path_socket(tmp_path):
+    path = str(tmp_path / "notify.sock")
+    with _dgram_server(path) as srv:
+        assert sdnotify.notify("READY=1", {"NOTIFY_SOCKET": path}) is True
+        assert srv.recv(256) == b"READY=1"
+        assert sdnotify.notify("STATUS=frames 12\nWATCHDOG=1", {"NOTIFY_SOCKET": path})
+        assert srv.recv(256) == b"STATUS=frames 12\nWATCHDOG=1"
+
+
+def test_notify_reaches_an_abstract_socket():
+    name = f"tacfoot-test-{os.getpid()}-{time.monotonic_ns()}"
+    with _dgram_server("\0" + name) as srv:
+        assert sdnotify.notify("READY=1", {"NOTIFY_SOCKET": "@" + name}) is True
+        assert srv.recv(256) == b"READY=1"
+
+
+def test_notify_uses_os_environ(tmp_path, monkeypatch):
+    path = str(tmp_path / "n.sock")
+    with _dgram_server(path) as srv:
+        monkeypatch.setenv("NOTIFY_SOCKET", path)
+        assert sdnotify.notify("READY=1")
+        assert srv.recv(64) == b"READY=1"
+    monkeypatch.delenv("NOTIFY_SOCKET")
+    assert sdnotify.notify("READY=1") is False
+
+
+@pytest.mark.parametrize("value", ["", "relative/sock", "/nonexistent/dir/sock", "@",
+                                   "vsock:2:1234"])
+def test_notify_without_a_usable_socket_returns_false(value, tmp_path):
+    assert sdnotify.notify("READY=1", {"NOTIFY_SOCKET": value}) is False
+    assert sdnotify.notify("READY=1", {}) is False
+
+
+def test_notify_to_a_socket_nobody_listens_on_returns_false(tmp_path):
+    path = str(tmp_path / "gone.sock")
+    _dgram_server(path).close()          # the file stays, nobody receives
+    assert sdnotify.notify("READY=1", {"NOTIFY_SOCKET": path}) is False
+
+
+@given(st.dictionaries(st.sampled_from(["NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID"]),
+                       st.text(max_size=40)), st.text(max_size=40))
+@settings(max_examples=150, deadline=None)
+def test_sdnotify_never_raises(env, state):
+    assert sdnotify.notify(state, env) in (True, False)
+    iv = sdnotify.watchdog_interval_s(env)
+    assert iv is None or (iv > 0 and iv < float("inf"))
+    dog = sdnotify.Watchdog(env=env)
+    assert dog.tick(0.0) in (True, False)
+
+
+def test_watchdog_interval_from_environment():
+    me = str(os.getpid())
+    assert sdnotify.watchdog_interval_s({"WATCHDOG_USEC": "5000000"}) == 5.0
+    assert sdnotify.watchdog_interval_s({"WATCHDOG_USEC": "2500000", "WATCHDOG_PID": me}) == 2.5
+    # set for another process (e.g. inherited through a fork): not ours
+    assert sdnotify.watchdog_interval_s({"WATCHDOG_USEC": "5000000",
+                                         "WATCHDOG_PID": str(os.getpid() + 1)}) is None
+    for bad in ({}, {"WATCHDOG_USEC": ""}, {"WATCHDOG_USEC": "0"}, {"WATCHDOG_USEC": "-5"},
+                {"WATCHDOG_USEC": "abc"}, {"WATCHDOG_USEC": "1000", "WATCHDOG_PID": "x"}):
+        assert sdnotify.watchdog_interval_s(bad) is None, bad
+
+
+def test_watchdog_pings_at_half_the_interval(tmp_path):
+    path = str(tmp_path / "wd.sock")
+    env = {"NOTIFY_SOCKET": path, "WATCHDOG_USEC": "2000000"}     # 2 s -> ping every 1 s
+    with _dgram_server(path) as srv:
+        dog = sdnotify.Watchdog(env=env)
+        assert dog.enabled and dog.period_s == 1.0
+        sent = [dog.tick(100.0 + i / 10) for i in range(41)]   # 4 s of a 10 Hz loop
+        assert sum(sent) == 5 and dog.pings == 5           # at 100, 101, 102, 103, 104 s
+        assert [i for i, s in enumerate(sent) if s] == [0, 10, 20, 30, 40]
+        srv.settimeout(0.5)
+        got = [srv.recv(64) for _ in range(5)]
+        assert got == [b"WATCHDOG=1"] * 5
+        # a clock that jumps back pings at once rather than going quiet
+        assert dog.tick(50.0) is True
+
+
+def test_watchdog_disabled_without_interval(tmp_path):
+    dog = sdnotify.Watchdog(env={"NOTIFY_SOCKET": str(tmp_path / "x.sock")})
+    assert not dog.enabled
+    assert not any(dog.tick(float(t)) for t in range(100))
+    assert sdnotify.Watchdog(interval_s=None).tick(0.0) is False
+    for bad in (0, -1.0, float("nan"), float("inf"), "5"):
+        with pytest.raises(ValueError, match="interval_s"):
+            sdnotify.Watchdog(interval_s=bad)
+
+
+# -- the unit file -----------------------------------------------------------------
+
+
+def _opts(**kw) -> dp.DeployOptions:
+    base = dict(target="pi@leg1", camera="sim://walk", imu="sim://walk", serial="loop://")
+    base.update(kw)
+    return dp.DeployOptions(**base)
+
+
+def test_unit_has_the_required_settings():
+    unit = dp.render_unit(_opts(env=["OMP_NUM_THREADS=1", "TAG=a b"], watchdog_s=7))
+    lines = unit.splitlines()
+    for want in ("Type=notify", "NotifyAccess=main", "Restart=on-failure", "WatchdogSec=7",
+                 "User=pi", "Environment=OMP_NUM_THREADS=1", 'Environment="TAG=a b"'):
+        assert want in lines, want
+    assert "@" not in "".join(l for l in lines if not l.startswith("#")), "unfilled field"
+    (exec_line,) = [l for l in lines if l.startswith("ExecStart=")]
+    assert exec_line.startswith("ExecStart=/opt/tacfoot/current/venv/bin/python -m device.pi run ")
+    assert "--status /opt/tacfoot/run/status.json" in exec_line
+    assert "--camera sim://walk" in exec_line
+    # root runs without User=; $ and % are escaped for systemd
+    unit = dp.render_unit(_opts(target="root@leg1", camera="file:///d/50%$x.avi"))
+    assert not any(l.startswith("User=") for l in unit.splitlines())
+    assert "file:///d/50%%$$x.avi" in unit
+
+
+def _exec_start_argv(unit: str) -> list[str]:
+    """ExecStart= split the way systemd does for the quoting render_unit uses."""
+    import shlex
+    (line,) = [l for l in unit.splitlines() if l.startswith("ExecStart=")]
+    return [w.replace("%%", "%").replace("$$", "$") for w in shlex.split(line[10:])]
+
+
+@given(st.text(st.characters(max_codepoint=0x2FF, blacklist_categories=("Cc", "Cs")),
+               min_size=1, max_size=30),
+       st.lists(st.text(st.characters(min_codepoint=32, max_codepoint=126), min_size=1,
+                        max_size=12), max_size=3))
+@settings(max_examples=200, deadline=None)
+def test_unit_command_line_round_trips(camera, extra):
+    o = _opts(camera=camera, runtime_args=extra)
+    o.check()
+    assert _exec_start_argv(dp.render_unit(o)) == dp.runtime_argv(o)
+
+
+def test_control_characters_are_refused():
+    for kw in (dict(camera="sim://walk\nExecStartPre=/bin/rm"), dict(env=["A=1\n[Install]"]),
+               dict(runtime_args=["--x\ty"]), dict(imu="i2c://1/0x68\x85")):
+        with pytest.raises(dp.DeployInputError, match="control characters"):
+            _opts(**kw).check()
+
+
+def test_unit_passes_systemd_analyze_verify(tmp_path):
+    tool = shutil.which("systemd-analyze")
+    if tool is None:
+        pytest.skip("systemd-analyze not installed")
+    prefix = tmp_path / "opt"
+    (prefix / "current" / "venv" / "bin").mkdir(parents=True)
+    os.symlink(sys.executable, prefix / "current" / "venv" / "bin" / "python")
+    unit = tmp_path / "tacfoot.service"
+    unit.write_text(dp.render_unit(_opts(target="root@leg1", prefix=str(prefix),
+                                         env=["OMP_NUM_THREADS=1"])))
+    r = subprocess.run([tool, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    out = r.stdout + r.stderr
+    if r.returncode != 0 and "tacfoot.service" not in out:
+        pytest.skip(f"systemd-analyze verify cannot run here: {out.strip()[-200:]}")
+    assert r.returncode == 0 and "tacfoot.service:" not in out, out
+    # and it does catch a broken unit, so the check above means something
+    unit.write_text(unit.read_text().replace("Type=notify", "Type=notifyy"))
+    r = subprocess.run([tool, "verify", str(unit)], capture_output=True, text=True, timeout=60)
+    assert "tacfoot.service:" in r.stdout + r.stderr and "notifyy" in r.stdout + r.stderr
+
+
+def test_bad_options_name_the_field():
+    for kw, field in ((dict(port=0), "--port"), (dict(prefix="opt/x"), "--prefix"),
+                      (dict(prefix="/"), "--prefix"), (dict(env=["NOEQUALS"]), "--env"),
+                      (dict(service_manager="upstart"), "--service-manager"),
+                      (dict(target="-oProxyCommand=x"), "target"), (dict(keep=1), "--keep"),
+                      (dict(models="/nonexistent/models"), "--models"),
+                      (dict(release="../x"), "--release"), (dict(release="a'b"), "--release"),
+                      (dict(health_timeout_s=float("nan")), "--health-timeout-s")):
+        with pytest.raises(dp.DeployInputError, match=field.replace("-", r"\-")):
+            _opts(**kw).check()
+
+
+def test_cli_bad_input_exits_2(capsys):
+    from host.cli import main
+    assert main(["deploy", "pi@leg1", "--port", "70000", "--dry-run"]) == 2
+    assert "--port must be 1..65535, got 70000" in capsys.readouterr().err
+
+
+# -- against a real sshd --------------------------------------------------------------
+
+needs_sshd = pytest.mark.skipif(missing_reason() is not None, reason=str(missing_reason()))
+
+class Pi:
+    """The deploy target: sshd on loopback plus a PREFIX under tmp."""
+
+    def __init__(self, srv: SshServer, root: Path):
+        self.srv = srv
+        self.root = root
+        self.prefix = root / "opt" / "tacfoot"
+        self.config = root / "leg.toml"
+        src = REPO / "device" / "leg.toml"
+        self.config.write_text(src.read_text() if src.is_file() else "# default\n")
+
+    def opts(self, **kw) -> dp.DeployOptions:
+        base = dict(target=self.srv.target, port=self.srv.port, identity=self.srv.identity,
+                    ssh_options=list(self.srv.ssh_options), prefix=str(self.prefix),
+                    python=sys.executable, service_manager="none",
+                    system_site_packages=True, no_deps=True, config=str(self.config),
+                    # an endless-enough source: 720 frames paced at 15 fps (48 s)
+                    camera="sim://walk?realtime=1&fps=15", imu="sim://walk", serial="loop://",
+                    runtime_args=["--fps", "15"], health_timeout_s=20.0)
+        base.update(kw)
+        return dp.DeployOptions(**base)
+
+    def link(self, name) -> str | None:
+        p = self.prefix / name
+        return os.readlink(p) if p.is_symlink() else None
+
+    def pid(self) -> int | None:
+        try:
+            pid = int((self.prefix / "run" / "tacfoot.pid").read_text())
+            os.kill(pid, 0)
+            return pid
+        except (OSError, ValueError):
+            return None
+
+    def tag(self, pid: int) -> str | None:
+        env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        for kv in env:
+            if kv.startswith(b"TAG="):
+                return kv[4:].decode()
+        return None
+
+    def packets_flow(self, pid: int, within_s: float = 15.0) -> bool:
+        """The status file is from pid and its packets_sent grows."""
+        first = None
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < within_s:
+            try:
+                st = json.loads((self.prefix / "run" / "status.json").read_text())
+            except (OSError, ValueError):
+                st = {}
+            if st.get("pid") == pid:
+                if first is None:
+                    first = st["packets_sent"]
+                elif st["packets_sent"] > first:
+                    return True
+            time.sleep(0.1)
+        return False
+
+    def stop_all(self):
+        ctl = self.prefix / "current" / "tacfootctl"
+        if ctl.exists():
+            subprocess.run([str(ctl), "stop"], capture_output=True, timeout=30)
+        pid = self.pid()
+        if pid:
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def pi(tmp_path_factory):
+    if missing_reason():
+        pytest.skip(missing_reason())
+    root = tmp_path_factory.mktemp("pi")
+    srv = SshServer(root)
+    srv.start()
+    p = Pi(srv, root)
+    yield p
+    p.stop_all()
+    srv.stop()
+
+
+def _quiet(msg):
+    pass
+
+
+@needs_sshd
+def test_dry_run_touches_nothing(pi, capsys):
+    from host.cli import main
+    o = pi.opts()
+    argv = ["deploy", o.target, "--dry-run", "--json", "--port", str(o.port), "--identity",
+            o.identity, "--prefix", str(pi.prefix), "--python", o.python,
+            "--service-manager", "systemd", "--config", str(pi.config)]
+    assert main(argv) == 0
+    res = json.loads(capsys.readouterr().out)
+    names = [s["step"] for s in res["steps"]]
+    assert names[:3] == ["probe", "build", "stage"]
+    assert {"prepare", "copy", "install", "switch", "service", "health"} <= set(names)
+    assert any("systemctl restart tacfoot" in s["command"] for s in res["steps"])
+    assert not any("rc" in s for s in res["steps"]), "a dry run ran a step"
+    assert not pi.prefix.exists()
+    # a port nobody listens on: a dry run never connects, so it still plans
+    argv[argv.index("--port") + 1] = "1"
+    assert main(argv) == 0
+    assert not pi.prefix.exists()
+
+
+@needs_sshd
+def test_first_deploy_runs_and_packets_flow(pi, capsys):
+    from host.cli import main
+    o = pi.opts()
+    argv = ["deploy", o.target, "--json", "--port", str(o.port), "--identity", o.identity,
+            "--prefix", str(pi.prefix), "--python", o.python, "--service-manager", "none",
+            "--system-site-packages", "--no-deps", "--config", str(pi.config),
+            "--camera", o.camera, "--imu", o.imu, "--serial", o.serial,
+            "--health-timeout-s", "20", "--release", "r1", "--env", "TAG=r1",
+            "--runtime-arg=--fps", "--runtime-arg=15"]
+    for s in o.ssh_options:
+        argv += ["--ssh-option", s]
+    rc = main(argv)
+    out = capsys.readouterr()
+    res = json.loads(out.out)
+    assert rc == 0 and res["ok"], out.err[-3000:]
+    assert res["health"]["ok"] and res["health"]["packets_per_s"] > 0
+    assert res["release"] == "r1" and pi.link("current") == "releases/r1"
+    assert pi.link("previous") is None
+    assert (pi.prefix / "releases" / "r1" / ".complete").is_file()
+    pid = pi.pid()
+    assert pid == res["health"]["pid"] and pi.tag(pid) == "r1"
+    assert pi.packets_flow(pid)
+    # every remote step was logged with its command
+    assert "[deploy] install (remote)" in out.err and "[deploy] switch (remote)" in out.err
+    # the venv runs the wheel's copy of the code, not this checkout
+    r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-c",
+                        "import device.pi.sdnotify as m; print(m.__file__)"],
+                       capture_output=True, text=True, cwd=pi.root)
+    assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
+    assert str(REPO) not in r.stdout
+
+
+@needs_sshd
+def test_second_deploy_keeps_the_first_as_previous(pi):
+    old_pid = pi.pid()
+    assert old_pid, "needs the first deploy"
+    res = dp.run(pi.opts(release="r2", env=["TAG=r2"]), log=_quiet)
+    assert res["ok"], res
+    assert pi.link("current") == "releases/r2" and pi.link("previous") == "releases/r1"
+    pid = pi.pid()
+    assert pid != old_pid and pi.tag(pid) == "r2" and pi.packets_flow(pid)
+    assert not Path(f"/proc/{old_pid}").exists() or b"Z" in Path(
+        f"/proc/{old_pid}/stat").read_bytes().split(b") ")[1][:1]
+
+
+@needs_sshd
+def test_failed_health_check_rolls_back(pi, tmp_path):
+    assert pi.link("current") == "releases/r2", "needs the second deploy"
+    broken = tmp_path / "leg.toml"
+    broken.write_text(pi.config.read_text() + "\n[broken_section]\nbroken = true\n")
+    res = dp.run(pi.opts(release="r3", env=["TAG=r3"], config=str(broken),
+                         health_timeout_s=6.0), log=_quiet)
+    assert not res["ok"] and res["rolled_back"], res
+    assert "health check failed" in res["error"]
+    # the runtime's own complaint about the config comes back with it
+    assert "broken_section" in res["error"] and res["log_tail"]
+    assert res["rollback"]["ok"] and res["rollback"]["to"] == "releases/r2"
+    assert pi.link("current") == "releases/r2" and pi.link("previous") == "releases/r1"
+    assert (pi.prefix / "releases" / "r3" / ".failed").is_file()
+    pid = pi.pid()
+    assert pid and pi.tag(pid) == "r2" and pi.packets_flow(pid)
+
+
+@needs_sshd
+def test_killed_copy_leaves_the_old_release_running(pi):
+    pid = pi.pid()
+    assert pi.link("current") == "releases/r2" and pid
+    d = dp.Deployer(pi.opts(release="r4", env=["TAG=r4"]), log=_quiet)
+    killed = []
+
+    def kill_mid_copy(proc, sent):
+        if not killed:
+            killed.append(sent)
+            proc.kill()
+
+    d.copy_hook = kill_mid_copy
+    with pytest.raises(dp.DeployError, match="step copy failed"):
+        d.deploy()
+    assert killed
+    steps = [s["step"] for s in d.steps]
+    assert steps[-1] == "copy" and "switch" not in steps, steps
+    assert pi.link("current") == "releases/r2" and pi.pid() == pid and pi.packets_flow(pid)
+    assert not (pi.prefix / "releases" / "r4" / ".complete").exists()
+
+
+@needs_sshd
+def test_failing_step_before_switch_changes_nothing(pi):
+    pid = pi.pid()
+    assert pi.link("current") == "releases/r2" and pid
+    res = dp.run(pi.opts(release="r2"), log=_quiet)   # r2 exists: prepare refuses
+    assert not res["ok"] and "prepare" in res["error"] and "already exists" in res["error"]
+    assert not res.get("rolled_back")
+    assert pi.link("current") == "releases/r2" and pi.pid() == pid and pi.packets_flow(pid)
+    # ... and it cleared what the killed copy left behind
+    assert not (pi.prefix / "releases" / "r4").exists()
+
+
+@needs_sshd
+def test_rollback_switches_to_previous_and_restarts(pi, capsys):
+    from host.cli import main
+    assert pi.link("current") == "releases/r2"
+    o = pi.opts()
+    argv = ["deploy", o.target, "--rollback", "--json", "--port", str(o.port), "--identity",
+            o.identity, "--prefix", str(pi.prefix), "--python", o.python,
+            "--service-manager", "none", "--health-timeout-s", "20"]
+    for s in o.ssh_options:
+        argv += ["--ssh-option", s]
+    assert main(argv) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["ok"] and res["release"] == "releases/r1", res
+    assert pi.link("current") == "releases/r1" and pi.link("previous") == "releases/r2"
+    pid = pi.pid()
+    assert pi.tag(pid) == "r1" and pi.packets_flow(pid)
+
+
+# -- the systemd path, with a stand-in systemctl ----------------------------------------
+# There is no systemd in the test container; this systemctl does what the deploy
+# asks of the real one (install, daemon-reload, enable, restart, stop, is-active,
+# show MainPID) by running the installed unit's ExecStart= and Environment= lines,
+# so the systemd-mode commands and the unit's command line are exercised for real.
+
+FAKE_SYSTEMCTL = r'''#!{python}
+import os, shlex, signal, socket, subprocess, sys, time
+state = os.environ["FAKE_SYSTEMD_DIR"]
+with open(os.path.join(state, "calls.log"), "a") as fh:
+    fh.write(" ".join(sys.argv[1:]) + "\n")
+words = [a for a in sys.argv[1:] if not a.startswith("-")]
+cmd, name = words[0], (words[-1] if len(words) > 1 else "")
+pidfile = os.path.join(state, name + ".pid")
+
+def unescape(w):
+    return w.replace("%%", "%").replace("$$", "$")
+
+def alive(pid):
+    try:
+        os.kill(pid, 0)
+        with open("/proc/%d/stat" % pid) as fh:
+            return fh.read().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+def main_pid():
+    try:
+        pid = int(open(pidfile).read())
+    except (OSError, ValueError):
+        return 0
+    return pid if alive(pid) else 0
+
+def stop():
+    pid = main_pid()
+    if pid:
+        os.kill(pid, signal.SIGTERM)
+        t0 = time.monotonic()
+        while alive(pid) and time.monotonic() - t0 < 10:
+            time.sleep(0.05)
+        if alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+def start():
+    unit = open(os.path.join(state, "units", name + ".service")).read().splitlines()
+    env = dict(os.environ)
+    argv = None
+    notify = watchdog_s = None
+    for line in unit:
+        if line == "Type=notify":
+            notify = os.path.join(state, "notify.sock")
+        elif line.startswith("WatchdogSec="):
+            watchdog_s = int(line.split("=", 1)[1])
+        elif line.startswith("ExecStart="):
+            argv = [unescape(w) for w in shlex.split(line[len("ExecStart="):])]
+        elif line.startswith("Environment="):
+            for kv in shlex.split(line[len("Environment="):]):
+                k, _, v = unescape(kv).partition("=")
+                env[k] = v
+    sock = None
+    if notify:          # like systemd: a notify socket, and wait for READY=1
+        if os.path.exists(notify):
+            os.unlink(notify)
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        sock.bind(notify)
+        env["NOTIFY_SOCKET"] = notify
+        if watchdog_s:
+            env["WATCHDOG_USEC"] = str(watchdog_s * 1000000)
+    log = open(os.path.join(state, name + ".log"), "ab")
+    p = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                         start_new_session=True)
+    open(pidfile, "w").write(str(p.pid))
+    if sock is not None:
+        got, t0 = [], time.monotonic()
+        sock.settimeout(0.5)
+        # wait for READY=1 and, with a watchdog, the first WATCHDOG=1 after it
+        while time.monotonic() - t0 < 30 and p.poll() is None:
+            try:
+                got += sock.recv(4096).decode().split("\n")
+            except socket.timeout:
+                continue
+            if "READY=1" in got and (not watchdog_s or "WATCHDOG=1" in
+                                     got[got.index("READY=1"):]):
+                break
+        with open(os.path.join(state, "notify.log"), "a") as fh:
+            fh.write("\n".join(got) + "\n")
+        if "READY=1" not in got:
+            sys.exit("fake systemctl: %s did not send READY=1" % name)
+
+if cmd in ("daemon-reload", "reset-failed", "enable"):
+    pass
+elif cmd == "restart":
+    stop(); start()
+elif cmd == "stop":
+    stop()
+elif cmd == "is-active":
+    sys.exit(0 if main_pid() else 3)
+elif cmd == "show":
+    print(main_pid())
+else:
+    sys.exit("fake systemctl: unsupported " + cmd)
+'''
+
+
+@needs_sshd
+def test_systemd_mode_installs_the_unit_and_restarts(tmp_path):
+    state = tmp_path / "systemd"
+    (state / "units").mkdir(parents=True)
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    ctl = bin_dir / "systemctl"
+    ctl.write_text(FAKE_SYSTEMCTL.replace("{python}", sys.executable))
+    ctl.chmod(0o755)
+    env = {"PATH": f"{bin_dir}:/usr/local/bin:/usr/bin:/bin:/usr/sbin:/sbin",
+           "FAKE_SYSTEMD_DIR": str(state)}
+    srv = SshServer(tmp_path, env=env).start()
+    try:
+        pi = Pi(srv, tmp_path)
+        kw = dict(service_manager="systemd", unit_dir=str(state / "units"), env=["TAG=s1"],
+                  release="s1", watchdog_s=2)
+        res = dp.run(pi.opts(**kw), log=_quiet)
+        assert res["ok"] and res["service_manager"] == "systemd", (res.get("error"),
+                                                                   res["steps"][-1])
+        unit = (state / "units" / "tacfoot.service").read_text()
+        assert unit == (pi.prefix / "releases" / "s1" / "tacfoot.service").read_text()
+        assert "Type=notify" in unit and "WatchdogSec=2" in unit
+        # the runtime spoke sd_notify through device.pi.sdnotify: ready, then watchdog
+        notes = (state / "notify.log").read_text().splitlines()
+        assert "READY=1" in notes and "WATCHDOG=1" in notes[notes.index("READY=1"):], notes
+        calls = (state / "calls.log").read_text().splitlines()
+        for want in ("daemon-reload", "enable --quiet tacfoot", "restart tacfoot",
+                     "show -p MainPID --value tacfoot"):
+            assert want in calls, (want, calls)
+        pid = int((state / "tacfoot.pid").read_text())
+        assert res["health"]["pid"] == pid and pi.tag(pid) == "s1" and pi.packets_flow(pid)
+    finally:
+        subprocess.run([str(ctl), "stop", "tacfoot"], env={**os.environ, **env},
+                       capture_output=True, timeout=30)
+        srv.stop()
+
+
+@needs_sshd
+def test_unreachable_pi_and_nothing_to_roll_back_give_clear_errors(pi, tmp_path):
+    res = dp.run(pi.opts(port=1, release="x"), log=_quiet)        # nobody listens on port 1
+    assert not res["ok"] and res["error"].startswith("step probe failed (exit 255)")
+    assert [s["step"] for s in res["steps"]] == ["probe"]
+    res = dp.run(pi.opts(prefix=str(tmp_path / "empty")), rollback=True, log=_quiet)
+    assert not res["ok"] and "no previous release under" in res["error"]
+    assert not (tmp_path / "empty").exists()
