@@ -1,0 +1,562 @@
+"""Wire protocol v1: the surface link (Pi <-> gait MCU) and the framing the rig
+link shares. The byte tables are in docs/protocol.md; this module is the CPython
+side (device/micropython/tflink.py is the MicroPython side).
+
+    frame  = COBS(header + payload + crc) + b"\\x00"
+    header = version u8 | msg_type u8 | seq u16 | t_ms u32      (little-endian)
+    crc    = CRC-16/CCITT-FALSE over header + payload, u16 little-endian
+
+Nothing on the hot path raises: encoding clamps out-of-range values (NaN/inf
+become 0 and set a fault bit), and :class:`FrameDecoder` skips and counts every
+kind of bad input (CRC errors, over-long frames, broken COBS, newer versions,
+unknown types). Only pure standard library, so the host monitor and the rig code
+can import it without numpy.
+"""
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+VERSION = 1
+HEADER = struct.Struct("<BBHI")
+HEADER_LEN = HEADER.size          # 8
+CRC_LEN = 2
+MIN_FRAME = HEADER_LEN + CRC_LEN  # a frame with an empty payload
+MAX_FRAME = 64                    # decoded bytes (header + payload + crc)
+
+# message types: 0x01-0x0F Pi -> MCU, 0x10-0x1F MCU -> Pi, 0x20-0x3F rig link
+MSG_SURFACE = 0x01
+MSG_IMU_SUMMARY = 0x02
+MSG_HEARTBEAT = 0x03
+MSG_FAULT = 0x04
+MSG_GAIT = 0x10
+MSG_COMMAND = 0x11
+
+# fault bits (u16), carried in SURFACE, IMU summary, HEARTBEAT and FAULT.
+# bits 0-5 are device/pi/pipeline.py's per-frame fault bits (same values).
+FAULT_NO_DOME = 1 << 0
+FAULT_TOO_FEW_PINS = 1 << 1
+FAULT_NO_REFERENCE = 1 << 2
+FAULT_FRAME_SIZE_CHANGED = 1 << 3
+FAULT_BAD_FRAME = 1 << 4
+FAULT_LOCALISER = 1 << 5
+FAULT_CAMERA = 1 << 8
+FAULT_IMU = 1 << 9
+FAULT_MODEL = 1 << 10
+FAULT_PINS_LOST = 1 << 11
+FAULT_CLAMPED = 1 << 14           # a value was out of range and was clamped on encode
+FAULT_NONFINITE = 1 << 15         # a value was NaN/inf/not a number; sent as 0
+FAULT_NAMES = {FAULT_NO_DOME: "no_dome", FAULT_TOO_FEW_PINS: "too_few_pins",
+               FAULT_NO_REFERENCE: "reference_not_set",
+               FAULT_FRAME_SIZE_CHANGED: "frame_size_changed", FAULT_BAD_FRAME: "bad_frame",
+               FAULT_LOCALISER: "localiser", FAULT_CAMERA: "camera", FAULT_IMU: "imu",
+               FAULT_MODEL: "model", FAULT_PINS_LOST: "pins_lost", FAULT_CLAMPED: "clamped",
+               FAULT_NONFINITE: "nonfinite"}
+
+SURFACE_CLASSES = ("no-touch", "hard", "soft", "slippery")   # class_id 0..3
+CLASS_UNKNOWN = 0xFF
+TEXTURE_NONE = 0xFF
+
+PHASE_STANCE = 0
+PHASE_SWING = 1
+GAIT_FLAG_CLAMPED = 1
+GAIT_FLAG_NONFINITE = 2
+
+CMD_REZERO = 1
+CMD_SET_RATE = 2
+CMD_REQUEST_STATUS = 3
+COMMAND_NAMES = {CMD_REZERO: "rezero", CMD_SET_RATE: "set_rate",
+                 CMD_REQUEST_STATUS: "request_status"}
+
+
+def fault_names(bits: int) -> list[str]:
+    return [name for bit, name in FAULT_NAMES.items() if bits & bit]
+
+
+# -- CRC and COBS ----------------------------------------------------------------
+
+def _crc_table() -> tuple[int, ...]:
+    table = []
+    for i in range(256):
+        c = i << 8
+        for _ in range(8):
+            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
+        table.append(c & 0xFFFF)
+    return tuple(table)
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16(data, crc: int = 0xFFFF) -> int:
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, xorout 0)."""
+    t = _CRC_TABLE
+    for b in data:
+        crc = ((crc << 8) & 0xFFFF) ^ t[((crc >> 8) ^ b) & 0xFF]
+    return crc
+
+
+def cobs_encode(data) -> bytes:
+    """COBS-encode ``data`` (no zero bytes in the result; the delimiter is not added)."""
+    data = bytes(data)
+    out = bytearray([0])
+    code_at, code = 0, 1
+    last = len(data) - 1
+    for i, b in enumerate(data):
+        if b == 0:
+            out[code_at] = code
+            code_at, code = len(out), 1
+            out.append(0)
+            continue
+        out.append(b)
+        code += 1
+        if code == 0xFF:
+            out[code_at] = code
+            if i == last:               # a full block at the end: no empty block after it
+                return bytes(out)
+            code_at, code = len(out), 1
+            out.append(0)
+    out[code_at] = code
+    return bytes(out)
+
+
+def cobs_decode(data) -> bytes:
+    """Invert :func:`cobs_encode`. Raises ValueError naming the offset on bad input."""
+    data = bytes(data)
+    out = bytearray()
+    i, n = 0, len(data)
+    while i < n:
+        code = data[i]
+        if code == 0:
+            raise ValueError(f"cobs: zero byte at offset {i}")
+        end = i + code
+        if end > n:
+            raise ValueError(f"cobs: block at offset {i} (code {code}) runs past the end ({n})")
+        block = data[i + 1:end]
+        if 0 in block:
+            raise ValueError(f"cobs: zero byte inside the block at offset {i}")
+        out += block
+        i = end
+        if code != 0xFF and i < n:
+            out.append(0)
+    return bytes(out)
+
+
+def encode_frame(msg_type: int, payload: bytes, seq: int, t_ms: int) -> bytes:
+    """Wire bytes of one frame, delimiter included. seq and t_ms wrap (u16, u32);
+    a bad msg_type or an over-long payload is a programming error (ValueError)."""
+    if not 0 <= int(msg_type) <= 0xFF:
+        raise ValueError(f"msg_type must be 0..255, got {msg_type!r}")
+    body = HEADER.pack(VERSION, int(msg_type), int(seq) & 0xFFFF, int(t_ms) & 0xFFFFFFFF)
+    body += bytes(payload)
+    if len(body) + CRC_LEN > MAX_FRAME:
+        raise ValueError(f"payload of {len(payload)} bytes makes a {len(body) + CRC_LEN}-byte "
+                         f"frame (at most {MAX_FRAME})")
+    body += struct.pack("<H", crc16(body))
+    return cobs_encode(body) + b"\x00"
+
+
+# -- decoding --------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RawFrame:
+    version: int
+    msg_type: int
+    seq: int
+    t_ms: int
+    payload: bytes
+
+
+class FrameDecoder:
+    """Stream decoder: ``feed(bytes)`` returns the frames completed by those bytes.
+
+    Never raises on any input. Bad frames are dropped and counted:
+    ``crc_errors``, ``too_long`` (more than ``max_frame`` decoded bytes),
+    ``malformed`` (broken COBS, shorter than a header + CRC, version 0),
+    ``newer_version`` (version > 1), ``unknown_type`` (a type outside ``known_types``,
+    when given). ``drops`` counts sequence numbers skipped between good frames
+    (gaps of more than ``max_gap`` are treated as a sender restart, ``restarts``).
+    A decoder resynchronises at the next 0x00.
+    """
+
+    def __init__(self, max_frame: int = MAX_FRAME, known_types=None, max_gap: int = 1000):
+        self.max_frame = int(max_frame)
+        # COBS adds one byte per 254; anything longer than this cannot fit
+        self._max_wire = self.max_frame + self.max_frame // 254 + 1
+        self.known_types = None if known_types is None else frozenset(known_types)
+        self.max_gap = int(max_gap)
+        self._buf = bytearray()
+        self._overflow = False
+        self.frames_ok = self.crc_errors = self.too_long = self.malformed = 0
+        self.newer_version = self.unknown_type = self.drops = self.restarts = 0
+        self.bytes_in = 0
+        self._last_seq = None
+
+    @property
+    def counters(self) -> dict:
+        return {k: getattr(self, k) for k in ("frames_ok", "crc_errors", "too_long", "malformed",
+                                              "newer_version", "unknown_type", "drops",
+                                              "restarts", "bytes_in")}
+
+    def feed(self, data) -> list[RawFrame]:
+        out = []
+        data = bytes(data)
+        self.bytes_in += len(data)
+        start = 0
+        while True:
+            z = data.find(0, start)
+            chunk = data[start:] if z < 0 else data[start:z]
+            if not self._overflow:
+                if len(self._buf) + len(chunk) > self._max_wire:
+                    self._overflow = True
+                    self._buf.clear()
+                else:
+                    self._buf += chunk
+            if z < 0:
+                return out
+            self._end_frame(out)
+            start = z + 1
+
+    def _end_frame(self, out: list) -> None:
+        if self._overflow:
+            self.too_long += 1
+            self._overflow = False
+            return
+        if not self._buf:
+            return                       # back-to-back delimiters: nothing to count
+        try:
+            body = cobs_decode(self._buf)
+        except ValueError:
+            self.malformed += 1
+            self._buf.clear()
+            return
+        self._buf.clear()
+        if len(body) > self.max_frame:
+            self.too_long += 1
+            return
+        if len(body) < MIN_FRAME:
+            self.malformed += 1
+            return
+        if crc16(body[:-CRC_LEN]) != (body[-2] | (body[-1] << 8)):
+            self.crc_errors += 1
+            return
+        version, msg_type, seq, t_ms = HEADER.unpack_from(body)
+        if version > VERSION:
+            self.newer_version += 1
+            return
+        if version < 1:
+            self.malformed += 1
+            return
+        if self.known_types is not None and msg_type not in self.known_types:
+            self.unknown_type += 1
+            return
+        self.frames_ok += 1
+        if self._last_seq is not None:
+            gap = (seq - self._last_seq - 1) & 0xFFFF
+            if gap > self.max_gap:
+                self.restarts += 1
+            else:
+                self.drops += gap
+        self._last_seq = seq
+        out.append(RawFrame(version, msg_type, seq, t_ms, body[HEADER_LEN:-CRC_LEN]))
+
+
+# -- quantisation helpers (never raise) ---------------------------------------------
+
+def _quant(value, scale: float, lo: int, hi: int) -> tuple[int, int]:
+    """round(value * scale) clamped to lo..hi, and the fault bits it earned."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return max(lo, min(hi, 0)), FAULT_NONFINITE
+    if not math.isfinite(v):
+        return max(lo, min(hi, 0)), FAULT_NONFINITE
+    q = v * scale
+    if q < lo:
+        return lo, FAULT_CLAMPED
+    if q > hi:
+        return hi, FAULT_CLAMPED
+    return int(round(q)), 0
+
+
+def _int_field(value, lo: int, hi: int, default: int) -> tuple[int, int]:
+    try:
+        v = int(value)
+    except (TypeError, ValueError, OverflowError):
+        return default, FAULT_NONFINITE
+    if v < lo:
+        return lo, FAULT_CLAMPED
+    if v > hi:
+        return hi, FAULT_CLAMPED
+    return v, 0
+
+
+def _wrap_deg(value) -> tuple[int, int]:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return 0, FAULT_NONFINITE
+    if not math.isfinite(v):
+        return 0, FAULT_NONFINITE
+    return int(round((v % 360.0) * 100.0)) % 36000, 0
+
+
+# -- typed messages ------------------------------------------------------------
+
+_SURFACE = struct.Struct("<BBBBBBBBHHHHH")      # 18 bytes
+_IMU = struct.Struct("<hhhhhhHBH")              # 17 bytes
+_HEARTBEAT = struct.Struct("<IHHbH")            # 11 bytes
+_FAULT = struct.Struct("<HHH")                  # 6 bytes
+_GAIT = struct.Struct("<BHhhhB")                # 10 bytes
+_COMMAND = struct.Struct("<BH")                 # 3 bytes
+
+
+@dataclass
+class Surface:
+    """SURFACE (0x01, Pi -> MCU): the surface decision for one window."""
+    class_id: int = CLASS_UNKNOWN                # 0..3 (SURFACE_CLASSES), 255 unknown
+    probs: tuple = (0.0, 0.0, 0.0, 0.0)          # class probabilities 0..1, sent as u8/255
+    contact: bool = False
+    slip: bool = False
+    slip_conf: float = 0.0                       # 0..1, sent as u8/255
+    shear_dir_deg: float = 0.0                   # 0..360, sent in 0.01 deg
+    shear_px: float = 0.0                        # |average vector|, 0..655.35 px, 0.01 px
+    load_n: float = 0.0                          # pressure estimate (normal load), 0.01 N
+    pins: int = 0                                # pins found, 0..65535
+    faults: int = 0                              # fault bits (u16)
+    texture_id: int = TEXTURE_NONE               # 0..254, 255 none
+    msg_type = MSG_SURFACE
+
+    def pack(self) -> bytes:
+        f = 0
+        cid, e = _int_field(self.class_id, 0, 255, CLASS_UNKNOWN)
+        f |= e
+        probs = list(self.probs)[:4] if _is_seq(self.probs) else []
+        if len(probs) != 4:
+            f |= FAULT_NONFINITE
+            probs = (probs + [0.0] * 4)[:4]
+        pq = []
+        for p in probs:
+            q, e = _quant(p, 255.0, 0, 255)
+            f |= e
+            pq.append(q)
+        conf, e = _quant(self.slip_conf, 255.0, 0, 255)
+        f |= e
+        dir_c, e = _wrap_deg(self.shear_dir_deg)
+        f |= e
+        mag, e = _quant(self.shear_px, 100.0, 0, 0xFFFF)
+        f |= e
+        load, e = _quant(self.load_n, 100.0, 0, 0xFFFF)
+        f |= e
+        pins, e = _int_field(self.pins, 0, 0xFFFF, 0)
+        f |= e
+        tex, e = _int_field(self.texture_id, 0, 255, TEXTURE_NONE)
+        f |= e
+        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
+        f |= e
+        flags = (1 if _truthy(self.contact) else 0) | (2 if _truthy(self.slip) else 0)
+        return _SURFACE.pack(cid, *pq, flags, conf, tex, dir_c, mag, load, pins, faults | f)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "Surface":
+        cid, p0, p1, p2, p3, flags, conf, tex, d, mag, load, pins, faults = _SURFACE.unpack_from(p)
+        return cls(cid, (p0 / 255, p1 / 255, p2 / 255, p3 / 255), bool(flags & 1),
+                   bool(flags & 2), conf / 255, d / 100, mag / 100, load / 100, pins, faults, tex)
+
+    @property
+    def class_name(self) -> str:
+        c = self.class_id
+        return SURFACE_CLASSES[c] if isinstance(c, int) and 0 <= c < 4 else "unknown"
+
+
+@dataclass
+class ImuSummary:
+    """IMU summary (0x02, Pi -> MCU): means over the window, in mg and 0.1 deg/s."""
+    acc_mg: tuple = (0.0, 0.0, 0.0)              # mean acceleration, mg, i16
+    gyro_dps: tuple = (0.0, 0.0, 0.0)            # mean rate, deg/s, sent in 0.1 deg/s, i16
+    acc_peak_mg: float = 0.0                     # peak |a| in the window, mg, u16
+    samples: int = 0                             # samples averaged, 0..255
+    faults: int = 0
+    msg_type = MSG_IMU_SUMMARY
+
+    def pack(self) -> bytes:
+        f = 0
+        vals = []
+        for vec, scale in ((self.acc_mg, 1.0), (self.gyro_dps, 10.0)):
+            v = list(vec)[:3] if _is_seq(vec) else []
+            if len(v) != 3:
+                f |= FAULT_NONFINITE
+                v = (v + [0.0] * 3)[:3]
+            for x in v:
+                q, e = _quant(x, scale, -32768, 32767)
+                f |= e
+                vals.append(q)
+        peak, e = _quant(self.acc_peak_mg, 1.0, 0, 0xFFFF)
+        f |= e
+        n, e = _int_field(self.samples, 0, 255, 0)
+        f |= e
+        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
+        return _IMU.pack(*vals, peak, n, faults | f | e)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "ImuSummary":
+        ax, ay, az, gx, gy, gz, peak, n, faults = _IMU.unpack_from(p)
+        return cls((float(ax), float(ay), float(az)), (gx / 10, gy / 10, gz / 10), float(peak),
+                   n, faults)
+
+
+@dataclass
+class Heartbeat:
+    """HEARTBEAT (0x03, Pi -> MCU), about once a second."""
+    uptime_s: int = 0                            # u32
+    rate_fps: float = 0.0                        # camera frame rate, sent in 0.1 fps
+    frames_dropped: int = 0                      # u16, saturates
+    temp_c: int = -128                           # CPU temperature, i8, -128 unknown
+    faults: int = 0
+    msg_type = MSG_HEARTBEAT
+
+    def pack(self) -> bytes:
+        f = 0
+        up, e = _int_field(self.uptime_s, 0, 0xFFFFFFFF, 0)
+        f |= e
+        rate, e = _quant(self.rate_fps, 10.0, 0, 0xFFFF)
+        f |= e
+        dropped, e = _int_field(self.frames_dropped, 0, 0xFFFF, 0)
+        f |= e
+        temp, e = _quant(self.temp_c, 1.0, -128, 127)
+        f |= e
+        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
+        return _HEARTBEAT.pack(up, rate, dropped, temp, faults | f | e)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "Heartbeat":
+        up, rate, dropped, temp, faults = _HEARTBEAT.unpack_from(p)
+        return cls(up, rate / 10, dropped, temp, faults)
+
+
+@dataclass
+class Fault:
+    """FAULT (0x04, Pi -> MCU): sent when a fault is raised or cleared."""
+    faults: int = 0                              # bits active now
+    raised: int = 0                              # bits that became active since the last FAULT
+    pins_lost: int = 0                           # reference pins not found, u16
+    msg_type = MSG_FAULT
+
+    def pack(self) -> bytes:
+        faults, e1 = _int_field(self.faults, 0, 0xFFFF, 0)
+        raised, e2 = _int_field(self.raised, 0, 0xFFFF, 0)
+        lost, e3 = _int_field(self.pins_lost, 0, 0xFFFF, 0)
+        return _FAULT.pack(faults | e1 | e2 | e3, raised, lost)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "Fault":
+        return cls(*_FAULT.unpack_from(p))
+
+
+@dataclass
+class Gait:
+    """GAIT context (0x10, MCU -> Pi): what the gait expects of this foot."""
+    phase: int = PHASE_STANCE                    # 0 stance, 1 swing
+    load_n: float = 0.0                          # expected normal load, 0..6553.5 N in 0.1 N
+    vel_mm_s: tuple = (0.0, 0.0, 0.0)            # expected foot velocity x, y, z, mm/s, i16
+    flags: int = 0                               # GAIT_FLAG_CLAMPED | GAIT_FLAG_NONFINITE
+    msg_type = MSG_GAIT
+
+    def pack(self) -> bytes:
+        f = 0
+        phase, e = _int_field(self.phase, 0, 1, PHASE_STANCE)
+        f |= e
+        load, e = _quant(self.load_n, 10.0, 0, 0xFFFF)
+        f |= e
+        v = list(self.vel_mm_s)[:3] if _is_seq(self.vel_mm_s) else [self.vel_mm_s, 0.0, 0.0]
+        if len(v) != 3:
+            f |= FAULT_NONFINITE
+            v = (v + [0.0] * 3)[:3]
+        vq = []
+        for x in v:
+            q, e = _quant(x, 1.0, -32768, 32767)
+            f |= e
+            vq.append(q)
+        flags, _ = _int_field(self.flags, 0, 255, 0)
+        flags |= (GAIT_FLAG_CLAMPED if f & FAULT_CLAMPED else 0) | \
+                 (GAIT_FLAG_NONFINITE if f & FAULT_NONFINITE else 0)
+        return _GAIT.pack(phase, load, *vq, flags)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "Gait":
+        phase, load, vx, vy, vz, flags = _GAIT.unpack_from(p)
+        return cls(phase, load / 10, (float(vx), float(vy), float(vz)), flags)
+
+
+@dataclass
+class Command:
+    """COMMAND (0x11, MCU -> Pi): re-zero, set rate (fps) or request status."""
+    command: int = CMD_REQUEST_STATUS
+    arg: int = 0                                 # CMD_SET_RATE: frames per second; else 0
+    msg_type = MSG_COMMAND
+
+    def pack(self) -> bytes:
+        cmd, _ = _int_field(self.command, 0, 255, 0)
+        arg, _ = _int_field(self.arg, 0, 0xFFFF, 0)
+        return _COMMAND.pack(cmd, arg)
+
+    @classmethod
+    def unpack(cls, p: bytes) -> "Command":
+        return cls(*_COMMAND.unpack_from(p))
+
+
+MESSAGES = {cls.msg_type: cls for cls in (Surface, ImuSummary, Heartbeat, Fault, Gait, Command)}
+PAYLOAD_LEN = {MSG_SURFACE: _SURFACE.size, MSG_IMU_SUMMARY: _IMU.size,
+               MSG_HEARTBEAT: _HEARTBEAT.size, MSG_FAULT: _FAULT.size, MSG_GAIT: _GAIT.size,
+               MSG_COMMAND: _COMMAND.size}
+SURFACE_LINK_TYPES = frozenset(MESSAGES)
+MESSAGE_NAMES = {MSG_SURFACE: "surface", MSG_IMU_SUMMARY: "imu_summary",
+                 MSG_HEARTBEAT: "heartbeat", MSG_FAULT: "fault", MSG_GAIT: "gait",
+                 MSG_COMMAND: "command"}
+
+
+def _encode(self, seq: int, t_ms: int) -> bytes:
+    return encode_frame(self.msg_type, self.pack(), seq, t_ms)
+
+
+for _cls in MESSAGES.values():
+    _cls.encode = _encode
+    _cls.encode.__doc__ = "Wire bytes of this message (delimiter included); never raises."
+
+
+def decode_message(frame: RawFrame):
+    """The typed message in ``frame``, or None for an unknown type or a payload
+    shorter than its table (extra trailing bytes are ignored: room for v1
+    additions). Never raises."""
+    cls = MESSAGES.get(frame.msg_type)
+    if cls is None or len(frame.payload) < PAYLOAD_LEN[frame.msg_type]:
+        return None
+    return cls.unpack(frame.payload)
+
+
+def message_dict(msg) -> dict:
+    """A JSON-ready dict of a typed message (fault bits also by name)."""
+    d = {"type": MESSAGE_NAMES.get(msg.msg_type, hex(msg.msg_type))}
+    for k, v in msg.__dict__.items():
+        d[k] = list(v) if isinstance(v, tuple) else v
+    if isinstance(msg, Surface):
+        d["class_name"] = msg.class_name
+    if isinstance(msg, Command):
+        d["command_name"] = COMMAND_NAMES.get(msg.command, "unknown")
+    for k in ("faults", "raised"):
+        if k in d:
+            d[k + "_names"] = fault_names(d[k])
+    return d
+
+
+def _is_seq(v) -> bool:
+    return isinstance(v, (tuple, list)) or (hasattr(v, "__len__") and hasattr(v, "__iter__")
+                                            and not isinstance(v, (str, bytes)))
+
+
+def _truthy(v) -> bool:
+    try:
+        return bool(v)
+    except Exception:
+        return False
