@@ -1,0 +1,1 @@
+"""The data-collection rig's RP2040 firmware (docs/rig.md)."""

@@ -1,0 +1,268 @@
+"""The rig's host side: trial files, the link client, and hardware-in-the-loop
+through ``--rig sim://`` (the firmware behind a pty, pyserial on the other end)
+all the way to a trained and evaluated model."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from device.config import ConfigError
+from host import rig_link
+from host.cli import main as host_main
+from host.rig import Plate, RigLimits, Trial, Variant, align, load_plan, parse_plan
+
+ROOT = Path(__file__).resolve().parents[1]
+TRIALS = ROOT / "trials"
+
+GOOD = {
+    "name": "t", "repetitions": 2,
+    "plates": [{"name": "hard", "surface": "hard"}],
+    "actions": [{"action": "press", "depths_mm": [1.0, 2.0]}],
+}
+
+
+def _doc(**over):
+    d = json.loads(json.dumps(GOOD))
+    d.update(over)
+    return d
+
+
+# -- wire numbers ----------------------------------------------------------------------
+def test_host_and_firmware_agree_on_message_numbers():
+    sys.path.insert(0, str(ROOT / "device" / "micropython"))
+    from rig import firmware as fw
+    for name in ("HOME", "MOVE_TO", "PRESS", "DRAG", "LIFT", "READ", "STREAM", "STOP", "PING",
+                 "ACK", "NAK", "DONE", "PONG", "SAMPLE"):
+        assert getattr(rig_link, name) == getattr(fw, name), name
+        assert 0x20 <= getattr(fw, name) <= 0x3F       # the rig link's range
+    assert rig_link.REASONS[fw.R_OUT_OF_RANGE] == "out of range"
+    assert rig_link.REASONS[fw.R_NOT_HOMED] == "not homed"
+    assert rig_link.REASONS[fw.R_BUSY] == "busy"
+    assert rig_link.RESULTS[fw.LINK_LOST] == "link lost"
+
+
+# -- trial files -----------------------------------------------------------------------------
+def test_a_good_plan_expands_to_one_trial_per_plate_repetition_and_variant():
+    plan = parse_plan(_doc(plates=[{"name": "hard", "surface": "hard"},
+                                   {"name": "foam", "surface": "soft"}]))
+    assert len(plan.trials) == 2 * 2 * 2
+    assert len({t.id for t in plan.trials}) == len(plan.trials)
+    assert plan.plates[1].sim == "soft"                # foam: simulated by the soft preset
+
+
+@pytest.mark.parametrize("over, needle", [
+    ({"actions": [{"action": "poke", "depths_mm": [1]}]}, "actions[0].action"),
+    ({"actions": [{"action": "press", "depths_mm": [1, 2, 25]}]}, "actions[0].depths_mm[2]"),
+    ({"actions": [{"action": "press", "depths_mm": [1]},
+                  {"action": "drag", "loads_n": [1, 50]}]}, "actions[1].loads_n[1]"),
+    ({"actions": [{"action": "drag", "loads_n": [1], "directions": ["up"]}]},
+     "actions[0].directions[0]"),
+    ({"actions": [{"action": "drag", "loads_n": [1], "distance_mm": 80}]},
+     "actions[0].distance_mm"),
+    ({"actions": [{"action": "press", "depths_mm": [1], "depth": 2}]}, "actions[0].depth"),
+    ({"plates": [{"name": "x", "surface": "sticky"}]}, "plates[0].surface"),
+    ({"rig": {"surface_mm": 50}}, "rig.surface_mm"),
+])
+def test_a_bad_trial_file_names_the_entry(over, needle):
+    with pytest.raises(ConfigError) as ei:
+        parse_plan(_doc(**over), source="bad.toml")
+    assert needle in str(ei.value)
+    assert "bad.toml" in str(ei.value)
+
+
+def test_depth_beyond_travel_says_how_far_the_rig_can_go():
+    with pytest.raises(ConfigError, match=r"at most 20 mm"):
+        parse_plan(_doc(actions=[{"action": "press", "depths_mm": [20.5]}]))
+
+
+def test_shipped_trial_files_reproduce_the_paper(capsys):
+    counts = {}
+    for p in sorted(TRIALS.glob("*.toml")):
+        assert host_main(["rig", "check", str(p), "--json"]) == 0
+        counts[p.stem] = json.loads(capsys.readouterr().out)
+    press = counts["paper-press-depths"]
+    assert press["trials"] == 100 * 5 * 3 and press["plates"] == ["hard", "foam", "wet"]
+    sens = counts["paper-sensations"]
+    assert sens["trials"] == 30 * 3 * 3
+    assert {v.split("-")[1] for v in sens["variants"]} == {"left", "right", "centre"}
+    tex = load_plan(TRIALS / "paper-texture-drags.toml")
+    assert {p.texture for p in tex.plates} == {"smooth", "lego", "concrete"}
+
+
+def test_a_bad_trial_file_is_refused_before_anything_moves(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[[plates]]\nname = "hard"\nsurface = "hard"\n'
+                   '[[actions]]\naction = "press"\ndepths_mm = [2, 35]\n')
+    out = tmp_path / "ds"
+    rc = host_main(["rig", "run", str(bad), "--rig", "sim://", "--camera", "sim://",
+                    "--out", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "actions[0].depths_mm[1]" in err and "35" in err
+    assert not out.exists()                            # nothing was started
+
+
+# -- alignment never gives NaN ------------------------------------------------------------------
+_trial = Trial("t/hard/press/r000", Plate("hard", "hard", "smooth", "hard"),
+               Variant("press", "press", depth_mm=1.0), 0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 5), st.floats(-50, 50), st.floats(-10, 10),
+                          st.floats(-5, 30)), min_size=2, max_size=30),
+       st.lists(st.floats(-1, 6), min_size=2, max_size=30), st.floats(-1e6, 1e6))
+def test_alignment_gives_finite_truth_for_any_samples(rows, t_frames, offset_ms):
+    samples = [rig_link.Sample(t * 1000.0 + offset_ms, 0.0, z, x, ld, (0, 0, 1, 0, 0, 0), 0, 0)
+               for t, z, x, ld in rows]
+    tf = np.sort(np.asarray(t_frames))
+    if np.unique(tf).size < 2:
+        tf = np.array([0.0, 0.1])
+    truth = align(samples, tf, offset_ms, _trial, RigLimits())
+    for k, v in truth.items():
+        assert np.all(np.isfinite(np.asarray(v, float))), k
+    assert np.all(truth["load_n"] >= 0)
+    assert np.array_equal(truth["contact"], truth["load_n"] >= 0.5)
+    assert set(np.unique(truth["surface"])) <= {0, 1}
+
+
+# -- the client against the firmware behind a pty -----------------------------------------------
+def test_client_refusals_and_clock_offset_through_the_sim_pty():
+    import serial
+    from host.rig_sim import SimRig
+
+    sim = SimRig("sim://?start_mm=5")
+    c = rig_link.RigClient(serial.Serial(sim.port, 115200, timeout=0.02))
+    try:
+        with pytest.raises(rig_link.RigRefused, match="not homed"):
+            c.move_to(5.0)
+        c.home()
+        with pytest.raises(rig_link.RigRefused, match="out of range"):
+            c.move_to(45.0)                            # beyond the 40 mm travel
+        d = c.move_to(3.0, 20.0)
+        assert d.ok and abs(d.z_mm - 3.0) < 0.011
+        assert abs(sim.carriage.z_mm - 3.0) < 0.011    # the carriage went there
+        sync = c.sync_clock(n=10)
+        fw = sim.firmware
+        with sim.carriage.lock:
+            true_off = fw.t_ms + fw._t_us / 1000.0 - sim.last_poll_s * 1000.0
+        assert abs(sync["offset_ms"] - true_off) < 3.0, (sync, true_off)
+        assert 0 <= sync["rtt_ms"] < 50
+        s = c.read()
+        assert s.flags & 1 and abs(s.z_mm - 3.0) < 0.011 and s.load_n == 0.0
+        assert abs(s.imu[2] - 1.0) < 0.1                # gravity on z
+    finally:
+        c.close()
+        sim.close()
+
+
+# -- hardware in the loop, end to end -------------------------------------------------------------
+def _dataset_ids(out: Path) -> list:
+    return [e["trial_id"] for e in json.loads((out / "dataset.json").read_text())["trials"]]
+
+
+def test_sim_rig_to_dataset_to_model(tmp_path, capsys):
+    out = tmp_path / "ds"
+    t0 = time.monotonic()
+    rc = host_main(["rig", "run", str(TRIALS / "sim-smoke.toml"), "--rig", "sim://",
+                    "--camera", "sim://?fps=30", "--out", str(out), "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 0, s
+    assert s["done"] == 8 and s["failed"] == [] and s["remaining"] == 0
+    assert math.isfinite(s["clock"]["offset_ms"]) and s["clock"]["rtt_ms"] < 50
+    assert time.monotonic() - t0 < 40
+    from host.dataset import load_trial, read_index
+    idx = read_index(out)
+    assert idx["source"] == "rig" and len(idx["trials"]) == 8
+    hard = load_trial(out, 0)                          # hard plate, 1.5 mm press
+    assert hard["frames"].dtype == np.uint8 and hard["frames"].shape[1:] == (480, 640)
+    assert 3.0 < hard["load_n"].max() < 4.5            # Hertz at 1.5 mm on the hard plate
+    assert hard["contact"].any() and not hard["contact"].all()
+    assert set(np.unique(hard["surface"])) == {0, 1}
+    assert np.all(np.diff(hard["t_s"]) > 0)
+    drag = [load_trial(out, i) for i, e in enumerate(idx["trials"]) if "drag" in e["variant"]]
+    assert all(abs(d["rig_x_mm"].min() + 4.0) < 0.1 and d["slip"].any() for d in drag)
+    soft = [load_trial(out, i) for i, e in enumerate(idx["trials"]) if e["plate"] == "foam"]
+    assert all(set(np.unique(d["surface"])) == {0, 2} for d in soft)
+    # the camera saw what the rig did: pins move with the load
+    f = hard["frames"].astype(np.int16)
+    moved = np.abs(f - f[0]).mean(axis=(1, 2))
+    assert moved[np.argmax(hard["load_n"])] > 3 * moved[1] + 0.5
+
+    model = tmp_path / "model"
+    assert host_main(["train", "--task", "pressure", "--model", "ridge", "--window", "1",
+                      "--data", str(out), "--out", str(model), "--json"]) == 0
+    tr = json.loads(capsys.readouterr().out)
+    assert tr["metrics"]["test"]["mae"] < 0.6 * tr["metrics"]["test"]["mae_predict_mean"]
+    assert host_main(["eval", str(model), "--data", str(out), "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out)
+    assert ev["n_windows"] > 50
+    assert ev["metrics"]["mae"] < 0.5 * ev["metrics"]["mae_predict_mean"]
+
+    # without --resume, an existing dataset is not silently appended to
+    assert host_main(["rig", "run", str(TRIALS / "sim-smoke.toml"), "--rig", "sim://",
+                      "--camera", "sim://", "--out", str(out)]) == 2
+    assert "--resume" in capsys.readouterr().err
+
+
+def test_link_drop_mid_trial_then_resume(tmp_path, capsys):
+    trials = tmp_path / "drop.toml"
+    trials.write_text('name = "drop"\nrepetitions = 1\n'
+                      '[[plates]]\nname = "hard"\nsurface = "hard"\n'
+                      '[[actions]]\naction = "press"\ndepths_mm = [1.0, 2.0, 1.5]\n'
+                      'press_speed_mm_s = 2\nhold_s = 0.1\n')
+    out = tmp_path / "ds"
+    rc = host_main(["rig", "run", str(trials), "--rig", "sim://?drop_at_press=2&drop_s=2",
+                    "--camera", "sim://?fps=30", "--out", str(out), "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 1
+    assert [f["trial"] for f in s["failed"]] == ["drop/hard/press-2mm/r000"]
+    assert "link lost" in s["failed"][0]["reason"]
+    assert s["sim"]["firmware_link_lost_stops"] >= 1   # the firmware stopped the motors
+    assert s["reconnects"] == 1 and s["done"] == 2
+    assert _dataset_ids(out) == ["drop/hard/press-1mm/r000", "drop/hard/press-1.5mm/r000"]
+    state = json.loads((out / "rig_run.json").read_text())
+    assert list(state["failed"]) == ["drop/hard/press-2mm/r000"]
+
+    rc = host_main(["rig", "run", str(trials), "--rig", "sim://", "--camera", "sim://?fps=30",
+                    "--out", str(out), "--resume", "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 0 and s["done"] == 1 and s["done_before"] == 2 and s["failed"] == []
+    assert sorted(_dataset_ids(out)) == sorted(["drop/hard/press-1mm/r000",
+                                                "drop/hard/press-2mm/r000",
+                                                "drop/hard/press-1.5mm/r000"])
+    assert json.loads((out / "rig_run.json").read_text())["failed"] == {}
+
+
+def test_a_rig_that_cannot_be_opened_is_a_clear_error_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "ds"
+    rc = host_main(["rig", "run", str(TRIALS / "sim-smoke.toml"), "--rig",
+                    str(tmp_path / "ttyACM9"), "--camera", "v4l2:///dev/video0", "--out", str(out)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "--rig" in err and "ttyACM9" in err and "cannot open" in err
+    assert not out.exists()
+
+
+def test_a_failed_command_fails_only_its_trial_with_the_reason(tmp_path, capsys):
+    trials = tmp_path / "limit.toml"
+    trials.write_text('name = "lim"\n[rig]\nsurface_mm = 38\n'
+                      '[[plates]]\nname = "foam"\nsurface = "soft"\n'
+                      '[[actions]]\naction = "drag"\ndirections = ["centre"]\n'
+                      'loads_n = [0.3, 10]\npress_speed_mm_s = 10\nhold_s = 0.05\n')
+    out = tmp_path / "ds"
+    rc = host_main(["rig", "run", str(trials), "--rig", "sim://", "--camera", "sim://?fps=30",
+                    "--out", str(out), "--json"])
+    s = json.loads(capsys.readouterr().out)
+    assert rc == 1 and s["done"] == 1
+    # 10 N on foam needs ~9 mm past the surface; only 2 mm of travel are left
+    assert [f["trial"] for f in s["failed"]] == ["lim/foam/drag-centre-10N/r000"]
+    assert "limit" in s["failed"][0]["reason"]
+    assert _dataset_ids(out) == ["lim/foam/drag-centre-0.3N/r000"]
