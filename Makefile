@@ -48,10 +48,12 @@ test: $(VENV)/.installed-test node_modules/.installed
 bench: $(VENV)/.installed
 	$(VENV)/bin/host bench sim --json
 
-# Rebuild the shipped default models in models/ (needs the real recordings for
-# the localiser's real labels: REAL_DATA=path/to/data).
+# Rebuild the shipped default models in models/: the localiser (needs the real
+# recordings for its real labels: REAL_DATA=path/to/data), then surface, texture,
+# slip and pressure from simulated trials (data cached in out/sim-data).
 models: $(VENV)/.installed
 	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
+	$(PY) -m host.shipped --out models --work out/sim-data --quiet
 
 clean:
 	rm -rf $(VENV) out build *.egg-info .pytest_cache .hypothesis

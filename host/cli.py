@@ -171,11 +171,127 @@ def _view_pipeline(args):
     _emit(args, {"out": str(out), "frames": picked}, f"wrote {out} ({len(picked)} frames)")
 
 
+def _gait_plan(scene, sim, stance_load_n: float = 8.0) -> list:
+    """What a gait MCU would tell the foot for each frame of a scene: stance while
+    the foot is commanded into the ground (expected load: the stance load it
+    commands), the commanded drag velocity, swing otherwise."""
+    import math
+
+    from device.pi import protocol as P
+    plan, t_end = [], 0.0
+    spans = []
+    for a in scene.timeline:
+        spans.append((t_end, t_end + a.duration_s, a))
+        t_end += a.duration_s
+    depth = sim.truth["depth_cmd_mm"]
+    for i in range(sim.n_frames):
+        t = i / sim.fps
+        a = next((x for t0, t1, x in spans if t0 <= t < t1), spans[-1][2])
+        stance = bool(depth[i] > 0)
+        v = (0.0, 0.0, 0.0)
+        if stance and a.kind == "drag":
+            r = math.radians(a.direction_deg)
+            v = (a.speed_mm_s * math.cos(r), a.speed_mm_s * math.sin(r), 0.0)
+        plan.append(P.Gait(P.PHASE_STANCE if stance else P.PHASE_SWING,
+                           stance_load_n if stance else 0.0, v))
+    return plan
+
+
+def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: bool,
+                  progress: bool) -> dict:
+    """Run the real runtime (``python -m device.pi run``) on simulated hardware
+    with its serial port on a pty; this side plays the gait MCU: it decodes every
+    packet (device.pi.protocol) and answers each SURFACE with the GAIT context."""
+    import os
+    import select
+    import subprocess
+    import time
+
+    from device.pi import protocol as P
+
+    master, slave = os.openpty()
+    slave_name = os.ttyname(slave)
+    q = f"?seed={seed}" + ("&realtime=1" if realtime else "")
+    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", f"sim://{scene_name}{q}",
+           "--imu", f"sim://{scene_name}?seed={seed}", "--serial", slave_name,
+           "--json-log", str(out / "decisions.jsonl"), "--status", str(out / "status.json"),
+           "--json"]
+    plan = _gait_plan(scene, sim)
+    dec = P.FrameDecoder()
+    packets, n_surface, seq, t0 = [], 0, 0, time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with _progress(sim.n_frames, "runtime", progress) as bar:
+            while True:
+                r, _, _ = select.select([master], [], [], 0.05)
+                data = os.read(master, 4096) if r else b""
+                for raw in dec.feed(data):
+                    msg = P.decode_message(raw)
+                    if msg is None:
+                        continue
+                    d = P.message_dict(msg)
+                    d.update(seq=raw.seq, t_ms=raw.t_ms,
+                             host_ms=round((time.monotonic() - t0) * 1e3, 2))
+                    packets.append(d)
+                    if isinstance(msg, P.Surface):
+                        n_surface += 1
+                        bar.update(1)
+                        g = plan[min(n_surface, len(plan) - 1)]
+                        os.write(master, g.encode(seq, int((time.monotonic() - t0) * 1e3)))
+                        seq = (seq + 1) & 0xFFFF
+                if not data and proc.poll() is not None:
+                    break
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+        os.close(slave)
+    if proc.returncode != 0:
+        raise UserError(f"the runtime failed ({proc.returncode}): {stderr.strip()[-500:]}")
+    with open(out / "packets.jsonl", "w") as fh:
+        for d in packets:
+            fh.write(json.dumps(d) + "\n")
+    status = json.loads(stdout.strip().splitlines()[-1])
+    counts: dict = {}
+    for d in packets:
+        counts[d["type"]] = counts.get(d["type"], 0) + 1
+    return {"command": " ".join(cmd), "packets_file": str(out / "packets.jsonl"),
+            "decisions_file": str(out / "decisions.jsonl"), "packets": counts,
+            "decoder": dict(dec.counters), "runtime": status}
+
+
+def _demo_segments(scene, sim, out: Path) -> list:
+    """Per step of the scene's timeline: the true surface and what the runtime
+    reported most often over the frames in contact."""
+    from collections import Counter
+
+    from device.sim import SURFACE_LABELS
+    ds = [json.loads(x) for x in (out / "decisions.jsonl").read_text().splitlines()]
+    by_index = {d["index"]: d for d in ds}
+    rows, t0 = [], 0.0
+    for a in scene.timeline:
+        i0, i1 = int(round(t0 * sim.fps)), int(round((t0 + a.duration_s) * sim.fps))
+        t0 += a.duration_s
+        idx = [i for i in range(i0, min(i1, sim.n_frames))
+               if sim.truth["contact"][i] and i in by_index]
+        truth = Counter(SURFACE_LABELS[int(sim.truth["surface"][i])] for i in idx)
+        said = Counter(by_index[i]["class"] for i in idx)
+        rows.append({"t_s": round(i0 / sim.fps, 3), "action": a.kind,
+                     "truth": truth.most_common(1)[0][0] if truth else "no-touch",
+                     "contact_frames": len(idx),
+                     "reported": said.most_common(1)[0][0] if said else "no-touch",
+                     "share": round(said.most_common(1)[0][1] / len(idx), 3) if idx else None,
+                     "slip_frames": sum(bool(by_index[i]["slip"]) for i in idx)})
+    return rows
+
+
 def cmd_demo(args):
     from device.sim import Simulator, load_scene
     from host.view import draw_vectors, pick_frames, save_images, truth_caption, truth_plot
 
     out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(args.scene)
     sim = Simulator(scene, seed=args.seed)
     picks = pick_frames(sim.n_frames, 180)
@@ -192,9 +308,26 @@ def cmd_demo(args):
     res = {"scene": scene.name, "frames": sim.n_frames, "preview": str(preview),
            "ground_truth_plot": str(plot), "contact_frames": int(t["contact"].sum()),
            "slip_frames": int(t["slip"].sum())}
-    _emit(args, res, f"simulated walk: {sim.n_frames} frames, {res['contact_frames']} in "
-                     f"contact, {res['slip_frames']} slipping\n"
-                     f"preview:      {preview}\nground truth: {plot}")
+    res.update(_demo_runtime(args.scene, args.seed, out, sim, scene, not args.fast,
+                             not args.json))
+    res["segments"] = _demo_segments(scene, sim, out)
+    rt = res["runtime"]
+    lines = [f"simulated {scene.name}: {sim.n_frames} frames, {res['contact_frames']} in "
+             f"contact, {res['slip_frames']} slipping",
+             f"runtime: {' '.join(res['command'].split()[2:9])} ...",
+             f"  {rt['frames']} frames, {rt['packets_sent']} packets sent "
+             f"({', '.join(f'{k} {v}' for k, v in sorted(res['packets'].items()))}), "
+             f"{rt['packets_dropped']} dropped, latency p50 {rt['latency_ms_p50']} ms",
+             f"  {'t_s':>6} {'step':<6} {'truth':<9} {'contact':>7} {'reported':<9} "
+             f"{'share':>5} {'slip':>4}"]
+    for r in res["segments"]:
+        if r["contact_frames"]:
+            lines.append(f"  {r['t_s']:>6.2f} {r['action']:<6} {r['truth']:<9} "
+                         f"{r['contact_frames']:>7} {r['reported']:<9} {r['share']:>5.2f} "
+                         f"{r['slip_frames']:>4}")
+    lines += [f"packets:      {res['packets_file']}", f"decisions:    {res['decisions_file']}",
+              f"preview:      {preview}", f"ground truth: {plot}"]
+    _emit(args, res, "\n".join(lines))
 
 
 def cmd_bench(args):
@@ -211,6 +344,10 @@ def cmd_bench(args):
                   file=sys.stderr)
         res = bench.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
         _emit(args, res, bench.format_pipeline(res))
+    elif args.what == "runtime":
+        from host.bench_runtime import bench_runtime, format_runtime
+        res = bench_runtime(frames=args.frames)
+        _emit(args, res, format_runtime(res))
 
 
 def _open_stream(args):
@@ -415,6 +552,57 @@ def cmd_realism(args):
     return 0 if res["all_within_20pct"] else 1
 
 
+def cmd_deploy(args):
+    from host.deploy import DeployInputError, options_from_args, run, summary_text
+    try:
+        opts = options_from_args(args)
+        opts.check()
+    except DeployInputError as exc:
+        raise UserError(str(exc)) from None
+    log = (lambda msg: print(msg, file=sys.stderr)) if not args.dry_run or args.json else (
+        lambda msg: None)
+    res = run(opts, dry_run=args.dry_run, rollback=args.rollback, log=log)
+    _emit(args, res, summary_text(res))
+    return 0 if res.get("ok") or args.dry_run else 1
+
+
+def cmd_rig(args):
+    from host.rig import load_plan, plan_summary, run, summary_text
+    plan = load_plan(args.trials)
+    if args.rig_command == "check":
+        s = plan_summary(plan)
+        _emit(args, s, f"{s['source']}: {s['trials']} trials ({len(s['plates'])} plate(s) x "
+                       f"{s['repetitions']} repetitions x {len(s['variants'])} variants), "
+                       f"about {s['estimated_s'] / 60:.1f} min")
+        return 0
+    try:
+        s = run(plan, args.rig, args.camera, Path(args.out), resume=args.resume,
+                profile=args.profile, progress=not args.json, yes=args.yes, seed=args.seed)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    _emit(args, s, summary_text(s))
+    return 1 if s["failed"] or s["remaining"] else 0
+
+
+def cmd_monitor(args):
+    from host.monitor import MonitorError, run_monitor
+    if args.bench:
+        from host.monitor import bench_link, format_bench
+        res = bench_link()
+        _emit(args, res, format_bench(res))
+        return
+    if not args.source:
+        raise UserError("give a SERIAL_URL_OR_FILE to monitor (or --bench)")
+    if args.count is not None and args.count < 1:
+        raise UserError(f"--count must be at least 1, got {args.count}")
+    if args.seconds is not None and not args.seconds > 0:
+        raise UserError(f"--seconds must be positive, got {args.seconds}")
+    try:
+        run_monitor(args.source, as_json=args.json, count=args.count, seconds=args.seconds)
+    except MonitorError as exc:
+        raise UserError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="host", description="tacfoot host toolkit")
     sub = p.add_subparsers(dest="command", required=True)
@@ -446,6 +634,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="out/demo")
     s.add_argument("--scene", default="walk")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--fast", action="store_true",
+                   help="do not pace the simulated camera at its frame rate (the gait "
+                        "context then lags the frames)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_demo)
 
@@ -521,11 +712,47 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_realism)
 
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline"])
+    s.add_argument("what", choices=["sim", "pipeline", "runtime"])
     s.add_argument("--data", help="real recordings folder (pipeline)")
+    s.add_argument("--frames", type=int, default=600, help="frames to run (runtime)")
     s.add_argument("--repeats", type=int, default=20)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("deploy", help="install the runtime on a Pi over SSH (systemd, "
+                                      "health check, rollback)")
+    from host.deploy import add_arguments as _deploy_arguments
+    _deploy_arguments(s)
+    s.set_defaults(func=cmd_deploy)
+    s = sub.add_parser("rig", help="data-collection rig: validate and run trial files")
+    rig_sub = s.add_subparsers(dest="rig_command", required=True)
+    r = rig_sub.add_parser("check", help="validate a trial file (nothing moves)")
+    r.add_argument("trials", help="trial file (.toml), see docs/rig.md")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_rig)
+    r = rig_sub.add_parser("run", help="run a trial file on the rig and record a dataset")
+    r.add_argument("trials", help="trial file (.toml), see docs/rig.md")
+    r.add_argument("--rig", required=True, help="serial port or pyserial URL, or sim://")
+    r.add_argument("--camera", required=True, help="v4l2:///dev/video0, or sim:// with --rig sim://")
+    r.add_argument("--out", required=True, help="dataset folder")
+    r.add_argument("--resume", action="store_true", help="run only the trials not yet recorded")
+    r.add_argument("--profile", default="roboskin", help="sensor profile of the recordings")
+    r.add_argument("--yes", action="store_true", help="do not prompt for plate swaps")
+    r.add_argument("--seed", type=int, default=0, help="sim:// noise seed")
+    r.add_argument("--json", action="store_true")
+    r.set_defaults(func=cmd_rig)
+    s = sub.add_parser("monitor", help="decode surface-link packets: rate, latest state, "
+                                       "drops, CRC errors")
+    s.add_argument("source", nargs="?", help="serial port, pyserial URL (loop://, "
+                                             "socket://host:port), pty path, or a file of "
+                                             "captured bytes")
+    s.add_argument("--bench", action="store_true",
+                   help="time the link instead: packet size, encode/decode, MicroPython")
+    s.add_argument("--count", type=int, help="stop after this many messages")
+    s.add_argument("--seconds", type=float, help="stop after this many seconds")
+    s.add_argument("--json", action="store_true",
+                   help="one JSON line per message and a summary line")
+    s.set_defaults(func=cmd_monitor)
     return p
 
 

@@ -95,6 +95,24 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert (tmp_path / "preview.gif").stat().st_size > 10_000
     assert (tmp_path / "ground_truth.png").stat().st_size > 10_000
     assert res["contact_frames"] > 0 and res["slip_frames"] > 0
+    # the real runtime ran on the simulated hardware; every packet it sent was decoded
+    packets = [json.loads(x) for x in (tmp_path / "packets.jsonl").read_text().splitlines()]
+    kinds = {p["type"] for p in packets}
+    assert {"surface", "heartbeat", "imu_summary"} <= kinds
+    surf = [p for p in packets if p["type"] == "surface"]
+    assert len(surf) == res["frames"] == res["runtime"]["frames"]
+    assert res["decoder"]["crc_errors"] == 0 and res["runtime"]["packets_dropped"] == 0
+    assert sorted(p["seq"] for p in packets) == list(range(len(packets)))
+    # the demo plays the gait MCU: the runtime decided with its GAIT context ...
+    ds = [json.loads(x) for x in (tmp_path / "decisions.jsonl").read_text().splitlines()]
+    stance = [d for d in ds if d["gait"] and d["gait"]["stance"]]
+    assert res["runtime"]["gait_packets"] > 0.9 * res["frames"] and len(stance) > 100
+    assert all(abs(d["expected_mag_px"] - 8.0 * 0.42) < 1e-3 for d in stance)
+    # ... and with it the walk's drag steps come out as the ground truth says
+    drags = [r for r in res["segments"] if r["action"] == "drag" and r["contact_frames"] > 20]
+    assert len(drags) == 8
+    assert sum(r["reported"] == r["truth"] for r in drags) >= 6
+    assert sum(p["slip"] for p in surf) > 0
 
 
 def test_python_dash_m_host_works():

@@ -433,6 +433,14 @@ class V4L2Source(CameraSource):
         cap.set(cv2.CAP_PROP_BUFFERSIZE, buffersize)
         self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        # a fixed size is part of the sensor's calibration: a driver that picked
+        # another one is refused rather than silently used
+        if (width is not None and self.width != width) or \
+                (height is not None and self.height != height):
+            cap.release()
+            raise CameraError(errno.EINVAL, f"camera gives {self.width}x{self.height}, asked "
+                                            f"for {width or self.width}x{height or self.height}",
+                              str(device))
         got_fps = cap.get(cv2.CAP_PROP_FPS)
         self.fps = float(got_fps) if math.isfinite(got_fps) and got_fps > 0 else None
         code = int(cap.get(cv2.CAP_PROP_FOURCC))

@@ -1,0 +1,106 @@
+"""``python -m device.pi run``: the leg runtime (docs/runtime.md).
+
+Exit status: 0 when it stops (end of a finite source, ``--frames`` reached, SIGTERM
+or Ctrl-C); 2 when it refuses to start (bad config, model, source or port), with
+one line on stderr naming what is wrong.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m device.pi",
+                                description="tacfoot leg module (Raspberry Pi)")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="the leg runtime: camera + IMU -> surface packets on the UART")
+    r.add_argument("--camera", required=True,
+                   help="v4l2:///dev/video0, sim://SCENE, a video file or image folder")
+    r.add_argument("--imu", required=True, help="i2c://1/0x68, file://imu.npy, sim://SCENE "
+                                                "or none")
+    r.add_argument("--serial", required=True,
+                   help="pyserial port or URL: /dev/serial0, loop://, socket://HOST:PORT")
+    r.add_argument("--models", help="models folder (default: the package's models/)")
+    r.add_argument("--config", help="leg config TOML (default: device/leg.toml)")
+    r.add_argument("--fps", type=float, help="camera frame rate (overrides camera.fps)")
+    r.add_argument("--float", dest="float_models", action="store_true",
+                   help="load the float ONNX models instead of int8")
+    r.add_argument("--json-log", help="write one JSON line per decision to FILE")
+    r.add_argument("--status", help="rewrite FILE atomically with a JSON health summary")
+    r.add_argument("--frames", type=int, help="stop after N frames (tests, benchmarks)")
+    r.add_argument("--json", action="store_true",
+                   help="print a JSON summary on stdout when the runtime stops")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    import json
+
+    from device.pi.runtime import EXIT_BAD_INPUT, StartupError, build_runtime
+
+    args = build_parser().parse_args(argv)
+    if args.frames is not None and args.frames < 1:
+        print(f"device.pi run: error: --frames must be >= 1, got {args.frames}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
+                           config=args.config, fps=args.fps, json_log=args.json_log,
+                           status=args.status, frames=args.frames,
+                           float_models=args.float_models)
+    except StartupError as exc:
+        print(f"device.pi run: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+    def stop(signum, frame):
+        rt.stopped = True
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    rc = rt.run()
+    st = rt.status()
+    st["latency_ms_p50"] = _pct(rt.latencies_ms, 50)
+    st["latency_ms_p99"] = _pct(rt.latencies_ms, 99)
+    st["latency_samples"] = len(rt.latencies_ms)
+    st["cpu_ms_per_frame_p50"] = _pct(rt.cpu_ms, 50)
+    st["cpu_ms_per_frame_p99"] = _pct(rt.cpu_ms, 99)
+    run_s = getattr(rt, "run_s", 0.0)
+    st["run_s"] = round(run_s, 4)
+    st["throughput_fps"] = round(st["frames"] / run_s, 2) if run_s > 0 else None
+    st["rss_mb_peak"] = _rss_mb()
+    if args.json:
+        print(json.dumps(st))
+    else:
+        print(f"device.pi run: {st['frames']} frames, {st['packets_sent']} packets sent, "
+              f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}",
+              file=sys.stderr)
+    return rc
+
+
+def _rss_mb() -> float | None:
+    """Peak resident set of this process, MB: VmHWM (per address space, so a parent's
+    size does not leak in through fork + exec, as it does into ru_maxrss)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return round(int(line.split()[1]) / 1024.0, 1)
+    except (OSError, ValueError):
+        pass
+    try:
+        import resource
+        return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    except (ImportError, OSError):
+        return None
+
+
+def _pct(xs, q):
+    if not xs:
+        return None
+    import numpy as np
+    return round(float(np.percentile(xs, q)), 4)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

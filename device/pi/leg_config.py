@@ -1,0 +1,191 @@
+"""The leg runtime's configuration: one TOML file (default ``device/leg.toml``).
+
+Every key is checked by :class:`device.config.Fields`: a bad value or an unknown key
+raises one :class:`device.config.ConfigError` naming the file, the dotted key and
+the value, and the runtime refuses to start. Missing keys take the defaults below
+(they are also what ``device/leg.toml`` spells out).
+
+Sections and keys (units in the names)::
+
+    [camera]   width, height (px), fps, fourcc ("MJPG" | "YUYV"), buffersize,
+               stall_periods (no frame for this many periods = camera fault),
+               reopen_min_s, reopen_max_s (reopen backoff, doubling)
+    [imu]      summary_hz (IMU summary packets per second)
+    [serial]   baudrate, stall_ms (bytes waiting and none accepted this long = link
+               fault), heartbeat_hz, fault_repeat_s (FAULT repeated while a fault lasts)
+    [models]   variant ("int8" | "float"), profile (pipeline profile name or .toml),
+               window_T (frames in the rule fallback's window)
+    [decision] nominal_load_n, mag_px_per_n (expected pin travel per newton of
+               expected load), nominal_speed_mm_s, motion_px_per_mm (skin motion per
+               mm of expected foot travel), gait_timeout_ms (older GAIT = nominal),
+               gait_rule_weight (share of the gait-aware rule in the surface call
+               when a learned surface model is loaded and GAIT is fresh)
+    [rezero]   auto (bool), still_px, still_frames, min_interval_s
+    [status]   interval_s (how often --status FILE is rewritten)
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from device.config import ConfigError, Fields, read_toml
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "leg.toml"
+
+
+@dataclass
+class CameraConfig:
+    width: int = 640
+    height: int = 480
+    fps: float = 120.0
+    fourcc: str = "MJPG"
+    buffersize: int = 1
+    stall_periods: float = 3.0
+    reopen_min_s: float = 0.1
+    reopen_max_s: float = 2.0
+
+
+@dataclass
+class ImuConfig:
+    summary_hz: float = 20.0
+
+
+@dataclass
+class SerialConfig:
+    baudrate: int = 921600
+    stall_ms: float = 50.0
+    heartbeat_hz: float = 5.0
+    fault_repeat_s: float = 1.0
+
+
+@dataclass
+class ModelsConfig:
+    variant: str = "int8"
+    profile: str = "roboskin"
+    window_T: int = 3
+
+
+@dataclass
+class DecisionConfig:
+    nominal_load_n: float = 8.0
+    mag_px_per_n: float = 0.42
+    nominal_speed_mm_s: float = 2.5
+    motion_px_per_mm: float = 7.0
+    gait_timeout_ms: float = 500.0
+    gait_rule_weight: float = 0.5
+
+
+@dataclass
+class RezeroConfig:
+    auto: bool = True
+    still_px: float = 0.3
+    still_frames: int = 10
+    min_interval_s: float = 2.0
+
+
+@dataclass
+class StatusConfig:
+    interval_s: float = 0.5
+
+
+@dataclass
+class LegConfig:
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    serial: SerialConfig = field(default_factory=SerialConfig)
+    models: ModelsConfig = field(default_factory=ModelsConfig)
+    decision: DecisionConfig = field(default_factory=DecisionConfig)
+    rezero: RezeroConfig = field(default_factory=RezeroConfig)
+    status: StatusConfig = field(default_factory=StatusConfig)
+    source: str = ""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d.pop("source")
+        return d
+
+
+def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
+    """A :class:`LegConfig` from a parsed TOML document; ConfigError on any bad key."""
+    top = Fields(doc, "", source)
+    d = LegConfig(source=source)
+
+    c = top.sub("camera", {})
+    cam = CameraConfig(
+        width=c.integer("width", d.camera.width, min=8, max=8192),
+        height=c.integer("height", d.camera.height, min=8, max=8192),
+        fps=c.number("fps", d.camera.fps, min=1.0, max=1000.0),
+        fourcc=c.string("fourcc", d.camera.fourcc, choices=("MJPG", "YUYV")),
+        buffersize=c.integer("buffersize", d.camera.buffersize, min=1, max=32),
+        stall_periods=c.number("stall_periods", d.camera.stall_periods, min=1.0, max=100.0),
+        reopen_min_s=c.number("reopen_min_s", d.camera.reopen_min_s, min=0.0, max=60.0),
+        reopen_max_s=c.number("reopen_max_s", d.camera.reopen_max_s, min=0.0, max=600.0))
+    c.done()
+    if cam.reopen_max_s < cam.reopen_min_s:
+        c.fail("camera.reopen_max_s", cam.reopen_max_s,
+               f"must be >= camera.reopen_min_s ({cam.reopen_min_s})")
+
+    i = top.sub("imu", {})
+    imu = ImuConfig(summary_hz=i.number("summary_hz", d.imu.summary_hz, min=0.1, max=1000.0))
+    i.done()
+
+    s = top.sub("serial", {})
+    ser = SerialConfig(
+        baudrate=s.integer("baudrate", d.serial.baudrate, min=1200, max=12_000_000),
+        stall_ms=s.number("stall_ms", d.serial.stall_ms, min=1.0, max=10_000.0),
+        heartbeat_hz=s.number("heartbeat_hz", d.serial.heartbeat_hz, min=0.1, max=1000.0),
+        fault_repeat_s=s.number("fault_repeat_s", d.serial.fault_repeat_s, min=0.01,
+                                max=3600.0))
+    s.done()
+
+    m = top.sub("models", {})
+    mod = ModelsConfig(
+        variant=m.string("variant", d.models.variant, choices=("int8", "float")),
+        profile=m.string("profile", d.models.profile),
+        window_T=m.integer("window_T", d.models.window_T, min=1, max=100))
+    m.done()
+    if not mod.profile.strip():
+        m.fail("models.profile", mod.profile, "must name a profile")
+
+    g = top.sub("decision", {})
+    dec = DecisionConfig(
+        nominal_load_n=g.number("nominal_load_n", d.decision.nominal_load_n, min=0.0,
+                                max=10_000.0),
+        mag_px_per_n=g.number("mag_px_per_n", d.decision.mag_px_per_n, min=0.0,
+                              min_exclusive=True, max=1000.0),
+        nominal_speed_mm_s=g.number("nominal_speed_mm_s", d.decision.nominal_speed_mm_s,
+                                    min=0.0, max=100_000.0),
+        motion_px_per_mm=g.number("motion_px_per_mm", d.decision.motion_px_per_mm, min=0.0,
+                                  max=1000.0),
+        gait_timeout_ms=g.number("gait_timeout_ms", d.decision.gait_timeout_ms, min=1.0,
+                                 max=60_000.0),
+        gait_rule_weight=g.number("gait_rule_weight", d.decision.gait_rule_weight, min=0.0,
+                                  max=1.0))
+    g.done()
+
+    r = top.sub("rezero", {})
+    rz = RezeroConfig(
+        auto=r.boolean("auto", d.rezero.auto),
+        still_px=r.number("still_px", d.rezero.still_px, min=0.0, min_exclusive=True,
+                          max=100.0),
+        still_frames=r.integer("still_frames", d.rezero.still_frames, min=1, max=100_000),
+        min_interval_s=r.number("min_interval_s", d.rezero.min_interval_s, min=0.0,
+                                max=3600.0))
+    r.done()
+
+    st = top.sub("status", {})
+    stc = StatusConfig(interval_s=st.number("interval_s", d.status.interval_s, min=0.05,
+                                            max=1.0))
+    st.done()
+    top.done()
+    return LegConfig(cam, imu, ser, mod, dec, rz, stc, source=source)
+
+
+def load_leg_config(path: Path | str | None = None) -> LegConfig:
+    """The config in ``path`` (default :data:`DEFAULT_CONFIG`)."""
+    path = Path(path) if path is not None else DEFAULT_CONFIG
+    return parse_leg_config(read_toml(path), source=path.name)
+
+
+__all__ = ["ConfigError", "LegConfig", "load_leg_config", "parse_leg_config",
+           "DEFAULT_CONFIG"]

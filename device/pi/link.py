@@ -1,0 +1,205 @@
+"""The serial side of the leg runtime: a writer that never blocks and a reader of
+the locomotion MCU's GAIT context and COMMANDs.
+
+The frames themselves (COBS + header + CRC) come from :mod:`device.pi.protocol`.
+
+Writing: drop / coalesce policy
+-------------------------------
+The runtime hands every packet to :meth:`LinkWriter.send` and calls
+:meth:`LinkWriter.pump` once per loop. ``pump`` writes only what the port accepts
+right now (pyserial ``write_timeout=0``; a port that takes nothing gives 0 bytes,
+never a wait), so a slow, full or blocked port can never stall the frame loop.
+What waits is held in one slot per kind:
+
+* ``fault``: a FIFO, never dropped. At most :data:`FAULT_QUEUE` wait; beyond that
+  the newest waiting FAULT is replaced by the newer one (each FAULT carries the
+  whole current fault state, so the MCU still gets the latest) and
+  ``faults_coalesced`` counts it. Sent first.
+* ``status``: newest only (reply to COMMAND request-status). Sent second.
+* ``surface``: newest only; an unsent SURFACE replaced by a newer one is counted
+  in ``packets_dropped``. The gait wants the present, not a backlog.
+* ``imu`` and ``heartbeat``: newest only, counted the same way.
+
+A frame already partly written is always finished first, so the byte stream
+stays framed. When bytes are waiting and the port accepted none for
+``stall_ms``, :attr:`LinkWriter.stalled` is true (the runtime's link fault).
+
+Reading: :class:`LinkReader` reads whatever bytes are waiting (never waits), feeds
+the frame decoder and returns the decoded GAIT / COMMAND messages.
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+
+#: FAULT packets that may wait before newer ones replace the newest waiting one
+FAULT_QUEUE = 64
+#: kinds in the order they are served
+KINDS = ("fault", "status", "surface", "imu", "heartbeat")
+#: bytes read from the port per poll at most
+READ_CHUNK = 512
+
+
+class LinkError(OSError):
+    """The serial port cannot be opened."""
+
+
+def open_port(url: str, baudrate: int = 921600):
+    """A pyserial port for a device path or URL (``/dev/serial0``, ``loop://``,
+    ``socket://host:port``), opened non-blocking: reads return what is waiting,
+    writes take what fits."""
+    import serial
+
+    try:
+        port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=0,
+                                     do_not_open=True)
+        if url.startswith("loop://"):
+            # loop:// refuses every write when write_timeout is 0; its queue is
+            # bounded instead and try_write only offers what fits
+            port.write_timeout = None
+        port.open()
+    except (serial.SerialException, ValueError, OSError) as exc:
+        raise LinkError(f"--serial {url!r}: cannot open: {exc}") from None
+    return port
+
+
+def try_write(port, data) -> int:
+    """Write what the port accepts now; the count of bytes taken (0 when none)."""
+    import serial
+
+    q = getattr(port, "queue", None)          # pyserial loop://: a bounded queue
+    if q is not None and getattr(q, "maxsize", 0) > 0:
+        room = q.maxsize - q.qsize()
+        if room <= 0:
+            return 0
+        data = data[:room]
+    try:
+        n = port.write(data)
+    except serial.SerialTimeoutException:
+        return 0
+    except BlockingIOError:
+        return 0
+    return len(data) if n is None else int(n)
+
+
+class LinkWriter:
+    """Non-blocking writer with the drop / coalesce policy of the module docstring."""
+
+    def __init__(self, port, stall_ms: float = 50.0, clock=time.monotonic):
+        self.port = port
+        self.stall_s = float(stall_ms) / 1e3
+        self.clock = clock
+        self._faults: deque = deque()
+        self._slots: dict[str, tuple[int, bytes] | None] = {k: None for k in KINDS[1:]}
+        self._cur: memoryview | None = None
+        self._cur_type = 0
+        self._off = 0
+        self._last_progress = clock()
+        self.packets_sent = 0
+        self.packets_dropped = 0
+        self.faults_coalesced = 0
+        self.bytes_written = 0
+        self.write_errors = 0
+        self.sent_by_type: dict[int, int] = {}
+        #: (clock time, msg_type) of the last packet whose last byte was written
+        self.last_sent: tuple[float, int] | None = None
+
+    @property
+    def pending(self) -> int:
+        """Packets waiting (including one partly written)."""
+        return (len(self._faults) + sum(v is not None for v in self._slots.values())
+                + (self._cur is not None))
+
+    @property
+    def stalled(self) -> bool:
+        return (self.pending > 0 and self.clock() - self._last_progress > self.stall_s)
+
+    def send(self, kind: str, msg_type: int, frame: bytes) -> None:
+        """Queue one encoded frame of ``kind`` (see :data:`KINDS`)."""
+        if not self.pending:
+            self._last_progress = self.clock()
+        if kind == "fault":
+            if len(self._faults) >= FAULT_QUEUE:
+                self._faults[-1] = (msg_type, frame)
+                self.faults_coalesced += 1
+            else:
+                self._faults.append((msg_type, frame))
+            return
+        if kind not in self._slots:
+            raise ValueError(f"kind must be one of {list(KINDS)}, got {kind!r}")
+        if self._slots[kind] is not None:
+            self.packets_dropped += 1
+        self._slots[kind] = (msg_type, frame)
+
+    def _next(self) -> bool:
+        if self._faults:
+            item = self._faults.popleft()
+        else:
+            item = None
+            for k in KINDS[1:]:
+                if self._slots[k] is not None:
+                    item, self._slots[k] = self._slots[k], None
+                    break
+        if item is None:
+            return False
+        self._cur_type, frame = item
+        self._cur = memoryview(frame)
+        self._off = 0
+        return True
+
+    def pump(self) -> int:
+        """Write what the port takes now; bytes written."""
+        total = 0
+        while self._cur is not None or self._next():
+            try:
+                n = try_write(self.port, self._cur[self._off:])
+            except Exception:           # a port that vanished: count, retry next pump
+                self.write_errors += 1
+                n = 0
+            if n <= 0:
+                break
+            now = self.clock()
+            self._last_progress = now
+            self._off += n
+            total += n
+            if self._off >= len(self._cur):
+                self.packets_sent += 1
+                self.sent_by_type[self._cur_type] = self.sent_by_type.get(self._cur_type, 0) + 1
+                self.last_sent = (now, self._cur_type)
+                self._cur = None
+        self.bytes_written += total
+        return total
+
+    def counters(self) -> dict:
+        return {"packets_sent": self.packets_sent, "packets_dropped": self.packets_dropped,
+                "faults_coalesced": self.faults_coalesced, "bytes_written": self.bytes_written,
+                "write_errors": self.write_errors, "pending": self.pending}
+
+
+class LinkReader:
+    """Reads what is waiting on the port and decodes GAIT / COMMAND messages."""
+
+    def __init__(self, port, max_frame: int = 64):
+        from device.pi import protocol
+
+        self.port = port
+        self.protocol = protocol
+        self.decoder = protocol.FrameDecoder(max_frame=max_frame)
+        self.read_errors = 0
+
+    def poll(self) -> list:
+        """Decoded messages from the MCU (frames of other kinds are skipped)."""
+        try:
+            n = self.port.in_waiting
+            data = self.port.read(min(n, READ_CHUNK)) if n else b""
+        except Exception:
+            self.read_errors += 1
+            return []
+        if not data:
+            return []
+        out = []
+        for raw in self.decoder.feed(data):
+            msg = self.protocol.decode_message(raw)
+            if msg is not None:
+                out.append(msg)
+        return out

@@ -1,0 +1,115 @@
+"""``host bench runtime``: the leg runtime end to end on simulated hardware.
+
+It runs the real command, ``python -m device.pi run --camera sim://walk --imu
+sim://walk --serial loop:// --frames N --json``, in a child process (so its RSS is
+the runtime's own, not the host toolkit's) with one compute thread (the runtime
+calls ``cv2.setNumThreads(1)``; ONNX Runtime sessions use ``intra_op_num_threads=1``;
+``OMP_NUM_THREADS=1`` for numpy's BLAS):
+
+* latency: from a frame being available to the runtime (handed over by the grab
+  thread) to the last byte of its SURFACE packet accepted by the port, p50 and
+  p99, with the camera paced at its frame rate (``?realtime=1``), as on the robot;
+* throughput: frames per second of the loop with the camera unpaced (the simulator
+  hands over the next frame as soon as the loop takes one);
+* RSS: the child's peak resident set (``VmHWM``). With ``sim://`` sources it
+  includes the simulator, which runs in-process (the Pi does not load it), so a
+  third run replays the same frames and IMU rows from files (``file://walk.avi``,
+  ``file://imu.npy``): the runtime's own RSS, as on the Pi;
+* CPU time per frame (the loop thread's ``thread_time``), which a busy machine
+  does not inflate the way it inflates wall-clock latency.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+GOALS = {"latency_ms_p99": 2.0, "rss_mb_peak": 150.0}
+
+
+def _child(camera: str, imu: str, frames: int, models: str | None) -> dict:
+    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", camera, "--imu", imu,
+           "--serial", "loop://", "--frames", str(frames), "--json"]
+    if models:
+        cmd += ["--models", models]
+    env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    if r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr.strip()}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _recording(scene: str, frames: int, folder) -> tuple[str, str]:
+    """The scene's frames as an MJPG .avi and its IMU rows as an .npy."""
+    import cv2
+    import numpy as np
+
+    from device.sim import Simulator, load_scene
+    sim = Simulator(load_scene(scene))
+    n = min(frames, sim.n_frames)
+    clip, imu = os.path.join(folder, f"{scene}.avi"), os.path.join(folder, "imu.npy")
+    vw = cv2.VideoWriter(clip, cv2.VideoWriter_fourcc(*"MJPG"), float(sim.fps),
+                         (sim.width, sim.height), False)
+    for i in range(n):
+        vw.write(sim.render(i))
+    vw.release()
+    np.save(imu, np.asarray(sim.truth["imu"][:n], np.float32))
+    return clip, imu
+
+
+def bench_runtime(frames: int = 600, scene: str = "walk", models: str | None = None) -> dict:
+    import tempfile
+
+    from device.pi import protocol as P
+
+    paced = _child(f"sim://{scene}?realtime=1", f"sim://{scene}", frames, models)
+    fast = _child(f"sim://{scene}", f"sim://{scene}", frames, models)
+    with tempfile.TemporaryDirectory(prefix="tacfoot-bench-") as tmp:
+        clip, imu = _recording(scene, frames, tmp)
+        files = _child(f"file://{clip}", f"file://{imu}", frames, models)
+    surface_bytes = len(P.Surface(class_id=1, probs=(0.1, 0.7, 0.1, 0.1), contact=True,
+                                  slip=True, slip_conf=0.9, shear_dir_deg=359.99,
+                                  shear_px=655.0, load_n=600.0, pins=133, faults=0xFFFF,
+                                  texture_id=3).encode(0xFFFF, 0xFFFFFFFF))
+    res = {
+        "command": f"python -m device.pi run --camera sim://{scene}[?realtime=1] --imu "
+                   f"sim://{scene} --serial loop:// --frames {frames} --json",
+        "frames": frames, "models": paced.get("models", []),
+        "latency_ms_p50": paced["latency_ms_p50"], "latency_ms_p99": paced["latency_ms_p99"],
+        "latency_samples": paced.get("latency_samples"),
+        "unpaced_latency_ms_p50": fast["latency_ms_p50"],
+        "unpaced_latency_ms_p99": fast["latency_ms_p99"],
+        "throughput_fps": fast["throughput_fps"],
+        "rss_mb_peak": files["rss_mb_peak"],
+        "rss_mb_peak_with_simulator": max(paced["rss_mb_peak"] or 0, fast["rss_mb_peak"] or 0),
+        "cpu_ms_per_frame_p50": paced["cpu_ms_per_frame_p50"],
+        "cpu_ms_per_frame_p99": paced["cpu_ms_per_frame_p99"],
+        "packets_sent": paced["packets_sent"], "packets_dropped": paced["packets_dropped"],
+        "surface_packet_bytes": surface_bytes,
+        "cpu_count": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2),
+        "goals": GOALS,
+    }
+    res["meets"] = {k: (res[k] is not None and res[k] <= v) for k, v in GOALS.items()}
+    res["meets"]["surface_packet_bytes"] = surface_bytes <= 32
+    return res
+
+
+def format_runtime(res: dict) -> str:
+    ok = lambda k: "ok" if res["meets"].get(k) else "MISSED"  # noqa: E731
+    return "\n".join([
+        f"runtime on simulated hardware, {res['frames']} frames, models: "
+        f"{', '.join(res['models']) or 'rules only'}",
+        f"  latency frame -> packet written  p50 {res['latency_ms_p50']:.3f} ms  "
+        f"p99 {res['latency_ms_p99']:.3f} ms  (goal p99 <= 2 ms: {ok('latency_ms_p99')})",
+        f"  throughput (unpaced)             {res['throughput_fps']:.1f} frames/s",
+        f"  loop CPU time per frame          p50 {res['cpu_ms_per_frame_p50']:.3f} ms  "
+        f"p99 {res['cpu_ms_per_frame_p99']:.3f} ms",
+        f"  RSS peak (file sources, as Pi)   {res['rss_mb_peak']:.1f} MB  "
+        f"(goal <= 150 MB: {ok('rss_mb_peak')}); with the simulator in-process "
+        f"{res['rss_mb_peak_with_simulator']:.1f} MB",
+        f"  SURFACE packet on the wire       {res['surface_packet_bytes']} bytes  "
+        f"(goal <= 32: {ok('surface_packet_bytes')})",
+        f"  packets sent {res['packets_sent']}, dropped {res['packets_dropped']}; "
+        f"{res['cpu_count']} CPUs, load average {res['load_avg_1min']}",
+    ])

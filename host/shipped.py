@@ -1,0 +1,145 @@
+"""Rebuild the shipped default models in ``models/`` (``make models``).
+
+    python -m host.shipped --out models [--real-data ../shared/data] [--only surface,slip]
+
+Each model is trained on simulated trials of the roboskin sensor (surface
+parameters drawn from the training ranges of :data:`host.train.SURFACE_RANGES`,
+fixed seeds), exported to ONNX with the scaler folded in, quantised to int8 and
+checked against float, and written as ``models/<name>/`` (manifest.json,
+model.onnx, model.int8.onnx). The surface model must pass the int8 check; for the
+others a failed check ships the float model alone (the texture FNN's first layer
+reads frame-to-frame changes of ~0.1 px, finer than its int8 input step). The model settings are the simulated benchmark's
+(:data:`host.train.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
+``host.train.sim_benchmarks`` describe these models.
+
+=========  ======================  =========================================
+folder     task / model            classes or target
+=========  ======================  =========================================
+surface    surface, int8 FNN       hard, no-touch, slippery, soft
+texture    texture, FNN            concrete, lego, no-touch, smooth
+slip       slip, FNN               no-slip, slip
+pressure   pressure, Ridge         normal load (N)
+localiser  (host.localiser)        133 pin positions, roboskin
+=========  ======================  =========================================
+
+The simulated data go under ``--work`` (default ``out/models-data``) and are reused
+when a later run asks for the same trials. Same seeds, same models: the training is
+deterministic on one machine (ONNX files may differ in the last bits across
+machines with other BLAS builds).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["DEFAULTS", "build_model", "build_defaults", "main"]
+
+#: name -> (task, simulated kinds, trials per kind, T)
+DEFAULTS = {
+    "surface": ("surface", ["hard", "soft", "wet", "no-touch"], 24, 3),
+    "texture": ("texture", ["smooth", "lego", "concrete"], 16, 3),
+    "slip": ("slip", ["slip"], 30, 3),
+    "pressure": ("pressure", ["press-hard", "press-soft"], 30, 3),
+}
+#: these must ship as int8 (the issue asks for an int8 surface FNN); the others fall
+#: back to float when their int8 copy fails the >= 99 % agreement check
+MUST_INT8 = ("surface",)
+#: largest shipped model folder
+MAX_BYTES = 1 << 20
+
+
+def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
+                trials: int | None = None) -> dict:
+    """Train one default model into ``out_root/name`` (replaced only when the new
+    one is complete). Returns a summary: metrics, int8 check, bytes."""
+    from host.data import load_spec
+    from host.train import (BENCH_MODELS, QuantisationError, TrainError, simulate_scenes,
+                            train_model)
+
+    if name not in DEFAULTS:
+        raise TrainError(f"unknown default model {name!r}; choose from {sorted(DEFAULTS)}")
+    task, kinds, n, T = DEFAULTS[name]
+    n = trials or n
+    t0 = time.perf_counter()
+    # the same folder and seeds as the training part of host.train.sim_benchmarks
+    data = simulate_scenes(Path(work) / f"{task}-train", kinds, n, 10 * seed + 1, False,
+                           progress)
+    ws = load_spec(str(data), task, T, progress=progress)
+    model, hp = BENCH_MODELS[task]
+    out_root = Path(out_root)
+    tmp = out_root / f".{name}.building"
+    shutil.rmtree(tmp, ignore_errors=True)
+    int8_failed = None
+    try:
+        res = train_model(task, model, ws, quantise=True, seed=seed, out_dir=tmp,
+                          progress=progress, **hp)
+    except QuantisationError as exc:
+        if name in MUST_INT8:
+            raise
+        # ship the float model (the runtime loads float when there is no int8 file)
+        int8_failed = str(exc)
+        shutil.rmtree(tmp, ignore_errors=True)
+        res = train_model(task, model, ws, quantise=False, seed=seed, out_dir=tmp,
+                          progress=progress, **hp)
+    size = sum(p.stat().st_size for p in tmp.iterdir() if p.is_file())
+    if size > MAX_BYTES:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise TrainError(f"default model {name}: {size} bytes, over the {MAX_BYTES} limit")
+    final = out_root / name
+    old = out_root / f".{name}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        final.rename(old)
+    tmp.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+    test = res["metrics"].get("test", {})
+    return {"name": name, "task": task, "model": model, "T": T, "trials_per_kind": n,
+            "windows": len(ws), "bytes": size, "seconds": round(time.perf_counter() - t0, 1),
+            "test": {k: test.get(k) for k in ("accuracy", "macro_f1", "slip_f1", "mae",
+                                              "mae_of_range", "n") if k in test},
+            "int8": ({"failed": int8_failed} if int8_failed else
+                     {k: res["int8"].get(k) for k in ("agreement", "max_prob_diff",
+                                                       "mae_change", "passed")
+                      if k in (res.get("int8") or {})})}
+
+
+def build_defaults(out_root="models", work="out/models-data", names=None, seed: int = 0,
+                   progress: bool = True) -> list[dict]:
+    out_root = Path(out_root)
+    out_root.mkdir(parents=True, exist_ok=True)
+    return [build_model(n, out_root, work, seed=seed, progress=progress)
+            for n in (names or list(DEFAULTS))]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m host.shipped", description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", default="models", help="models folder (default: models)")
+    p.add_argument("--work", default="out/models-data", help="simulated training data")
+    p.add_argument("--only", help="comma-separated subset of " + ",".join(DEFAULTS))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    names = [n.strip() for n in args.only.split(",")] if args.only else None
+    from host.train import TrainError
+    try:
+        rows = build_defaults(args.out, args.work, names, seed=args.seed,
+                              progress=not args.quiet)
+    except TrainError as exc:
+        print(f"host.shipped: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(rows, indent=1))
+    else:
+        for r in rows:
+            print(f"{r['name']:9s} {r['model']:8s} T={r['T']} {r['bytes'] / 1024:7.1f} KiB "
+                  f"test {r['test']} int8 {r['int8']} ({r['seconds']} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
