@@ -45,13 +45,15 @@ FAULT_CAMERA = 1 << 8
 FAULT_IMU = 1 << 9
 FAULT_MODEL = 1 << 10
 FAULT_PINS_LOST = 1 << 11
+FAULT_LINK = 1 << 12              # the serial port took no bytes for a while (Pi side)
 FAULT_CLAMPED = 1 << 14           # a value was out of range and was clamped on encode
 FAULT_NONFINITE = 1 << 15         # a value was NaN/inf/not a number; sent as 0
 FAULT_NAMES = {FAULT_NO_DOME: "no_dome", FAULT_TOO_FEW_PINS: "too_few_pins",
                FAULT_NO_REFERENCE: "reference_not_set",
                FAULT_FRAME_SIZE_CHANGED: "frame_size_changed", FAULT_BAD_FRAME: "bad_frame",
                FAULT_LOCALISER: "localiser", FAULT_CAMERA: "camera", FAULT_IMU: "imu",
-               FAULT_MODEL: "model", FAULT_PINS_LOST: "pins_lost", FAULT_CLAMPED: "clamped",
+               FAULT_MODEL: "model", FAULT_PINS_LOST: "pins_lost", FAULT_LINK: "link",
+               FAULT_CLAMPED: "clamped",
                FAULT_NONFINITE: "nonfinite"}
 
 SURFACE_CLASSES = ("no-touch", "hard", "soft", "slippery")   # class_id 0..3

@@ -38,7 +38,7 @@ FAULT_CAMERA = _p.FAULT_CAMERA        # no frame within camera.stall_periods fra
 FAULT_IMU = _p.FAULT_IMU              # the IMU read failed (stale / offline)
 FAULT_MODEL = _p.FAULT_MODEL          # a model gave no usable output (uniform fallback)
 FAULT_PINS_LOST = _p.FAULT_PINS_LOST  # more than half the reference pins lost this frame
-FAULT_LINK = 1 << 12                  # bytes waiting and the port took none for stall_ms
+FAULT_LINK = _p.FAULT_LINK            # bytes waiting and the port took none for stall_ms
 #: (status file and JSON log only: a stalled port cannot carry it)
 
 #: a live camera that delivered nothing for this long is closed and reopened
@@ -49,7 +49,7 @@ EXIT_BAD_INPUT = 2
 
 
 def all_fault_names(bits: int) -> list[str]:
-    return _p.fault_names(bits) + (["link"] if bits & FAULT_LINK else [])
+    return _p.fault_names(bits)
 
 
 class StartupError(Exception):
