@@ -596,7 +596,7 @@ def test_gait_example_presets_match_the_issue():
 
 # -- properties: the MCU and the Pi agree on every input -----------------------------------
 
-from hypothesis import given, settings  # noqa: E402
+from hypothesis import example, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 ANY = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10**6, 10**6))
@@ -605,6 +605,9 @@ ANY = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10*
 @settings(max_examples=300, deadline=None)
 @given(phase=st.integers(-2, 3), load_n=ANY, vel=st.tuples(ANY, ANY, ANY),
        seq=st.integers(0, 65535), t_ms=st.integers(0, 2**30 - 1))
+# a finite load whose scaled value overflows: clamped on both sides, not "non-finite"
+@example(phase=0, load_n=1.797693134862316e+307, vel=(0.0, 0.0, 0.0), seq=0, t_ms=0)
+@example(phase=1, load_n=1.0, vel=(-1e308, 1e308, float("nan")), seq=1, t_ms=5)
 def test_mcu_gait_encoder_equals_the_pi_encoder_for_any_values(phase, load_n, vel, seq, t_ms):
     cpython_path()
     import machine

@@ -304,10 +304,11 @@ class SurfaceLink:
 def _quant(v, scale, lo, hi):
     """round(v * scale) clamped to lo..hi, and GAIT flag bits it earned."""
     try:
-        x = v * scale
-        if x - x != 0:                  # NaN or inf
-            return (0 if lo <= 0 <= hi else lo), GAIT_FLAG_NONFINITE
-    except (TypeError, ValueError):
+        v = float(v)
+        if v - v != 0:                  # NaN or inf (the value itself, not v * scale:
+            return (0 if lo <= 0 <= hi else lo), GAIT_FLAG_NONFINITE   # a huge finite
+        x = v * scale                   # value that overflows is clamped, as on the Pi)
+    except (TypeError, ValueError, OverflowError):
         return (0 if lo <= 0 <= hi else lo), GAIT_FLAG_NONFINITE
     if x < lo:
         return lo, GAIT_FLAG_CLAMPED
