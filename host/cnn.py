@@ -456,8 +456,9 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
               "out_dir": None, "onnx_path": None, "onnx": onx, "estimator": est}
     if out_dir is not None:
         extra = {
-            "task": task, "model": MODEL, "classes": list(classes), "window": T,
-            "frame_size": S, "input_layout": "frames",
+            "task": task, "model": MODEL, "classes": list(classes), "window": T, "T": T,
+            "frame_size": S, "input_layout": "frames", "uses_imu": False,
+            "output_kind": "probabilities", "variant": "float",
             "input": {"name": INPUT_NAME, "shape": [None, T, S, S], "dtype": "float32"},
             "outputs": [OUTPUT_NAME],
             "output": f"{OUTPUT_NAME} (N, {len(classes)}): softmax over classes",
@@ -487,4 +488,37 @@ def quantise_cnn(float_onnx: Path | str, ws_calib, out_path: Path | str,
                           f"which cannot be imported: {exc}") from exc
     max_windows = _check_int("max_windows", max_windows, 1)
     rows = _check_rows(len(ws_calib), max_windows, seed)
-    return quantise_model(float_onnx, frames_input(ws_calib.frames[rows]), out_path)
+    report = quantise_model(float_onnx, frames_input(ws_calib.frames[rows]), out_path)
+    _adopt_int8(Path(out_path), report)
+    return report
+
+
+def _adopt_int8(q: Path, report: dict) -> None:
+    """When the int8 file was written into a CNN model folder as model.int8.onnx,
+    make it the folder's default as ``host train --quantise`` does: manifest.json
+    names the int8 file (checksums of both), manifest.float.json the float one."""
+    import json
+
+    from device.pi.artefact import MANIFEST, sha256_file
+    from host.dataset import atomic_write_text
+    from host.train import FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME
+
+    folder = q.parent
+    if q.name != INT8_NAME or not (folder / MANIFEST).is_file() \
+            or not (folder / FLOAT_NAME).is_file():
+        return
+    doc = json.loads((folder / MANIFEST).read_text())
+    if doc.get("model") != MODEL:
+        return
+    files = {n: {"variant": v, "size_bytes": (folder / n).stat().st_size,
+                 "sha256": sha256_file(folder / n)}
+             for n, v in ((FLOAT_NAME, "float"), (INT8_NAME, "int8"))}
+    doc.update({"sha256": {n: f["sha256"] for n, f in files.items()}, "files": files,
+                "variants": {"float": FLOAT_NAME, "int8": INT8_NAME},
+                "int8": {k: v for k, v in report.items() if k != "path"}})
+    atomic_write_text(folder / FLOAT_MANIFEST, json.dumps(
+        dict(doc, onnx=FLOAT_NAME, variant="float",
+             size_bytes=files[FLOAT_NAME]["size_bytes"]), indent=1, default=float))
+    atomic_write_text(folder / MANIFEST, json.dumps(
+        dict(doc, onnx=INT8_NAME, variant="int8",
+             size_bytes=files[INT8_NAME]["size_bytes"]), indent=1, default=float))

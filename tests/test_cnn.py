@@ -217,3 +217,28 @@ def test_int8_cnn_quantises_its_convs_and_agrees_with_float(data, trained, tmp_p
     s = _session(q.read_bytes())
     p = s.run(None, {s.get_inputs()[0].name: frames_input(ws_test.frames[:1])})[0]
     assert p.shape == (1, 4) and np.isfinite(p).all()
+
+
+def test_int8_in_the_model_folder_becomes_the_default_the_pi_loads(data, trained, tmp_path):
+    """quantise_cnn into the model folder: manifest.json then names the int8 file and
+    the Pi's Classifier loads it; manifest.float.json keeps the float one."""
+    import shutil
+
+    from device.pi.classifier import Classifier
+    from host.cnn import quantise_cnn
+    from host.evaluate import evaluate_model
+
+    ws_train, ws_test = data
+    res, out = trained
+    folder = tmp_path / "cnn"
+    shutil.copytree(out, folder)
+    quantise_cnn(folder / "model.onnx", ws_train, folder / "model.int8.onnx", max_windows=128)
+    doc = json.loads((folder / MANIFEST).read_text())
+    assert doc["onnx"] == "model.int8.onnx" and doc["variant"] == "int8" and doc["T"] == T
+    assert json.loads((folder / "manifest.float.json").read_text())["onnx"] == "model.onnx"
+    clf = Classifier.load(folder)
+    k, p = clf.predict(frames_input(ws_test.frames[:1]))
+    assert 0 <= k < 4 and np.isfinite(p).all()
+    for variant in ("float", "int8"):
+        ev = evaluate_model(folder, ws_test, variant=variant)
+        assert ev["metrics"]["accuracy"] > 0.5, (variant, ev["metrics"]["accuracy"])
