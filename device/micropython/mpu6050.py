@@ -31,25 +31,7 @@ RP2040 data-collection rig. Written in the subset CPython also runs::
   buffers; ``read()`` builds one tuple of floats).
 """
 
-try:
-    from micropython import const
-except ImportError:          # CPython
-    def const(x):
-        return x
-
-try:
-    from time import ticks_ms, ticks_diff, ticks_add
-except ImportError:          # CPython
-    import time as _time
-
-    def ticks_ms():
-        return int(_time.monotonic() * 1000) & 0x3FFFFFFF
-
-    def ticks_add(a, b):
-        return (a + b) & 0x3FFFFFFF
-
-    def ticks_diff(a, b):
-        return ((a - b + 0x20000000) & 0x3FFFFFFF) - 0x20000000
+from mpcompat import const, ticks_add, ticks_diff, ticks_ms  # noqa: F401
 
 # registers (MPU-6000/6050 Register Map rev 4.2)
 SMPLRT_DIV = const(0x19)

@@ -12,23 +12,7 @@
 # so polling allocates nothing per byte and no floats on the way in.
 from tflink import Decoder, Encoder
 
-try:
-    from micropython import const
-except ImportError:             # CPython
-    def const(x):
-        return x
-
-try:
-    from time import ticks_diff, ticks_ms
-except ImportError:             # CPython
-    import time as _time
-
-    def ticks_ms():
-        return int(_time.monotonic() * 1000) & 0x3FFFFFFF
-
-    def ticks_diff(a, b):
-        d = (a - b) & 0x3FFFFFFF
-        return d - 0x40000000 if d & 0x20000000 else d
+from mpcompat import const, ticks_diff, ticks_ms  # noqa: F401
 
 MSG_SURFACE = const(0x01)
 MSG_IMU_SUMMARY = const(0x02)

@@ -10,11 +10,7 @@
 # frame is checked the moment its 0x00 delimiter arrives.
 from array import array
 
-try:
-    from micropython import const
-except ImportError:             # CPython
-    def const(x):
-        return x
+from mpcompat import const
 
 VERSION = const(1)
 HEADER_LEN = const(8)

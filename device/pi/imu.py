@@ -148,24 +148,16 @@ class IMUError(RuntimeError):
 
 
 # ---------------------------------------------------------------- validation
+# a finite number, or a ValueError naming the option (the camera's source options)
+from device.pi.camera import _opt_float as _opt_num  # noqa: E402
+
+
 def _pick(name: str, value: Any, allowed: tuple) -> int:
     v = _opt_num(name, value)
     for i, a in enumerate(allowed):
         if v == a:
             return i
     raise ValueError(f"{name} must be one of {list(allowed)}, got {value!r}")
-
-
-def _opt_num(name: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return v
 
 
 def _opt_int(name: str, value: Any, lo: int, hi: int) -> int:

@@ -11,18 +11,7 @@ Positions are integers: micrometres on the wire, steps inside the stepper; loads
 are millinewtons. The link allocates nothing per byte.
 """
 
-try:
-    from micropython import const
-except ImportError:             # CPython
-    def const(x):
-        return x
-
-try:
-    from time import ticks_diff
-except ImportError:             # CPython
-    def ticks_diff(a, b):
-        return ((a - b + 0x20000000) & 0x3FFFFFFF) - 0x20000000
-
+from mpcompat import const, ticks_diff  # noqa: F401
 from tflink import Decoder, Encoder      # the surface link's framing (device/micropython)
 
 # -- message types (0x20-0x3F, the rig link's range) ----------------------------------
