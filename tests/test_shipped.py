@@ -1,0 +1,93 @@
+"""The shipped default models in models/: present, small, loadable by the Pi's code,
+and sane on data they never saw (a fresh simulated trial of each surface)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.pi.artefact import MANIFEST
+from device.pi.classifier import Classifier
+from device.pi.regressor import Regressor
+from device.pi.window import RollingWindow
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+CLASSES = {"surface": ["hard", "no-touch", "slippery", "soft"],
+           "texture": ["concrete", "lego", "no-touch", "smooth"],
+           "slip": ["no-slip", "slip"]}
+
+
+def manifest(name: str) -> dict:
+    return json.loads((MODELS / name / MANIFEST).read_text())
+
+
+@pytest.mark.parametrize("name", ["localiser-roboskin", "surface", "texture", "slip",
+                                  "pressure"])
+def test_each_default_is_present_under_1_mb_with_its_manifest(name):
+    folder = MODELS / name
+    assert (folder / MANIFEST).is_file(), f"{folder} missing: run make models"
+    size = sum(p.stat().st_size for p in folder.iterdir() if p.is_file())
+    assert 0 < size < 1 << 20, (name, size)
+    doc = manifest(name)
+    for fname in doc.get("sha256", {}):
+        assert (folder / fname).is_file(), (name, fname)
+
+
+def test_the_surface_default_is_an_int8_fnn_that_passed_its_check():
+    doc = manifest("surface")
+    assert doc["model"] == "fnn" and doc["variant"] == "int8"
+    assert doc["onnx"] == "model.int8.onnx"
+    assert doc["int8"]["passed"] and doc["int8"]["agreement"] >= 0.99
+
+
+@pytest.mark.parametrize("name", ["surface", "texture", "slip"])
+def test_classifiers_load_on_the_pi_and_stay_finite_on_extreme_windows(name):
+    clf = Classifier.load(MODELS / name, expect_kind=name)
+    doc = manifest(name)
+    assert clf.classes == CLASSES[name]
+    M = 133
+    w = RollingWindow(doc["T"], M)
+    for fill in (0.0, 1e6, -1e6):
+        for _ in range(doc["T"]):
+            w.push(vectors=np.full((M, 2), fill, np.float32), imu=np.full(6, fill, np.float32))
+        k, p = clf.predict(w.encode(doc["input_layout"], with_imu=bool(doc.get("uses_imu"))))
+        assert 0 <= k < len(CLASSES[name]) and np.isfinite(p).all()
+        assert abs(p.sum() - 1.0) < 1e-4
+
+
+def test_the_pressure_default_loads_and_reads_more_load_for_larger_vectors():
+    reg = Regressor.load(MODELS / "pressure")
+    doc = manifest("pressure")
+    M = 133
+    out = []
+    for mag in (0.0, 2.0, 6.0):
+        w = RollingWindow(doc["T"], M)
+        for _ in range(doc["T"]):
+            # pins pushed outwards from the centre, as a press does
+            ang = np.linspace(0, 2 * np.pi, M, endpoint=False)
+            w.push(vectors=np.stack([np.cos(ang), np.sin(ang)], 1).astype(np.float32) * mag)
+        x = w.encode(doc["input_layout"], with_imu=bool(doc.get("uses_imu")))
+        out.append(reg.predict_one(x))
+    assert all(np.isfinite(out))
+    lo, hi = manifest("pressure")["target_range"]
+    assert abs(out[0]) < 0.05 * (hi - lo), out          # no displacement: about no load
+    assert out[0] < out[1] < out[2], out                 # a deeper press reads more load
+
+
+@pytest.mark.slow
+def test_the_surface_default_classifies_unseen_simulated_trials(tmp_path):
+    """One fresh trial per surface, seeds and surface parameters never used in
+    training (drawn from the wider test ranges), through the Pi's pipeline."""
+    from host.data import load_spec
+    from host.evaluate import evaluate_model
+    from host.train import simulate_scenes
+
+    data = simulate_scenes(tmp_path / "s", ["hard", "soft", "wet", "no-touch"], 1, 777, True,
+                           progress=False)
+    ws = load_spec(str(data), "surface", manifest("surface")["T"], progress=False)
+    ev = evaluate_model(MODELS / "surface", ws)
+    assert ev["variant"] == "int8"
+    assert ev["metrics"]["accuracy"] >= 0.95, ev["metrics"]["confusion"]
