@@ -28,6 +28,8 @@ import math
 
 import numpy as np
 
+from device.pi.numerics import finite
+
 from device.pi.artefact import ModelError, load_model, read_manifest
 
 #: tasks a classifier serves
@@ -46,7 +48,7 @@ INPUT_CLIP = 1.0e6
 
 def _clean_logits(z) -> np.ndarray:
     z = np.asarray(z, dtype=np.float64)
-    return np.clip(np.nan_to_num(z, nan=0.0, posinf=LOGIT_CLIP, neginf=-LOGIT_CLIP),
+    return np.clip(finite(z, 0.0, LOGIT_CLIP, -LOGIT_CLIP, dtype=np.float64),
                    -LOGIT_CLIP, LOGIT_CLIP)
 
 
@@ -79,7 +81,7 @@ def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bo
     p = np.atleast_2d(p).copy()
     if n_classes is not None and p.shape[1] != n_classes:
         raise ValueError(f"probabilities have {p.shape[1]} columns, expected {n_classes}")
-    p = np.clip(np.nan_to_num(p, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    p = np.clip(finite(p, 0.0, 1.0, 0.0, dtype=np.float64), 0.0, 1.0)
     s = p.sum(axis=1, keepdims=True)
     bad = ~(s > 0)
     p = np.where(bad, 1.0 / max(p.shape[1], 1), p / np.where(bad, 1.0, s))
@@ -180,9 +182,8 @@ class Classifier:
                              f"{self.input_shape}, got {a.size} (shape {a.shape}); build it "
                              f"with device.pi.window.encode({self.input_layout!r}, ...)")
         x = self._x
-        x.reshape(-1)[:] = np.clip(np.nan_to_num(a.reshape(-1).astype(np.float32, copy=False),
-                                                 nan=0.0, posinf=INPUT_CLIP,
-                                                 neginf=-INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP)
+        np.clip(finite(a.reshape(-1), 0.0, INPUT_CLIP, -INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP,
+                out=x.reshape(-1))
         try:
             out = self.model.session.run([self._out_name], {self.model.input_name: x})[0]
         except Exception as exc:  # onnxruntime's own exception types

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from device.pi.numerics import finite
+
 #: pin vectors are quantised to this step before they reach a model (the
 #: paper's quantised vectors); it also removes sub-pixel noise
 VECTOR_STEP_PX = 0.25
@@ -31,8 +33,7 @@ LAYOUTS = ("vectors", "grids", "frames")
 
 
 def _clean(a, clip) -> np.ndarray:
-    a = np.nan_to_num(np.asarray(a, dtype=np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.clip(a, -clip, clip)
+    return np.clip(finite(a), -clip, clip)
 
 
 def encode_vectors(vectors: np.ndarray, imu: np.ndarray | None = None) -> np.ndarray:
@@ -107,7 +108,7 @@ class RollingWindow:
             if new is None:
                 buf[-1] = 0
             else:
-                buf[-1] = np.nan_to_num(np.asarray(new, dtype=buf.dtype).reshape(buf.shape[1:]))
+                buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
         self.count += 1
 
     def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
