@@ -69,7 +69,7 @@ class ModelsConfig:
 class DecisionConfig:
     nominal_load_n: float = 8.0
     mag_px_per_n: float = 0.42
-    nominal_speed_mm_s: float = 2.5
+    nominal_speed_mm_s: float = 10.0
     motion_px_per_mm: float = 7.0
     gait_timeout_ms: float = 500.0
     gait_rule_weight: float = 0.5
