@@ -1,0 +1,58 @@
+"""host/report.py: rows, the int8 fallback, the Pareto front and the table."""
+from __future__ import annotations
+
+import numpy as np
+
+from host import report
+from host.train import QuantisationError
+
+
+def row(model, variant, T, acc, p50):
+    return {"task": "surface", "data": "sim", "model": model, "variant": variant, "T": T,
+            "accuracy": acc, "mae": None, "latency_p50_ms": p50, "latency_p99_ms": 2 * p50,
+            "size_bytes": 1024, **{f"delay_{f}fps_ms": 1000.0 * T / f for f in report.FPS}}
+
+
+def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_path):
+    """When the int8 copy fails its check the float model is still trained and
+    measured; the int8 row carries the agreement it reached."""
+    from test_train import synthetic        # tests/ is on sys.path
+
+    import host.train
+    calls = []
+    real = report.__dict__["_train"]
+    train_model = host.train.train_model
+
+    def fake_train_model(task, model, tr, te, quantise, seed, out_dir, progress):
+        calls.append(quantise)
+        if quantise:
+            raise QuantisationError("int8 check failed: x agrees with the float model on "
+                                    "97.18% of 779 held-out windows (argmax), below")
+        return train_model(task, model, tr, te, quantise=False, seed=seed, out_dir=out_dir,
+                           progress=False, hidden=(8, 4), epochs=30)
+
+    monkeypatch.setattr(host.train, "train_model", fake_train_model)
+    ws = synthetic()
+    why = real("surface", "fnn", ws, ws, tmp_path / "m", 0)
+    assert calls == [True, False]
+    assert "97.18%" in why and "float kept" in why
+    assert (tmp_path / "m" / "model.onnx").is_file()
+    assert not (tmp_path / "m" / "model.int8.onnx").exists()
+
+
+def test_table_marks_the_pareto_front_and_lists_failures():
+    rows = [row("fnn", "float", 3, 0.95, 0.1), row("fnn", "float", 1, 0.90, 0.1),
+            row("rule", "float", 3, 0.80, 0.05),
+            {"task": "surface", "model": "fnn", "variant": "int8", "T": 3,
+             "error": "int8 check failed: 97% argmax agreement with float (< 99 %); float kept"},
+            {"task": "surface", "model": "cnn", "T": 5, "error": "too few windows"}]
+    text = report.table(rows)
+    lines = text.splitlines()
+    best, fast, dominated = lines[2], lines[3], lines[4]
+    assert best.endswith("* |") and fast.endswith("* |")      # most accurate / fastest
+    assert dominated.endswith("|  |")                          # slower and worse than T=1
+    assert "| fnn | int8 | 3 | int8 check failed: 97%" in text
+    assert "| cnn | - | 5 | not trained: too few windows" in text
+    front = report.pareto([r for r in rows if "error" not in r], lower_better=False)
+    assert front == {0, 1}
+    assert np.isclose(rows[0]["delay_120fps_ms"], 25.0)
