@@ -561,3 +561,58 @@ def test_sim_source_realtime_follows_the_clock():
     lsb = np.array([src.driver.accel_lsb_per_g] * 3 + [src.driver.gyro_lsb_per_dps] * 3)
     rows = [i for i in range(len(ref)) if np.all(np.abs(ref[i] - v) <= 0.5 / lsb + 1e-4)]
     assert rows and min(rows) >= 6           # 0.1 s at 120 fps is row 12; not stuck at row 0
+
+
+# ------------------------------------------------------- absent at start-up
+def test_nothing_answering_is_unavailable_but_a_wrong_chip_is_refused():
+    with pytest.raises(im.IMUUnavailable, match=r"0x68"):
+        MPU6050(fake(stuck=True))
+    with pytest.raises(im.IMUUnavailable, match=r"/dev/i2c-97"):
+        open_imu("i2c://97/0x68")
+    with pytest.raises(IMUError) as ei:
+        open_imu("i2c://1/0x68", bus=fake(who_am_i=0x12))
+    assert not isinstance(ei.value, im.IMUUnavailable)
+
+
+def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
+    """RetryingImuSource: zeros with stale|offline while the opener fails, retried
+    with a doubling back-off, and the real readings once the IMU answers."""
+    t = [0.0]
+    tries = []
+    good = fake()
+
+    def opener():
+        tries.append(t[0])
+        if len(tries) < 3:
+            raise im.IMUUnavailable("no MPU6050 answering at address 0x68")
+        return im.MPU6050Source(MPU6050(good), "i2c://1/0x68")
+
+    src = im.RetryingImuSource("i2c://1/0x68", OSError("first"), backoff_s=0.5,
+                               backoff_max_s=5.0, clock=lambda: t[0], opener=opener)
+    seen = []
+    for _ in range(60):                 # 6 s at 10 reads per second
+        v, bits = src.read()
+        seen.append(bits)
+        assert np.isfinite(v).all()
+        t[0] += 0.1
+    assert tries[:2] == pytest.approx([0.5, 1.5]) and len(tries) == 3   # 0.5, +1, +2 s
+    assert seen[0] & FAULT_STALE and seen[0] & FAULT_OFFLINE
+    assert seen[-1] == 0 and src.reinit_count == 1
+    v, bits = src.read()
+    good_v, _ = im.MPU6050Source(MPU6050(fake()), "x").read()
+    np.testing.assert_allclose(v, good_v, atol=1e-3)
+
+
+def test_the_runtime_starts_without_its_imu_and_reports_the_fault(tmp_path):
+    import json
+    import subprocess
+    import sys
+    status = tmp_path / "status.json"
+    res = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera",
+                          "sim://press-hard", "--imu", "i2c://97/0x68", "--serial", "loop://",
+                          "--frames", "20", "--status", str(status)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "retrying" in res.stderr
+    doc = json.loads(status.read_text())
+    assert "imu" in doc["fault_names"] and doc["frames"] == 20

@@ -147,6 +147,11 @@ class IMUError(RuntimeError):
     """The IMU cannot be used: wrong device, nothing answering, bad recording."""
 
 
+class IMUUnavailable(IMUError):
+    """Nothing answers (no I2C bus node, no acknowledge): a hardware state that may
+    pass (a loose cable, a bus still coming up), unlike a wrong device."""
+
+
 # ---------------------------------------------------------------- validation
 # a finite number, or a ValueError naming the option (the camera's source options)
 from device.pi.camera import _opt_float as _opt_num  # noqa: E402
@@ -266,7 +271,7 @@ class MPU6050:
         try:
             self.init()
         except OSError as e:
-            raise IMUError(f"no MPU6050 answering at address 0x{self.address:02x}: {e}") from e
+            raise IMUUnavailable(f"no MPU6050 answering at address 0x{self.address:02x}: {e}") from e
 
     # ------------------------------------------------------------ bus helpers
     def _xfer(self, fn, *args):
@@ -480,6 +485,50 @@ class MPU6050Source(ImuSource):
         super().close()
 
 
+class RetryingImuSource(ImuSource):
+    """An IMU that was not answering at start-up. Reads return zeros with
+    ``imu_stale | imu_offline`` set while ``open_imu(source)`` is retried with a
+    back-off that doubles from ``backoff_s`` to ``backoff_max_s``; once it opens,
+    reads come from it. The runtime uses it so a missing IMU is a FAULT, not a
+    refusal to start (a wrong device or a bad option still refuses)."""
+
+    def __init__(self, source: str, first_error: BaseException, *, backoff_s: float = 0.5,
+                 backoff_max_s: float = 5.0, clock=time.monotonic, opener=None):
+        super().__init__()
+        self.source = source
+        self.last_error = str(first_error)
+        self.faults = FAULT_STALE | FAULT_OFFLINE
+        self._clock = clock
+        self._open = opener or (lambda: open_imu(source))
+        self._backoff = float(backoff_s)
+        self._backoff_max = float(backoff_max_s)
+        self._next_t = clock() + self._backoff
+        self.inner: ImuSource | None = None
+
+    def read(self, out=None):
+        if self.inner is not None:
+            return self.inner.read(out)
+        now = self._clock()
+        if now >= self._next_t:
+            try:
+                self.inner = self._open()
+                self.reinit_count += 1
+                return self.inner.read(out)
+            except IMUUnavailable as e:
+                self.last_error = str(e)
+            except Exception as e:     # a wrong device appearing later: keep faulting
+                self.last_error = f"{type(e).__name__}: {e}"
+            self._backoff = min(self._backoff * 2.0, self._backoff_max)
+            self._next_t = now + self._backoff
+        self.fault_count += 1
+        return self._ret(out)
+
+    def close(self) -> None:
+        if self.inner is not None:
+            self.inner.close()
+        super().close()
+
+
 class FileImuSource(ImuSource):
     """``file://imu.npy``: an (F, 6) recording (ax, ay, az g, gx, gy, gz deg/s), one
     row per ``read()``. ``loop`` (default true) wraps at the end; without it the
@@ -586,14 +635,14 @@ def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
                 import smbus2
                 bus = smbus2.SMBus(bus_no)
             except (OSError, ImportError) as e:
-                raise IMUError(f"cannot open I2C bus {bus_no} (/dev/i2c-{bus_no}) for IMU source "
+                raise IMUUnavailable(f"cannot open I2C bus {bus_no} (/dev/i2c-{bus_no}) for IMU source "
                                f"{source!r}: {e}") from None
         try:
             drv = _driver(bus, address, source, o)
         except IMUError as e:
             if own_bus:
                 bus.close()
-            raise IMUError(f"{e} (IMU source {source!r}, I2C bus {bus_no})") from None
+            raise type(e)(f"{e} (IMU source {source!r}, I2C bus {bus_no})") from None
         return MPU6050Source(drv, source)
     if scheme == "sim":
         parts = urlsplit(s)

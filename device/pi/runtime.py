@@ -22,6 +22,7 @@ import json
 import math
 import os
 import queue
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -822,7 +823,7 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     from device.config import ConfigError
     from device.pi.artefact import ModelError
     from device.pi.camera import CameraError, open_camera
-    from device.pi.imu import IMUError, open_imu
+    from device.pi.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
     from device.pi.leg_config import load_leg_config
     from device.pi.link import LinkError, open_port
 
@@ -888,6 +889,13 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         fail(str(exc))
     try:
         imu_src = open_imu(imu)
+        opened.append(imu_src)
+    except IMUUnavailable as exc:
+        # nothing answers yet: run with the IMU fault set and keep trying (a wrong
+        # device or a bad option below still refuses to start)
+        print(f"device.pi run: warning: --imu: {exc}; running with the IMU fault set, "
+              f"retrying", file=sys.stderr)
+        imu_src = RetryingImuSource(imu, exc)
         opened.append(imu_src)
     except (ValueError, IMUError) as exc:
         fail(f"--imu: {exc}")
