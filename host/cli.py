@@ -25,14 +25,8 @@ def _emit(args, data, text: str | None = None):
 
 
 def _json_default(o):
-    import numpy as np
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(type(o).__name__)
+    from host.train import _plain
+    return _plain(o)
 
 
 def _progress(total: int, desc: str, enabled: bool = True):

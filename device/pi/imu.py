@@ -154,6 +154,7 @@ class IMUUnavailable(IMUError):
 
 # ---------------------------------------------------------------- validation
 # a finite number, or a ValueError naming the option (the camera's source options)
+from device.pi.camera import _opt_bool  # noqa: E402,F401
 from device.pi.camera import _opt_float as _opt_num  # noqa: E402
 
 
@@ -177,16 +178,6 @@ def _opt_int(name: str, value: Any, lo: int, hi: int) -> int:
     if not lo <= int(value) <= hi:
         raise ValueError(f"{name} must be in [{lo}, {hi}], got {value!r}")
     return int(value)
-
-
-def _opt_bool(name: str, value: Any) -> bool:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-        return value.strip().lower() in ("1", "true", "yes", "on")
-    raise ValueError(f"{name} must be a bool, got {value!r}")
 
 
 def _opt_pos(name: str, value: Any) -> float:
