@@ -482,7 +482,8 @@ class LegRuntime:
                     # the learned model cannot see the gait context; the rule can
                     surface_probs = (1.0 - wr) * model_probs + wr * rule_probs
         texture = None
-        if m.texture is not None and self.windows[m.texture.T].full:
+        # a texture is only felt in contact: no texture inference in the air
+        if m.texture is not None and ff.contact and self.windows[m.texture.T].full:
             tid, tp = m.texture.predict_window(self.windows[m.texture.T])
             texture = (m.texture.classes[tid], float(tp[tid]), tid)
             model_fault |= bool(m.texture.fault)

@@ -93,6 +93,9 @@ class RollingWindow:
         self.grids = np.zeros((self.T, grid_n, grid_n), np.float32)
         self.frames = np.zeros((self.T, frame_size, frame_size), np.uint8)
         self.count = 0
+        # encodings of the current contents, by (layout, with_imu): several models
+        # with the same window read one encoding per frame; push/clear drop them
+        self._encoded: dict = {}
 
     @property
     def full(self) -> bool:
@@ -100,6 +103,7 @@ class RollingWindow:
 
     def clear(self) -> None:
         self.count = 0
+        self._encoded.clear()
 
     def push(self, vectors=None, imu=None, grid=None, frame=None) -> None:
         for buf, new in ((self.vectors, vectors), (self.imu, imu), (self.grids, grid),
@@ -110,7 +114,16 @@ class RollingWindow:
             else:
                 buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
         self.count += 1
+        self._encoded.clear()
 
     def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
-        return encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
-                      grids=self.grids, frames=self.frames)
+        """The model input for the current T frames (read-only; computed once per
+        push for each layout)."""
+        key = (layout, bool(with_imu))
+        x = self._encoded.get(key)
+        if x is None:
+            x = encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
+                       grids=self.grids, frames=self.frames)
+            x.flags.writeable = False
+            self._encoded[key] = x
+        return x
