@@ -595,3 +595,26 @@ def test_fnn_regressor_and_slip_rule_and_fnn_on_synthetic_windows(tmp_path):
 
 def res_n_inputs(model_dir) -> int:
     return json.loads((Path(model_dir) / "manifest.json").read_text())["input"]["shape"][1]
+
+
+def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
+    """Models sharing a window read one encoding per frame; a push or clear drops it,
+    and the shared array is read-only so no model can alter another's input."""
+    from device.pi.window import RollingWindow, encode_vectors
+    w = RollingWindow(2, 3)
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        w.push(vectors=rng.normal(size=(3, 2)), imu=rng.normal(size=6))
+    a = w.encode("vectors", with_imu=True)
+    assert w.encode("vectors", with_imu=True) is a
+    assert not a.flags.writeable
+    with pytest.raises(ValueError):
+        a[0, 0] = 1.0
+    assert w.encode("vectors") is not a and w.encode("vectors").shape[1] == a.shape[1] - 12
+    v_new = rng.normal(size=(3, 2))
+    w.push(vectors=v_new, imu=np.zeros(6))
+    b = w.encode("vectors", with_imu=True)
+    assert b is not a
+    np.testing.assert_array_equal(b, encode_vectors(w.vectors, w.imu))
+    w.clear()
+    assert w.encode("vectors", with_imu=True) is not b
