@@ -132,6 +132,49 @@ def _dome_box(stream, shape, margin_px: int):
     return box, np.array([x0, y0], np.float64)
 
 
+class _FromReference:
+    """Run the pipeline over a clip; iterating yields (stream, gray frame,
+    FrameFeatures, gray reference frame) from the frame where the reference is set
+    on. ``frames`` counts every frame read (``limit``: stop after that many)."""
+
+    def __init__(self, clip_path, profile: str, limit: int | None = None):
+        self.clip_path, self.profile, self.limit = clip_path, profile, limit
+        self.frames = 0
+
+    def __iter__(self):
+        import cv2
+
+        from device.pi.vision import to_gray
+
+        stream = MarkerStream(self.profile)
+        cap = cv2.VideoCapture(str(self.clip_path))
+        recent: dict[int, np.ndarray] = {}
+        ref_gray = None
+        try:
+            while self.limit is None or self.frames < self.limit:
+                ok, frame = cap.read()
+                if not ok:
+                    break
+                self.frames += 1
+                g = to_gray(frame)
+                out = stream.process(g)
+                if stream.reference is None:
+                    recent[out.index] = g.copy()
+                    continue
+                if ref_gray is None:
+                    ref_gray = recent.get(stream.reference_index, g)
+                    recent.clear()
+                yield stream, g, out, ref_gray
+        finally:
+            cap.release()
+
+
+def _result(clip_path, n: int, errs: list) -> dict:
+    return {"clip": str(clip_path), "frames": n, "compared_frames": len(errs),
+            "median_angle_err_deg": float(np.median(errs)) if errs else None,
+            "p90_angle_err_deg": float(np.percentile(errs, 90)) if errs else None}
+
+
 def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px: float = 1.0,
                               limit: int | None = None, step: int = 1,
                               margin_px: int = 48) -> dict:
@@ -141,43 +184,26 @@ def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px:
     ``step``-th frame is compared (the pipeline sees every frame)."""
     import cv2
 
-    from device.pi.vision import dome_mask, to_gray
+    from device.pi.vision import dome_mask
 
-    stream = MarkerStream(profile)
-    cap = cv2.VideoCapture(str(clip_path))
     errs = []
-    ref_gray = None
-    mask = None
-    recent: dict[int, np.ndarray] = {}
-    n = 0
-    while limit is None or n < limit:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        n += 1
-        g = to_gray(frame)
-        out = stream.process(g)
-        if stream.reference is None:
-            recent[out.index] = g.copy()
-            continue
-        if ref_gray is None:
+    ref_box = mask = box = None
+    clip = _FromReference(clip_path, profile, limit)
+    for stream, g, out, ref_gray in clip:
+        if ref_box is None:
             # flow is computed on the dome's bounding box only: the same field, less work
             box, _ = _dome_box(stream, g.shape, margin_px)
-            ref_gray = recent.get(stream.reference_index, g)[box].copy()
-            recent.clear()
+            ref_box = ref_gray[box].copy()
             mask = (dome_mask(g.shape, stream.dome, stream.profile.vision.roi_shrink) > 0)[box]
         if not out.contact or out.index % step:
             continue
-        flow = cv2.calcOpticalFlowFarneback(ref_gray, g[box], None, *FARNEBACK)
+        flow = cv2.calcOpticalFlowFarneback(ref_box, g[box], None, *FARNEBACK)
         fx, fy = float(flow[..., 0][mask].mean()), float(flow[..., 1][mask].mean())
         if math.hypot(fx, fy) <= min_flow_px or out.magnitude == 0:
             continue
         errs.append(_angle_err(math.degrees(math.atan2(out.shear_y, out.shear_x)),
                                math.degrees(math.atan2(fy, fx))))
-    cap.release()
-    return {"clip": str(clip_path), "frames": n, "compared_frames": len(errs),
-            "median_angle_err_deg": float(np.median(errs)) if errs else None,
-            "p90_angle_err_deg": float(np.percentile(errs, 90)) if errs else None}
+    return _result(clip_path, clip.frames, errs)
 
 
 def chained_flow_direction_check(clip_path, profile: str = "roboskin",
@@ -192,29 +218,15 @@ def chained_flow_direction_check(clip_path, profile: str = "roboskin",
     lattice makes the direct flow pick the wrong neighbour."""
     import cv2
 
-    from device.pi.vision import to_gray
-
-    stream = MarkerStream(profile)
-    cap = cv2.VideoCapture(str(clip_path))
-    errs, recent = [], {}
+    errs = []
     prev = pos = ref = box = origin = None
-    n = 0
-    while True:
-        ok, frame = cap.read()
-        if not ok:
-            break
-        n += 1
-        g = to_gray(frame)
-        out = stream.process(g)
-        if stream.reference is None:
-            recent[out.index] = g.copy()
-            continue
+    clip = _FromReference(clip_path, profile)
+    for stream, g, out, ref_gray in clip:
         if pos is None:
             box, origin = _dome_box(stream, g.shape, margin_px)
             ref = stream.reference.astype(np.float64)
             pos = ref.copy()
-            prev = recent.get(stream.reference_index, g)[box].copy()
-            recent.clear()
+            prev = ref_gray[box].copy()
         cur = g[box]
         flow = cv2.calcOpticalFlowFarneback(prev, cur, None, *FARNEBACK)
         local = (pos - origin).astype(np.float32)
@@ -232,7 +244,4 @@ def chained_flow_direction_check(clip_path, profile: str = "roboskin",
             continue
         errs.append(_angle_err(math.degrees(math.atan2(out.shear_y, out.shear_x)),
                                math.degrees(math.atan2(ch[1], ch[0]))))
-    cap.release()
-    return {"clip": str(clip_path), "frames": n, "compared_frames": len(errs),
-            "median_angle_err_deg": float(np.median(errs)) if errs else None,
-            "p90_angle_err_deg": float(np.percentile(errs, 90)) if errs else None}
+    return _result(clip_path, clip.frames, errs)
