@@ -62,6 +62,7 @@ from device.pi.localiser import (
     localiser_input,
     to_normalised,
 )
+from device.pi.tracking import mutual_match
 from device.pi.vision import (
     ROBOSKIN_PARAMS,
     TACTIP_SHEAR_PARAMS,
@@ -364,24 +365,6 @@ def _err_stats(e: np.ndarray) -> dict:
 # --------------------------------------------------------------------------
 
 
-def _mutual_match(pred: np.ndarray, det: np.ndarray, gate_px: float) -> np.ndarray:
-    """Index into ``det`` for each row of ``pred`` (mutual nearest within the gate), -1 if none.
-
-    One to one by construction: a detection is some pin's nearest *and* that
-    pin is its nearest.
-    """
-    idx = np.full(len(pred), -1, np.int64)
-    if len(pred) == 0 or len(det) == 0:
-        return idx
-    d2 = ((pred[:, None, :] - det[None, :, :]) ** 2).sum(-1)
-    fwd = d2.argmin(axis=1)
-    back = d2.argmin(axis=0)
-    rows = np.arange(len(pred))
-    ok = (back[fwd] == rows) & (d2[rows, fwd] <= gate_px * gate_px)
-    idx[ok] = fwd[ok]
-    return idx
-
-
 def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares scale, rotation (2x2) and translation with dst ~ s R src + t (Umeyama)."""
     ms, md = src.mean(0), dst.mean(0)
@@ -409,14 +392,14 @@ def fit_layout(layout_px: np.ndarray, xy: np.ndarray, gate_px: float,
     P = np.asarray(xy, np.float64).reshape(-1, 2)
     cur = L.copy()
     s, R, t = 1.0, np.eye(2), np.zeros(2)
-    idx = _mutual_match(cur, P, gate_px)
+    idx = mutual_match(cur, P, gate_px)
     for _ in range(iters):
         ok = idx >= 0
         if ok.sum() < 3:
             break
         s, R, t = _similarity(L[ok], P[idx[ok]])
         cur = (s * (R @ L.T)).T + t
-        new = _mutual_match(cur, P, gate_px)
+        new = mutual_match(cur, P, gate_px)
         if np.array_equal(new, idx):
             break
         idx = new
@@ -613,12 +596,12 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
             binaries.append(det.binary.copy())
             xy = xy.astype(np.float64)
             pred = cur + vel
-            idx = _mutual_match(pred, xy, gate_loose)
+            idx = mutual_match(pred, xy, gate_loose)
             m = idx >= 0
             shift = np.median(xy[idx[m]] - pred[m], axis=0) if m.sum() >= 10 else np.zeros(2)
             pred = pred + shift
-            idx = _mutual_match(pred, xy, gate_tight)
-            idx_rest = _mutual_match(rest, xy, gate_tight)
+            idx = mutual_match(pred, xy, gate_tight)
+            idx_rest = mutual_match(rest, xy, gate_tight)
             if (idx_rest >= 0).sum() > (idx >= 0).sum():
                 pred, idx = rest.copy(), idx_rest
             m = idx >= 0

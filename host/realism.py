@@ -21,6 +21,7 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
+from device.pi.tracking import mutual_match
 from device.pi.vision import (
     PinDetector,
     VisionParams,
@@ -239,19 +240,6 @@ def measure_static(
 # --------------------------------------------------------------------------
 
 
-def _match(pred: np.ndarray, det: np.ndarray, max_px: float) -> np.ndarray:
-    """Mutual-nearest matching: index into ``det`` for each row of ``pred``, -1 if none."""
-    idx = np.full(len(pred), -1, np.int64)
-    if len(pred) == 0 or len(det) == 0:
-        return idx
-    d2 = ((pred[:, None, :] - det[None, :, :]) ** 2).sum(-1)
-    fwd = d2.argmin(axis=1)
-    back = d2.argmin(axis=0)
-    ok = (back[fwd] == np.arange(len(pred))) & (d2[np.arange(len(pred)), fwd] <= max_px * max_px)
-    idx[ok] = fwd[ok]
-    return idx
-
-
 def track_pins(
     frames: Iterable[np.ndarray],
     params: VisionParams,
@@ -306,16 +294,16 @@ def track_pins(
         found = found.astype(np.float64)
         # pass 1: constant-velocity prediction, loose gate, to find the field's motion
         pred = cur + vel
-        idx = _match(pred, found, max_jump_px)
+        idx = mutual_match(pred, found, max_jump_px)
         ok = idx >= 0
         shift = np.median(found[idx[ok]] - pred[ok], axis=0) if ok.sum() >= 3 else np.zeros(2)
         pred = pred + shift
         # pass 2: tight gate around the corrected prediction
-        idx = _match(pred, found, 0.6 * max_jump_px)
+        idx = mutual_match(pred, found, 0.6 * max_jump_px)
         ok = idx >= 0
         # snap-back: the skin often springs back to rest within a frame or two;
         # if the rest layout explains more pins than the prediction, take it
-        idx0 = _match(ref, found, 0.6 * max_jump_px)
+        idx0 = mutual_match(ref, found, 0.6 * max_jump_px)
         if np.count_nonzero(idx0 >= 0) > np.count_nonzero(ok):
             pred, idx = ref.copy(), idx0
             ok = idx >= 0

@@ -543,3 +543,17 @@ def test_tactip_shear_regression_beats_the_mean(shear_result):
     assert ratios["shear_y"] >= 2.0
     for key in ("pose_Rx", "pose_Ry"):                             # reported; must at least beat the mean
         assert math.isfinite(ratios[key]) and ratios[key] > 1.0
+
+
+def test_mutual_match_keeps_only_pairs_that_choose_each_other():
+    """Both pins are nearest to detection 0, which is nearest to pin 1: only that
+    pair survives. Greedy matching (match_pins) gives pin 0 its second choice."""
+    from device.pi.tracking import match_pins, mutual_match
+    pred = np.array([[0.0, 0.0], [2.0, 0.0]])
+    det = np.array([[1.2, 0.0], [-1.5, 0.0]])
+    assert mutual_match(pred, det, 5.0).tolist() == [-1, 0]
+    assert match_pins(pred, det, 5.0).tolist() == [1, 0]
+    assert mutual_match(pred, det[::-1], 5.0).tolist() == [-1, 1]     # order does not matter
+    assert mutual_match(pred, det, 0.5).tolist() == [-1, -1]          # the gate
+    assert mutual_match(pred[:0], det, 5.0).tolist() == []
+    assert mutual_match(pred, det[:0], 5.0).tolist() == [-1, -1]

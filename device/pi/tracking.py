@@ -37,6 +37,7 @@ import numpy as np
 
 __all__ = [
     "match_pins",
+    "mutual_match",
     "layout_neighbours",
     "layout_pitch_px",
     "track_with_neighbours",
@@ -212,6 +213,23 @@ def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) 
         reach = d2 <= max_d2
         if not reach.any():
             return
+
+
+def mutual_match(pred: np.ndarray, det: np.ndarray, gate_px: float) -> np.ndarray:
+    """Index into ``det`` for each row of ``pred``, or -1: a pair is kept only when
+    each is the other's nearest and they are within ``gate_px``. Stricter than
+    :func:`match_pins` (no second choices), for labelling and measurement where a
+    doubtful pair is better dropped. One to one by construction."""
+    idx = np.full(len(pred), -1, np.int64)
+    if len(pred) == 0 or len(det) == 0:
+        return idx
+    d2 = ((pred[:, None, :] - det[None, :, :]) ** 2).sum(-1)
+    fwd = d2.argmin(axis=1)
+    back = d2.argmin(axis=0)
+    rows = np.arange(len(pred))
+    ok = (back[fwd] == rows) & (d2[rows, fwd] <= gate_px * gate_px)
+    idx[ok] = fwd[ok]
+    return idx
 
 
 def match_pins(ref, cur, max_dist_px: float) -> np.ndarray:
