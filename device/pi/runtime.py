@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi import protocol as _p
+from device.pi.layout import binary_crop
 from device.pi.leg_config import LegConfig
 
 # -- fault bits (FAULT and SURFACE packets, docs/protocol.md). Bits 0-5 are the
@@ -350,7 +351,6 @@ class LegRuntime:
         self.seq = 0
         self.frames = 0
         self.faults = 0
-        self.faults_prev = 0
         self._pins_lost = 0
         self.fault_changes = 0
         self.gait: Gait | None = None
@@ -439,8 +439,6 @@ class LegRuntime:
         return now - since > stall_s
 
     def _frame(self, frame, t_avail: float) -> None:
-        from device.pi.layout import binary_crop
-
         c0 = time.thread_time()
         self.frames += 1
         self._last_frame_t = t_avail
@@ -614,11 +612,10 @@ class LegRuntime:
     def _update_faults(self, bits: int) -> None:
         now = self.clock()
         if bits != self.faults:
+            raised = bits & ~self.faults
             self.faults = bits
             self.fault_changes += 1
             self.fault_log.append((now, bits))
-            raised = bits & ~self.faults_prev
-            self.faults_prev = bits
             self._send("fault", self.proto_fault(bits, raised))
             self._next_fault_repeat = now + self.cfg.serial.fault_repeat_s if bits else 1e18
         elif bits and now >= self._next_fault_repeat:
