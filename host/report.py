@@ -56,15 +56,10 @@ def _train(task, model, tr, te, out, seed) -> str | None:
             return _int8_why(exc)
         return None
     from host.train import train_model
-    try:
-        train_model(task, model, tr, te, quantise=model != "rule", seed=seed, out_dir=out,
-                    progress=False)
-    except QuantisationError as exc:
-        # the float model is still a row of the report; int8 is reported as failed
-        train_model(task, model, tr, te, quantise=False, seed=seed, out_dir=out,
-                    progress=False)
-        return _int8_why(exc)
-    return None
+    res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
+                      seed=seed, out_dir=out, progress=False)
+    failed = (res.get("int8") or {}).get("failed")
+    return _int8_why(failed) if failed else None
 
 
 def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int = 0,

@@ -57,8 +57,7 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
     """Train one default model into ``out_root/name`` (replaced only when the new
     one is complete). Returns a summary: metrics, int8 check, bytes."""
     from host.data import load_spec
-    from host.train import (BENCH_MODELS, QuantisationError, TrainError, simulate_scenes,
-                            train_model)
+    from host.train import BENCH_MODELS, TrainError, simulate_scenes, train_model
 
     if name not in DEFAULTS:
         raise TrainError(f"unknown default model {name!r}; choose from {sorted(DEFAULTS)}")
@@ -73,18 +72,10 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
     out_root = Path(out_root)
     tmp = out_root / f".{name}.building"
     shutil.rmtree(tmp, ignore_errors=True)
-    int8_failed = None
-    try:
-        res = train_model(task, model, ws, quantise=True, seed=seed, out_dir=tmp,
-                          progress=progress, **hp)
-    except QuantisationError as exc:
-        if name in MUST_INT8:
-            raise
-        # ship the float model (the runtime loads float when there is no int8 file)
-        int8_failed = str(exc)
-        shutil.rmtree(tmp, ignore_errors=True)
-        res = train_model(task, model, ws, quantise=False, seed=seed, out_dir=tmp,
-                          progress=progress, **hp)
+    res = train_model(task, model, ws, quantise=True if name in MUST_INT8 else "if-passes",
+                      seed=seed, out_dir=tmp, progress=progress, **hp)
+    # the runtime loads the float model when the int8 copy failed its check
+    int8_failed = (res.get("int8") or {}).get("failed")
     size = sum(p.stat().st_size for p in tmp.iterdir() if p.is_file())
     if size > MAX_BYTES:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -14,30 +14,29 @@ def row(model, variant, T, acc, p50):
 
 
 def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_path):
-    """When the int8 copy fails its check the float model is still trained and
-    measured; the int8 row carries the agreement it reached."""
-    from test_train import synthetic        # tests/ is on sys.path
+    """When the int8 copy fails its check the float model is still written (trained
+    once) and measured; the int8 row carries the agreement it reached."""
+    import json
 
     import host.train
-    calls = []
-    real = report.__dict__["_train"]
-    train_model = host.train.train_model
+    from test_train import synthetic        # tests/ is on sys.path
 
-    def fake_train_model(task, model, tr, te, quantise, seed, out_dir, progress):
-        calls.append(quantise)
-        if quantise:
-            raise QuantisationError("int8 check failed: x agrees with the float model on "
-                                    "97.18% of 779 held-out windows (argmax), below")
-        return train_model(task, model, tr, te, quantise=False, seed=seed, out_dir=out_dir,
-                           progress=False, hidden=(8, 4), epochs=30)
+    def failing_quantise(*a, **k):
+        raise QuantisationError("int8 check failed: x agrees with the float model on "
+                                "97.18% of 779 held-out windows (argmax), below")
 
-    monkeypatch.setattr(host.train, "train_model", fake_train_model)
+    fits = []
+    real_fit = host.train._fit_mlp
+    monkeypatch.setattr(host.train, "quantise_model", failing_quantise)
+    monkeypatch.setattr(host.train, "_fit_mlp", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     ws = synthetic()
-    why = real("surface", "fnn", ws, ws, tmp_path / "m", 0)
-    assert calls == [True, False]
+    why = report._train("surface", "fnn", ws, ws, tmp_path / "m", 0)
+    assert len(fits) == 1                                  # trained once, not twice
     assert "97.18%" in why and "float kept" in why
     assert (tmp_path / "m" / "model.onnx").is_file()
     assert not (tmp_path / "m" / "model.int8.onnx").exists()
+    doc = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert doc["variant"] == "float" and "97.18%" in doc["int8"]["failed"]
 
 
 def test_table_marks_the_pareto_front_and_lists_failures():

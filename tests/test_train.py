@@ -618,3 +618,21 @@ def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
     np.testing.assert_array_equal(b, encode_vectors(w.vectors, w.imu))
     w.clear()
     assert w.encode("vectors", with_imu=True) is not b
+
+
+def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch, tmp_path):
+    import host.train
+
+    def failing_quantise(*a, **k):
+        raise QuantisationError("int8 check failed: agrees with the float model on 90.00%")
+
+    monkeypatch.setattr(host.train, "quantise_model", failing_quantise)
+    ws = synthetic()
+    kw = dict(out_dir=None, progress=False, hidden=(8, 4), epochs=20)
+    with pytest.raises(QuantisationError, match="90.00%"):
+        train_model("surface", "fnn", ws, quantise=True, **dict(kw, out_dir=tmp_path / "a"))
+    assert not (tmp_path / "a").exists()
+    res = train_model("surface", "fnn", ws, quantise="if-passes", **dict(kw, out_dir=tmp_path / "b"))
+    assert "90.00%" in res["int8"]["failed"] and res["default"] == "model.onnx"
+    with pytest.raises(TrainError, match="quantise must be"):
+        train_model("surface", "fnn", ws, quantise="yes", **dict(kw, out_dir=tmp_path / "c"))
