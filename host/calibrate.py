@@ -106,7 +106,7 @@ def profile_toml(res: dict) -> str:
 
 
 def write_profile(res: dict, out: Path | str) -> Path:
-    from host.dataset import atomic_write_text
+    from host.data.dataset import atomic_write_text
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, profile_toml(res))

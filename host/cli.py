@@ -55,7 +55,7 @@ def simulate_to_dataset(scene_ref: str, out: Path, seed: int = 0, trials: int = 
     import numpy as np
 
     from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, load_scene
-    from host.dataset import DatasetWriter
+    from host.data.dataset import DatasetWriter
 
     scene = load_scene(scene_ref)
     writer = DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
@@ -88,7 +88,7 @@ def cmd_simulate(args):
 def _frames_and_truth(src: str, seed: int):
     """(frames list, truth dict | None, rest pins | None, fps) for a scene or dataset."""
     from device.sim import Simulator, load_scene
-    from host.dataset import is_dataset, load_trial
+    from host.data.dataset import is_dataset, load_trial
 
     if is_dataset(src):
         tr = load_trial(src, 0)
@@ -125,7 +125,7 @@ def cmd_view(args):
 
 def _is_recording(source: str) -> bool:
     """A video, an image folder or sim:// (not a scene name or a dataset folder)."""
-    from host.dataset import is_dataset
+    from host.data.dataset import is_dataset
     p = Path(source)
     return (source.startswith(("sim://", "file://", "v4l2://"))
             or (p.is_file() and p.suffix.lower() != ".toml")
@@ -442,7 +442,7 @@ def cmd_calibrate(args):
 
 
 def _load_windows(args, task: str, window: int, min_classes: int = 2):
-    from host.data import DataError, load_specs
+    from host.data.specs import DataError, load_specs
     try:
         return load_specs(args.data, task=task, window=window,
                           contact_only=getattr(args, "contact_only", False),
@@ -480,7 +480,7 @@ def cmd_train(args):
 
 def _train_cnn(args, ws):
     from host.cnn import quantise_cnn, train_cnn
-    from host.data import split_grouped
+    from host.data.specs import split_grouped
     from host.train import TrainError
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
@@ -752,7 +752,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from device.config import ConfigError
-    from host.dataset import DatasetError
+    from host.data.dataset import DatasetError
 
     args = build_parser().parse_args(argv)
     try:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
-from host.dataset import atomic_write, atomic_write_text
+from host.data.dataset import atomic_write, atomic_write_text
 
 
 def sklearn_to_onnx(estimator, n_features: int, input_name: str = "x"):

@@ -66,7 +66,7 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
              split: str = "grouped", contact_only: bool = False, label: str = "",
              progress: bool = True) -> list[dict]:
     """Rows of the report for one task and data source."""
-    from host.data import load_specs, split_grouped, split_time
+    from host.data.specs import load_specs, split_grouped, split_time
     from host.evaluate import evaluate_model
     from host.train import TrainError
 
@@ -189,7 +189,7 @@ def table(rows: list[dict]) -> str:
 def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
                  command: str) -> Path:
     """sections: (title, png name, rows). Writes the markdown and the PNGs beside it."""
-    from host.dataset import atomic_write_text
+    from host.data.dataset import atomic_write_text
 
     out = Path(out)
     img_dir = out.parent / "img"

@@ -485,7 +485,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
         profile: str = "roboskin", progress: bool = True, keys: bool = True, yes: bool = False,
         seed: int = 0, reconnect_s: float = 20.0, log=None) -> dict:
     """Run the plan; return the summary (see docs/rig.md)."""
-    from host.dataset import DatasetWriter, atomic_write_text, is_dataset, read_index
+    from host.data.dataset import DatasetWriter, atomic_write_text, is_dataset, read_index
     from host.rig_link import LinkLost, RigError
 
     out = Path(out)

@@ -7,13 +7,14 @@ host monitor are all tested against it, and docs/protocol.md quotes it. --check
 exits 1 if the file on disk differs from what this script would write.
 """
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import json
 import struct
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 sys.path.insert(0, str(ROOT))
 
 from device.pi import protocol as P  # noqa: E402

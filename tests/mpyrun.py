@@ -1,7 +1,7 @@
 """Run code on real MicroPython (the WebAssembly port from npm, under Node) from a
 test, and import the same MicroPython modules under CPython.
 
-    from mpyrun import run_mpy, requires_mpy, MPY_LIB
+    from tests.mpyrun import run_mpy, requires_mpy, MPY_LIB
     res = run_mpy(script_path, libs=[MPY_LIB / "..."], args=["42"])
     assert res.returncode == 0, res.stderr
 
@@ -10,6 +10,7 @@ MicroPython runs skip with the reason.
 """
 
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import shutil
 import subprocess
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 RUNNER = ROOT / "tests" / "mpy" / "run.mjs"
 #: the ``machine`` stand-in (tests/mpy/machine.py)
 STANDIN = ROOT / "tests" / "mpy"

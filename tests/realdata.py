@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 ENV_VAR = "TACFOOT_REAL_DATA"
-REPO_ROOT = Path(__file__).resolve().parent.parent
+from tests import REPO_ROOT
 DEFAULT_DIR = REPO_ROOT.parent / "shared" / "data"
 
 

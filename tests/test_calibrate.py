@@ -22,7 +22,7 @@ def test_calibrate_on_the_simulated_rest_clip(tmp_path, capsys):
 
 
 def test_calibrate_on_real_clips(tmp_path):
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     data = real_data_dir("roboskin/smooth.avi", "tactip_shear/images/image_1.png")
     out = tmp_path / "smooth.toml"
     assert main(["calibrate", str(data / "roboskin" / "smooth.avi"), "--out", str(out)]) == 0

@@ -19,7 +19,7 @@ from device.pi import camera
 from device.pi.camera import (CameraError, CameraSource, Frame, ImageFolderSource, SimSource,
                               V4L2Source, VideoFileSource, natural_key, open_camera)
 
-from realdata import real_data_dir
+from tests.realdata import real_data_dir
 
 
 W, H, FPS, N = 64, 48, 25.0, 10

@@ -11,6 +11,7 @@ deploy r1, deploy r2, a broken r3 rolled back, a killed copy, a failing prepare,
 --rollback to r1. Each says which earlier step it needs when run alone.
 """
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import json
 import os
@@ -26,13 +27,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sshd_fixture import SshServer, missing_reason  # noqa: E402
+from tests.sshd_fixture import SshServer, missing_reason  # noqa: E402
 
 from device.pi import sdnotify  # noqa: E402
 from host import deploy as dp  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = REPO_ROOT
 
 # -- sdnotify --------------------------------------------------------------------
 

@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from device.sim import fake_mpu6050 as fm
 from device.sim.fake_mpu6050 import FakeMPU6050
 
-from realdata import real_data_dir
+from tests.realdata import real_data_dir
 
 ADDR = 0x68
 MOTION = np.array(

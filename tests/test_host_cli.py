@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from host import dataset
+from host.data import dataset
 from host.cli import main, simulate_to_dataset
 
 
@@ -127,7 +127,7 @@ def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
                  "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert 3 <= len(res["frames"]) <= 6 and min(res["frames"]) >= 4   # after the reference
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     clip = real_data_dir("roboskin/north.avi") / "roboskin" / "north.avi"
     png = tmp_path / "north.png"
     assert main(["view", str(clip), "--out", str(png)]) == 0

@@ -441,7 +441,7 @@ def test_file_source_missing_file_names_it(tmp_path):
 
 
 def test_file_source_reads_the_roboskin_recording():
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     p = real_data_dir("roboskin/concrete_gyro.npy") / "roboskin" / "concrete_gyro.npy"
     ref = np.load(p)
     src = open_imu(f"file://{p}")

@@ -36,7 +36,7 @@ from host.localiser import (
     read_clip,
     train_localiser,
 )
-from realdata import DEFAULT_DIR, ENV_VAR, real_data_dir
+from tests.realdata import DEFAULT_DIR, ENV_VAR, real_data_dir
 
 N_PINS = 133
 CORRUPT_CLIP = "north-corrupted"

@@ -1,7 +1,7 @@
 """The MicroPython harness itself: the code really runs on MicroPython, errors
 surface, and the machine stand-in behaves the same on both interpreters."""
 
-from mpyrun import requires_mpy, run_mpy
+from tests.mpyrun import requires_mpy, run_mpy
 
 SCRIPT = """
 import sys, machine, mpy_args

@@ -8,6 +8,7 @@ a long session with a link outage (stale -> safe default), no allocation per byt
 and the gait example's preset choice.
 """
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import contextlib
 import io
@@ -17,9 +18,9 @@ import sys
 import types
 from pathlib import Path
 
-from mpyrun import MPY_LIB, cpython_path, requires_mpy, run_mpy
+from tests.mpyrun import MPY_LIB, cpython_path, requires_mpy, run_mpy
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 VECTORS = ROOT / "tests" / "protocol_vectors.json"
 sys.path.insert(0, str(ROOT))
 

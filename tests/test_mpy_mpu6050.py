@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mpyrun import MPY_LIB, cpython_path, requires_mpy, run_mpy
+from tests.mpyrun import MPY_LIB, cpython_path, requires_mpy, run_mpy
 
 SCRIPT = r"""
 import json

@@ -60,7 +60,7 @@ def test_glare_costs_recall_but_not_tracking():
 # -- the real clips ------------------------------------------------------------------
 
 def _clip(name, limit=None):
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     path = real_data_dir(f"roboskin/{name}") / "roboskin" / name
     cap = cv2.VideoCapture(str(path))
     frames = []

@@ -3,6 +3,7 @@ typed messages against the golden vectors, clamping, and a decoder that never
 raises; then ``host monitor`` (captured file, loop://, a pty) and its --bench.
 The MicroPython side is in test_mpy_link.py."""
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import json
 import math
@@ -13,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 sys.path.insert(0, str(ROOT))
 
 from device.pi import protocol as P  # noqa: E402
@@ -86,8 +87,7 @@ def test_golden_vector_encode_and_decode(v):
 
 
 def test_golden_vectors_file_matches_the_generator():
-    sys.path.insert(0, str(ROOT / "tests"))
-    import make_protocol_vectors
+    from tests import make_protocol_vectors
     assert make_protocol_vectors.build() == VECTORS, \
         "run: .venv/bin/python tests/make_protocol_vectors.py"
 

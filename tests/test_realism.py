@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from host.realism import roboskin_realism
-from realdata import real_data_dir
+from tests.realdata import real_data_dir
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from host.regression import cross_validate, export_regressor, vectors_npz_featur
 
 
 def soft_depth():
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     v = np.load(real_data_dir("roboskin/vectors_soft.npy") / "roboskin" / "vectors_soft.npy")
     n_trials, n_depths = v.shape[:2]
     X = vectors_npz_features(v.reshape(-1, v.shape[2], 2))

@@ -19,7 +19,7 @@ def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_p
     import json
 
     import host.train
-    from test_train import synthetic        # tests/ is on sys.path
+    from tests.windows import synthetic
 
     def failing_quantise(*a, **k):
         raise QuantisationError("int8 check failed: x agrees with the float model on "

@@ -13,7 +13,7 @@ import sys
 
 import pytest
 
-from mpyrun import MPY_LIB, STANDIN, requires_mpy, run_mpy
+from tests.mpyrun import MPY_LIB, STANDIN, requires_mpy, run_mpy
 
 SCRIPT = r'''
 import machine
@@ -517,7 +517,7 @@ def test_stepper_reaches_every_target_within_its_speed_limit(moves, dt_us):
     to the position, the speed never passes the highest cap given, and the last move
     ends exactly on its target; braking through a reversal never passes a soft limit."""
     import importlib
-    from mpyrun import cpython_path
+    from tests.mpyrun import cpython_path
     cpython_path()
     fw = importlib.import_module("rig.firmware")
     step, d = _CountPin(), _CountPin()

@@ -2,6 +2,7 @@
 through ``--rig sim://`` (the firmware behind a pty, pyserial on the other end)
 all the way to a trained and evaluated model."""
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import json
 import math
@@ -19,7 +20,7 @@ from host import rig_link
 from host.cli import main as host_main
 from host.rig import Plate, RigLimits, Trial, Variant, align, load_plan, parse_plan
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 TRIALS = ROOT / "trials"
 
 GOOD = {
@@ -178,7 +179,7 @@ def test_sim_rig_to_dataset_to_model(tmp_path, capsys):
     assert s["done"] == 8 and s["failed"] == [] and s["remaining"] == 0
     assert math.isfinite(s["clock"]["offset_ms"]) and s["clock"]["rtt_ms"] < 50
     assert time.monotonic() - t0 < 40
-    from host.dataset import load_trial, read_index
+    from host.data.dataset import load_trial, read_index
     idx = read_index(out)
     assert idx["source"] == "rig" and len(idx["trials"]) == 8
     hard = load_trial(out, 0)                          # hard plate, 1.5 mm press

@@ -448,10 +448,7 @@ def test_status_file_is_rewritten_atomically(tmp_path):
 def model_dir(tmp_path_factory):
     """models/surface (a tiny FNN, int8 + float) and models/pressure (ridge), trained
     on synthetic windows over the 133-pin roboskin layout."""
-    import sys
-    from pathlib import Path
-    sys.path.insert(0, str(Path(__file__).parent))
-    from test_train import synthetic
+    from tests.windows import synthetic
 
     from host.train import train_model
     d = tmp_path_factory.mktemp("models")
@@ -503,7 +500,7 @@ def test_bad_artefacts_refuse_to_start_with_exit_2(model_dir, tmp_path, capsys):
     rc, err = _run_main(cam + ["--models", str(bad)], capsys)
     assert rc == 2 and "model.int8.onnx" in err and "checksum" in err
     # a model for another pin layout
-    from test_train import synthetic
+    from tests.windows import synthetic
 
     from host.train import train_model
     bad = tmp_path / "m3"

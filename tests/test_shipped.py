@@ -1,6 +1,7 @@
 """The shipped default models in models/: present, small, loadable by the Pi's code,
 and sane on data they never saw (a fresh simulated trial of each surface)."""
 from __future__ import annotations
+from tests import REPO_ROOT
 
 import json
 from pathlib import Path
@@ -13,7 +14,7 @@ from device.pi.classifier import Classifier
 from device.pi.regressor import Regressor
 from device.pi.window import RollingWindow
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO_ROOT
 MODELS = ROOT / "models"
 CLASSES = {"surface": ["hard", "no-touch", "slippery", "soft"],
            "texture": ["concrete", "lego", "no-touch", "smooth"],
@@ -81,7 +82,7 @@ def test_the_pressure_default_loads_and_reads_more_load_for_larger_vectors():
 def test_the_surface_default_classifies_unseen_simulated_trials(tmp_path):
     """One fresh trial per surface, seeds and surface parameters never used in
     training (drawn from the wider test ranges), through the Pi's pipeline."""
-    from host.data import load_spec
+    from host.data.specs import load_spec
     from host.evaluate import evaluate_model
     from host.train import simulate_scenes
 

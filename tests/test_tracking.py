@@ -27,7 +27,7 @@ from device.pi.tracking import (
 )
 from device.sim import Simulator, load_profile, load_scene
 
-from realdata import real_data_dir
+from tests.realdata import real_data_dir
 
 DRAGS = [f"drag-{a}" for a in range(0, 360, 45)]
 MAX_SWITCH_FRAC = 0.005          # issue 8: identity switches <= 0.5% of pins per frame

@@ -2,6 +2,8 @@
 training, ONNX export, int8 quantisation and its check, manifests, refusal of bad
 artefacts, hard cases, and the numerics the Pi relies on."""
 from __future__ import annotations
+from tests import REPO_ROOT
+from tests.windows import synthetic
 
 import json
 from pathlib import Path
@@ -17,7 +19,7 @@ from device.pi.classifier import Classifier, clean_probabilities, sigmoid, softm
 from device.pi.regressor import Regressor
 from device.pi.rules import RuleClassifier
 from device.pi.window import RollingWindow, encode_vectors
-from host.data import WindowSet
+from host.data.specs import WindowSet
 from host.evaluate import evaluate_model
 from host.train import (QuantisationError, TrainError, bench_scene, compare_int8,
                         model_inputs, quantise_model, scene_toml, slip_latency, train_model)
@@ -53,7 +55,7 @@ def _simulate(out: Path, n_per_kind: int, seed: int, beyond: bool) -> Path:
 def surface_sets(tmp_path_factory):
     """Train: 3 step trials per class; test: 1 per class, unseen seeds, surface
     parameters drawn beyond the training range."""
-    from host.data import load_spec
+    from host.data.specs import load_spec
 
     base = tmp_path_factory.mktemp("surface")
     tr = _simulate(base / "train", 3, seed=1, beyond=False)
@@ -70,29 +72,6 @@ def surface_model(surface_sets, tmp_path_factory):
     res = train_model("surface", "fnn", ws_tr, ws_te, quantise=True, seed=0, out_dir=out,
                       progress=False, alpha=0.1, epochs=200)
     return res, out
-
-
-def synthetic(n_groups=6, per_group=20, n_pins=5, Tn=T, classes=("a", "b"), imu=True,
-              targets=False, seed=0) -> WindowSet:
-    """Windows whose class sets the mean pin displacement: easy to learn."""
-    rng = np.random.default_rng(seed)
-    N = n_groups * per_group
-    groups = np.repeat(np.arange(n_groups), per_group)
-    lab = np.array([classes[g % len(classes)] for g in groups], object)
-    level = np.array([classes.index(x) for x in lab], float)
-    v = (rng.normal(0, 0.3, (N, Tn, n_pins, 2)) + level[:, None, None, None] * 2.0)
-    y = None
-    if targets:
-        y = 3.0 * v[:, -1, :, 0].mean(axis=1) + 1.0
-    return WindowSet(
-        task="pressure" if targets else "surface", window=Tn,
-        vectors=v.astype(np.float32), lost=np.zeros((N, Tn, n_pins), bool),
-        imu=rng.normal(0, 0.1, (N, Tn, 6)).astype(np.float32) if imu else None,
-        grids=rng.random((N, Tn, 4, 4)).astype(np.float32), frames=None,
-        contact=np.ones(N, bool), labels=None if targets else lab, targets=y, groups=groups,
-        t_index=np.tile(np.arange(per_group) + Tn - 1, n_groups),
-        trial_len=np.full(N, per_group + Tn - 1), classes=[] if targets else sorted(classes),
-        source={"trials": [{"group": g} for g in range(n_groups)]})
 
 
 @pytest.fixture(scope="module")
@@ -524,12 +503,12 @@ def test_rotated_windows_match_a_drag_in_the_rotated_direction(tmp_path):
     """Rotation augmentation: the 0-degree drag rotated by 30 degrees matches the
     30-degree drag (pins moved by the layout's symmetry, vectors and IMU turned)."""
     from host.cli import simulate_to_dataset
-    from host.data import layout_for_profile, load_spec
+    from host.data.specs import layout_for_profile, load_spec
     from host.train import augment_rotations, layout_rotations, rotate_windows
 
     rots = dict(layout_rotations(layout_for_profile("roboskin")))
     assert sorted(rots) == list(range(30, 360, 30))
-    base = (Path(__file__).resolve().parents[1] / "device/sim/scenes/drag-0.toml").read_text()
+    base = (REPO_ROOT / "device/sim/scenes/drag-0.toml").read_text()
     ws = {}
     for deg in (0, 30):
         scene = tmp_path / f"d{deg}.toml"

@@ -36,7 +36,7 @@ from host.realism import (
 try:  # tests/ may or may not become a package
     from tests.realdata import read_video, real_data_dir
 except ImportError:  # pragma: no cover
-    from realdata import read_video, real_data_dir
+    from tests.realdata import read_video, real_data_dir
 
 
 # --------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""host/data.py: data specs -> windows of T frames; splits that never leak; errors."""
+"""host/data/specs.py: data specs -> windows of T frames; splits that never leak; errors."""
 from __future__ import annotations
 
 import os
@@ -11,10 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from host.cli import simulate_to_dataset
-from host.data import (NO_TOUCH, SLIP_LABELS, DataError, LayoutMapper, WindowSet,
+from host.data.specs import (NO_TOUCH, SLIP_LABELS, DataError, LayoutMapper, WindowSet,
                        group_kfold, layout_for_profile, load_spec, load_specs,
                        split_grouped, split_time)
-from host.dataset import load_trial
+from host.data.dataset import load_trial
 
 
 @pytest.fixture(scope="module")
@@ -372,7 +372,7 @@ def test_bad_arguments_and_imu_files(tmp_path):
 
 @pytest.mark.real
 def test_real_roboskin_smooth_vs_concrete_manifest(tmp_path):
-    from realdata import real_data_dir
+    from tests.realdata import real_data_dir
     base = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi",
                          "roboskin/concrete_gyro.npy") / "roboskin"
     rel = Path(os.path.relpath(base, tmp_path))       # paths relative to the manifest

@@ -681,7 +681,7 @@ def _load_manifest(path: Path, task: str, T: int, stride: int, contact_only: boo
 def _load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
                   profile: str, frame_size, progress: bool, cache: dict,
                   min_classes: int) -> WindowSet:
-    from host.dataset import DatasetError, load_trial, read_index
+    from host.data.dataset import DatasetError, load_trial, read_index
 
     try:
         index = read_index(path)
