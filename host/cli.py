@@ -25,7 +25,7 @@ def _emit(args, data, text: str | None = None):
 
 
 def _json_default(o):
-    from host.train import _plain
+    from host.learn.train import _plain
     return _plain(o)
 
 
@@ -457,13 +457,13 @@ def _jsonable(res: dict) -> dict:
 
 
 def cmd_train(args):
-    from host.train import TrainError
+    from host.learn.train import TrainError
     ws = _load_windows(args, args.task, args.window)
     try:
         if args.model == "cnn":
             res = _train_cnn(args, ws)
         else:
-            from host.train import train_model
+            from host.learn.train import train_model
             res = train_model(args.task, args.model, ws, cv=args.cv, quantise=args.quantise,
                               seed=args.seed, out_dir=args.out, progress=not args.json)
     except TrainError as exc:
@@ -479,9 +479,9 @@ def cmd_train(args):
 
 
 def _train_cnn(args, ws):
-    from host.cnn import quantise_cnn, train_cnn
+    from host.learn.cnn import quantise_cnn, train_cnn
     from host.data.specs import split_grouped
-    from host.train import TrainError
+    from host.learn.train import TrainError
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
     tr, te = split_grouped(ws, test_frac=0.3, seed=args.seed)
@@ -497,7 +497,7 @@ def cmd_eval(args):
     import json as _json
 
     from device.pi.artefact import ModelError, read_manifest
-    from host.evaluate import evaluate_model
+    from host.learn.evaluate import evaluate_model
     try:
         doc, _ = read_manifest(args.model_dir)
     except ModelError as exc:

@@ -28,7 +28,7 @@ training), each also per displacement bin.
 
 Export: the Ridge is written as a plain ONNX MatMul + Add graph
 (:func:`ridge_to_onnx`; float16 weights when float32 would pass 1 MB) through
-:func:`host.export.write_model`, with the localiser's manifest extras.
+:func:`host.learn.onnx_io.write_model`, with the localiser's manifest extras.
 
 Limit: a linear map from the binary image cannot tell pins apart once they
 have moved by more than about one pin pitch (~12 px on roboskin): there the
@@ -804,7 +804,7 @@ def train_localiser(
     anywhere: the artefact is model.onnx + manifest.json).
     """
     from device.sim import load_profile
-    from host.export import write_model
+    from host.learn.onnx_io import write_model
 
     _check_args(size, alpha, crop_factor, n_aug)
     params = vision_params_for(profile)

@@ -28,7 +28,7 @@ def _have_torch() -> bool:
 
 
 def models_for(task: str) -> list[str]:
-    from host.train import TASK_MODELS
+    from host.learn.train import TASK_MODELS
     models = list(TASK_MODELS[task])
     if task != "pressure" and _have_torch():
         models.append("cnn")
@@ -46,16 +46,16 @@ def _int8_why(exc) -> str:
 def _train(task, model, tr, te, out, seed) -> str | None:
     """Train one row's model into ``out`` (float, and int8 when it passes its
     check). Returns why there is no int8 model, or None."""
-    from host.train import QuantisationError
+    from host.learn.train import QuantisationError
     if model == "cnn":
-        from host.cnn import quantise_cnn, train_cnn
+        from host.learn.cnn import quantise_cnn, train_cnn
         res = train_cnn(tr, te, seed=seed, out_dir=out, progress=False, epochs=15)
         try:
             quantise_cnn(res["onnx_path"], tr, Path(out) / "model.int8.onnx", seed=seed)
         except QuantisationError as exc:
             return _int8_why(exc)
         return None
-    from host.train import train_model
+    from host.learn.train import train_model
     res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
                       seed=seed, out_dir=out, progress=False)
     failed = (res.get("int8") or {}).get("failed")
@@ -67,8 +67,8 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
              progress: bool = True) -> list[dict]:
     """Rows of the report for one task and data source."""
     from host.data.specs import load_specs, split_grouped, split_time
-    from host.evaluate import evaluate_model
-    from host.train import TrainError
+    from host.learn.evaluate import evaluate_model
+    from host.learn.train import TrainError
 
     rows = []
     cache: dict = {}
@@ -216,7 +216,7 @@ def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
     return out
 
 
-#: the simulated scene kinds behind each task (host.train.simulate_scenes)
+#: the simulated scene kinds behind each task (host.learn.train.simulate_scenes)
 TASK_KINDS = {"surface": ("hard", "soft", "wet", "no-touch"),
               "texture": ("lego", "concrete", "smooth"),
               "slip": ("slip",), "pressure": ("press-hard", "press-soft")}
@@ -241,7 +241,7 @@ def real_manifest(data_dir, work: Path) -> Path:
 def build_report(out, work, data_dir=None, windows=WINDOWS, quick: bool = False,
                  tasks=tuple(TASK_KINDS), seed: int = 0, progress: bool = True,
                  command: str = "host report") -> Path:
-    from host.train import simulate_scenes
+    from host.learn.train import simulate_scenes
 
     work = Path(work)
     counts = REPORT_TRIALS["quick" if quick else "full"]

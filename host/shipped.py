@@ -3,14 +3,14 @@
     python -m host.shipped --out models [--real-data ../shared/data] [--only surface,slip]
 
 Each model is trained on simulated trials of the roboskin sensor (surface
-parameters drawn from the training ranges of :data:`host.train.SURFACE_RANGES`,
+parameters drawn from the training ranges of :data:`host.learn.train.SURFACE_RANGES`,
 fixed seeds), exported to ONNX with the scaler folded in, quantised to int8 and
 checked against float, and written as ``models/<name>/`` (manifest.json,
 model.onnx, model.int8.onnx). The surface model must pass the int8 check; for the
 others a failed check ships the float model alone (the texture FNN's first layer
 reads frame-to-frame changes of ~0.1 px, finer than its int8 input step). The model settings are the simulated benchmark's
-(:data:`host.train.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
-``host.train.sim_benchmarks`` describe these models.
+(:data:`host.learn.train.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
+``host.learn.train.sim_benchmarks`` describe these models.
 
 =========  ======================  =========================================
 folder     task / model            classes or target
@@ -57,14 +57,14 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
     """Train one default model into ``out_root/name`` (replaced only when the new
     one is complete). Returns a summary: metrics, int8 check, bytes."""
     from host.data.specs import load_spec
-    from host.train import BENCH_MODELS, TrainError, simulate_scenes, train_model
+    from host.learn.train import BENCH_MODELS, TrainError, simulate_scenes, train_model
 
     if name not in DEFAULTS:
         raise TrainError(f"unknown default model {name!r}; choose from {sorted(DEFAULTS)}")
     task, kinds, n, T = DEFAULTS[name]
     n = trials or n
     t0 = time.perf_counter()
-    # the same folder and seeds as the training part of host.train.sim_benchmarks
+    # the same folder and seeds as the training part of host.learn.train.sim_benchmarks
     data = simulate_scenes(Path(work) / f"{task}-train", kinds, n, 10 * seed + 1, False,
                            progress)
     ws = load_spec(str(data), task, T, progress=progress)
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     names = [n.strip() for n in args.only.split(",")] if args.only else None
-    from host.train import TrainError
+    from host.learn.train import TrainError
     try:
         rows = build_defaults(args.out, args.work, names, seed=args.seed,
                               progress=not args.quiet)

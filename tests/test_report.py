@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from host import report
-from host.train import QuantisationError
+from host.learn.train import QuantisationError
 
 
 def row(model, variant, T, acc, p50):
@@ -18,7 +18,7 @@ def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_p
     once) and measured; the int8 row carries the agreement it reached."""
     import json
 
-    import host.train
+    import host.learn.train
     from tests.windows import synthetic
 
     def failing_quantise(*a, **k):
@@ -26,9 +26,9 @@ def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_p
                                 "97.18% of 779 held-out windows (argmax), below")
 
     fits = []
-    real_fit = host.train._fit_mlp
-    monkeypatch.setattr(host.train, "quantise_model", failing_quantise)
-    monkeypatch.setattr(host.train, "_fit_mlp", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    real_fit = host.learn.train._fit_mlp
+    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
+    monkeypatch.setattr(host.learn.train, "_fit_mlp", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     ws = synthetic()
     why = report._train("surface", "fnn", ws, ws, tmp_path / "m", 0)
     assert len(fits) == 1                                  # trained once, not twice

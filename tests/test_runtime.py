@@ -450,7 +450,7 @@ def model_dir(tmp_path_factory):
     on synthetic windows over the 133-pin roboskin layout."""
     from tests.windows import synthetic
 
-    from host.train import train_model
+    from host.learn.train import train_model
     d = tmp_path_factory.mktemp("models")
     ws = synthetic(n_groups=4, per_group=12, n_pins=133, Tn=3,
                    classes=("hard", "no-touch", "slippery", "soft"))
@@ -502,7 +502,7 @@ def test_bad_artefacts_refuse_to_start_with_exit_2(model_dir, tmp_path, capsys):
     # a model for another pin layout
     from tests.windows import synthetic
 
-    from host.train import train_model
+    from host.learn.train import train_model
     bad = tmp_path / "m3"
     train_model("surface", "fnn", synthetic(n_pins=5, classes=("hard", "soft")),
                 out_dir=bad / "surface", progress=False, hidden=(4, 2), epochs=5)

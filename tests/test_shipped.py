@@ -83,8 +83,8 @@ def test_the_surface_default_classifies_unseen_simulated_trials(tmp_path):
     """One fresh trial per surface, seeds and surface parameters never used in
     training (drawn from the wider test ranges), through the Pi's pipeline."""
     from host.data.specs import load_spec
-    from host.evaluate import evaluate_model
-    from host.train import simulate_scenes
+    from host.learn.evaluate import evaluate_model
+    from host.learn.train import simulate_scenes
 
     data = simulate_scenes(tmp_path / "s", ["hard", "soft", "wet", "no-touch"], 1, 777, True,
                            progress=False)

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from device.pi.regressor import Regressor
-from host.regression import cross_validate, export_regressor, vectors_npz_features
+from host.learn.regression import cross_validate, export_regressor, vectors_npz_features
 
 
 def soft_depth():

@@ -1,4 +1,4 @@
-"""host/cnn.py: the paper's CNN over T stacked binary frames (PyTorch, optional).
+"""host/learn/cnn.py: the paper's CNN over T stacked binary frames (PyTorch, optional).
 
 Trained once per module on simulated 4-class surface scenes (hard / soft / wet drags
 plus the no-touch frames around them) and tested on scenes it never saw: other drag
@@ -19,7 +19,7 @@ torch = pytest.importorskip(
 from device.pi.artefact import MANIFEST, load_model  # noqa: E402
 from device.pi.window import encode_frames  # noqa: E402
 from host.cli import simulate_to_dataset  # noqa: E402
-from host.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
+from host.learn.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
                       require_torch, train_cnn)
 from host.data.specs import load_spec  # noqa: E402
 
@@ -201,7 +201,7 @@ def test_int8_cnn_quantises_its_convs_and_agrees_with_float(data, trained, tmp_p
     is smaller; the calibration windows are 4-D frame stacks."""
     import onnx
 
-    from host.cnn import quantise_cnn
+    from host.learn.cnn import quantise_cnn
 
     ws_train, ws_test = data
     res, out = trained
@@ -213,7 +213,7 @@ def test_int8_cnn_quantises_its_convs_and_agrees_with_float(data, trained, tmp_p
     assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
     assert rep["int8_bytes"] < rep["float_bytes"]
     # the int8 model runs on 4-D windows one at a time, as on the Pi
-    from host.train import _session
+    from host.learn.train import _session
     s = _session(q.read_bytes())
     p = s.run(None, {s.get_inputs()[0].name: frames_input(ws_test.frames[:1])})[0]
     assert p.shape == (1, 4) and np.isfinite(p).all()
@@ -225,8 +225,8 @@ def test_int8_in_the_model_folder_becomes_the_default_the_pi_loads(data, trained
     import shutil
 
     from device.pi.classifier import Classifier
-    from host.cnn import quantise_cnn
-    from host.evaluate import evaluate_model
+    from host.learn.cnn import quantise_cnn
+    from host.learn.evaluate import evaluate_model
 
     ws_train, ws_test = data
     res, out = trained

@@ -26,7 +26,7 @@ VARIANTS = ("float", "int8")
 
 def _manifest_for(model_dir, variant: str | None) -> Path:
     """The manifest file that loads ``variant`` (None: the default)."""
-    from host.train import FLOAT_MANIFEST
+    from host.learn.train import FLOAT_MANIFEST
 
     doc, folder = read_manifest(model_dir)
     mpath = Path(model_dir) if Path(model_dir).is_file() else folder / MANIFEST
@@ -79,7 +79,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     ``"float"`` or ``"int8"``. Raises :class:`device.pi.artefact.ModelError` for a
     bad model folder and ValueError for windows that do not fit the model.
     """
-    from host.train import (classification_metrics, model_inputs, regression_metrics,
+    from host.learn.train import (classification_metrics, model_inputs, regression_metrics,
                             slip_latency, _label_ids)
 
     pred_obj, doc, kind = load_variant(model_dir, variant)

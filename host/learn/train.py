@@ -457,7 +457,7 @@ def _fit(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes: int, hp
     """A fitted sklearn Pipeline (scaler + estimator) and fit info."""
     t0 = time.perf_counter()
     if model == "ridge":
-        from host.regression import ridge_pipeline
+        from host.learn.regression import ridge_pipeline
 
         pipe = ridge_pipeline(hp["alpha"]).fit(X, y)
         info = {}
@@ -1093,13 +1093,13 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     if quantise not in (True, False, "if-passes"):
         raise TrainError(f"quantise must be True, False or 'if-passes', got {quantise!r}")
     from host.data.dataset import atomic_write, atomic_write_text
-    from host.export import write_model
+    from host.learn.onnx_io import write_model
 
     t_start = time.perf_counter()
     _check_choice("task", task, TASKS)
     _check_choice("model", model, MODELS + ("cnn",))
     if model == "cnn":
-        raise TrainError("model=cnn is trained by host.cnn (PyTorch), not host.train")
+        raise TrainError("model=cnn is trained by host.learn.cnn (PyTorch), not host.learn.train")
     if model not in TASK_MODELS[task]:
         raise TrainError(f"model={model!r} does not serve task={task!r}; task {task} takes "
                          f"{list(TASK_MODELS[task])}")
@@ -1411,7 +1411,7 @@ def bench_scene(kind: str, rng: np.random.Generator, beyond: bool = False) -> di
         return U(lo, hi)
 
     noise = U(0.5, 4.0) if beyond else U(1.0, 3.0)
-    doc = {"name": f"bench-{kind}", "description": f"benchmark {kind} scene (host.train)",
+    doc = {"name": f"bench-{kind}", "description": f"benchmark {kind} scene (host.learn.train)",
            "hover_mm": U(1.5, 2.5),
            "effects": ["glare", {"name": "camera_noise", "sigma": round(noise, 3)},
                        "imu_noise"],
@@ -1547,7 +1547,7 @@ def _trial_scene(ws) -> np.ndarray:
 
 
 def _subset_accuracy(model_dir, ws, mask, variant=None) -> dict | None:
-    from host.evaluate import evaluate_model
+    from host.learn.evaluate import evaluate_model
 
     if not mask.any():
         return None
@@ -1581,7 +1581,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     """
     from host.data.specs import load_spec
     from host.data.dataset import atomic_write_text
-    from host.evaluate import evaluate_model
+    from host.learn.evaluate import evaluate_model
 
     T = _check_int("T", T, 1)
     seed = _check_int("seed", seed, 0)
@@ -1592,7 +1592,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
                  "trials": counts, "targets": BENCH_TARGETS,
                  "surface_ranges": {k: {kk: vv for kk, vv in v.items()}
                                     for k, v in SURFACE_RANGES.items()},
-                 "command": f"python -c \"from host.train import sim_benchmarks; "
+                 "command": f"python -c \"from host.learn.train import sim_benchmarks; "
                             f"sim_benchmarks('{out}', quick={bool(quick)}, T={T})\""}
     figures: dict = {}
     cache: dict = {}

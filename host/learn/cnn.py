@@ -21,7 +21,7 @@ Training is deterministic: a fixed seed (weights, batch order and dropout), two
 threads (``torch.set_num_threads(2)``) and ``torch.use_deterministic_algorithms``;
 the caller's torch RNG, thread count and determinism setting are restored after.
 The model is exported with ``torch.onnx.export`` (opset 17, a dynamic batch axis)
-and written by :func:`host.export.write_model` as ONNX + manifest.json; the Pi
+and written by :func:`host.learn.onnx_io.write_model` as ONNX + manifest.json; the Pi
 loads it with :func:`device.pi.artefact.load_model`. ONNX Runtime's output is
 checked against torch's on training and held-out windows (``ONNX_ATOL``).
 
@@ -396,7 +396,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     Raises ValueError if ONNX Runtime and torch differ by more than ``ONNX_ATOL``.
     """
     from host.data.specs import CLASS_TASKS
-    from host.export import write_model
+    from host.learn.onnx_io import write_model
 
     require_torch()
     t0 = time.perf_counter()
@@ -479,12 +479,12 @@ def quantise_cnn(float_onnx: Path | str, ws_calib, out_path: Path | str,
     """An int8 copy (static QDQ) of an exported CNN, calibrated on up to
     ``max_windows`` windows of ``ws_calib`` (training windows), built exactly as the
     Pi builds its input. The quantiser is the toolkit's one,
-    :func:`host.train.quantise_model`; this only prepares its calibration inputs and
+    :func:`host.learn.train.quantise_model`; this only prepares its calibration inputs and
     returns what it returns."""
     try:
-        from host.train import quantise_model
+        from host.learn.train import quantise_model
     except ImportError as exc:
-        raise ImportError(f"int8 quantisation of the CNN uses host.train.quantise_model, "
+        raise ImportError(f"int8 quantisation of the CNN uses host.learn.train.quantise_model, "
                           f"which cannot be imported: {exc}") from exc
     max_windows = _check_int("max_windows", max_windows, 1)
     rows = _check_rows(len(ws_calib), max_windows, seed)
@@ -501,7 +501,7 @@ def _adopt_int8(q: Path, report: dict) -> None:
 
     from device.pi.artefact import MANIFEST, sha256_file
     from host.data.dataset import atomic_write_text
-    from host.train import FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME
+    from host.learn.train import FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME
 
     folder = q.parent
     if q.name != INT8_NAME or not (folder / MANIFEST).is_file() \

@@ -10,7 +10,7 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from device.pi.artefact import ModelError, load_model
-from host.export import sklearn_to_onnx, write_model
+from host.learn.onnx_io import sklearn_to_onnx, write_model
 
 
 @pytest.fixture()

@@ -51,7 +51,7 @@ def cross_validate(X, y, groups=None, alpha: float = 150.0, k: int = 5, seed: in
 def export_regressor(X, y, out_dir, kind: str = "pressure", alpha: float = 150.0,
                      extra: dict | None = None):
     """Fit on all of X, y and write ONNX + manifest (scaler folded in)."""
-    from host.export import sklearn_to_onnx, write_model
+    from host.learn.onnx_io import sklearn_to_onnx, write_model
 
     X, y = clean(X), np.asarray(y, dtype=np.float64)
     pipe = ridge_pipeline(alpha).fit(X, y)

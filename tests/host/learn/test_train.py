@@ -1,4 +1,4 @@
-"""host/train.py, host/evaluate.py, device/pi/classifier.py, device/pi/rules.py:
+"""host/learn/train.py, host/learn/evaluate.py, device/pi/classifier.py, device/pi/rules.py:
 training, ONNX export, int8 quantisation and its check, manifests, refusal of bad
 artefacts, hard cases, and the numerics the Pi relies on."""
 from __future__ import annotations
@@ -20,8 +20,8 @@ from device.pi.regressor import Regressor
 from device.pi.rules import RuleClassifier
 from device.pi.window import RollingWindow, encode_vectors
 from host.data.specs import WindowSet
-from host.evaluate import evaluate_model
-from host.train import (QuantisationError, TrainError, bench_scene, compare_int8,
+from host.learn.evaluate import evaluate_model
+from host.learn.train import (QuantisationError, TrainError, bench_scene, compare_int8,
                         model_inputs, quantise_model, scene_toml, slip_latency, train_model)
 
 T = 3
@@ -220,7 +220,7 @@ def test_int8_check_fails_loudly_and_keeps_nothing(small_model, tmp_path, monkey
     bad = compare_int8(fbytes, q.SerializeToString(), X, y)
     assert not bad["passed"] and bad["agreement"] < 0.99 and bad["accuracy_int8"] < 0.9
     # force the disagreement inside quantise_model: it raises and keeps no file
-    import host.train as ht
+    import host.learn.train as ht
 
     real = ht.compare_int8
 
@@ -444,7 +444,7 @@ def test_the_folded_scaler_matches_sklearn_and_stays_finite(X, probe):
     from skl2onnx import convert_sklearn
     from skl2onnx.common.data_types import FloatTensorType
 
-    from host.train import SCALED_CLIP, _scaler_class, _session
+    from host.learn.train import SCALED_CLIP, _scaler_class, _session
 
     sc = _scaler_class()().fit(X)
     m = convert_sklearn(sc, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
@@ -487,7 +487,7 @@ def test_bench_scenes_parse_and_test_ranges_reach_beyond_training():
         import tomllib
     except ModuleNotFoundError:   # Python 3.10
         import tomli as tomllib
-    from host.train import BENCH_KINDS, SURFACE_RANGES
+    from host.learn.train import BENCH_KINDS, SURFACE_RANGES
 
     for kind in BENCH_KINDS:
         for beyond in (False, True):
@@ -504,7 +504,7 @@ def test_rotated_windows_match_a_drag_in_the_rotated_direction(tmp_path):
     30-degree drag (pins moved by the layout's symmetry, vectors and IMU turned)."""
     from host.cli import simulate_to_dataset
     from host.data.specs import layout_for_profile, load_spec
-    from host.train import augment_rotations, layout_rotations, rotate_windows
+    from host.learn.train import augment_rotations, layout_rotations, rotate_windows
 
     rots = dict(layout_rotations(layout_for_profile("roboskin")))
     assert sorted(rots) == list(range(30, 360, 30))
@@ -532,7 +532,7 @@ def test_the_fnn_first_layer_in_onnx_equals_its_numpy_transform():
     from skl2onnx import convert_sklearn
     from skl2onnx.common.data_types import FloatTensorType
 
-    from host.train import _session, _temporal_class
+    from host.learn.train import _session, _temporal_class
 
     rng = np.random.default_rng(0)
     for Tn, imu in ((2, False), (3, True), (5, True)):
@@ -600,12 +600,12 @@ def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
 
 
 def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch, tmp_path):
-    import host.train
+    import host.learn.train
 
     def failing_quantise(*a, **k):
         raise QuantisationError("int8 check failed: agrees with the float model on 90.00%")
 
-    monkeypatch.setattr(host.train, "quantise_model", failing_quantise)
+    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
     ws = synthetic()
     kw = dict(out_dir=None, progress=False, hidden=(8, 4), epochs=20)
     with pytest.raises(QuantisationError, match="90.00%"):
