@@ -102,7 +102,7 @@ def _frames_and_truth(src: str, seed: int):
 def cmd_view(args):
     import numpy as np
 
-    from host.view import draw_vectors, pick_frames, save_images, truth_caption
+    from host.analysis.view import draw_vectors, pick_frames, save_images, truth_caption
 
     if Path(args.out).suffix.lower() not in (".gif", ".png"):
         raise UserError(f"--out must end in .gif or .png, got {args.out!r}")
@@ -136,7 +136,7 @@ def _view_pipeline(args):
     """Pins and vectors found by the Pi's pipeline drawn over the frames (the
     paper's figure 3)."""
     from device.pi.pipeline import fault_names
-    from host.view import draw_vectors, pick_frames, save_images
+    from host.analysis.view import draw_vectors, pick_frames, save_images
 
     stream = _open_stream(args)
     cam = _open_source(args.source)
@@ -282,7 +282,7 @@ def _demo_segments(scene, sim, out: Path) -> list:
 
 def cmd_demo(args):
     from device.sim import Simulator, load_scene
-    from host.view import draw_vectors, pick_frames, save_images, truth_caption, truth_plot
+    from host.analysis.view import draw_vectors, pick_frames, save_images, truth_caption, truth_plot
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -409,7 +409,7 @@ def cmd_analyse(args):
 
 
 def cmd_plot(args):
-    from host.plots import load_directions, plot_directions
+    from host.analysis.plots import load_directions, plot_directions
     try:
         inputs = [load_directions(p) for p in args.inputs]
     except (OSError, ValueError) as exc:
@@ -420,7 +420,7 @@ def cmd_plot(args):
 
 
 def cmd_calibrate(args):
-    from host.calibrate import calibrate, write_profile
+    from host.analysis.calibrate import calibrate, write_profile
     cam = _open_source(args.source)
     frames = []
     with cam:
@@ -536,7 +536,7 @@ def real_data_dir(given: str | None) -> Path:
 
 
 def cmd_realism(args):
-    from host.realism import realism_table, roboskin_realism, side_by_side_png
+    from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
     data = real_data_dir(args.data)
     res = roboskin_realism(data, seed=args.seed)
     if args.png:

@@ -19,7 +19,7 @@ surface    surface, int8 FNN       hard, no-touch, slippery, soft
 texture    texture, FNN            concrete, lego, no-touch, smooth
 slip       slip, FNN               no-slip, slip
 pressure   pressure, Ridge         normal load (N)
-localiser  (host.localiser)        133 pin positions, roboskin
+localiser  (host.localiser.train)        133 pin positions, roboskin
 =========  ======================  =========================================
 
 The simulated data go under ``--work`` (default ``out/models-data``) and are reused

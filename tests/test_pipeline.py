@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from device.pi.pipeline import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_NO_DOME,
                                 FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, MarkerStream,
                                 fault_names)
-from host.pipeline_eval import evaluate_scene, evaluate_sim, farneback_direction_check
+from host.analysis.pipeline_eval import evaluate_scene, evaluate_sim, farneback_direction_check
 
 # -- simulated scenes with ground truth ---------------------------------------------
 
@@ -100,7 +100,7 @@ def test_real_direction_agrees_with_farneback(name):
 def test_east_tracking_agrees_with_chained_flow():
     """The independent check that holds on east.avi: Farneback flow chained frame to
     frame, sampled at the tracked pins, agrees with the tracker's average vector."""
-    from host.pipeline_eval import chained_flow_direction_check
+    from host.analysis.pipeline_eval import chained_flow_direction_check
     _, path = _clip("east.avi", 1)
     res = chained_flow_direction_check(path, step=3)
     assert res["compared_frames"] > 40

@@ -1,5 +1,5 @@
 """Pin tracking (device/pi/tracking.py) and the tactip_shear evaluation
-(host/shear_eval.py): one-to-one matching properties, large deformations, the
+(host/analysis/shear.py): one-to-one matching properties, large deformations, the
 per-frame tracker on hard inputs, identity switches on simulated drags, and
 pin assignment plus Ridge regressions on the real tactip_shear images."""
 
@@ -513,7 +513,7 @@ def test_drag_identity_switches_detected_pins(name, profile):
 
 @pytest.fixture(scope="module")
 def shear_result():
-    from host.shear_eval import evaluate_tactip_shear
+    from host.analysis.shear import evaluate_tactip_shear
 
     data = real_data_dir("tactip_shear/targets_images.csv", "tactip_shear/images/image_1.png")
     return evaluate_tactip_shear(data)

@@ -1,5 +1,5 @@
 """Tests of the marker front end (device/pi/vision.py) and the realism measures
-(host/realism.py): synthetic frames with known answers, property tests on
+(host/analysis/realism.py): synthetic frames with known answers, property tests on
 degenerate frames, and checks against the real recordings when present."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from device.pi.vision import (
     find_dome,
     to_gray,
 )
-from host.realism import (
+from host.analysis.realism import (
     fit_radial_layout,
     measure_drag_displacement,
     measure_glare,

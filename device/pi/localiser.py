@@ -1,7 +1,7 @@
 """Fixed-count pin localiser: the binary dome image -> all N pin positions.
 
 Runs on the Pi (numpy + OpenCV + onnxruntime through :mod:`device.pi.artefact`).
-A linear (Ridge) model, trained on the host by ``host/localiser.py``, maps the
+A linear (Ridge) model, trained on the host by ``host/localiser/train.py``, maps the
 downscaled binary image of the dome to the positions of a fixed set of pins
 (133 for ``roboskin``). Unlike blob detection plus tracking it always returns
 every pin, also where glare hides one or two pins merge.

@@ -37,7 +37,7 @@ still finite and plausible, and the fault flag stays clear.
 
 Command line (the lead wires it into ``host``)::
 
-    python -m host.localiser --out models/localiser-roboskin \
+    python -m host.localiser.train --out models/localiser-roboskin \
         --real-data ../shared/data [--json]
 """
 
@@ -934,7 +934,7 @@ def _onnx_vs_sklearn(onx, model, X: np.ndarray) -> float:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m host.localiser",
+    ap = argparse.ArgumentParser(prog="python -m host.localiser.train",
                                  description="train the fixed-count pin localiser (ONNX + JSON)")
     ap.add_argument("--out", required=True, type=Path, help="model folder to write")
     ap.add_argument("--profile", default="roboskin")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from host.realism import roboskin_realism
+from host.analysis.realism import roboskin_realism
 from tests.realdata import real_data_dir
 
 

@@ -662,7 +662,7 @@ REALISM_FIGURES = [
 
 
 def _read_clip(path, limit: int | None = None) -> list[np.ndarray]:
-    from host.localiser import read_clip
+    from host.localiser.train import read_clip
     return read_clip(path, limit)
 
 

@@ -1,4 +1,4 @@
-"""Fixed-count pin localiser (issue 8, stage 6): device/pi/localiser.py + host/localiser.py.
+"""Fixed-count pin localiser (issue 8, stage 6): device/pi/localiser.py + host/localiser/train.py.
 
 One small model is trained once per module (simulated scenes, plus the first
 300 frames of the real north.avi and east.avi when the recordings are there,
@@ -28,7 +28,7 @@ from device.pi.localiser import (
 )
 from device.pi.vision import ROBOSKIN_PARAMS, PinDetector, find_dome
 from device.sim import Simulator, load_profile, parse_scene
-from host.localiser import (
+from host.localiser.train import (
     check_labels,
     fit_layout,
     layout_neighbours,

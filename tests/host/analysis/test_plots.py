@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from host.cli import main
-from host.plots import load_directions
+from host.analysis.plots import load_directions
 
 
 def test_direction_scatter_from_npy_and_jsonl(tmp_path, capsys):
