@@ -53,7 +53,7 @@ bench: $(VENV)/.installed
 # slip and pressure from simulated trials (data cached in out/sim-data).
 models: $(VENV)/.installed
 	$(PY) -m host.localiser.train --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
-	$(PY) -m host.shipped --out models --work out/sim-data --quiet
+	$(PY) -m host.bench.shipped --out models --work out/sim-data --quiet
 
 clean:
 	rm -rf $(VENV) out build *.egg-info .pytest_cache .hypothesis

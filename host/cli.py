@@ -325,7 +325,7 @@ def cmd_demo(args):
 
 
 def cmd_bench(args):
-    from host import bench
+    from host.bench import sim as bench
     if args.what == "sim":
         res = bench.bench_sim(repeats=args.repeats)
         _emit(args, res, bench.format_sim(res))
@@ -339,7 +339,7 @@ def cmd_bench(args):
         res = bench.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
         _emit(args, res, bench.format_pipeline(res))
     elif args.what == "runtime":
-        from host.bench_runtime import bench_runtime, format_runtime
+        from host.bench.runtime import bench_runtime, format_runtime
         res = bench_runtime(frames=args.frames)
         _emit(args, res, format_runtime(res))
 
@@ -513,7 +513,7 @@ def cmd_eval(args):
 
 
 def cmd_report(args):
-    from host.report import build_report
+    from host.bench.report import build_report
     data = None
     try:
         data = real_data_dir(args.data)
@@ -547,7 +547,7 @@ def cmd_realism(args):
 
 
 def cmd_deploy(args):
-    from host.deploy import DeployInputError, options_from_args, run, summary_text
+    from host.deploy.release import DeployInputError, options_from_args, run, summary_text
     try:
         opts = options_from_args(args)
         opts.check()
@@ -561,7 +561,7 @@ def cmd_deploy(args):
 
 
 def cmd_rig(args):
-    from host.rig import load_plan, plan_summary, run, summary_text
+    from host.rig.trials import load_plan, plan_summary, run, summary_text
     plan = load_plan(args.trials)
     if args.rig_command == "check":
         s = plan_summary(plan)
@@ -715,7 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("deploy", help="install the runtime on a Pi over SSH (systemd, "
                                       "health check, rollback)")
-    from host.deploy import add_arguments as _deploy_arguments
+    from host.deploy.release import add_arguments as _deploy_arguments
     _deploy_arguments(s)
     s.set_defaults(func=cmd_deploy)
     s = sub.add_parser("rig", help="data-collection rig: validate and run trial files")

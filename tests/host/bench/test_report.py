@@ -1,9 +1,9 @@
-"""host/report.py: rows, the int8 fallback, the Pareto front and the table."""
+"""host/bench/report.py: rows, the int8 fallback, the Pareto front and the table."""
 from __future__ import annotations
 
 import numpy as np
 
-from host import report
+from host.bench import report
 from host.learn.train import QuantisationError
 
 

@@ -41,7 +41,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 UNIT_TEMPLATE = REPO / "device" / "pi" / "tacfoot.service"
 MANAGERS = ("auto", "systemd", "none")
 

@@ -200,7 +200,7 @@ def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
              "`*` marks the Pareto front (no other row is both faster to a decision at "
              "120 fps and more accurate).", "",
              "The simulated sections train every kind with its default settings on a few "
-             "trials per surface (`host.report.REPORT_TRIALS`), so that the whole cross "
+             "trials per surface (`host.bench.report.REPORT_TRIALS`), so that the whole cross "
              "runs in one go; they compare kinds, variants and window lengths with each "
              "other. The shipped models and the accuracy targets use more trials and "
              "tuned settings: see the simulated accuracy table in "

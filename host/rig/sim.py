@@ -33,7 +33,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
-MPY_DIR = Path(__file__).resolve().parents[1] / "device" / "micropython"
+MPY_DIR = Path(__file__).resolve().parents[2] / "device" / "micropython"
 
 STEPS_PER_MM = 100
 TRAVEL_MM = 40

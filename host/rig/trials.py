@@ -284,14 +284,14 @@ class Connection:
         self.url = url
         self.sim = None
         if url.startswith("sim://"):
-            from host.rig_sim import SimRig
+            from host.rig.sim import SimRig
             self.sim = SimRig(url, seed=seed)
         self.client = None
         self.open()
 
     def open(self):
         import serial
-        from host.rig_link import RigClient
+        from host.rig.link import RigClient
         if self.sim is not None:
             port = serial.Serial(self.sim.port, 115200, timeout=0.02)
         else:
@@ -301,7 +301,7 @@ class Connection:
 
     def reconnect(self, timeout_s: float = 20.0) -> None:
         """Close, wait for the device to come back, reopen and check it answers."""
-        from host.rig_link import RigError
+        from host.rig.link import RigError
         self.client.close()
         end = time.monotonic() + timeout_s
         last = None
@@ -486,7 +486,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
         seed: int = 0, reconnect_s: float = 20.0, log=None) -> dict:
     """Run the plan; return the summary (see docs/rig.md)."""
     from host.data.dataset import DatasetWriter, atomic_write_text, is_dataset, read_index
-    from host.rig_link import LinkLost, RigError
+    from host.rig.link import LinkLost, RigError
 
     out = Path(out)
     log = log or (lambda msg: print(msg, file=sys.stderr))
@@ -519,7 +519,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
     bar = None
     try:
         if camera_url.startswith("sim://"):
-            from host.rig_sim import SimRigCamera, current
+            from host.rig.sim import SimRigCamera, current
             if current() is None:
                 raise ConfigError("--camera sim:// films the simulated rig: use it with "
                                   "--rig sim://")

@@ -1,6 +1,6 @@
 """host deploy against a real OpenSSH server on loopback, and device.pi.sdnotify.
 
-The deploy tests start sshd (tests/sshd_fixture.py) and deploy into a temporary
+The deploy tests start sshd (tests/host/deploy/sshd_fixture.py) and deploy into a temporary
 PREFIX with --service-manager none (tacfootctl + pid file), a venv seeded from
 this interpreter (--system-site-packages --no-deps), and the real runtime on
 simulated hardware (sim://walk, loop://). The systemd unit itself is checked with
@@ -27,10 +27,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tests.sshd_fixture import SshServer, missing_reason  # noqa: E402
+from tests.host.deploy.sshd_fixture import SshServer, missing_reason  # noqa: E402
 
 from device.pi import sdnotify  # noqa: E402
-from host import deploy as dp  # noqa: E402
+from host.deploy import release as dp  # noqa: E402
 
 REPO = REPO_ROOT
 

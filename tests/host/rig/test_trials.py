@@ -16,9 +16,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.config import ConfigError
-from host import rig_link
+from host.rig import link as rig_link
 from host.cli import main as host_main
-from host.rig import Plate, RigLimits, Trial, Variant, align, load_plan, parse_plan
+from host.rig.trials import Plate, RigLimits, Trial, Variant, align, load_plan, parse_plan
 
 ROOT = REPO_ROOT
 TRIALS = ROOT / "trials"
@@ -137,7 +137,7 @@ def test_alignment_gives_finite_truth_for_any_samples(rows, t_frames, offset_ms)
 # -- the client against the firmware behind a pty -----------------------------------------------
 def test_client_refusals_and_clock_offset_through_the_sim_pty():
     import serial
-    from host.rig_sim import SimRig
+    from host.rig.sim import SimRig
 
     sim = SimRig("sim://?start_mm=5")
     c = rig_link.RigClient(serial.Serial(sim.port, 115200, timeout=0.02))

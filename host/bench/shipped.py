@@ -1,6 +1,6 @@
 """Rebuild the shipped default models in ``models/`` (``make models``).
 
-    python -m host.shipped --out models [--real-data ../shared/data] [--only surface,slip]
+    python -m host.bench.shipped --out models [--real-data ../shared/data] [--only surface,slip]
 
 Each model is trained on simulated trials of the roboskin sensor (surface
 parameters drawn from the training ranges of :data:`host.learn.train.SURFACE_RANGES`,
@@ -107,7 +107,7 @@ def build_defaults(out_root="models", work="out/models-data", names=None, seed: 
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m host.shipped", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m host.bench.shipped", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", default="models", help="models folder (default: models)")
     p.add_argument("--work", default="out/models-data", help="simulated training data")
     p.add_argument("--only", help="comma-separated subset of " + ",".join(DEFAULTS))
@@ -121,7 +121,7 @@ def main(argv=None) -> int:
         rows = build_defaults(args.out, args.work, names, seed=args.seed,
                               progress=not args.quiet)
     except TrainError as exc:
-        print(f"host.shipped: error: {exc}", file=sys.stderr)
+        print(f"host.bench.shipped: error: {exc}", file=sys.stderr)
         return 2
     if args.json:
         print(json.dumps(rows, indent=1))
