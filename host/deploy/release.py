@@ -733,7 +733,7 @@ def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
 
 
 def add_arguments(s):
-    """The ``host deploy`` options (shared with host/cli.py)."""
+    """The ``host deploy`` options (shared with host/cli/__init__.py)."""
     s.add_argument("target", help="USER@HOST of the Pi")
     s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
     s.add_argument("--rollback", action="store_true",
