@@ -17,7 +17,7 @@ from device.pi import protocol as P
 import sys
 from pathlib import Path
 
-from device.pi.camera import CameraError, open_camera
+from device.pi.sources.camera import CameraError, open_camera
 from device.pi.leg_config import LegConfig
 from device.pi.link import FAULT_QUEUE, LinkWriter
 from device.pi.runtime import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime, load_models)
@@ -231,7 +231,7 @@ def test_camera_unplug_and_replug_reopens_with_backoff(tmp_path):
 
 
 def test_i2c_eio_burst_sends_imu_fault_and_recovers(tmp_path):
-    from device.pi.imu import open_imu
+    from device.pi.sources.imu import open_imu
     imu = open_imu("sim://press-hard")
     state = {}
 
@@ -257,7 +257,7 @@ def test_i2c_eio_burst_sends_imu_fault_and_recovers(tmp_path):
 
 
 def test_short_eio_burst_is_retried_without_a_fault(tmp_path):
-    from device.pi.imu import open_imu
+    from device.pi.sources.imu import open_imu
     imu = open_imu("sim://press-hard")
     done = []
 
@@ -541,7 +541,7 @@ def test_python_dash_m_device_pi_run_on_simulated_hardware(tmp_path):
 def test_v4l2_refuses_a_size_the_driver_did_not_take(tmp_path, monkeypatch):
     import cv2
 
-    from device.pi import camera
+    from device.pi.sources import camera
 
     class Capture:
         def __init__(self, device, api=None):
@@ -629,7 +629,7 @@ class ListCamera:
         return self
 
     def read(self):
-        from device.pi.camera import Frame
+        from device.pi.sources.camera import Frame
         if self.i >= len(self.images):
             return None
         self.i += 1

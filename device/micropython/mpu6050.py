@@ -1,4 +1,4 @@
-"""MPU6050 driver for MicroPython's machine.I2C: the twin of device/pi/imu.py.
+"""MPU6050 driver for MicroPython's machine.I2C: the twin of device/pi/sources/imu.py.
 
 Same logic as the Pi driver, on ``readfrom_mem_into`` / ``writeto_mem``, for the
 RP2040 data-collection rig. Written in the subset CPython also runs::
@@ -56,7 +56,7 @@ GYRO_LSB_PER_DPS = (131.0, 65.5, 32.8, 16.4)
 TEMP_LSB_PER_C = 340.0
 TEMP_OFFSET_C = 36.53
 
-# fault bits: the same values as device/pi/imu.py
+# fault bits: the same values as device/pi/sources/imu.py
 FAULT_STALE = const(0x01)
 FAULT_OFFLINE = const(0x02)
 FAULT_SATURATED = const(0x04)

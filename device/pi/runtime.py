@@ -820,8 +820,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     config, model, source or port."""
     from device.config import ConfigError
     from device.pi.artefact import ModelError
-    from device.pi.camera import CameraError, open_camera
-    from device.pi.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
+    from device.pi.sources.camera import CameraError, open_camera
+    from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
     from device.pi.leg_config import load_leg_config
     from device.pi.link import LinkError, open_port
 

@@ -364,7 +364,7 @@ def _open_stream(args):
 
 
 def _open_source(source: str):
-    from device.pi.camera import CameraError, open_camera
+    from device.pi.sources.camera import CameraError, open_camera
     try:
         return open_camera(source)
     except (CameraError, ValueError) as exc:

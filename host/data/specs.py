@@ -562,7 +562,7 @@ def _clip_key(row: _Row) -> str:
 def _extract_clip(key: str, end: int | None, profile: str, frame_size, progress: bool,
                   cache: dict) -> ClipFeatures:
     """Features of frames 0 .. end-1 (None: all) of a clip, cached per clip."""
-    from device.pi.camera import CameraError, open_camera
+    from device.pi.sources.camera import CameraError, open_camera
 
     hit = cache.get(("clip", key, profile, frame_size))
     if hit is not None and (hit[1] is None or (end is not None and hit[1] >= end)):

@@ -224,7 +224,7 @@ class CameraRecorder:
     start() and stop(); frames are converted to grey."""
 
     def __init__(self, url: str):
-        from device.pi.camera import open_camera
+        from device.pi.sources.camera import open_camera
         self.url = url
         self.cam = open_camera(url)
         self.width, self.height = self.cam.width, self.cam.height

@@ -154,8 +154,8 @@ class IMUUnavailable(IMUError):
 
 # ---------------------------------------------------------------- validation
 # a finite number, or a ValueError naming the option (the camera's source options)
-from device.pi.camera import _opt_bool  # noqa: E402,F401
-from device.pi.camera import _opt_float as _opt_num  # noqa: E402
+from device.pi.sources.camera import _opt_bool  # noqa: E402,F401
+from device.pi.sources.camera import _opt_float as _opt_num  # noqa: E402
 
 
 def _pick(name: str, value: Any, allowed: tuple) -> int:

@@ -1,4 +1,4 @@
-"""device/pi/imu.py: the MPU6050 driver on smbus2 (against FakeMPU6050) and open_imu."""
+"""device/pi/sources/imu.py: the MPU6050 driver on smbus2 (against FakeMPU6050) and open_imu."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.pi import imu as im
-from device.pi.imu import (FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE, IMUError, MPU6050,
+from device.pi.sources import imu as im
+from device.pi.sources.imu import (FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE, IMUError, MPU6050,
                            open_imu)
 from device.sim import fake_mpu6050 as fm
 from device.sim.fake_mpu6050 import FakeMPU6050

@@ -15,8 +15,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.pi import camera
-from device.pi.camera import (CameraError, CameraSource, Frame, ImageFolderSource, SimSource,
+from device.pi.sources import camera
+from device.pi.sources.camera import (CameraError, CameraSource, Frame, ImageFolderSource, SimSource,
                               V4L2Source, VideoFileSource, natural_key, open_camera)
 
 from tests.realdata import real_data_dir
