@@ -272,7 +272,7 @@ def test_encode_frame_errors_name_the_field():
 
 
 def test_pipeline_fault_bits_are_the_same_values():
-    from device.pi import pipeline
+    from device.pi.vision import pipeline
     for bit, name in pipeline.FAULT_NAMES.items():
         assert P.FAULT_NAMES[bit] == name
     assert P.fault_names(P.FAULT_CAMERA | P.FAULT_NO_DOME) == ["no_dome", "camera"]

@@ -34,7 +34,7 @@ MSG_GAIT = 0x10
 MSG_COMMAND = 0x11
 
 # fault bits (u16), carried in SURFACE, IMU summary, HEARTBEAT and FAULT.
-# bits 0-5 are device/pi/pipeline.py's per-frame fault bits (same values).
+# bits 0-5 are device/pi/vision/pipeline.py's per-frame fault bits (same values).
 FAULT_NO_DOME = 1 << 0
 FAULT_TOO_FEW_PINS = 1 << 1
 FAULT_NO_REFERENCE = 1 << 2

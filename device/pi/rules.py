@@ -53,7 +53,7 @@ import numpy as np
 
 from device.pi.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
 from device.pi.classifier import sigmoid
-from device.pi.features import direction_deg
+from device.pi.vision.features import direction_deg
 
 RULE_TASKS = ("surface", "slip")
 SURFACE_CLASSES = ("hard", "no-touch", "slippery", "soft")

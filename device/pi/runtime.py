@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi import protocol as _p
-from device.pi.layout import binary_crop
+from device.pi.vision.layout import binary_crop
 from device.pi.leg_config import LegConfig
 
 # -- fault bits (FAULT and SURFACE packets, docs/protocol.md). Bits 0-5 are the
@@ -232,7 +232,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
             loaded.append("pressure")
         locs = sorted(p for p in d.glob("localiser*") if p.is_dir())
         if locs:
-            from device.pi.localiser import Localiser
+            from device.pi.vision.localiser import Localiser
             pick = next((p for p in locs if p.name == f"localiser-{cfg.models.profile}"),
                         locs[0])
             m.localiser = Localiser.load(pick)
@@ -297,9 +297,9 @@ class LegRuntime:
                  lossless: bool = True, fps: float | None = None, json_log=None,
                  status_path: str | None = None, max_frames: int | None = None,
                  first_camera=None, clock=time.monotonic, notify=None, camera_opts=None):
-        from device.pi.layout import LayoutMapper, layout_for_profile
+        from device.pi.vision.layout import LayoutMapper, layout_for_profile
         from device.pi.link import LinkReader, LinkWriter
-        from device.pi.pipeline import MarkerStream
+        from device.pi.vision.pipeline import MarkerStream
         from device.pi.window import RollingWindow
         from device.pi import protocol
 
@@ -839,7 +839,7 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
             raise StartupError(f"--fps must be a number 1..1000, got {fps!r}")
         cfg.camera.fps = float(fps)
     try:
-        from device.pi.profile import load_pipeline_profile
+        from device.profile import load_pipeline_profile
         load_pipeline_profile(cfg.models.profile)
     except Exception as exc:
         raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
@@ -915,5 +915,5 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
 
 
 def _layout_pins(profile: str) -> int:
-    from device.pi.layout import layout_for_profile
+    from device.pi.vision.layout import layout_for_profile
     return int(len(layout_for_profile(profile)))

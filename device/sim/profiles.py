@@ -156,7 +156,7 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
             pins = pins[np.argsort(np.hypot(*(pins - lay_centre).T), kind="stable")[:count]]
     lay.done()
 
-    top.raw("vision")      # the pipeline's section (device/pi/profile.py)
+    top.raw("vision")      # the pipeline's section (device/profile.py)
     glare = GlareSpec()
     if top.has("glare"):
         g = top.sub("glare")

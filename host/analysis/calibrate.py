@@ -5,7 +5,7 @@ the setting under which the blobs look most like a pin lattice: many blobs, a
 steady count from frame to frame, and nearest-neighbour distances that agree
 with each other. Blob-size limits and the pin pitch follow from the blobs
 found with that setting. The result is a ``[vision]`` section
-(``device/pi/profile.py``) that the Pi loads as it is.
+(``device/profile.py``) that the Pi loads as it is.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.vision import PinDetector, VisionParams, find_dome, to_gray
+from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)

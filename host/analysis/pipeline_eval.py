@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 
-from device.pi.pipeline import MarkerStream
-from device.pi.tracking import match_pins
+from device.pi.vision.pipeline import MarkerStream
+from device.pi.vision.tracking import match_pins
 
 DRAGS = tuple(f"drag-{d}" for d in range(0, 360, 45))
 PRESSES = ("press-hard", "press-soft", "press-wet")
@@ -144,7 +144,7 @@ class _FromReference:
     def __iter__(self):
         import cv2
 
-        from device.pi.vision import to_gray
+        from device.pi.vision.extract import to_gray
 
         stream = MarkerStream(self.profile)
         cap = cv2.VideoCapture(str(self.clip_path))
@@ -184,7 +184,7 @@ def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px:
     ``step``-th frame is compared (the pipeline sees every frame)."""
     import cv2
 
-    from device.pi.vision import dome_mask
+    from device.pi.vision.extract import dome_mask
 
     errs = []
     ref_box = mask = box = None

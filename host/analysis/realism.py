@@ -1,8 +1,8 @@
 """Measure TacTip frames the same way whether they are real or simulated.
 
 Every function here takes a sequence of frames (2-D gray or BGR uint8 arrays)
-and the :class:`device.pi.vision.VisionParams` of the front end, runs the very
-same Pi code (``device.pi.vision``) over them and returns a plain ``dict`` of
+and the :class:`device.pi.vision.extract.VisionParams` of the front end, runs the very
+same Pi code (``device.pi.vision.extract``) over them and returns a plain ``dict`` of
 finite numbers (JSON-ready). Comparing the dict of a real clip with the dict
 of a simulated clip tells how far the simulator is from reality.
 
@@ -21,8 +21,8 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
-from device.pi.tracking import mutual_match
-from device.pi.vision import (
+from device.pi.vision.tracking import mutual_match
+from device.pi.vision.extract import (
     PinDetector,
     VisionParams,
     dome_mask,
@@ -688,7 +688,7 @@ def roboskin_realism(data_dir, seed: int = 0, params: VisionParams | None = None
     ``concrete-drag`` with the effects a camera shows (glare, noise)."""
     from pathlib import Path
 
-    from device.pi.vision import ROBOSKIN_PARAMS
+    from device.pi.vision.extract import ROBOSKIN_PARAMS
 
     params = params or ROBOSKIN_PARAMS
     root = Path(data_dir) / "roboskin"

@@ -7,7 +7,7 @@ marker-pipeline issue asks for:
 
 * **pins**: the reference layout is taken from ``image_1.png`` (the shallowest
   press); every image is tracked against it with
-  :func:`device.pi.tracking.track_with_neighbours` (deep presses move pins by
+  :func:`device.pi.vision.tracking.track_with_neighbours` (deep presses move pins by
   more than their spacing). Per image: the share of layout pins found and
   assigned one to one.
 * **regression**: Ridge regressions from the tracked displacements plus the
@@ -42,8 +42,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from device.pi.tracking import layout_neighbours, layout_pitch_px, track_with_neighbours
-from device.pi.vision import TACTIP_SHEAR_PARAMS, extract_pins, find_dome
+from device.pi.vision.tracking import layout_neighbours, layout_pitch_px, track_with_neighbours
+from device.pi.vision.extract import TACTIP_SHEAR_PARAMS, extract_pins, find_dome
 
 TARGETS = ("pose_z", "shear_x", "shear_y", "pose_Rx", "pose_Ry")
 REFERENCE_IMAGE = "image_1.png"
@@ -105,7 +105,7 @@ def reference_layout(binary: np.ndarray) -> np.ndarray:
     All blobs of pin size, minus the fragments along the edge of the circular
     mask: a layout pin has a typical area (0.5 to 2 x the median) and lies at
     least a quarter pitch inside the dome found by
-    :func:`device.pi.vision.find_dome`.
+    :func:`device.pi.vision.extract.find_dome`.
     """
     xy, area = detect_pins(binary)
     if xy.shape[0] < 3:

@@ -155,8 +155,8 @@ def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin") -
 
     import cv2
 
-    from device.pi.pipeline import STAGES, MarkerStream
-    from device.pi.vision import to_gray
+    from device.pi.vision.pipeline import STAGES, MarkerStream
+    from device.pi.vision.extract import to_gray
 
     single_thread()
     sets = {}

@@ -135,7 +135,7 @@ def _is_recording(source: str) -> bool:
 def _view_pipeline(args):
     """Pins and vectors found by the Pi's pipeline drawn over the frames (the
     paper's figure 3)."""
-    from device.pi.pipeline import fault_names
+    from device.pi.vision.pipeline import fault_names
     from host.analysis.view import draw_vectors, pick_frames, save_images
 
     stream = _open_stream(args)
@@ -346,14 +346,14 @@ def cmd_bench(args):
 
 def _open_stream(args):
     from device.pi.artefact import ModelError
-    from device.pi.pipeline import MarkerStream
-    from device.pi.profile import load_pipeline_profile
+    from device.pi.vision.pipeline import MarkerStream
+    from device.profile import load_pipeline_profile
 
     profile = load_pipeline_profile(args.profile)
     loc = pres = None
     try:
         if getattr(args, "localiser", None):
-            from device.pi.localiser import Localiser
+            from device.pi.vision.localiser import Localiser
             loc = Localiser.load(args.localiser)
         if getattr(args, "pressure", None):
             from device.pi.regressor import Regressor
@@ -374,7 +374,7 @@ def _open_source(source: str):
 def cmd_analyse(args):
     import numpy as np
 
-    from device.pi.pipeline import STAGES, fault_names
+    from device.pi.vision.pipeline import STAGES, fault_names
 
     stream = _open_stream(args)
     cam = _open_source(args.source)

@@ -10,7 +10,7 @@ A SPEC (``host train --data SPEC``) is one of (docs/datasets.md, "Data specs"):
   ``targets`` (N,), optional ``imu`` (N, T, 6), ``contact`` (N,), ``lost``
   (N, T, M), ``groups`` (N,).
 
-Frames go through the Pi's own :class:`device.pi.pipeline.MarkerStream`, from the
+Frames go through the Pi's own :class:`device.pi.vision.pipeline.MarkerStream`, from the
 first frame of each recording (so the reference is the recording's rest frame, as on
 the Pi); a frame range only chooses which windows are cut. The per-reference-pin
 vectors are put on the profile's fixed pin layout by :class:`LayoutMapper` (to be
@@ -208,13 +208,13 @@ def _as_list(v) -> list:
 # Reference pins -> the profile's fixed pin layout
 # ----------------------------------------------------------------------------
 
-from device.pi.layout import (LayoutError, LayoutMapper, binary_crop,  # noqa: E402,F401
+from device.pi.vision.layout import (LayoutError, LayoutMapper, binary_crop,  # noqa: E402,F401
                               layout_assignment, to_layout)
-from device.pi.layout import layout_for_profile as _layout_for_profile  # noqa: E402
+from device.pi.vision.layout import layout_for_profile as _layout_for_profile  # noqa: E402
 
 
 def layout_for_profile(profile: str) -> np.ndarray:
-    """The fixed pin layout (M, 2) px of a sensor profile (:mod:`device.pi.layout`)."""
+    """The fixed pin layout (M, 2) px of a sensor profile (:mod:`device.pi.vision.layout`)."""
     try:
         return _layout_for_profile(profile)
     except LayoutError as exc:
@@ -257,7 +257,7 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
     on the profile's fixed pin layout."""
     from tqdm import tqdm
 
-    from device.pi.pipeline import FAULT_NO_REFERENCE, MarkerStream
+    from device.pi.vision.pipeline import FAULT_NO_REFERENCE, MarkerStream
 
     stream = MarkerStream(profile)
     if mapper is None:
@@ -840,7 +840,7 @@ def _load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
     if c is not None:
         contact, contact_from = c.astype(bool), "npz"
     else:
-        from device.pi.profile import load_pipeline_profile
+        from device.profile import load_pipeline_profile
 
         thr = load_pipeline_profile(profile).contact_px
         last = v[:, -1]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from device.pi.features import vector_features
+from device.pi.vision.features import vector_features
 
 
 def clean(X: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 A Ridge regression (alpha 150 by default, as in the seed paper) from the
 downscaled binary dome image to the positions of all N pins of a sensor
 profile (133 for ``roboskin``). The Pi runs it through
-:class:`device.pi.localiser.Localiser`; this module makes the training data,
+:class:`device.pi.vision.localiser.Localiser`; this module makes the training data,
 fits, checks and exports it as ONNX + JSON (``kind="localiser"``).
 
 Training data
@@ -55,15 +55,15 @@ from typing import Mapping, Sequence
 import cv2
 import numpy as np
 
-from device.pi.localiser import (
+from device.pi.vision.localiser import (
     DEFAULT_CROP_FACTOR,
     KIND,
     effective_dome,
     localiser_input,
     to_normalised,
 )
-from device.pi.tracking import mutual_match
-from device.pi.vision import (
+from device.pi.vision.tracking import mutual_match
+from device.pi.vision.extract import (
     ROBOSKIN_PARAMS,
     TACTIP_SHEAR_PARAMS,
     PinDetector,

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from device.pi.profile import ProfileError, load_pipeline_profile, parse_pipeline_profile
+from device.profile import ProfileError, load_pipeline_profile, parse_pipeline_profile
 from host.cli import main
 
 

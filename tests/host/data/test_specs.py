@@ -72,7 +72,7 @@ def test_dataset_windows_have_the_right_shapes_and_truth_labels(sim_ds, cache):
 
 def test_dataset_features_are_the_pipelines_own(sim_ds, cache):
     """The windows hold exactly what MarkerStream + the layout mapping give."""
-    from device.pi.pipeline import MarkerStream
+    from device.pi.vision.pipeline import MarkerStream
 
     ws = load_spec(str(sim_ds), "surface", 3, progress=False, cache=cache)
     frames = load_trial(sim_ds, 1)["frames"]

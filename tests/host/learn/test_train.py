@@ -180,7 +180,7 @@ def test_rule_and_grid_fnn_train_export_and_load(surface_sets, tmp_path):
     assert ev["metrics"]["accuracy"] == pytest.approx(res["metrics"]["test"]["accuracy"])
     assert ev["metrics"]["accuracy"] > 0.5            # chance is ~0.3
     # the paper's first rule: the average vector gives the shear direction
-    from device.pi.features import average_vector, direction_deg
+    from device.pi.vision.features import average_vector, direction_deg
 
     i = int(np.argmax(np.abs(ws_te.vectors[:, -1]).sum(axis=(1, 2))))
     clf.predict(encode_vectors(ws_te.vectors[i]))

@@ -1,4 +1,4 @@
-"""Fixed-count pin localiser (issue 8, stage 6): device/pi/localiser.py + host/localiser/train.py.
+"""Fixed-count pin localiser (issue 8, stage 6): device/pi/vision/localiser.py + host/localiser/train.py.
 
 One small model is trained once per module (simulated scenes, plus the first
 300 frames of the real north.avi and east.avi when the recordings are there,
@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.localiser import (
+from device.pi.vision.localiser import (
     Localiser,
     crop_square,
     effective_dome,
@@ -26,7 +26,7 @@ from device.pi.localiser import (
     localiser_input,
     to_normalised,
 )
-from device.pi.vision import ROBOSKIN_PARAMS, PinDetector, find_dome
+from device.pi.vision.extract import ROBOSKIN_PARAMS, PinDetector, find_dome
 from device.sim import Simulator, load_profile, parse_scene
 from host.localiser.train import (
     check_labels,

@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from device.pi.features import ContactGrid, average_vector, magnitude_sum, vector_features
-from device.pi.profile import PipelineProfile, load_pipeline_profile
-from device.pi.tracking import Tracker, match_pins
-from device.pi.vision import PinDetector, find_dome, to_gray
+from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum, vector_features
+from device.profile import PipelineProfile, load_pipeline_profile
+from device.pi.vision.tracking import Tracker, match_pins
+from device.pi.vision.extract import PinDetector, find_dome, to_gray
 
 # fault bits (also carried in the SURFACE packet)
 FAULT_NO_DOME = 1

@@ -1,4 +1,4 @@
-"""Tests of the marker front end (device/pi/vision.py) and the realism measures
+"""Tests of the marker front end (device/pi/vision/extract.py) and the realism measures
 (host/analysis/realism.py): synthetic frames with known answers, property tests on
 degenerate frames, and checks against the real recordings when present."""
 
@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision import (
+from device.pi.vision.extract import (
     ROBOSKIN_PARAMS,
     TACTIP_SHEAR_PARAMS,
     PinDetector,

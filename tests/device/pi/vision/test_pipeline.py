@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.pipeline import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_NO_DOME,
+from device.pi.vision.pipeline import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_NO_DOME,
                                 FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, MarkerStream,
                                 fault_names)
 from host.analysis.pipeline_eval import evaluate_scene, evaluate_sim, farneback_direction_check

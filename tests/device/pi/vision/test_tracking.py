@@ -1,4 +1,4 @@
-"""Pin tracking (device/pi/tracking.py) and the tactip_shear evaluation
+"""Pin tracking (device/pi/vision/tracking.py) and the tactip_shear evaluation
 (host/analysis/shear.py): one-to-one matching properties, large deformations, the
 per-frame tracker on hard inputs, identity switches on simulated drags, and
 pin assignment plus Ridge regressions on the real tactip_shear images."""
@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from device.pi.tracking import (
+from device.pi.vision.tracking import (
     FAULT_BAD_INPUT,
     FAULT_NO_REFERENCE,
     FAULT_TOO_FEW_PINS,
@@ -483,7 +483,7 @@ def test_drag_identity_switches_true_pins(name, profile):
 def detected_pins(sim):
     """Pins found by the vision front end on the rendered frames, each with the
     identity of the true pin it belongs to (-1 when none)."""
-    from device.pi.vision import ROBOSKIN_PARAMS, TACTIP_SHEAR_PARAMS, PinDetector, find_dome
+    from device.pi.vision.extract import ROBOSKIN_PARAMS, TACTIP_SHEAR_PARAMS, PinDetector, find_dome
 
     params = ROBOSKIN_PARAMS if sim.scene.profile.name == "roboskin" else TACTIP_SHEAR_PARAMS
     frame0 = sim.render(0)
@@ -548,7 +548,7 @@ def test_tactip_shear_regression_beats_the_mean(shear_result):
 def test_mutual_match_keeps_only_pairs_that_choose_each_other():
     """Both pins are nearest to detection 0, which is nearest to pin 1: only that
     pair survives. Greedy matching (match_pins) gives pin 0 its second choice."""
-    from device.pi.tracking import match_pins, mutual_match
+    from device.pi.vision.tracking import match_pins, mutual_match
     pred = np.array([[0.0, 0.0], [2.0, 0.0]])
     det = np.array([[1.2, 0.0], [-1.5, 0.0]])
     assert mutual_match(pred, det, 5.0).tolist() == [-1, 0]

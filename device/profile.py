@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from device.config import ConfigError, Fields, read_toml
-from device.pi.vision import VisionParams
+from device.pi.vision.extract import VisionParams
 
-PROFILE_DIR = Path(__file__).resolve().parents[1] / "profiles"
+PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
 
 class ProfileError(ConfigError):

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from device.pi.features import (ContactGrid, average_vector, direction_deg, magnitude_sum,
+from device.pi.vision.features import (ContactGrid, average_vector, direction_deg, magnitude_sum,
                                 vector_features)
 
 
