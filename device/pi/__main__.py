@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     import json
 
-    from device.pi.runtime import EXIT_BAD_INPUT, StartupError, build_runtime
+    from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
 
     args = build_parser().parse_args(argv)
     if args.frames is not None and args.frames < 1:

@@ -171,7 +171,7 @@ def _gait_plan(scene, sim, stance_load_n: float = 8.0) -> list:
     commands), the commanded drag velocity, swing otherwise."""
     import math
 
-    from device.pi import protocol as P
+    from device.pi.runtime import protocol as P
     plan, t_end = [], 0.0
     spans = []
     for a in scene.timeline:
@@ -195,13 +195,13 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
                   progress: bool) -> dict:
     """Run the real runtime (``python -m device.pi run``) on simulated hardware
     with its serial port on a pty; this side plays the gait MCU: it decodes every
-    packet (device.pi.protocol) and answers each SURFACE with the GAIT context."""
+    packet (device.pi.runtime.protocol) and answers each SURFACE with the GAIT context."""
     import os
     import select
     import subprocess
     import time
 
-    from device.pi import protocol as P
+    from device.pi.runtime import protocol as P
 
     master, slave = os.openpty()
     slave_name = os.ttyname(slave)
@@ -345,7 +345,7 @@ def cmd_bench(args):
 
 
 def _open_stream(args):
-    from device.pi.artefact import ModelError
+    from device.pi.models.artefact import ModelError
     from device.pi.vision.pipeline import MarkerStream
     from device.profile import load_pipeline_profile
 
@@ -356,7 +356,7 @@ def _open_stream(args):
             from device.pi.vision.localiser import Localiser
             loc = Localiser.load(args.localiser)
         if getattr(args, "pressure", None):
-            from device.pi.regressor import Regressor
+            from device.pi.models.regressor import Regressor
             pres = Regressor.load(args.pressure)
     except ModelError as exc:
         raise UserError(str(exc)) from None
@@ -496,7 +496,7 @@ def _train_cnn(args, ws):
 def cmd_eval(args):
     import json as _json
 
-    from device.pi.artefact import ModelError, read_manifest
+    from device.pi.models.artefact import ModelError, read_manifest
     from host.learn.evaluate import evaluate_model
     try:
         doc, _ = read_manifest(args.model_dir)

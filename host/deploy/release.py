@@ -638,7 +638,7 @@ class Deployer:
         s += (f"venv/bin/python -m pip install -q --disable-pip-version-check{pip_flags} "
               "./tacfoot-*.whl\n"
               # the installed code must import before this release may become current
-              "venv/bin/python -c 'import device.pi, device.pi.sdnotify'\n"
+              "venv/bin/python -c 'import device.pi, device.pi.runtime.sdnotify'\n"
               "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
         return s
 

@@ -2,7 +2,7 @@
 
 The input is a window of T binary dome crops, downscaled to S x S
 (:attr:`host.data.specs.WindowSet.frames`), encoded by the Pi's own
-:func:`device.pi.window.encode_frames`: (N, T, S, S) float32 in 0..1, the T frames
+:func:`device.pi.models.window.encode_frames`: (N, T, S, S) float32 in 0..1, the T frames
 as input channels (manifest ``input_layout: "frames"``). The network, as in the
 paper, uses 8 x 8 filters, a 1000-unit hidden layer and dropout 0.2::
 
@@ -22,7 +22,7 @@ threads (``torch.set_num_threads(2)``) and ``torch.use_deterministic_algorithms`
 the caller's torch RNG, thread count and determinism setting are restored after.
 The model is exported with ``torch.onnx.export`` (opset 17, a dynamic batch axis)
 and written by :func:`host.learn.onnx_io.write_model` as ONNX + manifest.json; the Pi
-loads it with :func:`device.pi.artefact.load_model`. ONNX Runtime's output is
+loads it with :func:`device.pi.models.artefact.load_model`. ONNX Runtime's output is
 checked against torch's on training and held-out windows (``ONNX_ATOL``).
 
 PyTorch is optional (the ``cnn`` extra): it is imported only inside functions, and
@@ -65,7 +65,7 @@ def require_torch():
 
 def frames_input(frames: np.ndarray) -> np.ndarray:
     """(N, T, S, S) uint8 crops -> the CNN input, exactly as the Pi builds it."""
-    from device.pi.window import encode_frames
+    from device.pi.models.window import encode_frames
 
     if frames is None:
         raise ValueError("frames is None: the windows carry no binary crops; load the data "
@@ -499,7 +499,7 @@ def _adopt_int8(q: Path, report: dict) -> None:
     names the int8 file (checksums of both), manifest.float.json the float one."""
     import json
 
-    from device.pi.artefact import MANIFEST, sha256_file
+    from device.pi.models.artefact import MANIFEST, sha256_file
     from host.data.dataset import atomic_write_text
     from host.learn.train import FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME
 

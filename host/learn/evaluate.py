@@ -1,10 +1,10 @@
 """``host eval``: a model folder against windows, through the Pi's own loaders.
 
 :func:`evaluate_model` loads the model the way the Pi does
-(:class:`device.pi.classifier.Classifier`, :class:`device.pi.rules.RuleClassifier`
-or :class:`device.pi.regressor.Regressor`, all through
-:func:`device.pi.artefact.load_model` with ONNX Runtime on one thread), builds each
-window's input with :mod:`device.pi.window` and runs one decision per window. It
+(:class:`device.pi.models.classifier.Classifier`, :class:`device.pi.models.rules.RuleClassifier`
+or :class:`device.pi.models.regressor.Regressor`, all through
+:func:`device.pi.models.artefact.load_model` with ONNX Runtime on one thread), builds each
+window's input with :mod:`device.pi.models.window` and runs one decision per window. It
 reports accuracy, per-class F1 and the confusion matrix (slip: also the slip F1 and
 the detection latency in frames), or MAE for regression; the latency per decision
 (p50 / p99, single thread, one window per call, as on the Pi); the model size in
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.artefact import MANIFEST, ModelError, read_manifest
+from device.pi.models.artefact import MANIFEST, ModelError, read_manifest
 
 __all__ = ["evaluate_model", "load_variant", "VARIANTS"]
 
@@ -49,8 +49,8 @@ def _manifest_for(model_dir, variant: str | None) -> Path:
 def load_variant(model_dir, variant: str | None = None):
     """(predictor, manifest, kind) for a model folder: a Classifier, RuleClassifier
     or Regressor, loaded with the Pi's code."""
-    from device.pi.classifier import Classifier
-    from device.pi.regressor import Regressor
+    from device.pi.models.classifier import Classifier
+    from device.pi.models.regressor import Regressor
 
     mpath = _manifest_for(model_dir, variant)
     doc, _ = read_manifest(mpath)
@@ -76,7 +76,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     the windows ``ws`` (a :class:`host.data.specs.WindowSet` for the model's task and T).
 
     ``variant``: None (the manifest's default: int8 when the model was quantised),
-    ``"float"`` or ``"int8"``. Raises :class:`device.pi.artefact.ModelError` for a
+    ``"float"`` or ``"int8"``. Raises :class:`device.pi.models.artefact.ModelError` for a
     bad model folder and ValueError for windows that do not fit the model.
     """
     from host.learn.train import (classification_metrics, model_inputs, regression_metrics,
@@ -120,7 +120,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         outs.append(o)
     enc = []
     idx = np.linspace(0, len(ws) - 1, min(encode_samples, len(ws))).astype(int)
-    from device.pi.window import encode
+    from device.pi.models.window import encode
 
     for i in idx:
         parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],

@@ -1,4 +1,4 @@
-"""Write model artefacts (ONNX + manifest.json) that ``device.pi.artefact`` loads."""
+"""Write model artefacts (ONNX + manifest.json) that ``device.pi.models.artefact`` loads."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
 from host.data.dataset import atomic_write, atomic_write_text
 
 

@@ -1,5 +1,5 @@
 """Ridge regressors from all pin vectors (pressure, depth, shear), with grouped or
-shuffled cross-validation, exported to ONNX for ``device.pi.regressor``."""
+shuffled cross-validation, exported to ONNX for ``device.pi.models.regressor``."""
 from __future__ import annotations
 
 import numpy as np

@@ -7,7 +7,7 @@ model folder: ONNX (the scaler folded into the graph) + ``manifest.json``, and w
 Tasks and models (``host train --task T --model M``):
 
 ==========  =====================================================================
-rule        the paper's rules, no weights (:mod:`device.pi.rules`): surface, slip
+rule        the paper's rules, no weights (:mod:`device.pi.models.rules`): surface, slip
 ridge       Ridge (alpha 150) over all pin vectors of the window: pressure
 fnn         MLP over T frames of ``encode_vectors`` (+ IMU when present), two
             hidden layers, logistic (sigmoid) units, standard scaling: surface,
@@ -18,7 +18,7 @@ grid-fnn    the same MLP over ``encode_grids`` (contact-grid maps and their
             frame-to-frame changes): texture, surface, slip
 ==========  =====================================================================
 
-Every model's input is built by :mod:`device.pi.window`, the encoders the Pi runs.
+Every model's input is built by :mod:`device.pi.models.window`, the encoders the Pi runs.
 The slip detector is the ``fnn`` (or ``rule``) of task ``slip``: it emits a slip
 event (argmax) and a confidence (the slip probability); its detection latency in
 frames from the true onset is measured on the held-out trials (:func:`slip_latency`).
@@ -54,8 +54,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
-from device.pi.window import encode_frames, encode_grids, encode_vectors
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
+from device.pi.models.window import encode_frames, encode_grids, encode_vectors
 
 __all__ = [
     "TASKS", "MODELS", "TrainError", "QuantisationError", "model_inputs", "train_model",
@@ -665,7 +665,7 @@ def _best_threshold(values: np.ndarray, positive: np.ndarray) -> float:
 def _fit_rule(task: str, ws, classes: list[str]):
     """A RuleClassifier with thresholds set from the training windows (a 1-D
     search per threshold; the rule has no weights)."""
-    from device.pi.rules import RuleClassifier, window_measures
+    from device.pi.models.rules import RuleClassifier, window_measures
 
     ms = [window_measures(v) for v in ws.vectors]
     mag = np.array([m["magnitude_px"] for m in ms])
@@ -876,7 +876,7 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
                          f"N >= 1, got shape {Xc.shape}")
     if not np.isfinite(Xc).all():
         raise TrainError("calibration_inputs hold NaN or inf; encode them with "
-                         "device.pi.window")
+                         "device.pi.models.window")
     fbytes = _model_bytes(float_onnx)
     out_path = Path(out_path)
     input_name = _session(fbytes).get_inputs()[0].name

@@ -1,6 +1,6 @@
 """Fixed-count pin localiser: the binary dome image -> all N pin positions.
 
-Runs on the Pi (numpy + OpenCV + onnxruntime through :mod:`device.pi.artefact`).
+Runs on the Pi (numpy + OpenCV + onnxruntime through :mod:`device.pi.models.artefact`).
 A linear (Ridge) model, trained on the host by ``host/localiser/train.py``, maps the
 downscaled binary image of the dome to the positions of a fixed set of pins
 (133 for ``roboskin``). Unlike blob detection plus tracking it always returns
@@ -37,7 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from device.pi.artefact import Model, ModelError, load_model
+from device.pi.models.artefact import Model, ModelError, load_model
 
 __all__ = [
     "KIND",

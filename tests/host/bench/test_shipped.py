@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.pi.artefact import MANIFEST
-from device.pi.classifier import Classifier
-from device.pi.regressor import Regressor
-from device.pi.window import RollingWindow
+from device.pi.models.artefact import MANIFEST
+from device.pi.models.classifier import Classifier
+from device.pi.models.regressor import Regressor
+from device.pi.models.window import RollingWindow
 
 ROOT = REPO_ROOT
 MODELS = ROOT / "models"

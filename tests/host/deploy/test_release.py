@@ -1,4 +1,4 @@
-"""host deploy against a real OpenSSH server on loopback, and device.pi.sdnotify.
+"""host deploy against a real OpenSSH server on loopback, and device.pi.runtime.sdnotify.
 
 The deploy tests start sshd (tests/host/deploy/sshd_fixture.py) and deploy into a temporary
 PREFIX with --service-manager none (tacfootctl + pid file), a venv seeded from
@@ -29,7 +29,7 @@ from hypothesis import strategies as st
 
 from tests.host.deploy.sshd_fixture import SshServer, missing_reason  # noqa: E402
 
-from device.pi import sdnotify  # noqa: E402
+from device.pi.runtime import sdnotify  # noqa: E402
 from host.deploy import release as dp  # noqa: E402
 
 REPO = REPO_ROOT
@@ -346,7 +346,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
     rc = main(argv)
     out = capsys.readouterr()
     res = json.loads(out.out)
-    assert rc == 0 and res["ok"], out.err[-3000:]
+    assert rc == 0 and res["ok"], (json.dumps(res)[-3000:], out.err[-3000:])
     assert res["health"]["ok"] and res["health"]["packets_per_s"] > 0
     assert res["release"] == "r1" and pi.link("current") == "releases/r1"
     assert pi.link("previous") is None
@@ -358,7 +358,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
     assert "[deploy] install (remote)" in out.err and "[deploy] switch (remote)" in out.err
     # the venv runs the wheel's copy of the code, not this checkout
     r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-c",
-                        "import device.pi.sdnotify as m; print(m.__file__)"],
+                        "import device.pi.runtime.sdnotify as m; print(m.__file__)"],
                        capture_output=True, text=True, cwd=pi.root)
     assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
     assert str(REPO) not in r.stdout
@@ -573,7 +573,7 @@ def test_systemd_mode_installs_the_unit_and_restarts(tmp_path):
         unit = (state / "units" / "tacfoot.service").read_text()
         assert unit == (pi.prefix / "releases" / "s1" / "tacfoot.service").read_text()
         assert "Type=notify" in unit and "WatchdogSec=2" in unit
-        # the runtime spoke sd_notify through device.pi.sdnotify: ready, then watchdog
+        # the runtime spoke sd_notify through device.pi.runtime.sdnotify: ready, then watchdog
         notes = (state / "notify.log").read_text().splitlines()
         assert "READY=1" in notes and "WATCHDOG=1" in notes[notes.index("READY=1"):], notes
         calls = (state / "calls.log").read_text().splitlines()

@@ -16,8 +16,8 @@ import pytest
 torch = pytest.importorskip(
     "torch", reason="the CNN needs PyTorch, the optional 'cnn' extra: pip install .[cnn]")
 
-from device.pi.artefact import MANIFEST, load_model  # noqa: E402
-from device.pi.window import encode_frames  # noqa: E402
+from device.pi.models.artefact import MANIFEST, load_model  # noqa: E402
+from device.pi.models.window import encode_frames  # noqa: E402
 from host.cli import simulate_to_dataset  # noqa: E402
 from host.learn.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
                       require_torch, train_cnn)
@@ -224,7 +224,7 @@ def test_int8_in_the_model_folder_becomes_the_default_the_pi_loads(data, trained
     the Pi's Classifier loads it; manifest.float.json keeps the float one."""
     import shutil
 
-    from device.pi.classifier import Classifier
+    from device.pi.models.classifier import Classifier
     from host.learn.cnn import quantise_cnn
     from host.learn.evaluate import evaluate_model
 

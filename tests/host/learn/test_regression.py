@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from device.pi.regressor import Regressor
+from device.pi.models.regressor import Regressor
 from host.learn.regression import cross_validate, export_regressor, vectors_npz_features
 
 

@@ -1,4 +1,4 @@
-"""host/learn/train.py, host/learn/evaluate.py, device/pi/classifier.py, device/pi/rules.py:
+"""host/learn/train.py, host/learn/evaluate.py, device/pi/models/classifier.py, device/pi/models/rules.py:
 training, ONNX export, int8 quantisation and its check, manifests, refusal of bad
 artefacts, hard cases, and the numerics the Pi relies on."""
 from __future__ import annotations
@@ -14,11 +14,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from device.pi.artefact import FEATURE_SPEC_VERSION, ModelError, sha256_file
-from device.pi.classifier import Classifier, clean_probabilities, sigmoid, softmax
-from device.pi.regressor import Regressor
-from device.pi.rules import RuleClassifier
-from device.pi.window import RollingWindow, encode_vectors
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError, sha256_file
+from device.pi.models.classifier import Classifier, clean_probabilities, sigmoid, softmax
+from device.pi.models.regressor import Regressor
+from device.pi.models.rules import RuleClassifier
+from device.pi.models.window import RollingWindow, encode_vectors
 from host.data.specs import WindowSet
 from host.learn.evaluate import evaluate_model
 from host.learn.train import (QuantisationError, TrainError, bench_scene, compare_int8,
@@ -579,7 +579,7 @@ def res_n_inputs(model_dir) -> int:
 def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
     """Models sharing a window read one encoding per frame; a push or clear drops it,
     and the shared array is read-only so no model can alter another's input."""
-    from device.pi.window import RollingWindow, encode_vectors
+    from device.pi.models.window import RollingWindow, encode_vectors
     w = RollingWindow(2, 3)
     rng = np.random.default_rng(0)
     for _ in range(2):

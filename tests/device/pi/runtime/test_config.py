@@ -1,4 +1,4 @@
-"""device/leg.toml and device/pi/leg_config.py: defaults, and one clear error
+"""device/leg.toml and device/pi/runtime/config.py: defaults, and one clear error
 naming the key for every bad value."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.config import ConfigError
-from device.pi.leg_config import (DEFAULT_CONFIG, LegConfig, load_leg_config,
+from device.pi.runtime.config import (DEFAULT_CONFIG, LegConfig, load_leg_config,
                                   parse_leg_config)
 
 

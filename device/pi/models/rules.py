@@ -2,8 +2,8 @@
 
 A rule model is a manifest with no ONNX file: ``"model": "rule"`` and a ``rule``
 table of thresholds, evaluated here with numpy. It has the same ``predict`` as
-:class:`device.pi.classifier.Classifier`, and takes the same input (the ``vectors``
-layout of :mod:`device.pi.window`, without IMU).
+:class:`device.pi.models.classifier.Classifier`, and takes the same input (the ``vectors``
+layout of :mod:`device.pi.models.window`, without IMU).
 
 From the window's T frames of pin vectors (px) the rules measure
 
@@ -51,8 +51,8 @@ import math
 
 import numpy as np
 
-from device.pi.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
-from device.pi.classifier import sigmoid
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
+from device.pi.models.classifier import sigmoid
 from device.pi.vision.features import direction_deg
 
 RULE_TASKS = ("surface", "slip")
@@ -141,7 +141,7 @@ def rule_probabilities(measures: dict, rule: dict, classes, expected_mag_px=None
 
 
 class RuleClassifier:
-    """A rule model: same ``predict`` as :class:`device.pi.classifier.Classifier`.
+    """A rule model: same ``predict`` as :class:`device.pi.models.classifier.Classifier`.
 
     ``rule`` holds the thresholds (:data:`RULE_KEYS`), ``classes`` the output
     order, ``T`` and ``n_pins`` the window the rule decodes from its input.

@@ -1,7 +1,7 @@
 """The serial side of the leg runtime: a writer that never blocks and a reader of
 the locomotion MCU's GAIT context and COMMANDs.
 
-The frames themselves (COBS + header + CRC) come from :mod:`device.pi.protocol`.
+The frames themselves (COBS + header + CRC) come from :mod:`device.pi.runtime.protocol`.
 
 Writing: drop / coalesce policy
 -------------------------------
@@ -180,7 +180,7 @@ class LinkReader:
     """Reads what is waiting on the port and decodes GAIT / COMMAND messages."""
 
     def __init__(self, port, max_frame: int = 64):
-        from device.pi import protocol
+        from device.pi.runtime import protocol
 
         self.port = port
         self.protocol = protocol

@@ -1,4 +1,4 @@
-"""The leg runtime (device/pi/runtime.py, link.py, __main__.py): packets on the wire,
+"""The leg runtime (device/pi/runtime/loop.py, link.py, __main__.py): packets on the wire,
 gait context, commands, re-zero, the status file, and the hardware faults of
 issue #5 (camera stall, unplug and replug; I2C EIO bursts; a port that takes no
 bytes) with FAULT timing measured on the bytes written."""
@@ -13,14 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.pi import protocol as P
+from device.pi.runtime import protocol as P
 import sys
 from pathlib import Path
 
 from device.pi.sources.camera import CameraError, open_camera
-from device.pi.leg_config import LegConfig
-from device.pi.link import FAULT_QUEUE, LinkWriter
-from device.pi.runtime import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime, load_models)
+from device.pi.runtime.config import LegConfig
+from device.pi.runtime.link import FAULT_QUEUE, LinkWriter
+from device.pi.runtime.loop import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime, load_models)
 
 FPS = 120.0
 
@@ -743,7 +743,7 @@ def test_host_bench_runtime_json(capsys):
 
 def test_runtime_takes_the_rate_the_source_runs_at(tmp_path):
     """A source paced at 15 fps is not a camera stalled at the configured 120 fps."""
-    from device.pi.runtime import build_runtime
+    from device.pi.runtime.loop import build_runtime
     port = RecordingPort()
     rt = build_runtime("sim://press-hard?realtime=1&fps=15", "none", "loop://", frames=10,
                        models_dir=str(tmp_path), port=port, notify=lambda s: None)

@@ -10,7 +10,7 @@ microseconds) and ``WATCHDOG_PID`` (the pid that must send the pings).
 Nothing here raises: without a socket (run by hand, in tests, on the host)
 every call is a no-op that returns False, so the runtime calls it unconditionally.
 
-    from device.pi import sdnotify
+    from device.pi.runtime import sdnotify
     sdnotify.notify("READY=1")
     dog = sdnotify.Watchdog()            # None interval -> tick() never pings
     while running:

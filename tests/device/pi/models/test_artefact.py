@@ -9,7 +9,7 @@ from sklearn.linear_model import Ridge
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
-from device.pi.artefact import ModelError, load_model
+from device.pi.models.artefact import ModelError, load_model
 from host.learn.onnx_io import sklearn_to_onnx, write_model
 
 
@@ -42,7 +42,7 @@ def test_truncated_model_is_refused_by_name(ridge_dir):
 
 def test_corrupt_model_with_matching_checksum_is_refused(ridge_dir):
     out, _, _ = ridge_dir
-    from device.pi.artefact import sha256_file
+    from device.pi.models.artefact import sha256_file
     p = out / "model.onnx"
     p.write_bytes(b"\x00garbage" * 10)
     doc = json.loads((out / "manifest.json").read_text())

@@ -3,7 +3,7 @@
 A model folder holds ``manifest.json`` and one or two ONNX files (float, and int8 when
 it was quantised; the manifest's ``onnx`` names the one loaded by default). The
 manifest says which classes the model outputs, how many frames ``T`` it sees, its
-``input_layout`` (``vectors``, ``grids`` or ``frames``, see :mod:`device.pi.window`)
+``input_layout`` (``vectors``, ``grids`` or ``frames``, see :mod:`device.pi.models.window`)
 and whether it uses the IMU, so the caller builds its input with the same encoder as
 training did::
 
@@ -17,10 +17,10 @@ model runs, and the output is cleaned after (probabilities clipped to 0..1 and
 renormalised, or logits through the stable :func:`softmax` / :func:`sigmoid`). A model
 that still gives nothing usable yields the uniform distribution and sets
 :attr:`Classifier.fault`. Bad artefacts are refused at load time by
-:func:`device.pi.artefact.load_model` with a message that names the file.
+:func:`device.pi.models.artefact.load_model` with a message that names the file.
 
 A rule model (``"model": "rule"`` in the manifest, no ONNX file) loads as a
-:class:`device.pi.rules.RuleClassifier`, which has the same ``predict``.
+:class:`device.pi.models.rules.RuleClassifier`, which has the same ``predict``.
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ import numpy as np
 
 from device.pi.numerics import finite
 
-from device.pi.artefact import ModelError, load_model, read_manifest
+from device.pi.models.artefact import ModelError, load_model, read_manifest
 
 #: tasks a classifier serves
 CLASS_TASKS = ("surface", "texture", "slip")
@@ -156,10 +156,10 @@ class Classifier:
     def load(cls, path, expect_kind: str | None = None):
         """A classifier from a model folder (or its manifest). ``expect_kind`` (a task
         name) is checked against the manifest's ``kind``. A rule manifest gives a
-        :class:`device.pi.rules.RuleClassifier`."""
+        :class:`device.pi.models.rules.RuleClassifier`."""
         doc, folder = read_manifest(path)
         if doc.get("model") == "rule":
-            from device.pi.rules import RuleClassifier
+            from device.pi.models.rules import RuleClassifier
 
             return RuleClassifier.load(path, expect_kind=expect_kind)
         kind = doc.get("kind")
@@ -180,7 +180,7 @@ class Classifier:
         if a.size != self.n_features:
             raise ModelError(f"{self.onnx_path}: expects an input of {self.n_features} values "
                              f"{self.input_shape}, got {a.size} (shape {a.shape}); build it "
-                             f"with device.pi.window.encode({self.input_layout!r}, ...)")
+                             f"with device.pi.models.window.encode({self.input_layout!r}, ...)")
         x = self._x
         np.clip(finite(a.reshape(-1), 0.0, INPUT_CLIP, -INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP,
                 out=x.reshape(-1))
@@ -219,7 +219,7 @@ class Classifier:
         return p
 
     def predict_window(self, window) -> tuple[int, np.ndarray]:
-        """:meth:`predict` on a :class:`device.pi.window.RollingWindow`, encoded the
+        """:meth:`predict` on a :class:`device.pi.models.window.RollingWindow`, encoded the
         way the model was trained. The window must hold T frames."""
         if window.T != self.T:
             raise ModelError(f"{self.onnx_path}: the model sees T={self.T} frames, the "

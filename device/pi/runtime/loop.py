@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi import protocol as _p
+from device.pi.runtime import protocol as _p
 from device.pi.vision.layout import binary_crop
-from device.pi.leg_config import LegConfig
+from device.pi.runtime.config import LegConfig
 
 # -- fault bits (FAULT and SURFACE packets, docs/protocol.md). Bits 0-5 are the
 #    pipeline's per-frame bits; the runtime raises these:
@@ -191,7 +191,7 @@ class Models:
 
 
 def default_models_dir() -> Path:
-    return Path(__file__).resolve().parents[2] / "models"
+    return Path(__file__).resolve().parents[3] / "models"
 
 
 def _manifest_for(folder: Path, variant: str) -> Path:
@@ -203,7 +203,7 @@ def _manifest_for(folder: Path, variant: str) -> Path:
 
 
 def _load_classifier(folder: Path, kind: str, variant: str):
-    from device.pi.classifier import Classifier
+    from device.pi.models.classifier import Classifier
     return Classifier.load(_manifest_for(folder, variant), expect_kind=kind)
 
 
@@ -211,8 +211,8 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
                 cfg: LegConfig) -> Models:
     """Every model present in ``models_dir`` (surface, texture, slip, pressure,
     localiser-*), loaded once. Raises ModelError naming the file for a bad one."""
-    from device.pi.artefact import ModelError
-    from device.pi.rules import RuleClassifier, SURFACE_CLASSES as RULE_CLASSES
+    from device.pi.models.artefact import ModelError
+    from device.pi.models.rules import RuleClassifier, SURFACE_CLASSES as RULE_CLASSES
 
     m = Models()
     loaded = []
@@ -227,7 +227,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
                 loaded.append(kind)
         f = d / "pressure"
         if f.is_dir():
-            from device.pi.regressor import Regressor
+            from device.pi.models.regressor import Regressor
             m.pressure = Regressor.load(_manifest_for(f, variant))
             loaded.append("pressure")
         locs = sorted(p for p in d.glob("localiser*") if p.is_dir())
@@ -246,7 +246,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         m.rule = m.surface
     else:
         m.rule = RuleClassifier(rule, list(RULE_CLASSES), cfg.models.window_T, profile_n_pins)
-    from device.pi.window import RollingWindow
+    from device.pi.models.window import RollingWindow
     for name in ("surface", "texture", "slip", "pressure"):
         mod = getattr(m, name)
         if mod is None or isinstance(mod, RuleClassifier):
@@ -298,10 +298,10 @@ class LegRuntime:
                  status_path: str | None = None, max_frames: int | None = None,
                  first_camera=None, clock=time.monotonic, notify=None, camera_opts=None):
         from device.pi.vision.layout import LayoutMapper, layout_for_profile
-        from device.pi.link import LinkReader, LinkWriter
+        from device.pi.runtime.link import LinkReader, LinkWriter
         from device.pi.vision.pipeline import MarkerStream
-        from device.pi.window import RollingWindow
-        from device.pi import protocol
+        from device.pi.models.window import RollingWindow
+        from device.pi.runtime import protocol
 
         self.cfg = cfg
         self.camera_opts = camera_opts        # the live camera's open options (set rate)
@@ -375,7 +375,7 @@ class LegRuntime:
         self.stopped = False
         self._ready = False
         self._reopen_asked = False
-        from device.pi.sdnotify import Watchdog
+        from device.pi.runtime.sdnotify import Watchdog
         self.watchdog = Watchdog()
 
     # -- packets ---------------------------------------------------------------
@@ -671,7 +671,7 @@ class LegRuntime:
         if self.notify is not None:
             self.notify(state)
             return
-        from device.pi.sdnotify import notify
+        from device.pi.runtime.sdnotify import notify
         notify(state)
 
     def _send_imu(self) -> None:
@@ -737,7 +737,7 @@ class LegRuntime:
         if self.json_log is not None:
             self.json_log.flush()
 
-    # -- message builders (device.pi.protocol) ---------------------------------
+    # -- message builders (device.pi.runtime.protocol) ---------------------------------
     def proto_surface(self, class_id, probs, contact, slip, slip_conf, dir_deg, mag_px,
                       pressure, pins, faults, texture_id=None):
         return surface_message(self.proto, class_id, probs, contact, slip, slip_conf, dir_deg,
@@ -754,7 +754,7 @@ class LegRuntime:
 
 
 # ---------------------------------------------------------------------------
-# The protocol's messages (field names of device.pi.protocol)
+# The protocol's messages (field names of device.pi.runtime.protocol)
 # ---------------------------------------------------------------------------
 
 def _cpu_temp_c() -> int:
@@ -819,11 +819,11 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     """A runtime from the command line's strings; StartupError (exit 2) for a bad
     config, model, source or port."""
     from device.config import ConfigError
-    from device.pi.artefact import ModelError
+    from device.pi.models.artefact import ModelError
     from device.pi.sources.camera import CameraError, open_camera
     from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
-    from device.pi.leg_config import load_leg_config
-    from device.pi.link import LinkError, open_port
+    from device.pi.runtime.config import load_leg_config
+    from device.pi.runtime.link import LinkError, open_port
 
     import sys
 

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from device.config import ConfigError, Fields, read_toml
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "leg.toml"
+DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "leg.toml"
 
 
 @dataclass

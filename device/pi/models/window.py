@@ -3,7 +3,7 @@
 The Pi runs these encoders on its rolling window; the host runs the same
 functions on windows cut from recordings, so a model sees exactly the same
 numbers in training and on the robot. The encoding has a version
-(:data:`device.pi.artefact.FEATURE_SPEC_VERSION`): change an encoder, bump it.
+(:data:`device.pi.models.artefact.FEATURE_SPEC_VERSION`): change an encoder, bump it.
 
 Input layouts (the ``input_layout`` a model manifest names):
 

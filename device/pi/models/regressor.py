@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from device.pi.artefact import ModelError, load_model
+from device.pi.models.artefact import ModelError, load_model
 
 
 class Regressor:
