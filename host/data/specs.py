@@ -208,8 +208,7 @@ def _as_list(v) -> list:
 # Reference pins -> the profile's fixed pin layout
 # ----------------------------------------------------------------------------
 
-from device.pi.vision.layout import (LayoutError, LayoutMapper, binary_crop,  # noqa: E402,F401
-                              layout_assignment, to_layout)
+from device.pi.vision.layout import LayoutError, LayoutMapper  # noqa: E402
 from device.pi.vision.layout import layout_for_profile as _layout_for_profile  # noqa: E402
 
 
@@ -219,9 +218,6 @@ def layout_for_profile(profile: str) -> np.ndarray:
         return _layout_for_profile(profile)
     except LayoutError as exc:
         raise DataError(str(exc)) from None
-
-
-_binary_crop = binary_crop
 
 
 # ----------------------------------------------------------------------------
@@ -257,11 +253,12 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
     on the profile's fixed pin layout."""
     from tqdm import tqdm
 
-    from device.pi.vision.pipeline import FAULT_NO_REFERENCE, MarkerStream
+    from device.pi.vision.encoder import FrameEncoder
+    from device.pi.vision.pipeline import FAULT_NO_REFERENCE
 
-    stream = MarkerStream(profile)
-    if mapper is None:
-        mapper = LayoutMapper(layout_for_profile(profile), stream.profile.match_gate_px)
+    enc = FrameEncoder(profile, crop_px=frame_size or None,
+                       layout_px=None if mapper is None else mapper.layout_px)
+    stream = enc.stream
     vecs, losts, grids, crops, contact, ready, faults = [], [], [], [], [], [], []
     t0 = time.perf_counter()
     with tqdm(total=n_frames, desc=desc or "features", unit="frame", file=sys.stderr,
@@ -269,19 +266,19 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
         for fr in frames:
             image = getattr(fr, "image", fr)
             t_s = getattr(fr, "t_s", None)
-            ff = stream.process(image, t_s)
-            v, lo = mapper(stream, ff)
-            vecs.append(v)
-            losts.append(lo)
+            ef = enc.encode(image, t_s)
+            ff = ef.features
+            vecs.append(ef.vectors.copy())
+            losts.append(ef.lost.copy())
             grids.append(np.asarray(ff.grid, np.float32))
-            if frame_size:
-                crops.append(_binary_crop(stream, frame_size))
+            if ef.crop is not None:
+                crops.append(ef.crop)
             contact.append(bool(ff.contact))
             ready.append(not (ff.faults & FAULT_NO_REFERENCE) and stream.reference is not None)
             faults.append(int(ff.faults))
             bar.update(1)
     seconds = time.perf_counter() - t0
-    M, g = mapper.n_pins, stream.profile.grid_n
+    M, g = enc.n_pins, stream.profile.grid_n
     F = len(vecs)
 
     def stack(lst, shape, dtype):

@@ -1482,7 +1482,7 @@ def simulate_scenes(out_dir, kinds, n_per_kind: int, seed: int, beyond: bool = F
     Reuses a complete folder written with the same arguments."""
     from tqdm import tqdm
 
-    from host.cli import simulate_to_dataset
+    from host.data.simulate import simulate_to_dataset
     from host.data.dataset import atomic_write_text, is_dataset
 
     kinds = [_check_choice("kind", k, BENCH_KINDS) for k in kinds]

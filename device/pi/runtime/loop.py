@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.runtime import protocol as _p
-from device.pi.vision.layout import binary_crop
 from device.pi.runtime.config import LegConfig
 
 # -- fault bits (FAULT and SURFACE packets, docs/protocol.md). Bits 0-5 are the
@@ -297,9 +296,8 @@ class LegRuntime:
                  lossless: bool = True, fps: float | None = None, json_log=None,
                  status_path: str | None = None, max_frames: int | None = None,
                  first_camera=None, clock=time.monotonic, notify=None, camera_opts=None):
-        from device.pi.vision.layout import LayoutMapper, layout_for_profile
         from device.pi.runtime.link import LinkReader, LinkWriter
-        from device.pi.vision.pipeline import MarkerStream
+        from device.pi.vision.encoder import FrameEncoder
         from device.pi.models.window import RollingWindow
         from device.pi.runtime import protocol
 
@@ -309,12 +307,12 @@ class LegRuntime:
         self.clock = clock
         self.fps = float(fps or cfg.camera.fps)
         self.models = models
-        self.stream = MarkerStream(cfg.models.profile, localiser=models.localiser)
-        self.mapper = LayoutMapper(layout_for_profile(cfg.models.profile),
-                                   self.stream.profile.match_gate_px)
-        self.n_pins = self.mapper.n_pins
-        self._v = np.zeros((self.n_pins, 2), np.float32)
-        self._lost = np.ones(self.n_pins, bool)
+        need_crop = any(getattr(c, "input_layout", "") == "frames"
+                        for c in (models.surface, models.texture, models.slip) if c is not None)
+        self.encoder = FrameEncoder(cfg.models.profile, crop_px=32 if need_crop else None,
+                                    localiser=models.localiser)
+        self.stream = self.encoder.stream
+        self.n_pins = self.encoder.n_pins
         self._prev_v = np.zeros((self.n_pins, 2), np.float32)
         Ts = {models.rule.T}
         for c in (models.surface, models.texture, models.slip):
@@ -328,9 +326,6 @@ class LegRuntime:
             Ts.add(self._p_T)
         self.windows = {T: RollingWindow(T, self.n_pins, self.stream.profile.grid_n)
                         for T in sorted(Ts)}
-        self._need_crop = any(getattr(c, "input_layout", "") == "frames"
-                              for c in (models.surface, models.texture, models.slip)
-                              if c is not None)
         self.imu = imu
         self._imu_out = np.zeros(6, np.float32)
         self._imu_sum = np.zeros(6, np.float64)
@@ -445,7 +440,8 @@ class LegRuntime:
         imu_vec, imu_bits = self.imu.read(self._imu_out)
         self._imu_faults = int(imu_bits)
         self._imu_acc(imu_vec)
-        ff = self.stream.process(frame.image, frame.t_s)
+        ef = self.encoder.encode(frame.image, frame.t_s)
+        ff = ef.features
         self._pipe_faults = int(ff.faults) & 0xFF
         if self.stream.reference is not None and len(ff.lost):
             self._pins_lost = int(ff.lost.sum())
@@ -453,10 +449,9 @@ class LegRuntime:
                 self._pipe_faults |= FAULT_PINS_LOST
         else:
             self._pins_lost = 0
-        v, lost = self.mapper(self.stream, ff, self._v, self._lost)
-        crop = binary_crop(self.stream, 32) if self._need_crop else None
+        v = ef.vectors
         for w in self.windows.values():
-            w.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=crop)
+            w.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
         # gait context
         exp_mag, exp_motion, gait = self._expected()
         # decisions
@@ -507,7 +502,7 @@ class LegRuntime:
         class_id = int(np.argmax(surface_probs))
         contact = bool(ff.contact) and SURFACE_CLASSES[class_id] != "no-touch"
         slip = contact and slip_conf >= 0.5
-        self._auto_rezero(v, lost, contact, gait)
+        self._auto_rezero(v, ef.lost, contact, gait)
         faults = self._fault_bits()
         msg = self.proto_surface(class_id, surface_probs, contact, slip, slip_conf,
                                  ff.direction_deg, float(ff.magnitude), pressure,

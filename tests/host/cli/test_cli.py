@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from host.data import dataset
-from host.cli import main, simulate_to_dataset
+from host.cli import main
+from host.data.simulate import simulate_to_dataset
 
 
 def test_simulate_writes_a_dataset_that_reads_back(tmp_path, capsys):

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host.cli import simulate_to_dataset
+from host.data.simulate import simulate_to_dataset
 from host.data.specs import (NO_TOUCH, SLIP_LABELS, DataError, LayoutMapper, WindowSet,
                        group_kfold, layout_for_profile, load_spec, load_specs,
                        split_grouped, split_time)

@@ -18,7 +18,7 @@ torch = pytest.importorskip(
 
 from device.pi.models.artefact import MANIFEST, load_model  # noqa: E402
 from device.pi.models.window import encode_frames  # noqa: E402
-from host.cli import simulate_to_dataset  # noqa: E402
+from host.data.simulate import simulate_to_dataset  # noqa: E402
 from host.learn.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
                       require_torch, train_cnn)
 from host.data.specs import load_spec  # noqa: E402

@@ -34,7 +34,7 @@ def _simulate(out: Path, n_per_kind: int, seed: int, beyond: bool) -> Path:
     """Small randomised step scenes: bench_scene without camera effects (for speed)
     and with the stance direction near 90 degrees (12 trials cannot teach that the
     direction does not matter)."""
-    from host.cli import simulate_to_dataset
+    from host.data.simulate import simulate_to_dataset
 
     scenes = out.parent / f"{out.name}-scenes"
     scenes.mkdir(parents=True)
@@ -502,7 +502,7 @@ def test_bench_scenes_parse_and_test_ranges_reach_beyond_training():
 def test_rotated_windows_match_a_drag_in_the_rotated_direction(tmp_path):
     """Rotation augmentation: the 0-degree drag rotated by 30 degrees matches the
     30-degree drag (pins moved by the layout's symmetry, vectors and IMU turned)."""
-    from host.cli import simulate_to_dataset
+    from host.data.simulate import simulate_to_dataset
     from host.data.specs import layout_for_profile, load_spec
     from host.learn.train import augment_rotations, layout_rotations, rotate_windows
 
