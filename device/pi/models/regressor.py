@@ -27,12 +27,26 @@ class Regressor:
             self._lo = np.asarray(clip[0], np.float32)
             self._hi = np.asarray(clip[1], np.float32)
         self.fallback = float(m.get("target_mean", 0.0))
+        #: the window the model reads: T frames, encoded as ``input_layout``
+        self.T = int(m.get("T", 1))
+        self.input_layout = str(m.get("input_layout", "vectors"))
+        self.uses_imu = bool(m.get("uses_imu", False))
         self._x = np.zeros((1, self.n_features), np.float32)
         self.fault = False
 
     @classmethod
     def load(cls, path, kind: str = "pressure") -> "Regressor":
         return cls(load_model(path, expect_kind=kind), kind)
+
+    def predict_window(self, window) -> float | None:
+        """The prediction for a :class:`~device.pi.models.window.RollingWindow` of
+        this model's ``T``, encoded as in training; None until the window is full."""
+        if window.T != self.T:
+            raise ModelError(f"{self.model.path}: reads windows of T={self.T}, "
+                             f"got T={window.T}")
+        if not window.full:
+            return None
+        return self.predict_one(window.encode(self.input_layout, with_imu=self.uses_imu))
 
     def predict_one(self, features: np.ndarray) -> float:
         x = self._x

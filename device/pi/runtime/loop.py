@@ -319,11 +319,7 @@ class LegRuntime:
             if c is not None:
                 Ts.add(c.T)
         if models.pressure is not None:
-            pm = models.pressure.model.manifest
-            self._p_T = int(pm.get("T", 1))
-            self._p_layout = pm.get("input_layout", "vectors")
-            self._p_imu = bool(pm.get("uses_imu", False))
-            Ts.add(self._p_T)
+            Ts.add(models.pressure.T)
         self.windows = {T: RollingWindow(T, self.n_pins, self.stream.profile.grid_n)
                         for T in sorted(Ts)}
         self.imu = imu
@@ -493,11 +489,9 @@ class LegRuntime:
             slip_conf = float(probs_rule[list(m.rule.classes).index("slippery")]) \
                 if "slippery" in m.rule.classes else 0.0
         pressure = None
-        if m.pressure is not None and self.windows[self._p_T].full \
-                and self.stream.reference is not None:
-            x = self.windows[self._p_T].encode(self._p_layout, with_imu=self._p_imu)
-            pressure = float(m.pressure.predict_one(x))
-            model_fault |= bool(m.pressure.fault)
+        if m.pressure is not None and self.stream.reference is not None:
+            pressure = m.pressure.predict_window(self.windows[m.pressure.T])
+            model_fault |= pressure is not None and bool(m.pressure.fault)
         self._model_fault = model_fault
         class_id = int(np.argmax(surface_probs))
         contact = bool(ff.contact) and SURFACE_CLASSES[class_id] != "no-touch"
