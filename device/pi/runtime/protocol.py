@@ -18,6 +18,11 @@ import math
 import struct
 from dataclasses import dataclass
 
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_CLAMPED,  # noqa: F401  (the wire's fault bits)
+                              FAULT_FRAME_SIZE_CHANGED, FAULT_IMU, FAULT_LINK, FAULT_LOCALISER,
+                              FAULT_MODEL, FAULT_NAMES, FAULT_NO_DOME, FAULT_NO_REFERENCE,
+                              FAULT_NONFINITE, FAULT_PINS_LOST, FAULT_TOO_FEW_PINS, fault_names)
+
 VERSION = 1
 HEADER = struct.Struct("<BBHI")
 HEADER_LEN = HEADER.size          # 8
@@ -33,29 +38,6 @@ MSG_FAULT = 0x04
 MSG_GAIT = 0x10
 MSG_COMMAND = 0x11
 
-# fault bits (u16), carried in SURFACE, IMU summary, HEARTBEAT and FAULT.
-# bits 0-5 are device/pi/vision/pipeline.py's per-frame fault bits (same values).
-FAULT_NO_DOME = 1 << 0
-FAULT_TOO_FEW_PINS = 1 << 1
-FAULT_NO_REFERENCE = 1 << 2
-FAULT_FRAME_SIZE_CHANGED = 1 << 3
-FAULT_BAD_FRAME = 1 << 4
-FAULT_LOCALISER = 1 << 5
-FAULT_CAMERA = 1 << 8
-FAULT_IMU = 1 << 9
-FAULT_MODEL = 1 << 10
-FAULT_PINS_LOST = 1 << 11
-FAULT_LINK = 1 << 12              # the serial port took no bytes for a while (Pi side)
-FAULT_CLAMPED = 1 << 14           # a value was out of range and was clamped on encode
-FAULT_NONFINITE = 1 << 15         # a value was NaN/inf/not a number; sent as 0
-FAULT_NAMES = {FAULT_NO_DOME: "no_dome", FAULT_TOO_FEW_PINS: "too_few_pins",
-               FAULT_NO_REFERENCE: "reference_not_set",
-               FAULT_FRAME_SIZE_CHANGED: "frame_size_changed", FAULT_BAD_FRAME: "bad_frame",
-               FAULT_LOCALISER: "localiser", FAULT_CAMERA: "camera", FAULT_IMU: "imu",
-               FAULT_MODEL: "model", FAULT_PINS_LOST: "pins_lost", FAULT_LINK: "link",
-               FAULT_CLAMPED: "clamped",
-               FAULT_NONFINITE: "nonfinite"}
-
 SURFACE_CLASSES = ("no-touch", "hard", "soft", "slippery")   # class_id 0..3
 CLASS_UNKNOWN = 0xFF
 TEXTURE_NONE = 0xFF
@@ -70,10 +52,6 @@ CMD_SET_RATE = 2
 CMD_REQUEST_STATUS = 3
 COMMAND_NAMES = {CMD_REZERO: "rezero", CMD_SET_RATE: "set_rate",
                  CMD_REQUEST_STATUS: "request_status"}
-
-
-def fault_names(bits: int) -> list[str]:
-    return [name for bit, name in FAULT_NAMES.items() if bits & bit]
 
 
 # -- CRC and COBS ----------------------------------------------------------------

@@ -16,28 +16,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED,  # noqa: F401
+                              FAULT_LOCALISER, FAULT_NAMES, FAULT_NO_DOME, FAULT_NO_REFERENCE,
+                              FAULT_TOO_FEW_PINS, fault_names)
 from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum, vector_features
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.tracking import Tracker, match_pins
 from device.pi.vision.extract import PinDetector, find_dome, to_gray
 
-# fault bits (also carried in the SURFACE packet)
-FAULT_NO_DOME = 1
-FAULT_TOO_FEW_PINS = 2
-FAULT_NO_REFERENCE = 4
-FAULT_FRAME_SIZE_CHANGED = 8
-FAULT_BAD_FRAME = 16
-FAULT_LOCALISER = 32
-FAULT_NAMES = {FAULT_NO_DOME: "no_dome", FAULT_TOO_FEW_PINS: "too_few_pins",
-               FAULT_NO_REFERENCE: "reference_not_set",
-               FAULT_FRAME_SIZE_CHANGED: "frame_size_changed", FAULT_BAD_FRAME: "bad_frame",
-               FAULT_LOCALISER: "localiser"}
-
 STAGES = ("gray", "detect", "track", "localise", "grid", "features")
-
-
-def fault_names(bits: int) -> list[str]:
-    return [name for bit, name in FAULT_NAMES.items() if bits & bit]
 
 
 @dataclass

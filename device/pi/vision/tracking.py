@@ -48,10 +48,11 @@ __all__ = [
     "MAX_COORD_PX",
 ]
 
-#: Tracker fault bits (``Tracker.faults``).
-FAULT_NO_REFERENCE = 1   # update() before set_reference(): empty outputs
-FAULT_BAD_INPUT = 2      # current pins not an (n, 2) array, or rows with NaN/inf/huge dropped
-FAULT_TOO_FEW_PINS = 4   # fewer than ``min_tracked_frac`` of the reference pins tracked
+#: Tracker fault bits (``Tracker.faults``), from the one table in device.pi.faults:
+#: FAULT_NO_REFERENCE (update() before set_reference(): empty outputs), FAULT_BAD_INPUT
+#: (current pins not an (n, 2) array, or rows with NaN/inf/huge dropped),
+#: FAULT_TOO_FEW_PINS (fewer than ``min_tracked_frac`` of the reference pins tracked)
+from device.pi.faults import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS  # noqa: E402
 
 
 # --------------------------------------------------------------------------
