@@ -7,8 +7,13 @@ one line on stderr naming what is wrong.
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
+
+import numpy as np
+
+from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -36,10 +41,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import json
-
-    from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
-
     args = build_parser().parse_args(argv)
     if args.frames is not None and args.frames < 1:
         print(f"device.pi run: error: --frames must be >= 1, got {args.frames}", file=sys.stderr)
@@ -98,7 +99,6 @@ def _rss_mb() -> float | None:
 def _pct(xs, q):
     if not xs:
         return None
-    import numpy as np
     return round(float(np.percentile(xs, q)), 4)
 
 

@@ -108,7 +108,7 @@ def _is_recording(source: str) -> bool:
 def _view_pipeline(args):
     """Pins and vectors found by the Pi's pipeline drawn over the frames (the
     paper's figure 3)."""
-    from device.pi.vision.pipeline import fault_names
+    from device.pi.faults import fault_names
     from host.analysis.view import draw_vectors, pick_frames, save_images
 
     stream = _open_stream(args)
@@ -333,7 +333,7 @@ def _open_stream(args):
             pres = Regressor.load(args.pressure)
     except ModelError as exc:
         raise UserError(str(exc)) from None
-    return MarkerStream(profile, localiser=loc, pressure=pres)
+    return MarkerStream(profile, localiser=loc)
 
 
 def _open_source(source: str):
@@ -347,7 +347,8 @@ def _open_source(source: str):
 def cmd_analyse(args):
     import numpy as np
 
-    from device.pi.vision.pipeline import STAGES, fault_names
+    from device.pi.faults import fault_names
+    from device.pi.vision.pipeline import STAGES
 
     stream = _open_stream(args)
     cam = _open_source(args.source)

@@ -254,7 +254,7 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
     from tqdm import tqdm
 
     from device.pi.vision.encoder import FrameEncoder
-    from device.pi.vision.pipeline import FAULT_NO_REFERENCE
+    from device.pi.faults import FAULT_NO_REFERENCE
 
     enc = FrameEncoder(profile, crop_px=frame_size or None,
                        layout_px=None if mapper is None else mapper.layout_px)

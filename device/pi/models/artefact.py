@@ -27,6 +27,10 @@ VERSION = 1
 #: bump when the feature code changes what a model sees
 FEATURE_SPEC_VERSION = 1
 MANIFEST = "manifest.json"
+#: the float model's manifest beside an int8 one (quantised models only)
+FLOAT_MANIFEST = "manifest.float.json"
+#: which ONNX file of a model folder to load
+VARIANTS = ("int8", "float")
 
 
 class ModelError(ValueError):
@@ -61,6 +65,19 @@ def read_manifest(path: Path | str) -> tuple[dict, Path]:
         if key not in doc:
             raise ModelError(f"{mpath}: manifest lacks {key!r}")
     return doc, mpath.parent
+
+
+def manifest_for(folder: Path | str, variant: str) -> Path:
+    """The manifest to load from a model folder: ``manifest.json`` (int8 when the
+    model was quantised) or, for the ``float`` variant, ``manifest.float.json`` when
+    there is one. A folder with no manifest is returned as it is (the loader then
+    names the missing file)."""
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {list(VARIANTS)}, got variant={variant!r}")
+    folder = Path(folder)
+    if variant == "float" and (folder / FLOAT_MANIFEST).is_file():
+        return folder / FLOAT_MANIFEST
+    return folder / MANIFEST if (folder / MANIFEST).is_file() else folder
 
 
 @dataclass

@@ -14,7 +14,8 @@ training did::
 
 :meth:`Classifier.predict` is finite for any input: NaN and inf are cleaned before the
 model runs, and the output is cleaned after (probabilities clipped to 0..1 and
-renormalised, or logits through the stable :func:`softmax` / :func:`sigmoid`). A model
+renormalised, or logits through the stable :func:`device.pi.numerics.softmax` /
+:func:`device.pi.numerics.sigmoid`). A model
 that still gives nothing usable yields the uniform distribution and sets
 :attr:`Classifier.fault`. Bad artefacts are refused at load time by
 :func:`device.pi.models.artefact.load_model` with a message that names the file.
@@ -28,16 +29,14 @@ import math
 
 import numpy as np
 
-from device.pi.numerics import finite
-
 from device.pi.models.artefact import ModelError, load_model, read_manifest
+from device.pi.models.rules import RuleClassifier
+from device.pi.numerics import finite, sigmoid, softmax
 
 #: tasks a classifier serves
 CLASS_TASKS = ("surface", "texture", "slip")
 #: what the model's output holds: probabilities (default) or logits
 OUTPUT_KINDS = ("probabilities", "logits")
-#: logits are clipped to this before exp(); exp(-LOGIT_CLIP) underflows to 0 cleanly
-LOGIT_CLIP = 1.0e4
 #: no input value beyond this reaches a model
 INPUT_CLIP = 1.0e6
 
@@ -45,33 +44,6 @@ INPUT_CLIP = 1.0e6
 # ----------------------------------------------------------------------------
 # Numerics
 # ----------------------------------------------------------------------------
-
-def _clean_logits(z) -> np.ndarray:
-    z = np.asarray(z, dtype=np.float64)
-    return np.clip(finite(z, 0.0, LOGIT_CLIP, -LOGIT_CLIP, dtype=np.float64),
-                   -LOGIT_CLIP, LOGIT_CLIP)
-
-
-def softmax(z, axis: int = -1) -> np.ndarray:
-    """exp(z) / sum(exp(z)) along ``axis``, float64, finite for any input.
-
-    NaN counts as 0 (no evidence) and +-inf as +-LOGIT_CLIP; the maximum is
-    subtracted first, so the largest term is exp(0) = 1 and the sum is >= 1.
-    """
-    z = _clean_logits(z)
-    if z.size == 0:
-        return z
-    e = np.exp(z - z.max(axis=axis, keepdims=True))
-    return e / e.sum(axis=axis, keepdims=True)
-
-
-def sigmoid(z) -> np.ndarray:
-    """1 / (1 + exp(-z)), float64, finite for any input, without overflow:
-    exp() only ever sees -|z|."""
-    z = _clean_logits(z)
-    e = np.exp(-np.abs(z))
-    return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
-
 
 def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bool]:
     """(probabilities, fault): NaN -> 0, clipped to 0..1, renormalised to sum 1. A
@@ -159,8 +131,6 @@ class Classifier:
         :class:`device.pi.models.rules.RuleClassifier`."""
         doc, folder = read_manifest(path)
         if doc.get("model") == "rule":
-            from device.pi.models.rules import RuleClassifier
-
             return RuleClassifier.load(path, expect_kind=expect_kind)
         kind = doc.get("kind")
         if expect_kind is None and kind not in CLASS_TASKS:

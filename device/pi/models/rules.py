@@ -52,11 +52,11 @@ import math
 import numpy as np
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
-from device.pi.models.classifier import sigmoid
+from device.pi.numerics import sigmoid
+from device.pi.runtime.protocol import SURFACE_CLASSES  # the SURFACE class ids
 from device.pi.vision.features import direction_deg
 
 RULE_TASKS = ("surface", "slip")
-SURFACE_CLASSES = ("hard", "no-touch", "slippery", "soft")
 SLIP_CLASSES = ("no-slip", "slip")
 #: the thresholds a rule table must hold, all finite and >= 0
 RULE_KEYS = ("contact_px", "expected_mag_px", "soft_ratio", "expected_motion_px", "wet_ratio")

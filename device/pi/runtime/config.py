@@ -14,7 +14,9 @@ Sections and keys (units in the names)::
     [serial]   baudrate, stall_ms (bytes waiting and none accepted this long = link
                fault), heartbeat_hz, fault_repeat_s (FAULT repeated while a fault lasts)
     [models]   variant ("int8" | "float"), profile (pipeline profile name or .toml),
-               window_T (frames in the rule fallback's window)
+               window_T (frames in the rule fallback's window), localiser (bool: load
+               and run the fixed-count localiser on every frame; off by default, as no
+               decision reads its pins)
     [decision] nominal_load_n, mag_px_per_n (expected pin travel per newton of
                expected load), nominal_speed_mm_s, motion_px_per_mm (skin motion per
                mm of expected foot travel), gait_timeout_ms (older GAIT = nominal),
@@ -63,6 +65,7 @@ class ModelsConfig:
     variant: str = "int8"
     profile: str = "roboskin"
     window_T: int = 3
+    localiser: bool = False
 
 
 @dataclass
@@ -142,7 +145,8 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
     mod = ModelsConfig(
         variant=m.string("variant", d.models.variant, choices=("int8", "float")),
         profile=m.string("profile", d.models.profile),
-        window_T=m.integer("window_T", d.models.window_T, min=1, max=100))
+        window_T=m.integer("window_T", d.models.window_T, min=1, max=100),
+        localiser=m.boolean("localiser", d.models.localiser))
     m.done()
     if not mod.profile.strip():
         m.fail("models.profile", mod.profile, "must name a profile")

@@ -32,6 +32,10 @@ from __future__ import annotations
 import time
 from collections import deque
 
+import serial
+
+from device.pi.runtime import protocol
+
 #: FAULT packets that may wait before newer ones replace the newest waiting one
 FAULT_QUEUE = 64
 #: kinds in the order they are served
@@ -48,8 +52,6 @@ def open_port(url: str, baudrate: int = 921600):
     """A pyserial port for a device path or URL (``/dev/serial0``, ``loop://``,
     ``socket://host:port``), opened non-blocking: reads return what is waiting,
     writes take what fits."""
-    import serial
-
     try:
         port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=0,
                                      do_not_open=True)
@@ -65,8 +67,6 @@ def open_port(url: str, baudrate: int = 921600):
 
 def try_write(port, data) -> int:
     """Write what the port accepts now; the count of bytes taken (0 when none)."""
-    import serial
-
     q = getattr(port, "queue", None)          # pyserial loop://: a bounded queue
     if q is not None and getattr(q, "maxsize", 0) > 0:
         room = q.maxsize - q.qsize()
@@ -180,8 +180,6 @@ class LinkReader:
     """Reads what is waiting on the port and decodes GAIT / COMMAND messages."""
 
     def __init__(self, port, max_frame: int = 64):
-        from device.pi.runtime import protocol
-
         self.port = port
         self.protocol = protocol
         self.decoder = protocol.FrameDecoder(max_frame=max_frame)

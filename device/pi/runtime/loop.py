@@ -21,36 +21,39 @@ from __future__ import annotations
 import json
 import math
 import os
-import queue
 import sys
-import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
 
+import cv2
 import numpy as np
 
-from device.pi.runtime import protocol as _p
-from device.pi.runtime.config import LegConfig
-
-# -- fault bits (FAULT and SURFACE packets, docs/protocol.md). Bits 0-5 are the
-#    pipeline's per-frame bits; the runtime raises these:
-FAULT_CAMERA = _p.FAULT_CAMERA        # no frame within camera.stall_periods frame periods
-FAULT_IMU = _p.FAULT_IMU              # the IMU read failed (stale / offline)
-FAULT_MODEL = _p.FAULT_MODEL          # a model gave no usable output (uniform fallback)
-FAULT_PINS_LOST = _p.FAULT_PINS_LOST  # more than half the reference pins lost this frame
-FAULT_LINK = _p.FAULT_LINK            # bytes waiting and the port took none for stall_ms
-#: (status file and JSON log only: a stalled port cannot carry it)
+from device.config import ConfigError
+from device.pi.faults import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL, FAULT_PINS_LOST,
+                              PIPELINE_FAULTS, fault_names)
+from device.pi.models.artefact import ModelError
+from device.pi.models.window import RollingWindow
+from device.pi.runtime import protocol as P
+from device.pi.runtime import sdnotify
+from device.pi.runtime.config import LegConfig, load_leg_config
+from device.pi.runtime.decisions import (GaitContext, decide, expected_context, finite_float,
+                                         gait_from_message)
+from device.pi.runtime.feed import CameraFeed
+from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
+from device.pi.runtime.load import Models, load_models
+from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
+                                        imu_message, surface_message)
+from device.pi.runtime.status import write_status_file
+from device.pi.sources.camera import CameraError, open_camera
+from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
+from device.pi.vision.encoder import FrameEncoder
+from device.pi.vision.layout import layout_for_profile
+from device.profile import load_pipeline_profile
 
 #: a live camera that delivered nothing for this long is closed and reopened
 REOPEN_AFTER_S = 1.0
-
-SURFACE_CLASSES = _p.SURFACE_CLASSES   # the SURFACE class ids: no-touch, hard, soft, slippery
+#: side of the binary crop the ``frames`` input layout reads, px
+CROP_PX = 32
 EXIT_BAD_INPUT = 2
-
-
-def all_fault_names(bits: int) -> list[str]:
-    return _p.fault_names(bits)
 
 
 class StartupError(Exception):
@@ -58,234 +61,8 @@ class StartupError(Exception):
 
 
 # ---------------------------------------------------------------------------
-# Camera feed: a grab thread with reopen and backoff
-# ---------------------------------------------------------------------------
-
-class CameraFeed:
-    """Frames from a camera factory on a grab thread.
-
-    ``lossless`` (files and sim://): every frame is handed over in order (the grab
-    thread waits for the loop). Otherwise (live cameras) only the newest frame is
-    kept. A source that raises is closed and reopened with a backoff doubling from
-    ``reopen_min_s`` to ``reopen_max_s``; the thread never gives up. ``read()``
-    returning None ends a finite stream (``eof``)."""
-
-    def __init__(self, factory, *, lossless: bool, reopen_min_s: float = 0.1,
-                 reopen_max_s: float = 2.0, first=None, clock=time.monotonic):
-        self.factory = factory
-        self.lossless = lossless
-        self.min_s, self.max_s = reopen_min_s, reopen_max_s
-        self.clock = clock
-        self._q: queue.Queue = queue.Queue(maxsize=1)
-        self._stop = threading.Event()
-        self._reopen = threading.Event()
-        self._cam = first
-        self.opens = 1 if first is not None else 0
-        self.errors = 0
-        self.last_error = ""
-        self.eof = False
-        self.opened_at = clock() if first is not None else None
-        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
-
-    def start(self):
-        self._thread.start()
-        return self
-
-    def _put(self, item) -> None:
-        if self.lossless:
-            while not self._stop.is_set():
-                try:
-                    self._q.put(item, timeout=0.05)
-                    return
-                except queue.Full:
-                    continue
-        else:
-            try:
-                self._q.get_nowait()          # drop the older frame: newest only
-            except queue.Empty:
-                pass
-            try:
-                self._q.put_nowait(item)
-            except queue.Full:
-                pass
-
-    def _run(self) -> None:
-        backoff = self.min_s
-        while not self._stop.is_set():
-            if self._reopen.is_set():
-                self._reopen.clear()
-                self._close_cam()
-            if self._cam is None:
-                try:
-                    self._cam = self.factory()
-                    self.opens += 1
-                    self.opened_at = self.clock()
-                    backoff = self.min_s
-                except Exception as exc:        # CameraError, OSError, driver errors
-                    self.errors += 1
-                    self.last_error = str(exc)
-                    self._stop.wait(backoff)
-                    backoff = min(self.max_s, max(backoff * 2, 1e-3))
-                    continue
-            try:
-                fr = self._cam.read()
-            except Exception as exc:            # unplugged: close, reopen with backoff
-                self.errors += 1
-                self.last_error = str(exc)
-                self._close_cam()
-                self._stop.wait(backoff)
-                backoff = min(self.max_s, max(backoff * 2, 1e-3))
-                continue
-            if fr is None:
-                self.eof = True
-                self._put(None)
-                return
-            self._put((fr, self.clock()))
-
-    def _close_cam(self) -> None:
-        cam, self._cam = self._cam, None
-        if cam is not None:
-            try:
-                cam.close()
-            except Exception:
-                pass
-
-    def get(self, timeout: float):
-        """(Frame, t_available) or None (no frame within ``timeout``), or the string
-        "eof" at the end of a finite stream."""
-        try:
-            item = self._q.get(timeout=max(timeout, 0.0)) if timeout > 0 else self._q.get_nowait()
-        except queue.Empty:
-            return None
-        return "eof" if item is None else item
-
-    def reopen(self) -> None:
-        """Ask for a reopen (e.g. a new frame rate); done on the grab thread before
-        its next grab."""
-        self._reopen.set()
-
-    def stop(self) -> None:
-        self._stop.set()
-        try:
-            self._q.get_nowait()
-        except queue.Empty:
-            pass
-        self._thread.join(timeout=2.0)
-        self._close_cam()
-
-
-# ---------------------------------------------------------------------------
-# Models
-# ---------------------------------------------------------------------------
-
-@dataclass
-class Models:
-    surface: object | None = None       # Classifier or RuleClassifier
-    texture: object | None = None
-    slip: object | None = None
-    pressure: object | None = None
-    localiser: object | None = None
-    rule: object | None = None          # the rule classifier (always present)
-    loaded: tuple = ()
-
-
-def default_models_dir() -> Path:
-    return Path(__file__).resolve().parents[3] / "models"
-
-
-def _manifest_for(folder: Path, variant: str) -> Path:
-    """The manifest to load: ``manifest.json`` (int8 when the model was quantised)
-    or, for the float variant, ``manifest.float.json`` when there is one."""
-    if variant == "float" and (folder / "manifest.float.json").is_file():
-        return folder / "manifest.float.json"
-    return folder / "manifest.json" if (folder / "manifest.json").is_file() else folder
-
-
-def _load_classifier(folder: Path, kind: str, variant: str):
-    from device.pi.models.classifier import Classifier
-    return Classifier.load(_manifest_for(folder, variant), expect_kind=kind)
-
-
-def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int,
-                cfg: LegConfig) -> Models:
-    """Every model present in ``models_dir`` (surface, texture, slip, pressure,
-    localiser-*), loaded once. Raises ModelError naming the file for a bad one."""
-    from device.pi.models.artefact import ModelError
-    from device.pi.models.rules import RuleClassifier, SURFACE_CLASSES as RULE_CLASSES
-
-    m = Models()
-    loaded = []
-    d = Path(models_dir) if models_dir is not None else default_models_dir()
-    if models_dir is not None and not d.is_dir():
-        raise ModelError(f"{d}: models folder not found")
-    if d.is_dir():
-        for kind in ("surface", "texture", "slip"):
-            f = d / kind
-            if (f / "manifest.json").is_file() or (f.is_dir() and any(f.iterdir())):
-                setattr(m, kind, _load_classifier(f, kind, variant))
-                loaded.append(kind)
-        f = d / "pressure"
-        if f.is_dir():
-            from device.pi.models.regressor import Regressor
-            m.pressure = Regressor.load(_manifest_for(f, variant))
-            loaded.append("pressure")
-        locs = sorted(p for p in d.glob("localiser*") if p.is_dir())
-        if locs:
-            from device.pi.vision.localiser import Localiser
-            pick = next((p for p in locs if p.name == f"localiser-{cfg.models.profile}"),
-                        locs[0])
-            m.localiser = Localiser.load(pick)
-            loaded.append(pick.name)
-    dc = cfg.decision
-    rule = {"contact_px": 1.0, "expected_mag_px": dc.nominal_load_n * dc.mag_px_per_n,
-            "soft_ratio": 0.6,
-            "expected_motion_px": dc.nominal_speed_mm_s * dc.motion_px_per_mm / cfg.camera.fps,
-            "wet_ratio": 0.3}
-    if isinstance(m.surface, RuleClassifier):
-        m.rule = m.surface
-    else:
-        m.rule = RuleClassifier(rule, list(RULE_CLASSES), cfg.models.window_T, profile_n_pins)
-    from device.pi.models.window import RollingWindow
-    for name in ("surface", "texture", "slip", "pressure"):
-        mod = getattr(m, name)
-        if mod is None or isinstance(mod, RuleClassifier):
-            continue
-        man = mod.model.manifest
-        T = int(man.get("T", getattr(mod, "T", 1)))
-        layout = man.get("input_layout", "vectors")
-        try:
-            x = RollingWindow(T, profile_n_pins).encode(layout,
-                                                        with_imu=bool(man.get("uses_imu")))
-        except ValueError as exc:
-            raise ModelError(f"{mod.model.path / 'manifest.json'}: {exc}") from None
-        if x.size != mod.n_features:
-            raise ModelError(f"{mod.model.path / 'manifest.json'}: the model takes "
-                             f"{mod.n_features} inputs, but a {layout} window of T={T} over "
-                             f"the {profile_n_pins}-pin layout gives {x.size}")
-    m.loaded = tuple(loaded)
-    return m
-
-
-# ---------------------------------------------------------------------------
 # The runtime
 # ---------------------------------------------------------------------------
-
-@dataclass
-class Gait:
-    """The MCU's latest gait context (t = clock time it arrived)."""
-    stance: bool
-    load_n: float
-    vel_mm_s: float
-    t: float
-
-
-def _finite(x, default=0.0) -> float:
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return default
-    return x if math.isfinite(x) else default
-
 
 class LegRuntime:
     """The loop. Build it with :func:`build_runtime` (sources from strings) or
@@ -296,20 +73,14 @@ class LegRuntime:
                  lossless: bool = True, fps: float | None = None, json_log=None,
                  status_path: str | None = None, max_frames: int | None = None,
                  first_camera=None, clock=time.monotonic, notify=None, camera_opts=None):
-        from device.pi.runtime.link import LinkReader, LinkWriter
-        from device.pi.vision.encoder import FrameEncoder
-        from device.pi.models.window import RollingWindow
-        from device.pi.runtime import protocol
-
         self.cfg = cfg
         self.camera_opts = camera_opts        # the live camera's open options (set rate)
-        self.proto = protocol
         self.clock = clock
         self.fps = float(fps or cfg.camera.fps)
         self.models = models
         need_crop = any(getattr(c, "input_layout", "") == "frames"
                         for c in (models.surface, models.texture, models.slip) if c is not None)
-        self.encoder = FrameEncoder(cfg.models.profile, crop_px=32 if need_crop else None,
+        self.encoder = FrameEncoder(cfg.models.profile, crop_px=CROP_PX if need_crop else None,
                                     localiser=models.localiser)
         self.stream = self.encoder.stream
         self.n_pins = self.encoder.n_pins
@@ -344,7 +115,7 @@ class LegRuntime:
         self.faults = 0
         self._pins_lost = 0
         self.fault_changes = 0
-        self.gait: Gait | None = None
+        self.gait: GaitContext | None = None
         self.gait_packets = 0
         self.commands = 0
         self.rezeros = {"command": 0, "auto": 0}
@@ -366,8 +137,7 @@ class LegRuntime:
         self.stopped = False
         self._ready = False
         self._reopen_asked = False
-        from device.pi.runtime.sdnotify import Watchdog
-        self.watchdog = Watchdog()
+        self.watchdog = sdnotify.Watchdog()
 
     # -- packets ---------------------------------------------------------------
     def _t_ms(self) -> int:
@@ -438,7 +208,7 @@ class LegRuntime:
         self._imu_acc(imu_vec)
         ef = self.encoder.encode(frame.image, frame.t_s)
         ff = ef.features
-        self._pipe_faults = int(ff.faults) & 0xFF
+        self._pipe_faults = int(ff.faults) & PIPELINE_FAULTS
         if self.stream.reference is not None and len(ff.lost):
             self._pins_lost = int(ff.lost.sum())
             if self._pins_lost * 2 > len(ff.lost):
@@ -448,59 +218,19 @@ class LegRuntime:
         v = ef.vectors
         for w in self.windows.values():
             w.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
-        # gait context
-        exp_mag, exp_motion, gait = self._expected()
-        # decisions
-        m = self.models
-        model_fault = False
-        rwin = self.windows[m.rule.T]
-        probs_rule = None
-        if rwin.full:
-            _, probs_rule = m.rule.predict(rwin.encode("vectors"), expected_mag_px=exp_mag,
-                                           expected_motion_px=exp_motion)
-        surface_probs = rule_probs = self._surface_probs(probs_rule)
-        model_probs = None
-        if m.surface is not None and m.surface is not m.rule:
-            w = self.windows[m.surface.T]
-            if w.full:
-                _, p = m.surface.predict_window(w)
-                surface_probs = model_probs = self._reorder(m.surface.classes, p)
-                model_fault |= bool(m.surface.fault)
-                wr = self.cfg.decision.gait_rule_weight
-                if gait is not None and probs_rule is not None and wr > 0:
-                    # the learned model cannot see the gait context; the rule can
-                    surface_probs = (1.0 - wr) * model_probs + wr * rule_probs
-        texture = None
-        # a texture is only felt in contact: no texture inference in the air
-        if m.texture is not None and ff.contact and self.windows[m.texture.T].full:
-            tid, tp = m.texture.predict_window(self.windows[m.texture.T])
-            texture = (m.texture.classes[tid], float(tp[tid]), tid)
-            model_fault |= bool(m.texture.fault)
-        meas = m.rule.last if rwin.full else {}
-        slip_conf = 0.0
-        if m.slip is not None and self.windows[m.slip.T].full:
-            ctx = ({"expected_mag_px": exp_mag, "expected_motion_px": exp_motion}
-                   if hasattr(m.slip, "rule") else {})       # a rule slip model: gait context
-            sid, sp = m.slip.predict_window(self.windows[m.slip.T], **ctx)
-            slip_conf = float(sp[list(m.slip.classes).index("slip")]) \
-                if "slip" in m.slip.classes else float(sp[sid])
-            model_fault |= bool(m.slip.fault)
-        elif probs_rule is not None:
-            slip_conf = float(probs_rule[list(m.rule.classes).index("slippery")]) \
-                if "slippery" in m.rule.classes else 0.0
-        pressure = None
-        if m.pressure is not None and self.stream.reference is not None:
-            pressure = m.pressure.predict_window(self.windows[m.pressure.T])
-            model_fault |= pressure is not None and bool(m.pressure.fault)
-        self._model_fault = model_fault
-        class_id = int(np.argmax(surface_probs))
-        contact = bool(ff.contact) and SURFACE_CLASSES[class_id] != "no-touch"
-        slip = contact and slip_conf >= 0.5
+        exp_mag, exp_motion, gait = expected_context(self.gait, self.clock(),
+                                                     self.cfg.decision, self.fps)
+        d = decide(self.models, self.windows, contact_seen=bool(ff.contact),
+                   referenced=self.stream.reference is not None, expected_mag_px=exp_mag,
+                   expected_motion_px=exp_motion, gait=gait,
+                   gait_rule_weight=self.cfg.decision.gait_rule_weight)
+        self._model_fault = d.model_fault
+        contact, texture = d.contact, d.texture
         self._auto_rezero(v, ef.lost, contact, gait)
         faults = self._fault_bits()
-        msg = self.proto_surface(class_id, surface_probs, contact, slip, slip_conf,
-                                 ff.direction_deg, float(ff.magnitude), pressure,
-                                 len(ff.pins), faults, texture[2] if texture else None)
+        msg = surface_message(d.class_id, d.probs, contact, d.slip, d.slip_conf,
+                              ff.direction_deg, float(ff.magnitude), d.pressure,
+                              len(ff.pins), faults, texture[2] if texture else None)
         self._send("surface", msg)
         self._update_faults(faults)
         before = self.writer.packets_sent
@@ -514,54 +244,26 @@ class LegRuntime:
         if self.json_log is None:
             return
         # the decision log line, built after the packet went out
+        meas = d.measures
         dec = {"frame": self.frames - 1, "index": int(frame.index),
-               "t_s": round(float(frame.t_s), 6), "class": SURFACE_CLASSES[class_id],
-               "class_id": class_id, "probs": [round(float(x), 4) for x in surface_probs],
-               "contact": contact, "slip": slip, "slip_conf": round(slip_conf, 4),
+               "t_s": round(float(frame.t_s), 6), "class": P.SURFACE_CLASSES[d.class_id],
+               "class_id": d.class_id, "probs": [round(float(x), 4) for x in d.probs],
+               "contact": contact, "slip": d.slip, "slip_conf": round(d.slip_conf, 4),
                "texture": texture[0] if texture else None,
                "shear_dir_deg": round(ff.direction_deg, 2),
                "shear_mag_px": round(float(ff.magnitude), 3),
-               "pressure": None if pressure is None else round(float(pressure), 4),
-               "pins": int(len(ff.pins)), "faults": all_fault_names(faults),
+               "pressure": None if d.pressure is None else round(float(d.pressure), 4),
+               "pins": int(len(ff.pins)), "faults": fault_names(faults),
                "expected_mag_px": round(exp_mag, 3) if exp_mag is not None else None,
                "expected_motion_px": round(exp_motion, 4) if exp_motion is not None else None,
                "gait": gait, "magnitude_px": round(float(meas.get("magnitude_px", 0.0)), 3),
                "motion_px": (None if meas.get("motion_px") is None
                              else round(float(meas["motion_px"]), 4)),
                "latency_ms": None if lat is None else round(lat, 4)}
-        if model_probs is not None:
-            dec["model_probs"] = [round(float(x), 4) for x in model_probs]
-            dec["rule_probs"] = [round(float(x), 4) for x in rule_probs]
+        if d.model_probs is not None:
+            dec["model_probs"] = [round(float(x), 4) for x in d.model_probs]
+            dec["rule_probs"] = [round(float(x), 4) for x in d.rule_probs]
         self.json_log.write(json.dumps(dec) + "\n")
-
-    @staticmethod
-    def _reorder(classes, p) -> np.ndarray:
-        out = np.zeros(len(SURFACE_CLASSES))
-        for c, x in zip(classes, p):
-            if c in SURFACE_CLASSES:
-                out[SURFACE_CLASSES.index(c)] = x
-        s = out.sum()
-        return out / s if s > 0 else np.full(len(SURFACE_CLASSES), 1.0 / len(SURFACE_CLASSES))
-
-    def _surface_probs(self, probs_rule) -> np.ndarray:
-        if probs_rule is None:
-            p = np.zeros(len(SURFACE_CLASSES))
-            p[SURFACE_CLASSES.index("no-touch")] = 1.0
-            return p
-        return self._reorder(self.models.rule.classes, probs_rule)
-
-    def _expected(self):
-        """(expected_mag_px, expected_motion_px, gait dict | None) from a fresh GAIT
-        context, or (None, None, None): the rule's nominal values."""
-        g = self.gait
-        dc = self.cfg.decision
-        if g is None or (self.clock() - g.t) * 1e3 > dc.gait_timeout_ms:
-            return None, None, None
-        load = g.load_n if g.stance else 0.0
-        mag = max(0.0, load) * dc.mag_px_per_n
-        motion = abs(g.vel_mm_s) * dc.motion_px_per_mm / self.fps if g.stance else 0.0
-        return mag, motion, {"stance": g.stance, "load_n": round(g.load_n, 3),
-                             "vel_mm_s": round(g.vel_mm_s, 3)}
 
     def _auto_rezero(self, v, lost, contact: bool, gait) -> None:
         rz = self.cfg.rezero
@@ -605,10 +307,10 @@ class LegRuntime:
             self.faults = bits
             self.fault_changes += 1
             self.fault_log.append((now, bits))
-            self._send("fault", self.proto_fault(bits, raised))
+            self._send("fault", fault_message(bits, raised, self._pins_lost))
             self._next_fault_repeat = now + self.cfg.serial.fault_repeat_s if bits else 1e18
         elif bits and now >= self._next_fault_repeat:
-            self._send("fault", self.proto_fault(bits))
+            self._send("fault", fault_message(bits, 0, self._pins_lost))
             self._next_fault_repeat = now + self.cfg.serial.fault_repeat_s
 
     def _imu_acc(self, vec) -> None:
@@ -645,7 +347,7 @@ class LegRuntime:
             self._send_imu()
             self._next_imu = now + 1.0 / self.cfg.imu.summary_hz
         if now >= self._next_hb:
-            self._send("heartbeat", self.proto_heartbeat())
+            self._send("heartbeat", self._heartbeat())
             self._next_hb = now + 1.0 / self.cfg.serial.heartbeat_hz
         self.writer.pump()
         if now >= self._next_status:
@@ -660,38 +362,36 @@ class LegRuntime:
         if self.notify is not None:
             self.notify(state)
             return
-        from device.pi.runtime.sdnotify import notify
-        notify(state)
+        sdnotify.notify(state)
 
     def _send_imu(self) -> None:
         n = max(self._imu_n, 1)
         mean = self._imu_sum / n
-        msg = self.proto_imu(mean, self._imu_peak_g, self._imu_n,
-                             self._fault_bits() if self._imu_faults else 0)
+        msg = imu_message(mean, self._imu_peak_g, self._imu_n,
+                          self._fault_bits() if self._imu_faults else 0)
         self._imu_sum[:] = 0
         self._imu_peak_g = 0.0
         self._imu_n = 0
         self._send("imu", msg)
 
     def _handle(self, msg) -> None:
-        p = self.proto
-        if isinstance(msg, p.Gait):
+        if isinstance(msg, P.Gait):
             self.gait_packets += 1
             self.gait = gait_from_message(msg, self.clock())
-        elif isinstance(msg, p.Command):
+        elif isinstance(msg, P.Command):
             self.commands += 1
             op = command_op(msg)
             if op == "rezero":
                 self.rezero("command")
             elif op == "rate":
-                fps = _finite(command_value(msg), 0.0)
+                fps = finite_float(msg.arg, 0.0)
                 if 1.0 <= fps <= 1000.0:
                     self.fps = fps
                     if self.camera_opts is not None:      # a live camera: ask it for the rate
                         self.camera_opts["fps"] = fps
                         self.feed.reopen()
             elif op == "status":
-                self._send("status", self.proto_heartbeat())
+                self._send("status", self._heartbeat())
                 self.write_status(force=True)
 
     # -- status ----------------------------------------------------------------
@@ -699,7 +399,7 @@ class LegRuntime:
         w = self.writer
         return {"pid": os.getpid(), "t_unix": time.time(), "frames": self.frames,
                 "packets_sent": w.packets_sent, "packets_dropped": w.packets_dropped,
-                "faults": self.faults, "fault_names": all_fault_names(self.faults),
+                "faults": self.faults, "fault_names": fault_names(self.faults),
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
                 "camera_errors": self.feed.errors, "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
@@ -708,13 +408,7 @@ class LegRuntime:
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:
             return
-        path = Path(self.status_path)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        try:
-            tmp.write_text(json.dumps(self.status()))
-            os.replace(tmp, path)
-        except OSError:
-            pass
+        write_status_file(self.status_path, self.status())
 
     def close(self) -> None:
         self._update_faults(self._fault_bits())   # before the feed stops on purpose
@@ -726,75 +420,9 @@ class LegRuntime:
         if self.json_log is not None:
             self.json_log.flush()
 
-    # -- message builders (device.pi.runtime.protocol) ---------------------------------
-    def proto_surface(self, class_id, probs, contact, slip, slip_conf, dir_deg, mag_px,
-                      pressure, pins, faults, texture_id=None):
-        return surface_message(self.proto, class_id, probs, contact, slip, slip_conf, dir_deg,
-                               mag_px, pressure, pins, faults, texture_id)
-
-    def proto_fault(self, bits: int, raised: int = 0):
-        return fault_message(self.proto, bits, raised, self._pins_lost)
-
-    def proto_heartbeat(self):
-        return heartbeat_message(self.proto, self)
-
-    def proto_imu(self, mean, peak_g, samples, faults):
-        return imu_message(self.proto, mean, peak_g, samples, faults)
-
-
-# ---------------------------------------------------------------------------
-# The protocol's messages (field names of device.pi.runtime.protocol)
-# ---------------------------------------------------------------------------
-
-def _cpu_temp_c() -> int:
-    try:
-        with open("/sys/class/thermal/thermal_zone0/temp") as fh:
-            return int(round(int(fh.read().strip()) / 1000.0))
-    except (OSError, ValueError):
-        return -128
-
-
-def surface_message(p, class_id, probs, contact, slip, slip_conf, dir_deg, mag_px, pressure,
-                    pins, faults, texture_id=None):
-    return p.Surface(class_id=int(class_id), probs=tuple(float(x) for x in probs),
-                     contact=bool(contact), slip=bool(slip), slip_conf=float(slip_conf),
-                     shear_dir_deg=float(dir_deg), shear_px=float(mag_px),
-                     load_n=0.0 if pressure is None else float(pressure), pins=int(pins),
-                     faults=int(faults) & 0xFFFF,
-                     texture_id=p.TEXTURE_NONE if texture_id is None else int(texture_id))
-
-
-def fault_message(p, bits, raised=0, pins_lost=0):
-    return p.Fault(faults=int(bits) & 0xFFFF, raised=int(raised) & 0xFFFF,
-                   pins_lost=int(pins_lost))
-
-
-def heartbeat_message(p, rt):
-    return p.Heartbeat(uptime_s=int(rt.clock() - rt._t0), rate_fps=float(rt.fps),
-                       frames_dropped=min(int(rt.writer.packets_dropped), 0xFFFF),
-                       temp_c=_cpu_temp_c(), faults=int(rt.faults) & 0xFFFF)
-
-
-def imu_message(p, mean, peak_g, samples, faults):
-    return p.ImuSummary(acc_mg=tuple(float(x) * 1000.0 for x in mean[:3]),
-                        gyro_dps=tuple(float(x) for x in mean[3:6]),
-                        acc_peak_mg=float(peak_g) * 1000.0, samples=min(int(samples), 255),
-                        faults=int(faults) & 0xFFFF)
-
-
-def gait_from_message(msg, t: float) -> Gait:
-    v = msg.vel_mm_s
-    vel = math.hypot(_finite(v[0]), _finite(v[1])) if len(v) >= 2 else abs(_finite(v[0]))
-    return Gait(stance=int(msg.phase) == 0, load_n=max(0.0, _finite(msg.load_n)),
-                vel_mm_s=vel, t=t)
-
-
-def command_op(msg) -> str:
-    return {1: "rezero", 2: "rate", 3: "status"}.get(int(msg.command), "unknown")
-
-
-def command_value(msg):
-    return msg.arg
+    def _heartbeat(self) -> P.Heartbeat:
+        return heartbeat_message(self.clock() - self._t0, self.fps,
+                                 self.writer.packets_dropped, self.faults)
 
 
 # ---------------------------------------------------------------------------
@@ -807,16 +435,6 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
                   float_models: bool = False, port=None, notify=None) -> LegRuntime:
     """A runtime from the command line's strings; StartupError (exit 2) for a bad
     config, model, source or port."""
-    from device.config import ConfigError
-    from device.pi.models.artefact import ModelError
-    from device.pi.sources.camera import CameraError, open_camera
-    from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
-    from device.pi.runtime.config import load_leg_config
-    from device.pi.runtime.link import LinkError, open_port
-
-    import sys
-
-    import cv2
     cv2.setNumThreads(1)              # one thread for the work (ONNX Runtime: intra_op 1)
     sys.setswitchinterval(0.001)      # hand a grabbed frame to the loop without a 5 ms wait
     try:
@@ -828,7 +446,6 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
             raise StartupError(f"--fps must be a number 1..1000, got {fps!r}")
         cfg.camera.fps = float(fps)
     try:
-        from device.profile import load_pipeline_profile
         load_pipeline_profile(cfg.models.profile)
     except Exception as exc:
         raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
@@ -904,5 +521,4 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
 
 
 def _layout_pins(profile: str) -> int:
-    from device.pi.vision.layout import layout_for_profile
     return int(len(layout_for_profile(profile)))

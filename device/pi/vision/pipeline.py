@@ -2,7 +2,9 @@
 
 frames -> ROI (dome) -> adaptive threshold, glare-blob removal -> pin centroids
 -> reference frame -> tracking to per-pin vectors (and the fixed-count
-localiser) -> contact grid -> average vector, magnitude sum, pressure.
+localiser, when one is given) -> contact grid -> average vector, magnitude sum.
+The fault bits are device.pi.faults'. Pressure is not a per-frame feature: a pressure
+model reads its own window (device.pi.models.regressor.Regressor.predict_window).
 
 The Pi runtime and the host (``host analyse``, training) use this one class; no
 stage is written twice. Nothing on the per-frame path raises: a bad frame gives
@@ -16,10 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED,  # noqa: F401
-                              FAULT_LOCALISER, FAULT_NAMES, FAULT_NO_DOME, FAULT_NO_REFERENCE,
-                              FAULT_TOO_FEW_PINS, fault_names)
-from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum, vector_features
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_LOCALISER,
+                              FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
+from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.tracking import Tracker, match_pins
 from device.pi.vision.extract import PinDetector, find_dome, to_gray
@@ -40,7 +41,6 @@ class FrameFeatures:
     shear_y: float
     magnitude: float              # |average vector|, px
     magnitude_sum: float          # P, the sum of |v_i|, px
-    pressure: float | None        # from the pressure regressor, if one is loaded
     localised: np.ndarray | None  # (N, 2) fixed-count pins, if a localiser is loaded
     faults: int
     timings_ms: dict = field(default_factory=dict)
@@ -57,7 +57,6 @@ class FrameFeatures:
                 "contact": self.contact, "shear_x": round(self.shear_x, 4),
                 "shear_y": round(self.shear_y, 4), "magnitude": round(self.magnitude, 4),
                 "magnitude_sum": round(self.magnitude_sum, 3),
-                "pressure": None if self.pressure is None else round(self.pressure, 5),
                 "faults": fault_names(self.faults),
                 "timings_ms": {k: round(v, 4) for k, v in self.timings_ms.items()}}
 
@@ -72,11 +71,10 @@ class MarkerStream:
     """
 
     def __init__(self, profile: PipelineProfile | str = "roboskin", localiser=None,
-                 pressure=None, warmup: int = 5, still_px: float = 0.75):
+                 warmup: int = 5, still_px: float = 0.75):
         self.profile = (profile if isinstance(profile, PipelineProfile)
                         else load_pipeline_profile(profile))
         self.localiser = localiser
-        self.pressure_model = pressure
         self.warmup = max(1, int(warmup))
         self.still_px = float(still_px)
         p = self.profile
@@ -201,17 +199,14 @@ class MarkerStream:
         mean_mag = msum / n_valid if n_valid else 0.0
         contact = bool(self.reference is not None
                        and (grid_contact or mean_mag > self.profile.contact_px))
-        pressure = None
-        if self.pressure_model is not None and self.reference is not None:
-            pressure = self.pressure_model.predict_one(vector_features(vectors, lost))
         timings["features"] = (clock() - t5) * 1e3
         timings["total"] = (clock() - t0) * 1e3
         return FrameFeatures(i, t_s, pins, vectors, lost, grid, contact, sx, sy,
-                             math.hypot(sx, sy), msum, pressure, localised, faults, timings)
+                             math.hypot(sx, sy), msum, localised, faults, timings)
 
     def _empty(self, i, t_s, faults, timings) -> FrameFeatures:
         g = self.grid.update(None)[0]
         m = 0 if self.reference is None else len(self.reference)
         return FrameFeatures(i, t_s, self._empty2, np.zeros((m, 2), np.float32),
-                             np.ones(m, bool), g, False, 0.0, 0.0, 0.0, 0.0, None, None,
+                             np.ones(m, bool), g, False, 0.0, 0.0, 0.0, 0.0, None,
                              faults, timings)

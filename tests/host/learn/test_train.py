@@ -15,7 +15,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError, sha256_file
-from device.pi.models.classifier import Classifier, clean_probabilities, sigmoid, softmax
+from device.pi.models.classifier import Classifier, clean_probabilities
+from device.pi.numerics import sigmoid, softmax
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import RuleClassifier
 from device.pi.models.window import RollingWindow, encode_vectors

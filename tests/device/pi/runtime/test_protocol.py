@@ -271,9 +271,9 @@ def test_encode_frame_errors_name_the_field():
         P.encode_frame(1, bytes(60), 0, 0)
 
 
-def test_pipeline_fault_bits_are_the_same_values():
-    from device.pi.vision import pipeline
-    for bit, name in pipeline.FAULT_NAMES.items():
+def test_protocol_fault_bits_are_the_one_table():
+    from device.pi import faults
+    for bit, name in faults.FAULT_NAMES.items():
         assert P.FAULT_NAMES[bit] == name
     assert P.fault_names(P.FAULT_CAMERA | P.FAULT_NO_DOME) == ["no_dome", "camera"]
 

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision.pipeline import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_NO_DOME,
-                                FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, MarkerStream,
-                                fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_LOCALISER,
+                              FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
+from device.pi.vision.pipeline import MarkerStream
 from host.analysis.pipeline_eval import evaluate_scene, evaluate_sim, farneback_direction_check
 
 # -- simulated scenes with ground truth ---------------------------------------------
@@ -114,7 +114,8 @@ def _check_finite(out):
         assert math.isfinite(v)
     assert np.isfinite(out.pins).all() and np.isfinite(out.vectors).all()
     assert np.isfinite(out.grid).all()
-    assert out.pressure is None or math.isfinite(out.pressure)
+    line = out.summary()
+    assert all(math.isfinite(v) for v in line.values() if isinstance(v, float))
 
 
 @pytest.mark.parametrize("kind", ["black", "white", "saturated", "noise"])
@@ -201,3 +202,29 @@ def test_any_frame_sequence_stays_finite(h, w, seed, level, mode):
             for _ in range(20):
                 cv2.circle(f, (int(rng.integers(0, w)), int(rng.integers(0, h))), 2, 220, -1)
         _check_finite(s.process(f, t_s=float(k) if k != 2 else float("nan")))
+
+
+class SpyLocaliser:
+    """A fixed-count localiser stand-in: counts its calls, reports a bad fit on
+    every other one."""
+
+    def __init__(self, n_pins=5):
+        self.calls = 0
+        self.n_pins = n_pins
+
+    def locate(self, binary, dome, box=None):
+        self.calls += 1
+        return np.zeros((self.n_pins, 2), np.float32), self.calls % 2 == 0
+
+
+def test_localiser_runs_on_every_frame_when_given_and_raises_its_fault():
+    from device.sim import Simulator, load_scene
+    sim = Simulator(load_scene("no-touch"))
+    loc = SpyLocaliser()
+    s = MarkerStream("roboskin", localiser=loc)
+    outs = [s.process(sim.render(i)) for i in range(4)]
+    assert loc.calls == 4
+    assert all(o.localised is not None and o.localised.shape == (5, 2) for o in outs)
+    assert [bool(o.faults & FAULT_LOCALISER) for o in outs] == [False, True, False, True]
+    plain = MarkerStream("roboskin").process(sim.render(0))
+    assert plain.localised is None and not plain.faults & FAULT_LOCALISER

@@ -1,0 +1,152 @@
+"""The leg runtime's decisions: surface class, slip and texture from the rolling
+windows, with the gait context the MCU sends.
+
+The rule classifier always runs (it sees the gait context: the load and the foot
+motion the gait expects). A learned surface model, when loaded, makes the call; with
+a fresh gait context the rule's probabilities are blended in with the weight
+``decision.gait_rule_weight``, as the learned model cannot see the gait. Slip comes
+from a slip model, else from the rule's ``slippery`` probability. A texture is only
+decided in contact. Probabilities are in the SURFACE class order
+(:data:`device.pi.runtime.protocol.SURFACE_CLASSES`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from device.pi.models.rules import RuleClassifier
+from device.pi.runtime.config import DecisionConfig
+from device.pi.runtime.protocol import PHASE_STANCE, SURFACE_CLASSES
+
+NO_TOUCH = SURFACE_CLASSES.index("no-touch")
+SLIPPERY = SURFACE_CLASSES.index("slippery")
+#: the slip flag is set in contact from this slip confidence on
+SLIP_THRESHOLD = 0.5
+
+
+@dataclass
+class GaitContext:
+    """The MCU's latest gait context (t = clock time it arrived)."""
+    stance: bool
+    load_n: float
+    vel_mm_s: float
+    t: float
+
+
+def finite_float(x, default: float = 0.0) -> float:
+    """``x`` as a float, or ``default`` when it is not a finite number."""
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return default
+    return x if math.isfinite(x) else default
+
+
+def gait_from_message(msg, t: float) -> GaitContext:
+    """The gait context of a GAIT message (device.pi.runtime.protocol.Gait): the
+    foot's expected speed is the length of its horizontal velocity."""
+    v = msg.vel_mm_s
+    vel = (math.hypot(finite_float(v[0]), finite_float(v[1])) if len(v) >= 2
+           else abs(finite_float(v[0])))
+    return GaitContext(stance=int(msg.phase) == PHASE_STANCE,
+                       load_n=max(0.0, finite_float(msg.load_n)), vel_mm_s=vel, t=t)
+
+
+def expected_context(gait: GaitContext | None, now: float, dc: DecisionConfig, fps: float):
+    """(expected_mag_px, expected_motion_px, gait dict | None) from a gait context
+    fresher than ``dc.gait_timeout_ms``, or (None, None, None): the rule's nominal
+    values."""
+    if gait is None or (now - gait.t) * 1e3 > dc.gait_timeout_ms:
+        return None, None, None
+    load = gait.load_n if gait.stance else 0.0
+    mag = max(0.0, load) * dc.mag_px_per_n
+    motion = abs(gait.vel_mm_s) * dc.motion_px_per_mm / fps if gait.stance else 0.0
+    return mag, motion, {"stance": gait.stance, "load_n": round(gait.load_n, 3),
+                         "vel_mm_s": round(gait.vel_mm_s, 3)}
+
+
+def no_touch_probs() -> np.ndarray:
+    """All the probability on no-touch: the call before the rule's window is full."""
+    p = np.zeros(len(SURFACE_CLASSES))
+    p[NO_TOUCH] = 1.0
+    return p
+
+
+def surface_probs_of_model(classes, p) -> np.ndarray:
+    """A learned surface model's probabilities, listed in its manifest's class order,
+    as SURFACE class ids (classes it does not know get 0; renormalised, uniform when
+    nothing is left)."""
+    out = np.zeros(len(SURFACE_CLASSES))
+    for c, x in zip(classes, p):
+        if c in SURFACE_CLASSES:
+            out[SURFACE_CLASSES.index(c)] = x
+    s = out.sum()
+    return out / s if s > 0 else np.full(len(SURFACE_CLASSES), 1.0 / len(SURFACE_CLASSES))
+
+
+@dataclass
+class Decision:
+    class_id: int
+    probs: np.ndarray                 # SURFACE class order
+    contact: bool
+    slip: bool
+    slip_conf: float
+    texture: tuple | None             # (name, confidence, id)
+    pressure: float | None
+    model_fault: bool
+    model_probs: np.ndarray | None    # the learned surface model's, when it ran
+    rule_probs: np.ndarray
+    measures: dict                    # the rule's window measures ({} before it ran)
+
+
+def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
+           expected_mag_px, expected_motion_px, gait, gait_rule_weight: float) -> Decision:
+    """One decision from the filled windows (``windows[T]`` holds T frames).
+    ``contact_seen`` is the marker pipeline's contact; ``referenced`` says the
+    pipeline has a reference frame (no pressure without one)."""
+    m = models
+    model_fault = False
+    rwin = windows[m.rule.T]
+    probs_rule = None
+    if rwin.full:
+        _, probs_rule = m.rule.predict(rwin.encode("vectors"), expected_mag_px=expected_mag_px,
+                                       expected_motion_px=expected_motion_px)
+    rule_probs = no_touch_probs() if probs_rule is None else probs_rule
+    surface = rule_probs
+    model_probs = None
+    if m.surface is not None and m.surface is not m.rule:
+        w = windows[m.surface.T]
+        if w.full:
+            _, p = m.surface.predict_window(w)
+            surface = model_probs = surface_probs_of_model(m.surface.classes, p)
+            model_fault |= bool(m.surface.fault)
+            wr = gait_rule_weight
+            if gait is not None and probs_rule is not None and wr > 0:
+                surface = (1.0 - wr) * model_probs + wr * rule_probs
+    texture = None
+    if m.texture is not None and contact_seen and windows[m.texture.T].full:
+        tid, tp = m.texture.predict_window(windows[m.texture.T])
+        texture = (m.texture.classes[tid], float(tp[tid]), tid)
+        model_fault |= bool(m.texture.fault)
+    measures = m.rule.last if rwin.full else {}
+    slip_conf = 0.0
+    if m.slip is not None and windows[m.slip.T].full:
+        ctx = ({"expected_mag_px": expected_mag_px, "expected_motion_px": expected_motion_px}
+               if isinstance(m.slip, RuleClassifier) else {})
+        sid, sp = m.slip.predict_window(windows[m.slip.T], **ctx)
+        slip_conf = (float(sp[list(m.slip.classes).index("slip")]) if "slip" in m.slip.classes
+                     else float(sp[sid]))
+        model_fault |= bool(m.slip.fault)
+    elif probs_rule is not None:
+        slip_conf = float(probs_rule[SLIPPERY])
+    pressure = None
+    if m.pressure is not None and referenced:
+        pressure = m.pressure.predict_window(windows[m.pressure.T])
+        model_fault |= pressure is not None and bool(m.pressure.fault)
+    class_id = int(np.argmax(surface))
+    contact = bool(contact_seen) and class_id != NO_TOUCH
+    slip = contact and slip_conf >= SLIP_THRESHOLD
+    return Decision(class_id, surface, contact, slip, slip_conf, texture, pressure,
+                    model_fault, model_probs, rule_probs, measures)

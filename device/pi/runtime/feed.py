@@ -1,0 +1,120 @@
+"""The camera feed: frames from a camera source on a grab thread, with reopen and
+backoff, so a camera that blocks or vanishes cannot stall the leg runtime's loop."""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+
+class CameraFeed:
+    """Frames from a camera factory on a grab thread.
+
+    ``lossless`` (files and sim://): every frame is handed over in order (the grab
+    thread waits for the loop). Otherwise (live cameras) only the newest frame is
+    kept. A source that raises is closed and reopened with a backoff doubling from
+    ``reopen_min_s`` to ``reopen_max_s``; the thread never gives up. ``read()``
+    returning None ends a finite stream (``eof``)."""
+
+    def __init__(self, factory, *, lossless: bool, reopen_min_s: float = 0.1,
+                 reopen_max_s: float = 2.0, first=None, clock=time.monotonic):
+        self.factory = factory
+        self.lossless = lossless
+        self.min_s, self.max_s = reopen_min_s, reopen_max_s
+        self.clock = clock
+        self._q: queue.Queue = queue.Queue(maxsize=1)
+        self._stop = threading.Event()
+        self._reopen = threading.Event()
+        self._cam = first
+        self.opens = 1 if first is not None else 0
+        self.errors = 0
+        self.last_error = ""
+        self.eof = False
+        self.opened_at = clock() if first is not None else None
+        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def _put(self, item) -> None:
+        if self.lossless:
+            while not self._stop.is_set():
+                try:
+                    self._q.put(item, timeout=0.05)
+                    return
+                except queue.Full:
+                    continue
+        else:
+            try:
+                self._q.get_nowait()          # drop the older frame: newest only
+            except queue.Empty:
+                pass
+            try:
+                self._q.put_nowait(item)
+            except queue.Full:
+                pass
+
+    def _run(self) -> None:
+        backoff = self.min_s
+        while not self._stop.is_set():
+            if self._reopen.is_set():
+                self._reopen.clear()
+                self._close_cam()
+            if self._cam is None:
+                try:
+                    self._cam = self.factory()
+                    self.opens += 1
+                    self.opened_at = self.clock()
+                    backoff = self.min_s
+                except Exception as exc:        # CameraError, OSError, driver errors
+                    self.errors += 1
+                    self.last_error = str(exc)
+                    self._stop.wait(backoff)
+                    backoff = min(self.max_s, max(backoff * 2, 1e-3))
+                    continue
+            try:
+                fr = self._cam.read()
+            except Exception as exc:            # unplugged: close, reopen with backoff
+                self.errors += 1
+                self.last_error = str(exc)
+                self._close_cam()
+                self._stop.wait(backoff)
+                backoff = min(self.max_s, max(backoff * 2, 1e-3))
+                continue
+            if fr is None:
+                self.eof = True
+                self._put(None)
+                return
+            self._put((fr, self.clock()))
+
+    def _close_cam(self) -> None:
+        cam, self._cam = self._cam, None
+        if cam is not None:
+            try:
+                cam.close()
+            except Exception:
+                pass
+
+    def get(self, timeout: float):
+        """(Frame, t_available) or None (no frame within ``timeout``), or the string
+        "eof" at the end of a finite stream."""
+        try:
+            item = self._q.get(timeout=max(timeout, 0.0)) if timeout > 0 else self._q.get_nowait()
+        except queue.Empty:
+            return None
+        return "eof" if item is None else item
+
+    def reopen(self) -> None:
+        """Ask for a reopen (e.g. a new frame rate); done on the grab thread before
+        its next grab."""
+        self._reopen.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        try:
+            self._q.get_nowait()
+        except queue.Empty:
+            pass
+        self._thread.join(timeout=2.0)
+        self._close_cam()

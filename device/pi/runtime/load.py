@@ -1,0 +1,108 @@
+"""The leg runtime's model set: every model in the models folder, loaded once and
+checked against the pin layout before the loop starts."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from device.pi.models.artefact import ModelError, manifest_for
+from device.pi.models.classifier import Classifier
+from device.pi.models.regressor import Regressor
+from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
+from device.pi.models.window import RollingWindow
+from device.pi.runtime.config import LegConfig
+from device.pi.vision.localiser import Localiser
+
+#: the classifier tasks, each loaded from the folder of that name
+CLASSIFIER_TASKS = ("surface", "texture", "slip")
+
+
+@dataclass
+class Models:
+    surface: object | None = None       # Classifier or RuleClassifier
+    texture: object | None = None
+    slip: object | None = None
+    pressure: object | None = None
+    localiser: object | None = None     # only with models.localiser = true
+    rule: object | None = None          # the rule classifier (always present)
+    loaded: tuple = ()
+
+
+def default_models_dir() -> Path:
+    return Path(__file__).resolve().parents[3] / "models"
+
+
+def rule_from_config(cfg: LegConfig, n_pins: int) -> RuleClassifier:
+    """The surface rule with the config's nominal gait context, in the SURFACE class
+    order."""
+    dc = cfg.decision
+    rule = {"contact_px": 1.0, "expected_mag_px": dc.nominal_load_n * dc.mag_px_per_n,
+            "soft_ratio": 0.6,
+            "expected_motion_px": dc.nominal_speed_mm_s * dc.motion_px_per_mm / cfg.camera.fps,
+            "wet_ratio": 0.3}
+    return RuleClassifier(rule, SURFACE_CLASSES, cfg.models.window_T, n_pins)
+
+
+def _pick_localiser(folder: Path, profile: str) -> Path | None:
+    locs = sorted(p for p in folder.glob("localiser*") if p.is_dir())
+    if not locs:
+        return None
+    return next((p for p in locs if p.name == f"localiser-{profile}"), locs[0])
+
+
+def _check_inputs(m: Models, n_pins: int) -> None:
+    """Each learned model's input size against the window it will be given."""
+    for name in ("surface", "texture", "slip", "pressure"):
+        mod = getattr(m, name)
+        if mod is None or isinstance(mod, RuleClassifier):
+            continue
+        man = mod.model.manifest
+        T = int(man.get("T", getattr(mod, "T", 1)))
+        layout = man.get("input_layout", "vectors")
+        try:
+            x = RollingWindow(T, n_pins).encode(layout, with_imu=bool(man.get("uses_imu")))
+        except ValueError as exc:
+            raise ModelError(f"{mod.model.path / 'manifest.json'}: {exc}") from None
+        if x.size != mod.n_features:
+            raise ModelError(f"{mod.model.path / 'manifest.json'}: the model takes "
+                             f"{mod.n_features} inputs, but a {layout} window of T={T} over "
+                             f"the {n_pins}-pin layout gives {x.size}")
+
+
+def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int,
+                cfg: LegConfig) -> Models:
+    """Every model present in ``models_dir`` (surface, texture, slip, pressure, and
+    the localiser when ``cfg.models.localiser``), loaded once. Raises ModelError
+    naming the file for a bad one."""
+    m = Models()
+    loaded = []
+    d = Path(models_dir) if models_dir is not None else default_models_dir()
+    if models_dir is not None and not d.is_dir():
+        raise ModelError(f"{d}: models folder not found")
+    if d.is_dir():
+        for kind in CLASSIFIER_TASKS:
+            f = d / kind
+            if (f / "manifest.json").is_file() or (f.is_dir() and any(f.iterdir())):
+                setattr(m, kind, Classifier.load(manifest_for(f, variant), expect_kind=kind))
+                loaded.append(kind)
+        f = d / "pressure"
+        if f.is_dir():
+            m.pressure = Regressor.load(manifest_for(f, variant))
+            loaded.append("pressure")
+        pick = _pick_localiser(d, cfg.models.profile) if cfg.models.localiser else None
+        if pick is not None:
+            m.localiser = Localiser.load(pick)
+            loaded.append(pick.name)
+    s = m.surface
+    if isinstance(s, RuleClassifier) and list(s.classes) == list(SURFACE_CLASSES):
+        m.rule = s
+    elif isinstance(s, RuleClassifier):
+        # a rule file listing its classes in another order: the same thresholds,
+        # evaluated in the SURFACE class order
+        m.rule = m.surface = RuleClassifier(s.rule, SURFACE_CLASSES, s.T, s.n_pins,
+                                            manifest=s.manifest, path=s.path)
+    else:
+        m.rule = rule_from_config(cfg, profile_n_pins)
+    _check_inputs(m, profile_n_pins)
+    m.loaded = tuple(loaded)
+    return m
