@@ -73,3 +73,18 @@ def test_missing_and_garbled_manifest(tmp_path):
     (tmp_path / "manifest.json").write_text("{nope")
     with pytest.raises(ModelError, match="corrupt manifest"):
         load_model(tmp_path)
+
+
+def test_manifest_for_picks_int8_by_default_and_float_when_there_is_one(tmp_path):
+    from device.pi.models.artefact import FLOAT_MANIFEST, MANIFEST, manifest_for
+    (tmp_path / MANIFEST).write_text("{}")
+    assert manifest_for(tmp_path, "int8") == tmp_path / MANIFEST
+    assert manifest_for(tmp_path, "float") == tmp_path / MANIFEST       # not quantised
+    (tmp_path / FLOAT_MANIFEST).write_text("{}")
+    assert manifest_for(tmp_path, "float") == tmp_path / FLOAT_MANIFEST
+    assert manifest_for(tmp_path, "int8") == tmp_path / MANIFEST
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert manifest_for(empty, "int8") == empty                         # the loader names it
+    with pytest.raises(ValueError, match="variant"):
+        manifest_for(tmp_path, "int4")

@@ -26,6 +26,8 @@ def test_empty_file_takes_defaults_and_values_are_read(tmp_path):
     cfg = load_leg_config(p)
     assert (cfg.camera.fps, cfg.camera.fourcc, cfg.rezero.auto,
             cfg.decision.mag_px_per_n) == (90.0, "YUYV", False, 1.5)
+    assert cfg.models.localiser is False                   # the localiser is off by default
+    assert parse_leg_config({"models": {"localiser": True}}).models.localiser is True
 
 
 @pytest.mark.parametrize("text, key, value", [
@@ -37,6 +39,7 @@ def test_empty_file_takes_defaults_and_values_are_read(tmp_path):
     ('[models]\nvariant = "int4"\n', "models.variant", "int4"),
     ("[decision]\nmag_px_per_n = 0\n", "decision.mag_px_per_n", "0"),
     ("[rezero]\nauto = 1\n", "rezero.auto", "1"),
+    ('[models]\nlocaliser = "yes"\n', "models.localiser", "yes"),
     ("[status]\ninterval_s = 5\n", "status.interval_s", "5"),
     ("[camera]\nfsp = 120\n", "camera.fsp", "120"),           # a typo is not ignored
     ("[cameras]\nfps = 120\n", "cameras", "fps"),

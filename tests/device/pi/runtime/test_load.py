@@ -1,0 +1,111 @@
+"""Loading the leg runtime's model set (device/pi/runtime/load.py): the rule in the
+SURFACE class order, the localiser only when the config asks for it, and a runtime
+that calls the localiser only then."""
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from device.pi.models.artefact import ModelError
+from device.pi.runtime import protocol as P
+from device.pi.runtime.config import LegConfig, parse_leg_config
+from device.pi.runtime.load import default_models_dir, load_models, rule_from_config
+from device.pi.runtime.loop import LegRuntime
+from device.pi.sources.camera import open_camera
+
+SHIPPED_LOCALISER = default_models_dir() / "localiser-roboskin"
+
+
+@pytest.fixture(scope="module")
+def localiser_dir(tmp_path_factory):
+    """A models folder holding only the shipped roboskin localiser."""
+    if not (SHIPPED_LOCALISER / "manifest.json").is_file():
+        pytest.skip("no shipped localiser-roboskin model")
+    d = tmp_path_factory.mktemp("models")
+    shutil.copytree(SHIPPED_LOCALISER, d / "localiser-roboskin")
+    return d
+
+
+class NullPort:
+    in_waiting = 0
+
+    def write(self, data):
+        return len(data)
+
+    def read(self, n):
+        return b""
+
+
+class NullImu:
+    def read(self, out):
+        out[:] = 0
+        return out, 0
+
+
+def _runtime(models_dir, cfg, frames=12):
+    models = load_models(models_dir, "int8", 133, cfg)
+    rt = LegRuntime(cfg, lambda: open_camera("sim://press-hard"), NullImu(), NullPort(), models,
+                    lossless=True, fps=120.0, notify=lambda s: None, max_frames=frames)
+    return rt, models
+
+
+def test_an_empty_folder_gives_the_rule_alone_in_the_surface_class_order(tmp_path):
+    m = load_models(tmp_path, "int8", 133, LegConfig())
+    assert m.surface is None and m.localiser is None and m.loaded == ()
+    assert list(m.rule.classes) == list(P.SURFACE_CLASSES)
+    assert m.rule.T == LegConfig().models.window_T and m.rule.n_pins == 133
+
+
+def test_rule_from_config_takes_the_nominal_gait_context():
+    cfg = LegConfig()
+    rule = rule_from_config(cfg, 133).rule
+    dc = cfg.decision
+    assert rule["expected_mag_px"] == pytest.approx(dc.nominal_load_n * dc.mag_px_per_n)
+    assert rule["expected_motion_px"] == pytest.approx(
+        dc.nominal_speed_mm_s * dc.motion_px_per_mm / cfg.camera.fps)
+
+
+def test_a_missing_folder_names_it(tmp_path):
+    with pytest.raises(ModelError, match="models folder not found"):
+        load_models(tmp_path / "nope", "int8", 133, LegConfig())
+
+
+def test_localiser_is_off_by_default_and_loaded_when_asked(localiser_dir):
+    off = load_models(localiser_dir, "int8", 133, LegConfig())
+    assert off.localiser is None and "localiser-roboskin" not in off.loaded
+    cfg = parse_leg_config({"models": {"localiser": True}})
+    on = load_models(localiser_dir, "int8", 133, cfg)
+    assert on.localiser is not None and on.loaded == ("localiser-roboskin",)
+
+
+def _count_locate_calls(rt):
+    calls = []
+    loc = rt.stream.localiser
+    if loc is not None:
+        real = loc.locate
+
+        def spy(*a, **kw):
+            calls.append(time.monotonic())
+            return real(*a, **kw)
+        loc.locate = spy
+    rt.run()
+    return calls
+
+
+def test_runtime_does_not_run_the_localiser_by_default(localiser_dir):
+    rt, _ = _runtime(localiser_dir, LegConfig())
+    calls = _count_locate_calls(rt)
+    assert rt.frames == 12 and rt.stream.localiser is None and calls == []
+    assert "localiser-roboskin" not in rt.status()["models"]
+
+
+def test_runtime_runs_the_localiser_on_every_frame_when_asked(localiser_dir):
+    cfg = parse_leg_config({"models": {"localiser": True}})
+    rt, models = _runtime(localiser_dir, cfg)
+    calls = _count_locate_calls(rt)
+    assert rt.stream.localiser is models.localiser
+    assert rt.frames == 12 and len(calls) == 12
+    assert np.isfinite(rt.latencies_ms).all()
