@@ -12,8 +12,8 @@ from typing import Iterable
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams
-from device.pi.vision.tracking import mutual_match
-from host.analysis.frames import finite, frame_list, locate_dome, nearest_neighbour_px, stat
+from device.pi.vision.tracking import Tracker
+from host.analysis.frames import finite, frame_list, locate_dome, stat
 
 __all__ = ["track_pins", "measure_drag_displacement"]
 
@@ -24,19 +24,14 @@ def track_pins(
     dome: tuple[float, float, float] | None = None,
     max_jump_px: float | None = None,
 ) -> dict:
-    """Nearest-neighbour pin tracking from the first frame.
+    """Pin tracking from the first frame with the Pi's tracker.
 
-    Each frame: the tracked positions are moved by the field's last motion
-    (constant velocity), matched mutual-nearest within ``max_jump_px``
-    (default half the median pin spacing) to estimate the remaining common
-    shift, shifted, and matched again within 0.6 ``max_jump_px``. If the rest
-    layout (first frame) explains more pins than that, the skin has sprung
-    back and the rest layout is taken. A pin whose displacement differs from
-    the median of its 8 layout neighbours by more than ``max_jump_px`` has
-    jumped to the next pin: it is put back with its neighbours and counted as
-    unmatched. Unmatched pins move with the field and are re-acquired later.
-    Checked on the real clips against dense optical flow (DIS): per-frame
-    correlation 0.98-0.99.
+    The first frame's pins are the reference of a
+    :class:`device.pi.vision.tracking.Tracker` (gate ``max_jump_px``, default
+    0.4 times the reference's pin pitch), which follows them frame to frame
+    (constant-velocity prediction, one-to-one matching, neighbour prediction
+    for lost pins, coarse re-acquisition after a jump). Lost pins keep their
+    predicted position and are counted as unmatched.
 
     Returns ``ref_xy`` (n,2), ``xy`` (T,n,2) tracked positions, ``matched``
     (T,n) bool, and ``dome``.
@@ -55,50 +50,13 @@ def track_pins(
     matched[0] = True
     if n == 0:
         return {"ref_xy": ref, "xy": xy, "matched": matched, "dome": dome}
-    if max_jump_px is None:
-        nn = nearest_neighbour_px(ref)
-        spacing = float(np.median(nn)) if nn.size else 10.0
-        max_jump_px = 0.5 * spacing
-    # neighbours in the reference layout, for the consistency check
-    k = int(min(max(n - 1, 0), 8))
-    if k > 0:
-        d2 = ((ref[:, None, :] - ref[None, :, :]) ** 2).sum(-1)
-        np.fill_diagonal(d2, np.inf)
-        nbr = np.argsort(d2, axis=1)[:, :k]
-    cur = ref.copy()
-    vel = np.zeros(2)  # median motion of the pin field over the last frame
+    tracker = Tracker(max_dist_px=max_jump_px)
+    tracker.set_reference(ref)
     for t in range(1, T):
         found, _ = det.detect(fl[t])
-        found = found.astype(np.float64)
-        # pass 1: constant-velocity prediction, loose gate, to find the field's motion
-        pred = cur + vel
-        idx = mutual_match(pred, found, max_jump_px)
-        ok = idx >= 0
-        shift = np.median(found[idx[ok]] - pred[ok], axis=0) if ok.sum() >= 3 else np.zeros(2)
-        pred = pred + shift
-        # pass 2: tight gate around the corrected prediction
-        idx = mutual_match(pred, found, 0.6 * max_jump_px)
-        ok = idx >= 0
-        # snap-back: the skin often springs back to rest within a frame or two;
-        # if the rest layout explains more pins than the prediction, take it
-        idx0 = mutual_match(ref, found, 0.6 * max_jump_px)
-        if np.count_nonzero(idx0 >= 0) > np.count_nonzero(ok):
-            pred, idx = ref.copy(), idx0
-            ok = idx >= 0
-        new = pred.copy()
-        new[ok] = found[idx[ok]]
-        # a pin whose displacement disagrees with its neighbours' has jumped to
-        # the next pin: put it back with its neighbourhood and drop the match
-        if k > 0 and ok.sum() >= 3:
-            disp = new - ref
-            local = np.median(disp[nbr], axis=1)
-            bad = np.hypot(*(disp - local).T) > max_jump_px
-            new[bad] = ref[bad] + local[bad]
-            ok &= ~bad
-        vel = np.median(new[ok] - cur[ok], axis=0) if ok.sum() >= 3 else vel + shift
-        cur = new
-        xy[t] = cur
-        matched[t] = ok
+        vectors, lost = tracker.update(found)
+        xy[t] = ref + vectors
+        matched[t] = ~lost
     return {"ref_xy": ref, "xy": xy, "matched": matched, "dome": dome}
 
 
