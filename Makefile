@@ -52,7 +52,7 @@ bench: $(VENV)/.installed
 # recordings for its real labels: REAL_DATA=path/to/data), then surface, texture,
 # slip and pressure from simulated trials (data cached in out/sim-data).
 models: $(VENV)/.installed
-	$(PY) -m host.localiser.train --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
+	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
 	$(PY) -m host.bench.shipped --out models --work out/sim-data --quiet
 
 clean:

@@ -8,6 +8,7 @@ import numpy as np
 
 from device.pi.vision.pipeline import MarkerStream
 from device.pi.vision.tracking import match_pins
+from host.analysis.recall import pin_hits
 
 DRAGS = tuple(f"drag-{d}" for d in range(0, 360, 45))
 PRESSES = ("press-hard", "press-soft", "press-wet")
@@ -46,13 +47,10 @@ def evaluate_scene(scene_name: str, effects=("glare", "camera_noise"), seed: int
         truth = tr["pins_px"][i]
         vis = np.flatnonzero(tr["visible"][i])
         found = out.pins
-        if len(found) and len(vis):
-            d = np.linalg.norm(found[:, None] - truth[vis][None], axis=-1)
-            near_true = d.min(axis=0)
-            near_found = d.min(axis=1)
-            hits += int((near_true <= gate_px).sum())
-            found_ok += int((near_found <= gate_px).sum())
-            cerr.extend(near_found[near_found <= gate_px].tolist())
+        truth_hit, found_hit, found_err = pin_hits(found, truth[vis], gate_px)
+        hits += int(truth_hit.sum())
+        found_ok += int(found_hit.sum())
+        cerr.extend(found_err[found_hit].tolist())
         n_true += len(vis)
         n_found += len(found)
         # identity of each reference pin = the true pin nearest to it at the reference

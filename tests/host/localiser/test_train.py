@@ -1,10 +1,9 @@
-"""Fixed-count pin localiser (issue 8, stage 6): device/pi/vision/localiser.py + host/localiser/train.py.
+"""The pin localiser trainer (host/localiser/train.py) and the artefact it writes,
+run by device/pi/vision/localiser.py.
 
-One small model is trained once per module (simulated scenes, plus the first
-300 frames of the real north.avi and east.avi when the recordings are there,
-plus a copy of north.avi's start with two deliberately corrupted frames) and
-all tests share it. The real no-contact test uses smooth.avi and concrete.avi,
-which that model never saw.
+One small model is trained once (``trained`` in conftest.py) and all tests
+share it. The real no-contact test uses smooth.avi and concrete.avi, which that
+model never saw.
 """
 
 from __future__ import annotations
@@ -28,20 +27,12 @@ from device.pi.vision.localiser import (
 )
 from device.pi.vision.extract import ROBOSKIN_PARAMS, PinDetector, find_dome
 from device.sim import Simulator, load_profile, parse_scene
-from host.localiser.train import (
-    check_labels,
-    fit_layout,
-    layout_neighbours,
-    random_scene_doc,
-    read_clip,
-    train_localiser,
-)
-from tests.realdata import DEFAULT_DIR, ENV_VAR, real_data_dir
+from host.localiser.labels import fit_layout, read_clip
+from host.localiser.sim import random_scene_doc
+from host.localiser.train import main, train_localiser
+from tests.realdata import real_data_dir
 
 N_PINS = 133
-CORRUPT_CLIP = "north-corrupted"
-CORRUPT_HALF = 30      # half of the dome painted over: pins missing
-CORRUPT_ROT = 40       # frame rotated by 15 degrees: every ring moves to wrong identities
 
 
 def _real_dir_or_none():
@@ -55,36 +46,6 @@ def _real_dir_or_none():
             return cand
     return None
 
-
-def _corrupt(frames: list[np.ndarray], dome) -> list[np.ndarray]:
-    out = [f.copy() for f in frames]
-    cx, cy, r = dome
-    # half the dome painted with the dome's own background grey: about 60 pins gone
-    f = out[CORRUPT_HALF]
-    bg = int(np.median(f[int(cy) - 5:int(cy) + 5, int(cx) - 120:int(cx) - 100]))
-    cv2.rectangle(f, (int(cx) - int(r), int(cy) - int(r)), (int(cx), int(cy) + int(r)), bg, -1)
-    # the whole image rotated about the dome centre: pins land between layout sites
-    m = cv2.getRotationMatrix2D((cx, cy), 15.0, 1.0)
-    out[CORRUPT_ROT] = cv2.warpAffine(out[CORRUPT_ROT], m, out[CORRUPT_ROT].shape[::-1],
-                                      borderMode=cv2.BORDER_REPLICATE)
-    return out
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    real_dir = _real_dir_or_none()
-    real = None
-    if real_dir is not None:
-        rb = real_dir / "roboskin"
-        north = read_clip(rb / "north.avi", limit=300)
-        east = read_clip(rb / "east.avi", limit=300)
-        dome = find_dome(north[0])
-        real = {"north": north[::2], "east": east[::2],
-                CORRUPT_CLIP: _corrupt(north[:60], dome)}
-    out = tmp_path_factory.mktemp("localiser")
-    res = train_localiser(out, real_data=real, n_sim_scenes=80, frames_per_scene=20,
-                          n_test_scenes=6, progress=False)
-    return {"res": res, "dir": out, "loc": Localiser.load(out), "real": real is not None}
 
 
 # --------------------------------------------------------------------------
@@ -196,68 +157,6 @@ def test_real_no_contact_frames(trained, clip, n_rest):
     # glare hides pins from the detector, not from the localiser: all 133 are
     # returned, and about as many lie on a blob as the best-fitting layout has
     assert np.mean(near_all) >= 0.95 * np.mean(near_layout)
-
-
-# --------------------------------------------------------------------------
-# Labels of real frames
-# --------------------------------------------------------------------------
-
-
-@pytest.mark.real
-def test_corrupted_real_frames_rejected_and_listed(trained):
-    if not trained["real"]:
-        real_data_dir("roboskin/north.avi", "roboskin/east.avi")
-    res = trained["res"]
-    rejected = res["training"]["rejected"]
-    mine = {r["frame"]: r["reason"] for r in rejected if r["clip"] == CORRUPT_CLIP}
-    assert CORRUPT_HALF in mine and "too few pins matched" in mine[CORRUPT_HALF]
-    assert CORRUPT_ROT in mine
-    # the frames around them are fine (the check is per frame, tracking recovers)
-    for t in (CORRUPT_HALF - 1, CORRUPT_HALF + 2, CORRUPT_ROT - 1, CORRUPT_ROT + 2):
-        assert t not in mine, (t, mine.get(t))
-    lab = res["training"]["real_labelled"][CORRUPT_CLIP]
-    assert lab["rejected"] == len(mine) and lab["accepted"] == 60 - len(mine)
-    # and the manifest lists the same
-    m = json.loads((trained["dir"] / "manifest.json").read_text())
-    listed = {(r["clip"], r["frame"]) for r in m["training"]["rejected"]}
-    assert (CORRUPT_CLIP, CORRUPT_HALF) in listed and (CORRUPT_CLIP, CORRUPT_ROT) in listed
-
-
-def _sim_labels():
-    sim = Simulator(parse_scene(random_scene_doc(np.random.default_rng(5))), seed=5)
-    i = int(np.flatnonzero(sim.truth["contact"])[len(np.flatnonzero(sim.truth["contact"])) // 2])
-    rest = sim.rest_pins_px.astype(np.float64)
-    return sim.truth["pins_px"][i].astype(np.float64), rest
-
-
-def test_check_labels_rejects_shuffled_and_missing():
-    lab, rest = _sim_labels()
-    nbr = layout_neighbours(rest, 6)
-    pitch = 11.7
-    n = len(lab)
-    ok = np.ones(n, bool)
-    idx = np.arange(n)
-    assert check_labels(lab, ok, idx, rest, nbr, pitch) is None
-    rng = np.random.default_rng(0)
-    # shuffled identities: 20 pins swap labels
-    sel = rng.choice(n, 20, replace=False)
-    bad = lab.copy()
-    bad[sel] = lab[rng.permutation(sel)]
-    reason = check_labels(bad, ok, idx, rest, nbr, pitch)
-    assert reason is not None and "inconsistent" in reason
-    # missing pins: 40 % unmatched
-    m = ok.copy()
-    m[rng.choice(n, int(0.4 * n), replace=False)] = False
-    reason = check_labels(lab, m, idx, rest, nbr, pitch)
-    assert reason is not None and "too few pins matched" in reason
-    # one detection assigned to two pins
-    d = idx.copy()
-    d[3] = d[4]
-    assert "duplicate" in check_labels(lab, ok, d, rest, nbr, pitch)
-    # two labels on one spot
-    c = lab.copy()
-    c[10] = c[11]
-    assert check_labels(c, ok, idx, rest, nbr, pitch) is not None
 
 
 # --------------------------------------------------------------------------
@@ -457,3 +356,10 @@ def test_train_bad_arguments_name_the_field(tmp_path, kwargs, field):
     args.update(kwargs)
     with pytest.raises(ValueError, match=field):
         train_localiser(tmp_path / "m", **args)
+
+
+def test_command_line_rejects_bad_arguments_with_exit_code_2(tmp_path, capsys):
+    rc = main(["--out", str(tmp_path / "m"), "--alpha", "-1", "--sim-scenes", "1", "--quiet"])
+    assert rc == 2
+    assert "alpha" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()

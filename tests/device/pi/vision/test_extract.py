@@ -25,13 +25,11 @@ from device.pi.vision.extract import (
     find_dome,
     to_gray,
 )
-from host.analysis.realism import (
-    fit_radial_layout,
-    measure_drag_displacement,
-    measure_glare,
-    measure_static,
-    nearest_neighbour_px,
-)
+from host.analysis.drag import measure_drag_displacement
+from host.analysis.frames import nearest_neighbour_px
+from host.analysis.glare import measure_glare
+from host.analysis.realism import measure_static
+from host.analysis.rings import fit_radial_layout
 
 try:  # tests/ may or may not become a package
     from tests.realdata import read_video, real_data_dir
