@@ -1,0 +1,132 @@
+"""``host analyse``, ``calibrate``, ``plot`` and ``realism``: recordings through the
+marker pipeline."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.vision.pipeline import STAGES, MarkerStream, fault_names
+from device.profile import load_pipeline_profile
+from host.analysis.calibrate import calibrate, write_profile
+from host.analysis.plots import load_directions, plot_directions
+from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
+from host.cli.common import (UserError, emit, load_localiser, load_regressor, open_source,
+                             progress_bar, real_data_dir)
+
+
+def cmd_analyse(args):
+    stream = MarkerStream(load_pipeline_profile(args.profile),
+                          localiser=load_localiser(args.localiser),
+                          pressure=load_regressor(args.pressure))
+    cam = open_source(args.source)
+    out = open(args.out, "w") if args.out else sys.stdout
+    n = contact = 0
+    faults: dict[str, int] = {}
+    times = {k: [] for k in STAGES + ("total",)}
+    total = getattr(cam, "n_frames", None)
+    try:
+        with cam, progress_bar(total or 0, "analyse",
+                               not args.json and args.out is not None) as bar:
+            for fr in cam:
+                f = stream.process(fr.image, fr.t_s)
+                out.write(json.dumps(f.summary()) + "\n")
+                n += 1
+                contact += f.contact
+                for name in fault_names(f.faults):
+                    faults[name] = faults.get(name, 0) + 1
+                for k in times:
+                    if k in f.timings_ms:
+                        times[k].append(f.timings_ms[k])
+                bar.update(1)
+        summary = {"summary": True, "source": args.source, "profile": stream.profile.name,
+                   "frames": n, "contact_frames": contact, "fault_frames": faults,
+                   "reference_set": stream.reference is not None,
+                   "timings_ms": {k: {"median": float(np.median(v)),
+                                      "p99": float(np.percentile(v, 99))}
+                                  for k, v in times.items() if v}}
+        out.write(json.dumps(summary) + "\n")
+    finally:
+        if out is not sys.stdout:
+            out.close()
+
+
+def cmd_plot(args):
+    try:
+        inputs = [load_directions(p) for p in args.inputs]
+    except (OSError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    out = plot_directions(inputs, args.out, title=args.title or "")
+    emit(args, {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]},
+         f"wrote {out}")
+
+
+def cmd_calibrate(args):
+    cam = open_source(args.source)
+    frames = []
+    with cam:
+        for fr in cam:
+            frames.append(fr.image.copy())
+            if len(frames) >= args.frames:
+                break
+    if not frames:
+        raise UserError(f"{args.source}: no frames to calibrate from")
+    try:
+        res = calibrate(frames, name=args.name or Path(args.out).stem)
+    except ValueError as exc:
+        raise UserError(f"{args.source}: {exc}") from None
+    res["out"] = str(write_profile(res, args.out))
+    v = res["vision"]
+    emit(args, res, f"wrote {args.out}: dome {v['dome_px']}, block {v['block']}, offset "
+                    f"{v['offset']}, pin area {v['min_area_px']}..{v['max_area_px']} px, "
+                    f"pitch {v['pitch_px']} px, {v['n_pins']} pins")
+
+
+def cmd_realism(args):
+    data = real_data_dir(args.data)
+    res = roboskin_realism(data, seed=args.seed)
+    if args.png:
+        res["png"] = side_by_side_png(data, args.png, seed=args.seed)
+    emit(args, res, realism_table(res) + ("\nall compared figures within 20%: "
+                                          f"{'yes' if res['all_within_20pct'] else 'NO'}"))
+    return 0 if res["all_within_20pct"] else 1
+
+
+def register(sub) -> None:
+    """The sub-commands analyse, calibrate, plot and realism."""
+    s = sub.add_parser("analyse", help="run the marker pipeline over a video, image folder "
+                                       "or sim://SCENE; one JSON line per frame")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--profile", default="roboskin", help="sensor profile name or .toml")
+    s.add_argument("--localiser", help="localiser model folder (ONNX + manifest)")
+    s.add_argument("--pressure", help="pressure regressor model folder")
+    s.add_argument("--out", help="write the JSON lines here instead of stdout")
+    s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
+    s.set_defaults(func=cmd_analyse)
+
+    s = sub.add_parser("calibrate", help="fit a pipeline profile from a no-contact clip")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--out", required=True, help="profile .toml to write")
+    s.add_argument("--frames", type=int, default=16, help="leading frames to use (at rest)")
+    s.add_argument("--name", help="profile name (default: the file name)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("plot", help="plots: directions (the paper's figure 5)")
+    s.add_argument("kind", choices=["directions"])
+    s.add_argument("inputs", nargs="+", help="paper-layout .npy files (trials, sensations, "
+                                             "pressures, 2) or host analyse JSON lines")
+    s.add_argument("--out", required=True, help="PNG to write")
+    s.add_argument("--title")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_plot)
+
+    s = sub.add_parser("realism", help="simulated roboskin against the real clips")
+    s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
+                                  "../shared/data)")
+    s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_realism)
