@@ -8,19 +8,58 @@ from pathlib import Path
 
 import numpy as np
 
+from device.pi.models.window import RollingWindow
+from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.pipeline import STAGES, MarkerStream, fault_names
 from device.profile import load_pipeline_profile
 from host.analysis.calibrate import calibrate, write_profile
-from host.analysis.plots import load_directions, plot_directions
+from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
 from host.cli.common import (UserError, emit, load_localiser, load_regressor, open_source,
                              progress_bar, real_data_dir)
 
 
+def _open_pipeline(args):
+    """(marker stream, frame encoder or None, window or None, pressure model or None).
+
+    With ``--pressure`` the frames go through the runtime's frame encoder into a
+    rolling window of the model's T frames, encoded as the model was trained."""
+    localiser = load_localiser(args.localiser)
+    reg = load_regressor(args.pressure)
+    if reg is None:
+        return MarkerStream(load_pipeline_profile(args.profile), localiser=localiser), \
+            None, None, None
+    encoder = FrameEncoder(args.profile, crop_px=None, localiser=localiser)
+    window = RollingWindow(reg.T, encoder.n_pins, encoder.profile.grid_n)
+    return encoder.stream, encoder, window, reg
+
+
+def _process(stream, encoder, window, reg, fr):
+    """(features, pressure or None) for one camera frame."""
+    if encoder is None:
+        return stream.process(fr.image, fr.t_s), None
+    ef = encoder.encode(fr.image, fr.t_s)
+    window.push(vectors=ef.vectors, grid=ef.grid)
+    if stream.reference is None:
+        return ef.features, None
+    return ef.features, reg.predict_window(window)
+
+
+def frame_line(f, pressure: float | None, localised: bool) -> dict:
+    """The JSON line for one frame: the pipeline's summary, the windowed pressure
+    and, with a localiser, its pins as ``localised_px`` (px, 2 decimals; null
+    on a frame the pipeline could not localise, such as one without a dome)."""
+    line = f.summary()
+    if pressure is not None:
+        line["pressure"] = round(float(pressure), 5)
+    if localised:
+        line["localised_px"] = (None if f.localised is None else
+                                np.round(np.asarray(f.localised, np.float64), 2).tolist())
+    return line
+
+
 def cmd_analyse(args):
-    stream = MarkerStream(load_pipeline_profile(args.profile),
-                          localiser=load_localiser(args.localiser),
-                          pressure=load_regressor(args.pressure))
+    stream, encoder, window, reg = _open_pipeline(args)
     cam = open_source(args.source)
     out = open(args.out, "w") if args.out else sys.stdout
     n = contact = 0
@@ -31,8 +70,8 @@ def cmd_analyse(args):
         with cam, progress_bar(total or 0, "analyse",
                                not args.json and args.out is not None) as bar:
             for fr in cam:
-                f = stream.process(fr.image, fr.t_s)
-                out.write(json.dumps(f.summary()) + "\n")
+                f, pressure = _process(stream, encoder, window, reg, fr)
+                out.write(json.dumps(frame_line(f, pressure, bool(args.localiser))) + "\n")
                 n += 1
                 contact += f.contact
                 for name in fault_names(f.faults):
@@ -54,13 +93,28 @@ def cmd_analyse(args):
 
 
 def cmd_plot(args):
+    stats = []
     try:
-        inputs = [load_directions(p) for p in args.inputs]
+        if args.compare:
+            inputs = []
+            for p in args.inputs:
+                panels, st = load_comparison(p)
+                inputs += panels
+                stats.append(st)
+        else:
+            inputs = [load_directions(p) for p in args.inputs]
     except (OSError, ValueError) as exc:
         raise UserError(str(exc)) from None
     out = plot_directions(inputs, args.out, title=args.title or "")
-    emit(args, {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]},
-         f"wrote {out}")
+    res = {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]}
+    text = f"wrote {out}"
+    if args.compare:
+        res["comparison"] = stats
+        text += "".join(f"\n{st['source']}: vectors {st['vectors_deg']} deg, localiser "
+                        f"{st['localised_deg']} deg, median |difference| "
+                        f"{st['median_abs_diff_deg']} deg over {st['compared']} frames"
+                        for st in stats)
+    emit(args, res, text)
 
 
 def cmd_calibrate(args):
@@ -120,6 +174,9 @@ def register(sub) -> None:
                                              "pressures, 2) or host analyse JSON lines")
     s.add_argument("--out", required=True, help="PNG to write")
     s.add_argument("--title")
+    s.add_argument("--compare", action="store_true",
+                   help="inputs are host analyse --localiser JSON lines: plot the tracked "
+                        "vectors' directions beside the localiser pins'")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_plot)
 
