@@ -10,13 +10,13 @@ import numpy as np
 
 from device.pi.models.window import RollingWindow
 from device.pi.vision.encoder import FrameEncoder
-from device.pi.vision.pipeline import STAGES, MarkerStream, fault_names
-from device.profile import load_pipeline_profile
+from device.pi.vision.layout import LayoutError
+from device.pi.vision.pipeline import STAGES, fault_names
 from host.analysis.calibrate import calibrate, write_profile
 from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
 from host.cli.common import (UserError, emit, load_localiser, load_regressor, open_source,
-                             progress_bar, real_data_dir)
+                             open_stream, progress_bar, real_data_dir)
 
 
 def _open_pipeline(args):
@@ -27,9 +27,11 @@ def _open_pipeline(args):
     localiser = load_localiser(args.localiser)
     reg = load_regressor(args.pressure)
     if reg is None:
-        return MarkerStream(load_pipeline_profile(args.profile), localiser=localiser), \
-            None, None, None
-    encoder = FrameEncoder(args.profile, crop_px=None, localiser=localiser)
+        return open_stream(args, localiser), None, None, None
+    try:
+        encoder = FrameEncoder(args.profile, crop_px=None, localiser=localiser)
+    except LayoutError as exc:
+        raise UserError(f"--pressure needs a profile with a pin layout: {exc}") from None
     window = RollingWindow(reg.T, encoder.n_pins, encoder.profile.grid_n)
     return encoder.stream, encoder, window, reg
 

@@ -46,7 +46,7 @@ def progress_bar(total: int, desc: str, enabled: bool = True):
 def real_data_dir(given: str | None) -> Path:
     """The real recordings folder: ``given``, $TACFOOT_REAL_DATA or ../shared/data."""
     for cand in (given, os.environ.get("TACFOOT_REAL_DATA"),
-                 Path(__file__).resolve().parents[1].parent / "shared" / "data"):
+                 Path(__file__).resolve().parents[3] / "shared" / "data"):
         if cand and Path(cand).is_dir():
             return Path(cand)
     raise UserError("real recordings not found: pass --data DIR or set TACFOOT_REAL_DATA")
@@ -68,24 +68,23 @@ def open_source(source: str):
         raise UserError(str(exc)) from None
 
 
-def load_localiser(model_dir: str | None) -> Localiser | None:
-    """The localiser in ``model_dir`` (None without one)."""
+def _load_model(load, model_dir: str | None):
     if not model_dir:
         return None
     try:
-        return Localiser.load(model_dir)
+        return load(model_dir)
     except ModelError as exc:
         raise UserError(str(exc)) from None
+
+
+def load_localiser(model_dir: str | None) -> Localiser | None:
+    """The localiser in ``model_dir`` (None without one)."""
+    return _load_model(Localiser.load, model_dir)
 
 
 def load_regressor(model_dir: str | None) -> Regressor | None:
     """The pressure regressor in ``model_dir`` (None without one)."""
-    if not model_dir:
-        return None
-    try:
-        return Regressor.load(model_dir)
-    except ModelError as exc:
-        raise UserError(str(exc)) from None
+    return _load_model(Regressor.load, model_dir)
 
 
 def open_stream(args, localiser: Localiser | None = None) -> MarkerStream:
