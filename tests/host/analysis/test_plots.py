@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from host.cli import main
 from host.analysis.plots import load_comparison, load_directions
