@@ -2,14 +2,17 @@
 
 ``host plot directions`` draws average-vector directions as a scatter, like the
 paper's figure 5: one panel per input, points coloured by sensation (the
-direction the foot was pushed) and sized by pressure level.
+direction the foot was pushed) and sized by pressure level. With ``--compare``
+each ``host analyse --localiser`` input gives two panels: the tracked vectors'
+average vector and the localiser pins' (:mod:`host.analysis.directions`).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
+
+from host.analysis.directions import compare_directions, direction_series, read_lines
 
 SENSATIONS = ("left", "right", "centre")
 
@@ -27,16 +30,7 @@ def load_directions(path: Path | str) -> dict:
         sens = np.broadcast_to(np.arange(s)[None, :, None], (t, s, p)).reshape(-1)
         pres = np.broadcast_to(np.arange(p)[None, None, :], (t, s, p)).reshape(-1)
         return {"label": path.stem, "xy": a.reshape(-1, 2), "sensation": sens, "pressure": pres}
-    xs = []
-    with open(path) as fh:
-        for n, line in enumerate(fh, 1):
-            try:
-                d = json.loads(line)
-            except json.JSONDecodeError:
-                raise ValueError(f"{path}:{n}: not a JSON line") from None
-            if d.get("summary") or not d.get("contact"):
-                continue
-            xs.append((d["shear_x"], d["shear_y"]))
+    xs = [(d["shear_x"], d["shear_y"]) for d in read_lines(path) if d.get("contact")]
     xy = np.asarray(xs, dtype=float).reshape(-1, 2)
     return {"label": path.stem, "xy": xy, "sensation": np.zeros(len(xy), int),
             "pressure": np.zeros(len(xy), int)}
@@ -81,3 +75,22 @@ def plot_directions(inputs: list[dict], out: Path | str, title: str = "") -> Pat
     fig.savefig(out, dpi=90)
     plt.close(fig)
     return out
+
+
+def load_comparison(path: Path | str) -> tuple[list[dict], dict]:
+    """The two direction series of one ``host analyse --localiser`` file as
+    :func:`plot_directions` inputs, and how well they agree."""
+    path = Path(path)
+    try:
+        series = direction_series(read_lines(path))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    n = len(series["frame"])
+    zeros = np.zeros(n, int)
+    inputs = [{"label": f"{path.stem}: tracked vectors", "xy": series["vectors_px"],
+               "sensation": zeros, "pressure": zeros},
+              {"label": f"{path.stem}: localiser pins", "xy": series["localised_px"],
+               "sensation": zeros, "pressure": zeros}]
+    stats = compare_directions(series)
+    stats.update(source=str(path), rest_frame=series["rest_frame"])
+    return inputs, stats

@@ -1,13 +1,14 @@
-"""host plot directions: paper-layout .npy files and analyse JSON lines."""
+"""host plot directions: paper-layout .npy files and analyse JSON lines, and the
+tracked-vector vs localiser comparison (--compare)."""
 from __future__ import annotations
 
 import json
 
 import numpy as np
-import pytest
 
 from host.cli import main
-from host.analysis.plots import load_directions
+from host.analysis.plots import load_comparison, load_directions
+from tests import REPO_ROOT
 
 
 def test_direction_scatter_from_npy_and_jsonl(tmp_path, capsys):
@@ -36,3 +37,32 @@ def test_bad_inputs_are_exit_2(tmp_path, capsys):
     assert main(["plot", "directions", str(tmp_path / "bad.jsonl"), "--out",
                  str(tmp_path / "x.png")]) == 2
     assert "bad.jsonl:1" in capsys.readouterr().err
+
+
+def test_compare_plots_vectors_beside_localiser_pins(tmp_path, capsys):
+    a = tmp_path / "drag.jsonl"
+    assert main(["analyse", "sim://drag-45", "--localiser",
+                 str(REPO_ROOT / "models" / "localiser-roboskin"), "--out", str(a)]) == 0
+    out = tmp_path / "fig5.png"
+    assert main(["plot", "directions", str(a), "--compare", "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    from PIL import Image
+    assert Image.open(out).size[0] > 2 * Image.open(out).size[1] * 0.8   # two panels
+    assert out.stat().st_size > 5000
+    n = res["points"][0]
+    assert res["points"] == [n, n] and n > 50
+    (c,) = res["comparison"]
+    assert c["source"] == str(a) and c["compared"] > 0.6 * n
+    assert abs(c["vectors_deg"] - 225.0) < 3.0 and abs(c["localised_deg"] - 225.0) < 15.0
+    inputs, stats = load_comparison(a)
+    assert [d["label"] for d in inputs] == ["drag: tracked vectors", "drag: localiser pins"]
+    assert stats["median_abs_diff_deg"] == c["median_abs_diff_deg"]
+
+
+def test_compare_without_localised_pins_is_exit_2(tmp_path, capsys):
+    lines = [{"frame": i, "contact": True, "shear_x": 1.0, "shear_y": 0.0, "faults": []}
+             for i in range(3)]
+    (tmp_path / "a.jsonl").write_text("\n".join(json.dumps(x) for x in lines))
+    assert main(["plot", "directions", str(tmp_path / "a.jsonl"), "--compare", "--out",
+                 str(tmp_path / "x.png")]) == 2
+    assert "--localiser" in capsys.readouterr().err

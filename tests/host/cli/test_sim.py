@@ -1,4 +1,4 @@
-"""host simulate / view / scenes / demo and the dataset folder."""
+"""host simulate / view / scenes / demo (host.cli.sim) and the dataset folder."""
 from __future__ import annotations
 
 import json
@@ -133,17 +133,3 @@ def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
     png = tmp_path / "north.png"
     assert main(["view", str(clip), "--out", str(png)]) == 0
     assert png.stat().st_size > 50_000
-
-
-def test_analyse_writes_a_line_per_frame_and_a_summary(tmp_path):
-    out = tmp_path / "a.jsonl"
-    assert main(["analyse", "sim://drag-90", "--out", str(out)]) == 0
-    lines = [json.loads(x) for x in out.read_text().splitlines()]
-    from device.sim import Simulator, load_scene
-    n = Simulator(load_scene("drag-90")).n_frames
-    assert len(lines) == n + 1 and lines[-1]["summary"] and lines[-1]["frames"] == n
-    frames = lines[:-1]
-    assert {"frame", "t", "pins", "contact", "shear_x", "shear_y", "magnitude", "pressure",
-            "faults", "timings_ms"} <= set(frames[0])
-    assert any(f["contact"] for f in frames) and not frames[-1]["faults"]
-    assert lines[-1]["contact_frames"] == sum(f["contact"] for f in frames)

@@ -1,0 +1,190 @@
+"""``host analyse``, ``calibrate``, ``plot`` and ``realism``: recordings through the
+marker pipeline."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.models.window import RollingWindow
+from device.pi.vision.encoder import FrameEncoder
+from device.pi.vision.layout import LayoutError
+from device.pi.vision.pipeline import STAGES, fault_names
+from host.analysis.calibrate import calibrate, write_profile
+from host.analysis.plots import load_comparison, load_directions, plot_directions
+from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
+from host.cli.common import (UserError, emit, load_localiser, load_regressor, open_source,
+                             open_stream, progress_bar, real_data_dir)
+
+
+def _open_pipeline(args):
+    """(marker stream, frame encoder or None, window or None, pressure model or None).
+
+    With ``--pressure`` the frames go through the runtime's frame encoder into a
+    rolling window of the model's T frames, encoded as the model was trained."""
+    localiser = load_localiser(args.localiser)
+    reg = load_regressor(args.pressure)
+    if reg is None:
+        return open_stream(args, localiser), None, None, None
+    try:
+        encoder = FrameEncoder(args.profile, crop_px=None, localiser=localiser)
+    except LayoutError as exc:
+        raise UserError(f"--pressure needs a profile with a pin layout: {exc}") from None
+    window = RollingWindow(reg.T, encoder.n_pins, encoder.profile.grid_n)
+    return encoder.stream, encoder, window, reg
+
+
+def _process(stream, encoder, window, reg, fr):
+    """(features, pressure or None) for one camera frame."""
+    if encoder is None:
+        return stream.process(fr.image, fr.t_s), None
+    ef = encoder.encode(fr.image, fr.t_s)
+    window.push(vectors=ef.vectors, grid=ef.grid)
+    if stream.reference is None:
+        return ef.features, None
+    return ef.features, reg.predict_window(window)
+
+
+def frame_line(f, pressure: float | None, localised: bool) -> dict:
+    """The JSON line for one frame: the pipeline's summary, the windowed pressure
+    and, with a localiser, its pins as ``localised_px`` (px, 2 decimals; null
+    on a frame the pipeline could not localise, such as one without a dome)."""
+    line = f.summary()
+    line["pressure"] = None if pressure is None else round(float(pressure), 5)
+    if localised:
+        line["localised_px"] = (None if f.localised is None else
+                                np.round(np.asarray(f.localised, np.float64), 2).tolist())
+    return line
+
+
+def cmd_analyse(args):
+    stream, encoder, window, reg = _open_pipeline(args)
+    cam = open_source(args.source)
+    out = open(args.out, "w") if args.out else sys.stdout
+    n = contact = 0
+    faults: dict[str, int] = {}
+    times = {k: [] for k in STAGES + ("total",)}
+    total = getattr(cam, "n_frames", None)
+    try:
+        with cam, progress_bar(total or 0, "analyse",
+                               not args.json and args.out is not None) as bar:
+            for fr in cam:
+                f, pressure = _process(stream, encoder, window, reg, fr)
+                out.write(json.dumps(frame_line(f, pressure, bool(args.localiser))) + "\n")
+                n += 1
+                contact += f.contact
+                for name in fault_names(f.faults):
+                    faults[name] = faults.get(name, 0) + 1
+                for k in times:
+                    if k in f.timings_ms:
+                        times[k].append(f.timings_ms[k])
+                bar.update(1)
+        summary = {"summary": True, "source": args.source, "profile": stream.profile.name,
+                   "frames": n, "contact_frames": contact, "fault_frames": faults,
+                   "reference_set": stream.reference is not None,
+                   "timings_ms": {k: {"median": float(np.median(v)),
+                                      "p99": float(np.percentile(v, 99))}
+                                  for k, v in times.items() if v}}
+        out.write(json.dumps(summary) + "\n")
+    finally:
+        if out is not sys.stdout:
+            out.close()
+
+
+def cmd_plot(args):
+    stats = []
+    try:
+        if args.compare:
+            inputs = []
+            for p in args.inputs:
+                panels, st = load_comparison(p)
+                inputs += panels
+                stats.append(st)
+        else:
+            inputs = [load_directions(p) for p in args.inputs]
+    except (OSError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    out = plot_directions(inputs, args.out, title=args.title or "")
+    res = {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]}
+    text = f"wrote {out}"
+    if args.compare:
+        res["comparison"] = stats
+        text += "".join(f"\n{st['source']}: vectors {st['vectors_deg']} deg, localiser "
+                        f"{st['localised_deg']} deg, median |difference| "
+                        f"{st['median_abs_diff_deg']} deg over {st['compared']} frames"
+                        for st in stats)
+    emit(args, res, text)
+
+
+def cmd_calibrate(args):
+    cam = open_source(args.source)
+    frames = []
+    with cam:
+        for fr in cam:
+            frames.append(fr.image.copy())
+            if len(frames) >= args.frames:
+                break
+    if not frames:
+        raise UserError(f"{args.source}: no frames to calibrate from")
+    try:
+        res = calibrate(frames, name=args.name or Path(args.out).stem)
+    except ValueError as exc:
+        raise UserError(f"{args.source}: {exc}") from None
+    res["out"] = str(write_profile(res, args.out))
+    v = res["vision"]
+    emit(args, res, f"wrote {args.out}: dome {v['dome_px']}, block {v['block']}, offset "
+                    f"{v['offset']}, pin area {v['min_area_px']}..{v['max_area_px']} px, "
+                    f"pitch {v['pitch_px']} px, {v['n_pins']} pins")
+
+
+def cmd_realism(args):
+    data = real_data_dir(args.data)
+    res = roboskin_realism(data, seed=args.seed)
+    if args.png:
+        res["png"] = side_by_side_png(data, args.png, seed=args.seed)
+    emit(args, res, realism_table(res) + ("\nall compared figures within 20%: "
+                                          f"{'yes' if res['all_within_20pct'] else 'NO'}"))
+    return 0 if res["all_within_20pct"] else 1
+
+
+def register(sub) -> None:
+    """The sub-commands analyse, calibrate, plot and realism."""
+    s = sub.add_parser("analyse", help="run the marker pipeline over a video, image folder "
+                                       "or sim://SCENE; one JSON line per frame")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--profile", default="roboskin", help="sensor profile name or .toml")
+    s.add_argument("--localiser", help="localiser model folder (ONNX + manifest)")
+    s.add_argument("--pressure", help="pressure regressor model folder")
+    s.add_argument("--out", help="write the JSON lines here instead of stdout")
+    s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
+    s.set_defaults(func=cmd_analyse)
+
+    s = sub.add_parser("calibrate", help="fit a pipeline profile from a no-contact clip")
+    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s.add_argument("--out", required=True, help="profile .toml to write")
+    s.add_argument("--frames", type=int, default=16, help="leading frames to use (at rest)")
+    s.add_argument("--name", help="profile name (default: the file name)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("plot", help="plots: directions (the paper's figure 5)")
+    s.add_argument("kind", choices=["directions"])
+    s.add_argument("inputs", nargs="+", help="paper-layout .npy files (trials, sensations, "
+                                             "pressures, 2) or host analyse JSON lines")
+    s.add_argument("--out", required=True, help="PNG to write")
+    s.add_argument("--title")
+    s.add_argument("--compare", action="store_true",
+                   help="inputs are host analyse --localiser JSON lines: plot the tracked "
+                        "vectors' directions beside the localiser pins'")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_plot)
+
+    s = sub.add_parser("realism", help="simulated roboskin against the real clips")
+    s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
+                                  "../shared/data)")
+    s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_realism)

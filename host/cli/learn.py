@@ -1,0 +1,127 @@
+"""``host train``, ``eval`` and ``report``: models from windows of frames."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from device.pi.models.artefact import ModelError, read_manifest
+from host.bench.report import build_report
+from host.cli.common import UserError, emit, json_default, real_data_dir
+from host.data.specs import DataError, load_specs, split_grouped
+from host.learn.cnn import quantise_cnn, train_cnn
+from host.learn.evaluate import evaluate_model
+from host.learn.train import TrainError, train_model
+
+
+def _load_windows(args, task: str, window: int, min_classes: int = 2):
+    try:
+        return load_specs(args.data, task=task, window=window,
+                          contact_only=getattr(args, "contact_only", False),
+                          profile=args.profile, progress=not args.json,
+                          min_classes=min_classes)
+    except (DataError, FileNotFoundError) as exc:
+        raise UserError(str(exc)) from None
+
+
+def _jsonable(res: dict) -> dict:
+    return {k: v for k, v in res.items() if k not in ("onnx", "estimator", "pipeline")}
+
+
+def cmd_train(args):
+    ws = _load_windows(args, args.task, args.window)
+    try:
+        if args.model == "cnn":
+            res = _train_cnn(args, ws)
+        else:
+            res = train_model(args.task, args.model, ws, cv=args.cv, quantise=args.quantise,
+                              seed=args.seed, out_dir=args.out, progress=not args.json)
+    except TrainError as exc:
+        raise UserError(str(exc)) from None
+    res = _jsonable(res)
+    m = res.get("metrics", {})
+    m = m.get("test", m.get("held_out", m))
+    headline = ", ".join(f"held-out {k} {m[k]:.4g}" for k in ("accuracy", "macro_f1", "mae")
+                         if isinstance(m.get(k), (int, float)))
+    if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
+        headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
+    emit(args, res, f"wrote {args.out}: {headline}")
+
+
+def _train_cnn(args, ws):
+    if args.task == "pressure":
+        raise TrainError("the CNN classifies; use --model ridge for --task pressure")
+    tr, te = split_grouped(ws, test_frac=0.3, seed=args.seed)
+    res = train_cnn(ws.subset(tr), ws.subset(te), seed=args.seed, out_dir=args.out,
+                    progress=not args.json)
+    if args.quantise:
+        res["int8"] = quantise_cnn(res["onnx_path"], ws.subset(tr),
+                                   Path(args.out) / "model.int8.onnx", seed=args.seed)
+    return res
+
+
+def cmd_eval(args):
+    try:
+        doc, _ = read_manifest(args.model_dir)
+    except ModelError as exc:
+        raise UserError(str(exc)) from None
+    task = doc.get("kind")
+    T = int(doc.get("T", doc.get("window", 1)))
+    ws = _load_windows(args, task, T, min_classes=1)
+    try:
+        res = evaluate_model(args.model_dir, ws, variant=args.variant)
+    except (ModelError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    emit(args, res, json.dumps(res, indent=1, default=json_default))
+
+
+def cmd_report(args):
+    data = None
+    try:
+        data = real_data_dir(args.data)
+    except UserError:
+        print("host report: real recordings not found; simulated data only", file=sys.stderr)
+    windows = tuple(int(x) for x in args.windows.split(","))
+    cmd = "host report --out " + args.out + (" --quick" if args.quick else "")
+    out = build_report(args.out, args.work, data, windows=windows, quick=args.quick,
+                       seed=args.seed, progress=not args.json, command=cmd)
+    emit(args, {"out": str(out)}, f"wrote {out}")
+
+
+def register(sub) -> None:
+    """The sub-commands train, eval and report."""
+    s = sub.add_parser("train", help="train a surface/texture/slip/pressure model")
+    s.add_argument("--task", required=True, choices=["surface", "texture", "slip", "pressure"])
+    s.add_argument("--model", required=True,
+                   choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"])
+    s.add_argument("--window", type=int, default=3, help="T, frames per window")
+    s.add_argument("--data", action="append", required=True,
+                   help="CSV manifest, dataset folder or .npz (repeatable)")
+    s.add_argument("--cv", type=int, help="also report grouped K-fold CV metrics")
+    s.add_argument("--quantise", action="store_true", help="also write an int8 model")
+    s.add_argument("--contact-only", action="store_true",
+                   help="drop windows without contact instead of labelling them no-touch")
+    s.add_argument("--profile", default="roboskin")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--out", required=True, help="model folder to write")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("eval", help="evaluate a model folder on data")
+    s.add_argument("model_dir")
+    s.add_argument("--data", action="append", required=True)
+    s.add_argument("--variant", choices=["float", "int8"])
+    s.add_argument("--contact-only", action="store_true")
+    s.add_argument("--profile", default="roboskin")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_eval)
+
+    s = sub.add_parser("report", help="what accuracy costs in time: tables + Pareto plots")
+    s.add_argument("--out", default="docs/accuracy-vs-time.md")
+    s.add_argument("--work", default="out/report", help="simulated data and scratch")
+    s.add_argument("--data", help="real recordings folder")
+    s.add_argument("--windows", default="1,2,3,5,10", help="window lengths T")
+    s.add_argument("--quick", action="store_true", help="fewer simulated trials")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_report)

@@ -1,0 +1,282 @@
+"""``host scenes``, ``simulate``, ``view`` and ``demo``: the simulated sensor."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import select
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.runtime import protocol as P
+from device.pi.vision.pipeline import fault_names
+from device.sim import SURFACE_LABELS, Simulator, builtin_scenes, load_scene
+from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
+                                truth_plot)
+from host.cli.common import (UserError, emit, is_recording, open_source, open_stream,
+                             progress_bar)
+from host.data.dataset import is_dataset, load_trial
+from host.data.simulate import simulate_to_dataset
+
+
+def cmd_scenes(args):
+    rows = []
+    for name in builtin_scenes():
+        sc = load_scene(name)
+        rows.append({"name": name, "profile": sc.profile.name, "frames":
+                     int(round(sc.duration_s * sc.fps)), "duration_s": round(sc.duration_s, 3),
+                     "effects": list(sc.effect_names), "description": sc.description})
+    text = "\n".join(f"{r['name']:<15} {r['duration_s']:>5.2f}s  {r['description']}"
+                     for r in rows)
+    emit(args, rows, text)
+
+
+def cmd_simulate(args):
+    res = simulate_to_dataset(args.scene, Path(args.out), args.seed, args.trials,
+                              progress=not args.json)
+    emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}")
+
+
+def _frames_and_truth(src: str, seed: int):
+    """(frames list, truth dict | None, rest pins | None, fps) for a scene or dataset."""
+    if is_dataset(src):
+        tr = load_trial(src, 0)
+        truth = {k: v for k, v in tr.items() if k not in ("frames", "info")}
+        return tr["frames"], truth, tr.get("rest_pins_px"), float(tr["info"].get("fps", 30))
+    sim = Simulator(load_scene(src), seed=seed)
+    frames = [sim.render(i) for i in range(sim.n_frames)]
+    return frames, sim.truth, sim.rest_pins_px, sim.fps
+
+
+def cmd_view(args):
+    if Path(args.out).suffix.lower() not in (".gif", ".png"):
+        raise UserError(f"--out must end in .gif or .png, got {args.out!r}")
+    if is_recording(args.source):
+        return _view_pipeline(args)
+    frames, truth, rest, fps = _frames_and_truth(args.source, args.seed)
+    out = Path(args.out)
+    most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
+    contact = np.flatnonzero(truth["contact"]) if out.suffix.lower() == ".png" else []
+    if len(contact) and not args.max_frames:
+        picks = contact[pick_frames(len(contact), most)]   # a contact sheet shows touches
+    else:
+        picks = pick_frames(len(frames), most)
+    images = [draw_vectors(frames[i], rest, truth["pins_px"][i], truth["visible"][i],
+                           gain=args.gain, text=truth_caption(truth, i)) for i in picks]
+    save_images(images, out, fps=min(fps, 15.0))
+    emit(args, {"out": str(out), "frames": [int(i) for i in picks]},
+         f"wrote {out} ({len(picks)} frames)")
+
+
+def _view_pipeline(args):
+    """Pins and vectors found by the Pi's pipeline drawn over the frames (the
+    paper's figure 3)."""
+    stream = open_stream(args)
+    cam = open_source(args.source)
+    out = Path(args.out)
+    most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
+    total = getattr(cam, "n_frames", None) or 0
+    keep = set(pick_frames(total, most).tolist()) if total else None
+    images, picked = [], []
+    with cam:
+        for fr in cam:
+            f = stream.process(fr.image, fr.t_s)
+            if stream.reference is None or (keep is not None and f.index not in keep):
+                continue
+            if keep is None and len(images) >= most:
+                break
+            ref = stream.reference
+            text = f"#{f.index} {'contact' if f.contact else 'no contact'} |v| {f.magnitude:.1f}px"
+            if f.faults:
+                text += " " + ",".join(fault_names(f.faults))
+            images.append(draw_vectors(fr.image, ref, ref + f.vectors, ~f.lost, gain=args.gain,
+                                       text=text))
+            picked.append(f.index)
+    if not images:
+        raise UserError(f"{args.source}: no frame had a reference (no dome or no still start)")
+    save_images(images, out, fps=15.0)
+    emit(args, {"out": str(out), "frames": picked}, f"wrote {out} ({len(picked)} frames)")
+
+
+def _gait_plan(scene, sim, stance_load_n: float = 8.0) -> list:
+    """What a gait MCU would tell the foot for each frame of a scene: stance while
+    the foot is commanded into the ground (expected load: the stance load it
+    commands), the commanded drag velocity, swing otherwise."""
+    plan, t_end = [], 0.0
+    spans = []
+    for a in scene.timeline:
+        spans.append((t_end, t_end + a.duration_s, a))
+        t_end += a.duration_s
+    depth = sim.truth["depth_cmd_mm"]
+    for i in range(sim.n_frames):
+        t = i / sim.fps
+        a = next((x for t0, t1, x in spans if t0 <= t < t1), spans[-1][2])
+        stance = bool(depth[i] > 0)
+        v = (0.0, 0.0, 0.0)
+        if stance and a.kind == "drag":
+            r = math.radians(a.direction_deg)
+            v = (a.speed_mm_s * math.cos(r), a.speed_mm_s * math.sin(r), 0.0)
+        plan.append(P.Gait(P.PHASE_STANCE if stance else P.PHASE_SWING,
+                           stance_load_n if stance else 0.0, v))
+    return plan
+
+
+def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: bool,
+                  progress: bool) -> dict:
+    """Run the real runtime (``python -m device.pi run``) on simulated hardware
+    with its serial port on a pty; this side plays the gait MCU: it decodes every
+    packet (device.pi.runtime.protocol) and answers each SURFACE with the GAIT context."""
+    master, slave = os.openpty()
+    slave_name = os.ttyname(slave)
+    q = f"?seed={seed}" + ("&realtime=1" if realtime else "")
+    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", f"sim://{scene_name}{q}",
+           "--imu", f"sim://{scene_name}?seed={seed}", "--serial", slave_name,
+           "--json-log", str(out / "decisions.jsonl"), "--status", str(out / "status.json"),
+           "--json"]
+    plan = _gait_plan(scene, sim)
+    dec = P.FrameDecoder()
+    packets, n_surface, seq, t0 = [], 0, 0, time.monotonic()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with progress_bar(sim.n_frames, "runtime", progress) as bar:
+            while True:
+                r, _, _ = select.select([master], [], [], 0.05)
+                data = os.read(master, 4096) if r else b""
+                for raw in dec.feed(data):
+                    msg = P.decode_message(raw)
+                    if msg is None:
+                        continue
+                    d = P.message_dict(msg)
+                    d.update(seq=raw.seq, t_ms=raw.t_ms,
+                             host_ms=round((time.monotonic() - t0) * 1e3, 2))
+                    packets.append(d)
+                    if isinstance(msg, P.Surface):
+                        n_surface += 1
+                        bar.update(1)
+                        g = plan[min(n_surface, len(plan) - 1)]
+                        os.write(master, g.encode(seq, int((time.monotonic() - t0) * 1e3)))
+                        seq = (seq + 1) & 0xFFFF
+                if not data and proc.poll() is not None:
+                    break
+        stdout, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+        os.close(slave)
+    if proc.returncode != 0:
+        raise UserError(f"the runtime failed ({proc.returncode}): {stderr.strip()[-500:]}")
+    with open(out / "packets.jsonl", "w") as fh:
+        for d in packets:
+            fh.write(json.dumps(d) + "\n")
+    status = json.loads(stdout.strip().splitlines()[-1])
+    counts: dict = {}
+    for d in packets:
+        counts[d["type"]] = counts.get(d["type"], 0) + 1
+    return {"command": " ".join(cmd), "packets_file": str(out / "packets.jsonl"),
+            "decisions_file": str(out / "decisions.jsonl"), "packets": counts,
+            "decoder": dict(dec.counters), "runtime": status}
+
+
+def _demo_segments(scene, sim, out: Path) -> list:
+    """Per step of the scene's timeline: the true surface and what the runtime
+    reported most often over the frames in contact."""
+    ds = [json.loads(x) for x in (out / "decisions.jsonl").read_text().splitlines()]
+    by_index = {d["index"]: d for d in ds}
+    rows, t0 = [], 0.0
+    for a in scene.timeline:
+        i0, i1 = int(round(t0 * sim.fps)), int(round((t0 + a.duration_s) * sim.fps))
+        t0 += a.duration_s
+        idx = [i for i in range(i0, min(i1, sim.n_frames))
+               if sim.truth["contact"][i] and i in by_index]
+        truth = Counter(SURFACE_LABELS[int(sim.truth["surface"][i])] for i in idx)
+        said = Counter(by_index[i]["class"] for i in idx)
+        rows.append({"t_s": round(i0 / sim.fps, 3), "action": a.kind,
+                     "truth": truth.most_common(1)[0][0] if truth else "no-touch",
+                     "contact_frames": len(idx),
+                     "reported": said.most_common(1)[0][0] if said else "no-touch",
+                     "share": round(said.most_common(1)[0][1] / len(idx), 3) if idx else None,
+                     "slip_frames": sum(bool(by_index[i]["slip"]) for i in idx)})
+    return rows
+
+
+def cmd_demo(args):
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = load_scene(args.scene)
+    sim = Simulator(scene, seed=args.seed)
+    picks = pick_frames(sim.n_frames, 180)
+    images = []
+    with progress_bar(len(picks), f"simulating {scene.name}", not args.json) as bar:
+        for i in picks:
+            images.append(draw_vectors(sim.render(i), sim.rest_pins_px, sim.truth["pins_px"][i],
+                                       sim.truth["visible"][i], text=truth_caption(sim.truth, i)))
+            bar.update(1)
+    preview = save_images(images, out / "preview.gif", fps=20)
+    plot = truth_plot(sim.truth, out / "ground_truth.png",
+                      title=f"scene {scene.name}, seed {args.seed}: ground truth")
+    t = sim.truth
+    res = {"scene": scene.name, "frames": sim.n_frames, "preview": str(preview),
+           "ground_truth_plot": str(plot), "contact_frames": int(t["contact"].sum()),
+           "slip_frames": int(t["slip"].sum())}
+    res.update(_demo_runtime(args.scene, args.seed, out, sim, scene, not args.fast,
+                             not args.json))
+    res["segments"] = _demo_segments(scene, sim, out)
+    rt = res["runtime"]
+    lines = [f"simulated {scene.name}: {sim.n_frames} frames, {res['contact_frames']} in "
+             f"contact, {res['slip_frames']} slipping",
+             f"runtime: {' '.join(res['command'].split()[2:9])} ...",
+             f"  {rt['frames']} frames, {rt['packets_sent']} packets sent "
+             f"({', '.join(f'{k} {v}' for k, v in sorted(res['packets'].items()))}), "
+             f"{rt['packets_dropped']} dropped, latency p50 {rt['latency_ms_p50']} ms",
+             f"  {'t_s':>6} {'step':<6} {'truth':<9} {'contact':>7} {'reported':<9} "
+             f"{'share':>5} {'slip':>4}"]
+    for r in res["segments"]:
+        if r["contact_frames"]:
+            lines.append(f"  {r['t_s']:>6.2f} {r['action']:<6} {r['truth']:<9} "
+                         f"{r['contact_frames']:>7} {r['reported']:<9} {r['share']:>5.2f} "
+                         f"{r['slip_frames']:>4}")
+    lines += [f"packets:      {res['packets_file']}", f"decisions:    {res['decisions_file']}",
+              f"preview:      {preview}", f"ground truth: {plot}"]
+    emit(args, res, "\n".join(lines))
+
+
+def register(sub) -> None:
+    """The sub-commands scenes, simulate, view and demo."""
+    s = sub.add_parser("scenes", help="list the built-in simulator scenes")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_scenes)
+
+    s = sub.add_parser("simulate", help="render a scene to a dataset folder")
+    s.add_argument("scene", help="built-in scene name or a scene .toml file")
+    s.add_argument("--out", required=True, help="dataset folder to write")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--trials", type=int, default=1, help="trials with seeds seed, seed+1, ...")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("view", help="draw frames with pin vectors to a GIF or PNG")
+    s.add_argument("source", help="scene name, scene .toml or dataset folder (true vectors); "
+                                  "a video, image folder or sim://SCENE (the pipeline's)")
+    s.add_argument("--profile", default="roboskin", help="pipeline profile (recordings)")
+    s.add_argument("--out", required=True, help="preview.gif or preview.png")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--max-frames", type=int, default=0)
+    s.add_argument("--gain", type=float, default=2.0, help="arrow length per px of travel")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_view)
+
+    s = sub.add_parser("demo", help="the main job on the simulated sensor")
+    s.add_argument("--out", default="out/demo")
+    s.add_argument("--scene", default="walk")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--fast", action="store_true",
+                   help="do not pace the simulated camera at its frame rate (the gait "
+                        "context then lags the frames)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_demo)

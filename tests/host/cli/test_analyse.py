@@ -1,0 +1,97 @@
+"""host analyse (host.cli.analyse): one JSON line per frame, localised pins with
+--localiser, the windowed pressure with --pressure."""
+from __future__ import annotations
+
+import json
+import math
+import numpy as np
+
+from device.sim import Simulator, load_scene
+from host.cli import main
+from tests import REPO_ROOT
+from tests.realdata import real_data_dir
+
+LOCALISER = REPO_ROOT / "models" / "localiser-roboskin"
+PRESSURE = REPO_ROOT / "models" / "pressure"
+
+
+def _lines(path):
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def test_analyse_writes_a_line_per_frame_and_a_summary(tmp_path):
+    out = tmp_path / "a.jsonl"
+    assert main(["analyse", "sim://drag-90", "--out", str(out)]) == 0
+    lines = _lines(out)
+    n = Simulator(load_scene("drag-90")).n_frames
+    assert len(lines) == n + 1 and lines[-1]["summary"] and lines[-1]["frames"] == n
+    frames = lines[:-1]
+    assert {"frame", "t", "pins", "contact", "shear_x", "shear_y", "magnitude", "pressure",
+            "faults", "timings_ms"} <= set(frames[0])
+    assert any(f["contact"] for f in frames) and not frames[-1]["faults"]
+    assert lines[-1]["contact_frames"] == sum(f["contact"] for f in frames)
+    assert all("localised_px" not in f for f in frames)   # only with --localiser
+
+
+def _assert_localised(frames, n_pins=133):
+    for f in frames:
+        pins = np.asarray(f["localised_px"], float)
+        assert pins.shape == (n_pins, 2)
+        assert np.isfinite(pins).all()
+        assert np.array_equal(pins, np.round(pins, 2))
+
+
+def test_analyse_with_a_localiser_writes_its_pins_on_a_simulated_drag(tmp_path):
+    out = tmp_path / "a.jsonl"
+    assert main(["analyse", "sim://drag-45", "--localiser", str(LOCALISER),
+                 "--out", str(out)]) == 0
+    lines = _lines(out)
+    frames = lines[:-1]
+    assert lines[-1]["summary"] and lines[-1]["frames"] == len(frames)
+    _assert_localised(frames)
+    # the pins sit on the dome and move with the drag: the mean pin moves by
+    # several px between rest and the deepest drag
+    rest = np.asarray(frames[5]["localised_px"]).mean(axis=0)
+    deepest = max(frames, key=lambda f: f["magnitude"])
+    moved = np.asarray(deepest["localised_px"]).mean(axis=0) - rest
+    assert np.hypot(*moved) > 3.0
+    assert 200 < math.degrees(math.atan2(moved[1], moved[0])) % 360 < 250
+
+
+def test_analyse_with_a_localiser_on_the_real_smooth_clip(tmp_path):
+    clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    out = tmp_path / "smooth.jsonl"
+    assert main(["analyse", str(clip), "--localiser", str(LOCALISER), "--out", str(out)]) == 0
+    lines = _lines(out)
+    frames = lines[:-1]
+    assert len(frames) > 100 and lines[-1]["reference_set"]
+    _assert_localised(frames)
+    sound = [f for f in frames if "localiser" not in f["faults"]]
+    assert len(sound) > 0.9 * len(frames)
+    # the localised pins lie inside the frame
+    pins = np.asarray([f["localised_px"] for f in sound])
+    assert pins[..., 0].min() > 0 and pins[..., 0].max() < 640
+    assert pins[..., 1].min() > 0 and pins[..., 1].max() < 480
+
+
+def test_analyse_with_the_pressure_model_on_the_real_concrete_clip(tmp_path):
+    clip = real_data_dir("roboskin/concrete.avi") / "roboskin" / "concrete.avi"
+    out = tmp_path / "concrete.jsonl"
+    assert main(["analyse", str(clip), "--pressure", str(PRESSURE), "--out", str(out)]) == 0
+    lines = _lines(out)
+    frames = lines[:-1][:40]
+    T = json.loads((PRESSURE / "manifest.json").read_text())["T"]
+    start = next(i for i, f in enumerate(frames) if "reference_not_set" not in f["faults"])
+    assert all(f["pressure"] is None for f in frames[:start])
+    full = frames[max(start, T - 1):]
+    assert len(full) >= 30
+    assert all(isinstance(f["pressure"], float) and math.isfinite(f["pressure"])
+               for f in full)
+    assert len({f["pressure"] for f in full}) > 1       # it follows the frames
+    assert lines[-1]["summary"] and lines[-1]["frames"] == len(lines) - 1
+
+
+def test_analyse_with_a_missing_model_is_exit_2(tmp_path, capsys):
+    assert main(["analyse", "sim://drag-90", "--pressure", str(tmp_path / "none"),
+                 "--out", str(tmp_path / "a.jsonl")]) == 2
+    assert "host analyse: error" in capsys.readouterr().err
