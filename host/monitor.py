@@ -14,7 +14,7 @@ import time
 from collections import deque
 from pathlib import Path
 
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 
 
 class LinkMonitor:

@@ -4,7 +4,7 @@
 #   header = version u8 | msg_type u8 | seq u16 | t_ms u32   (little-endian)
 #   crc    = CRC-16/CCITT-FALSE over header + payload, u16 little-endian
 #
-# The byte tables are in docs/protocol.md; device/pi/runtime/protocol.py is the CPython
+# The byte tables are in docs/protocol.md; device/pi/protocol.py is the CPython
 # side. Everything here works in buffers allocated once in the constructor: the
 # decoder undoes COBS byte by byte as bytes arrive (no per-byte allocation), so a
 # frame is checked the moment its 0x00 delimiter arrives.

@@ -61,7 +61,7 @@ def _recording(scene: str, frames: int, folder) -> tuple[str, str]:
 def bench_runtime(frames: int = 600, scene: str = "walk", models: str | None = None) -> dict:
     import tempfile
 
-    from device.pi.runtime import protocol as P
+    from device.pi import protocol as P
 
     paced = _child(f"sim://{scene}?realtime=1", f"sim://{scene}", frames, models)
     fast = _child(f"sim://{scene}", f"sim://{scene}", frames, models)

@@ -10,7 +10,7 @@ from pathlib import Path
 from device.pi.models.artefact import ModelError
 from device.pi.models.regressor import Regressor
 from device.pi.sources.camera import CameraError, open_camera
-from device.pi.vision.localiser import Localiser
+from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
 from host.data.dataset import is_dataset

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 from device.pi.vision.pipeline import fault_names
 from device.sim import SURFACE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
@@ -130,7 +130,7 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
                   progress: bool) -> dict:
     """Run the real runtime (``python -m device.pi run``) on simulated hardware
     with its serial port on a pty; this side plays the gait MCU: it decodes every
-    packet (device.pi.runtime.protocol) and answers each SURFACE with the GAIT context."""
+    packet (device.pi.protocol) and answers each SURFACE with the GAIT context."""
     master, slave = os.openpty()
     slave_name = os.ttyname(slave)
     q = f"?seed={seed}" + ("&realtime=1" if realtime else "")

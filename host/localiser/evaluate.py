@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from device.pi.vision.localiser import effective_dome
+from device.pi.models.localiser import effective_dome
 from host.localiser.samples import Sample, augment_rows
 
 __all__ = ["DISP_BINS_PX", "pin_errors_px", "error_stats", "evaluate", "evaluate_perturbed"]

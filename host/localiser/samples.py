@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from device.pi.vision.extract import ROBOSKIN_PARAMS, TACTIP_SHEAR_PARAMS, VisionParams
-from device.pi.vision.localiser import localiser_input, to_normalised
+from device.pi.models.localiser import localiser_input, to_normalised
 
 __all__ = ["Sample", "vision_params_for", "progress_bar", "augment_rows"]
 

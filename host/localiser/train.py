@@ -3,7 +3,7 @@
 A Ridge regression (alpha 150 by default, as in the seed paper) from the
 downscaled binary dome image to the positions of all N pins of a sensor
 profile (133 for ``roboskin``). The Pi runs it through
-:class:`device.pi.vision.localiser.Localiser`; this module makes the training data,
+:class:`device.pi.models.localiser.Localiser`; this module makes the training data,
 fits, checks and exports it as ONNX + JSON (``kind="localiser"``).
 
 Training data
@@ -46,7 +46,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from device.pi.vision.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
+from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
 from device.sim import load_profile
 from host.learn.onnx_io import write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px

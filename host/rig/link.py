@@ -1,7 +1,7 @@
 """The PC side of the rig link (docs/rig.md): message types, payloads and a
 client that talks to the RP2040 firmware over any pyserial port.
 
-Framing is the surface link's (``device.pi.runtime.protocol``). A reader thread decodes
+Framing is the surface link's (``device.pi.protocol``). A reader thread decodes
 every frame as it arrives: ACK/NAK/DONE go to whoever waits for that command,
 SAMPLEs are kept with the host time they arrived, PONGs feed the clock-offset
 estimate. A keep-alive PING every ``keepalive_s`` keeps the firmware's link
@@ -14,7 +14,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from device.pi.runtime.protocol import FrameDecoder, encode_frame
+from device.pi.protocol import FrameDecoder, encode_frame
 
 # host -> rig
 HOME, MOVE_TO, PRESS, DRAG, LIFT, READ, STREAM, STOP, PING = range(0x21, 0x2A)

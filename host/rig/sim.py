@@ -234,7 +234,7 @@ class SimRig:
         self.drop_s = num.get("drop_s", 1.5)
         self.drop_at_press = int(num.get("drop_at_press", 0))
         self.presses = 0
-        from device.pi.runtime.protocol import FrameDecoder
+        from device.pi.protocol import FrameDecoder
         self._sniff = FrameDecoder()
         fw = _firmware()
         c = self.carriage

@@ -437,6 +437,10 @@ def align(samples, t_frames: np.ndarray, offset_ms: float, trial: Trial, lim: Ri
     t_s = np.array([(s.t_rig_ms - offset_ms) / 1000.0 for s in samples])
     order = np.argsort(t_s, kind="stable")
     t_s = t_s[order]
+    # samples closer than 1 us in time are one sample (np.interp's slope between
+    # them would overflow): keep the last of each such run
+    keep = np.append(np.diff(t_s) > 1e-6, True)
+    order, t_s = order[keep], t_s[keep]
     z = np.array([samples[i].z_mm for i in order])
     x = np.array([samples[i].x_mm for i in order])
     load = np.array([samples[i].load_n for i in order])

@@ -53,7 +53,7 @@ import numpy as np
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
 from device.pi.numerics import sigmoid
-from device.pi.runtime.protocol import SURFACE_CLASSES  # the SURFACE class ids
+from device.pi.protocol import SURFACE_CLASSES  # the SURFACE class ids
 from device.pi.vision.features import direction_deg
 
 RULE_TASKS = ("surface", "slip")

@@ -7,7 +7,7 @@ a fresh gait context the rule's probabilities are blended in with the weight
 ``decision.gait_rule_weight``, as the learned model cannot see the gait. Slip comes
 from a slip model, else from the rule's ``slippery`` probability. A texture is only
 decided in contact. Probabilities are in the SURFACE class order
-(:data:`device.pi.runtime.protocol.SURFACE_CLASSES`).
+(:data:`device.pi.protocol.SURFACE_CLASSES`).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from device.pi.models.rules import RuleClassifier
 from device.pi.runtime.config import DecisionConfig
-from device.pi.runtime.protocol import PHASE_STANCE, SURFACE_CLASSES
+from device.pi.protocol import PHASE_STANCE, SURFACE_CLASSES
 
 NO_TOUCH = SURFACE_CLASSES.index("no-touch")
 SLIPPERY = SURFACE_CLASSES.index("slippery")
@@ -45,7 +45,7 @@ def finite_float(x, default: float = 0.0) -> float:
 
 
 def gait_from_message(msg, t: float) -> GaitContext:
-    """The gait context of a GAIT message (device.pi.runtime.protocol.Gait): the
+    """The gait context of a GAIT message (device.pi.protocol.Gait): the
     foot's expected speed is the length of its horizontal velocity."""
     v = msg.vel_mm_s
     vel = (math.hypot(finite_float(v[0]), finite_float(v[1])) if len(v) >= 2

@@ -1,7 +1,7 @@
 """The serial side of the leg runtime: a writer that never blocks and a reader of
 the locomotion MCU's GAIT context and COMMANDs.
 
-The frames themselves (COBS + header + CRC) come from :mod:`device.pi.runtime.protocol`.
+The frames themselves (COBS + header + CRC) come from :mod:`device.pi.protocol`.
 
 Writing: drop / coalesce policy
 -------------------------------
@@ -34,7 +34,7 @@ from collections import deque
 
 import serial
 
-from device.pi.runtime import protocol
+from device.pi import protocol
 
 #: FAULT packets that may wait before newer ones replace the newest waiting one
 FAULT_QUEUE = 64

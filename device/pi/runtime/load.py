@@ -11,7 +11,7 @@ from device.pi.models.regressor import Regressor
 from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
 from device.pi.models.window import RollingWindow
 from device.pi.runtime.config import LegConfig
-from device.pi.vision.localiser import Localiser
+from device.pi.models.localiser import Localiser
 
 #: the classifier tasks, each loaded from the folder of that name
 CLASSIFIER_TASKS = ("surface", "texture", "slip")

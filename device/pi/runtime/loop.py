@@ -32,7 +32,7 @@ from device.pi.faults import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL, 
                               PIPELINE_FAULTS, fault_names)
 from device.pi.models.artefact import ModelError
 from device.pi.models.window import RollingWindow
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 from device.pi.runtime import sdnotify
 from device.pi.runtime.config import LegConfig, load_leg_config
 from device.pi.runtime.decisions import (GaitContext, decide, expected_context, finite_float,

@@ -1,8 +1,8 @@
-"""The packets the leg runtime sends (device.pi.runtime.protocol's messages, from
+"""The packets the leg runtime sends (device.pi.protocol's messages, from
 values in real units) and the commands it reads."""
 from __future__ import annotations
 
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 
 #: what the runtime does for each COMMAND opcode
 COMMAND_OPS = {P.CMD_REZERO: "rezero", P.CMD_SET_RATE: "rate",

@@ -21,10 +21,10 @@ from pathlib import Path
 from tests.mpyrun import MPY_LIB, cpython_path, requires_mpy, run_mpy
 
 ROOT = REPO_ROOT
-VECTORS = REPO_ROOT / "tests" / "device" / "pi" / "runtime" / "protocol_vectors.json"
+VECTORS = REPO_ROOT / "tests" / "device" / "pi" / "protocol_vectors.json"
 sys.path.insert(0, str(ROOT))
 
-from device.pi.runtime import protocol as P  # noqa: E402
+from device.pi import protocol as P  # noqa: E402
 
 FUZZ_STREAMS = 100_000
 
@@ -216,7 +216,7 @@ def on_frame(d):
 
 dec = tflink.Decoder(64, on_frame)
 try:                   # CPython: the Pi's decoder must agree frame for frame
-    from device.pi.runtime.protocol import FrameDecoder
+    from device.pi.protocol import FrameDecoder
     pi = FrameDecoder(64)
 except ImportError:    # MicroPython
     pi = None
@@ -324,7 +324,7 @@ def test_fuzz_100k_streams_on_cpython_same_streams():
     """The same 100k streams as on MicroPython (same PRNG and seed)."""
     stats = json.loads(run_cpython(FUZZ, [FUZZ_STREAMS, 12345]))
     _check_fuzz(stats, FUZZ_STREAMS)
-    # the Pi's decoder (device/pi/runtime/protocol.py) saw the same streams: same frames
+    # the Pi's decoder (device/pi/protocol.py) saw the same streams: same frames
     # accepted, same damage counted
     assert stats.get("pi_disagrees", 0) == 0
     assert stats["pi_counters"] == {k: stats[k] for k in stats["pi_counters"]}

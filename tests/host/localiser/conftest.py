@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from device.pi.vision.extract import find_dome
-from device.pi.vision.localiser import Localiser
+from device.pi.models.localiser import Localiser
 from host.localiser.labels import read_clip
 from host.localiser.train import train_localiser
 from tests.realdata import real_data_dir

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from device.pi.vision.extract import ROBOSKIN_PARAMS
-from device.pi.vision.localiser import from_normalised, localiser_input
+from device.pi.models.localiser import from_normalised, localiser_input
 from host.localiser.samples import Sample, augment_rows, vision_params_for
 
 

@@ -1,5 +1,5 @@
 """The pin localiser trainer (host/localiser/train.py) and the artefact it writes,
-run by device/pi/vision/localiser.py.
+run by device/pi/models/localiser.py.
 
 One small model is trained once (``trained`` in conftest.py) and all tests
 share it. The real no-contact test uses smooth.avi and concrete.avi, which that
@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision.localiser import (
+from device.pi.models.localiser import (
     Localiser,
     crop_square,
     effective_dome,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from device.pi.models.window import RollingWindow
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 from device.pi.runtime.config import DecisionConfig, LegConfig
 from device.pi.runtime.decisions import (SLIP_THRESHOLD, GaitContext, decide, expected_context,
                                          finite_float, gait_from_message, no_touch_probs,

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from device.pi.models.artefact import ModelError
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 from device.pi.runtime.config import LegConfig, parse_leg_config
 from device.pi.runtime.load import default_models_dir, load_models, rule_from_config
 from device.pi.runtime.loop import LegRuntime

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 import sys
 from pathlib import Path
 

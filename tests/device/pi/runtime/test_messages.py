@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from device.pi.faults import FAULT_CAMERA, FAULT_LINK
-from device.pi.runtime import protocol as P
+from device.pi import protocol as P
 from device.pi.runtime.messages import (TEMP_UNKNOWN_C, command_op, cpu_temp_c, fault_message,
                                         heartbeat_message, imu_message, surface_message)
 

@@ -1,4 +1,4 @@
-"""Wire protocol v1, CPython side (device/pi/runtime/protocol.py): CRC, COBS, framing, the
+"""Wire protocol v1, CPython side (device/pi/protocol.py): CRC, COBS, framing, the
 typed messages against the golden vectors, clamping, and a decoder that never
 raises; then ``host monitor`` (captured file, loop://, a pty) and its --bench.
 The MicroPython side is in test_mpy_link.py."""
@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 ROOT = REPO_ROOT
 sys.path.insert(0, str(ROOT))
 
-from device.pi.runtime import protocol as P  # noqa: E402
+from device.pi import protocol as P  # noqa: E402
 
 VECTORS = json.loads((Path(__file__).with_name("protocol_vectors.json")).read_text())
 ANY_FLOAT = st.floats(allow_nan=True, allow_infinity=True)
@@ -87,9 +87,9 @@ def test_golden_vector_encode_and_decode(v):
 
 
 def test_golden_vectors_file_matches_the_generator():
-    from tests.device.pi.runtime import make_protocol_vectors
+    from tests.device.pi import make_protocol_vectors
     assert make_protocol_vectors.build() == VECTORS, \
-        "run: .venv/bin/python tests/device/pi/runtime/make_protocol_vectors.py"
+        "run: .venv/bin/python tests/device/pi/make_protocol_vectors.py"
 
 
 @pytest.mark.parametrize("v", VECTORS["streams"], ids=lambda v: v["name"])

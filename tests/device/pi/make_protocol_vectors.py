@@ -1,6 +1,6 @@
-"""Write tests/device/pi/runtime/protocol_vectors.json: the golden vectors of wire protocol v1.
+"""Write tests/device/pi/protocol_vectors.json: the golden vectors of wire protocol v1.
 
-    .venv/bin/python tests/device/pi/runtime/make_protocol_vectors.py [--check]
+    .venv/bin/python tests/device/pi/make_protocol_vectors.py [--check]
 
 The JSON is committed as data: the Pi encoder, the MicroPython decoder and the
 host monitor are all tested against it, and docs/protocol.md quotes it. --check
@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = REPO_ROOT
 sys.path.insert(0, str(ROOT))
 
-from device.pi.runtime import protocol as P  # noqa: E402
+from device.pi import protocol as P  # noqa: E402
 
 OUT = Path(__file__).with_name("protocol_vectors.json")
 NAN = float("nan")
