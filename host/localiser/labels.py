@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
-from device.pi.vision.tracking import Tracker, mutual_match
+from device.pi.vision.tracking import Tracker, layout_neighbours, layout_pitch_px, mutual_match
 from device.sim import load_profile
 from host.localiser.samples import Sample, progress_bar, vision_params_for
 
@@ -26,7 +26,6 @@ __all__ = [
     "REAL_HOLDOUT_FRAC",
     "LabelChecks",
     "fit_layout",
-    "layout_neighbours",
     "check_labels",
     "read_clip",
     "label_clip",
@@ -86,22 +85,6 @@ def fit_layout(layout_px: np.ndarray, xy: np.ndarray, gate_px: float,
             "shift_px": t, "residual_px": res}
 
 
-def layout_neighbours(layout_px: np.ndarray, k: int = 6) -> np.ndarray:
-    """Indices (N, k) of each pin's k nearest other pins in the layout."""
-    L = np.asarray(layout_px, np.float64)
-    k = int(min(k, len(L) - 1))
-    d2 = ((L[:, None] - L[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    return np.argsort(d2, axis=1)[:, :k]
-
-
-def _pitch_px(layout_px: np.ndarray) -> float:
-    L = np.asarray(layout_px, np.float64)
-    d2 = ((L[:, None] - L[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    return float(np.median(np.sqrt(d2.min(1))))
-
-
 @dataclass(frozen=True)
 class LabelChecks:
     """Thresholds of the per-frame label check (see :func:`check_labels`).
@@ -134,7 +117,8 @@ def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
 
     ``labels_px`` (N, 2) labelled pins; ``matched`` (N,) which are measured
     (a detection assigned); ``idx`` (N,) the assigned detection or -1;
-    ``rest_px`` (N, 2) the rest layout; ``nbr`` (N, k) layout neighbours.
+    ``rest_px`` (N, 2) the rest layout; ``nbr`` (N, k) layout neighbours
+    (:func:`device.pi.vision.tracking.layout_neighbours`).
     Checks, in order: enough pins matched; no detection assigned twice; all
     labels finite; no two labels collapsed together; displacement consistent
     with the neighbours' (count and RMS).
@@ -238,8 +222,8 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
         s = dome[2] / layout_dome[2]
         L0 = (L0 - layout_dome[:2]) * s + dome[:2]
     det = PinDetector(params, shape, dome)
-    pitch = _pitch_px(L0)
-    nbr = layout_neighbours(L0, 6)
+    pitch = layout_pitch_px(L0)
+    nbr, _ = layout_neighbours(L0, 6)
     W = _interp_weights(L0, pitch)
     T, N = len(frames), len(L0)
     labels = np.zeros((T, N, 2))
