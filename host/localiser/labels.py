@@ -87,27 +87,25 @@ def fit_layout(layout_px: np.ndarray, xy: np.ndarray, gate_px: float,
 
 @dataclass(frozen=True)
 class LabelChecks:
-    """Thresholds of the per-frame label check (see :func:`check_labels`).
+    """Thresholds of the per-frame label check (see :func:`check_labels`)."""
 
-    min_matched_frac: share of the N pins that must be matched to a detection.
-    max_inconsistent: most matched pins whose displacement may differ from
-        the median of their layout neighbours' by more than
-        ``inconsistent_pitch`` pitches.
-    max_residual_px, residual_per_disp: the RMS (over matched pins) of that
-        difference may be at most ``max_residual_px + residual_per_disp * D``,
-        D the median displacement of the pins from rest (px): real strain makes
-        neighbours differ more the more the skin is deformed (measured on the
-        roboskin clips: RMS 0.4 px at rest, about 0.25 D under drag).
-    min_spacing_pitch: two labels closer than this many pitches are a collapse.
-    max_fit_residual_px: the rest-frame layout fit must be at least this good.
-    """
     min_matched_frac: float = 0.75
+    """Share of the N pins that must be matched to a detection."""
     max_inconsistent: int = 4
+    """Most matched pins whose displacement may differ from the median of their
+    layout neighbours' by more than ``inconsistent_pitch`` pitches."""
     inconsistent_pitch: float = 0.35
     max_residual_px: float = 1.0
+    """With ``residual_per_disp``: the RMS (over matched pins) of that difference
+    may be at most ``max_residual_px + residual_per_disp * D``, D the median
+    displacement of the pins from rest (px): real strain makes neighbours differ
+    more the more the skin is deformed (measured on the roboskin clips: RMS
+    0.4 px at rest, about 0.25 D under drag)."""
     residual_per_disp: float = 0.35
     min_spacing_pitch: float = 0.4
+    """Two labels closer than this many pitches are a collapse."""
     max_fit_residual_px: float = 1.5
+    """The rest-frame layout fit must be at least this good, px."""
 
 
 def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
