@@ -14,17 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
+from host.analysis.frames import nearest_neighbour_px
+from host.data.dataset import atomic_write_text
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
-
-
-def _nn(xy: np.ndarray) -> np.ndarray:
-    if len(xy) < 2:
-        return np.zeros(0)
-    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    return d.min(axis=1)
 
 
 def _score(frames, params, dome):
@@ -34,7 +28,7 @@ def _score(frames, params, dome):
         xy, a = det.detect(g)
         counts.append(len(xy))
         areas.append(a)
-        nns.append(_nn(xy))
+        nns.append(nearest_neighbour_px(xy))
     counts = np.array(counts, float)
     if counts.min() < 8:
         return -1.0, None
@@ -106,7 +100,6 @@ def profile_toml(res: dict) -> str:
 
 
 def write_profile(res: dict, out: Path | str) -> Path:
-    from host.data.dataset import atomic_write_text
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out, profile_toml(res))

@@ -18,12 +18,9 @@ from host.analysis.frames import finite, frame_list, locate_dome, stat
 __all__ = ["track_pins", "measure_drag_displacement"]
 
 
-def track_pins(
-    frames: Iterable[np.ndarray],
-    params: VisionParams,
-    dome: tuple[float, float, float] | None = None,
-    max_jump_px: float | None = None,
-) -> dict:
+def track_pins(frames: Iterable[np.ndarray], params: VisionParams,
+               dome: tuple[float, float, float] | None = None,
+               max_jump_px: float | None = None) -> dict:
     """Pin tracking from the first frame with the Pi's tracker.
 
     The first frame's pins are the reference of a
@@ -60,12 +57,9 @@ def track_pins(
     return {"ref_xy": ref, "xy": xy, "matched": matched, "dome": dome}
 
 
-def measure_drag_displacement(
-    frames: Iterable[np.ndarray],
-    params: VisionParams,
-    dome: tuple[float, float, float] | None = None,
-    max_jump_px: float | None = None,
-) -> dict:
+def measure_drag_displacement(frames: Iterable[np.ndarray], params: VisionParams,
+                              dome: tuple[float, float, float] | None = None,
+                              max_jump_px: float | None = None) -> dict:
     """Pin displacement relative to the first frame, px.
 
     Per frame: the median over tracked pins (matched in that frame) of

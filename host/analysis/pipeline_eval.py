@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
+from device.pi.vision.extract import dome_mask, to_gray
 from device.pi.vision.pipeline import MarkerStream
 from device.pi.vision.tracking import match_pins
+from device.sim import Simulator, load_scene
 from host.analysis.recall import pin_hits
 
 DRAGS = tuple(f"drag-{d}" for d in range(0, 360, 45))
@@ -33,8 +36,6 @@ def evaluate_scene(scene_name: str, effects=("glare", "camera_noise"), seed: int
       frames whose true patch shear exceeds ``min_shear_px``;
     * contact: the pipeline's flag against the true contact flag.
     """
-    from device.sim import Simulator, load_scene
-
     sim = Simulator(load_scene(scene_name).with_effects(*effects), seed=seed)
     tr = sim.truth
     stream = MarkerStream(profile)
@@ -140,10 +141,6 @@ class _FromReference:
         self.frames = 0
 
     def __iter__(self):
-        import cv2
-
-        from device.pi.vision.extract import to_gray
-
         stream = MarkerStream(self.profile)
         cap = cv2.VideoCapture(str(self.clip_path))
         recent: dict[int, np.ndarray] = {}
@@ -180,10 +177,6 @@ def farneback_direction_check(clip_path, profile: str = "roboskin", min_flow_px:
     OpenCV's dense Farneback flow over the dome, against the same reference
     frame, on contact frames whose mean flow exceeds ``min_flow_px``. Every
     ``step``-th frame is compared (the pipeline sees every frame)."""
-    import cv2
-
-    from device.pi.vision.extract import dome_mask
-
     errs = []
     ref_box = mask = box = None
     clip = _FromReference(clip_path, profile, limit)
@@ -214,8 +207,6 @@ def chained_flow_direction_check(clip_path, profile: str = "roboskin",
     detected pin within ``snap_px``. Unlike flow straight from the reference,
     this follows pins that have moved about half a pitch or more, where the pin
     lattice makes the direct flow pick the wrong neighbour."""
-    import cv2
-
     errs = []
     prev = pos = ref = box = origin = None
     clip = _FromReference(clip_path, profile)

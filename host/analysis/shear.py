@@ -2,8 +2,7 @@
 
 The set (see ``../shared/data/README.md``) is 400 binarised 445x440 images of a
 331-pin TacTip pressed onto a flat surface at random depth, tilt and shear;
-each image is an independent press. This module measures two things the
-marker-pipeline issue asks for:
+each image is an independent press. This module measures two things:
 
 * **pins**: the reference layout is taken from ``image_1.png`` (the shallowest
   press); every image is tracked against it with

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
+from host.analysis.figures import save_figure
 
 
 def to_bgr(frame: np.ndarray) -> np.ndarray:
@@ -119,11 +120,4 @@ def truth_plot(truth: dict, out: Path, title: str = "") -> Path:
                           fontsize=7)
     ax[3].legend(loc="upper right")
     ax[3].set_xlabel("time [s]")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, title)

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
-from device.pi.vision.tracking import mutual_match
+from device.pi.vision.tracking import Tracker, layout_neighbours, layout_pitch_px, mutual_match
 from device.sim import load_profile
 from host.localiser.samples import Sample, progress_bar, vision_params_for
 
@@ -26,7 +26,6 @@ __all__ = [
     "REAL_HOLDOUT_FRAC",
     "LabelChecks",
     "fit_layout",
-    "layout_neighbours",
     "check_labels",
     "read_clip",
     "label_clip",
@@ -37,6 +36,8 @@ __all__ = [
 REAL_CLIPS = ("smooth", "concrete", "north", "east")
 #: share of each real clip (its end) held out for the real-data metrics
 REAL_HOLDOUT_FRAC = 0.2
+#: matching gate of the rest-frame fit and of the tracking, in pin pitches
+GATE_PITCH = 0.4
 
 
 def _similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -84,45 +85,27 @@ def fit_layout(layout_px: np.ndarray, xy: np.ndarray, gate_px: float,
             "shift_px": t, "residual_px": res}
 
 
-def layout_neighbours(layout_px: np.ndarray, k: int = 6) -> np.ndarray:
-    """Indices (N, k) of each pin's k nearest other pins in the layout."""
-    L = np.asarray(layout_px, np.float64)
-    k = int(min(k, len(L) - 1))
-    d2 = ((L[:, None] - L[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    return np.argsort(d2, axis=1)[:, :k]
-
-
-def _pitch_px(layout_px: np.ndarray) -> float:
-    L = np.asarray(layout_px, np.float64)
-    d2 = ((L[:, None] - L[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    return float(np.median(np.sqrt(d2.min(1))))
-
-
 @dataclass(frozen=True)
 class LabelChecks:
-    """Thresholds of the per-frame label check (see :func:`check_labels`).
+    """Thresholds of the per-frame label check (see :func:`check_labels`)."""
 
-    min_matched_frac: share of the N pins that must be matched to a detection.
-    max_inconsistent: most matched pins whose displacement may differ from
-        the median of their layout neighbours' by more than
-        ``inconsistent_pitch`` pitches.
-    max_residual_px, residual_per_disp: the RMS (over matched pins) of that
-        difference may be at most ``max_residual_px + residual_per_disp * D``,
-        D the median displacement of the pins from rest (px): real strain makes
-        neighbours differ more the more the skin is deformed (measured on the
-        roboskin clips: RMS 0.4 px at rest, about 0.25 D under drag).
-    min_spacing_pitch: two labels closer than this many pitches are a collapse.
-    max_fit_residual_px: the rest-frame layout fit must be at least this good.
-    """
     min_matched_frac: float = 0.75
+    """Share of the N pins that must be matched to a detection."""
     max_inconsistent: int = 4
+    """Most matched pins whose displacement may differ from the median of their
+    layout neighbours' by more than ``inconsistent_pitch`` pitches."""
     inconsistent_pitch: float = 0.35
     max_residual_px: float = 1.0
+    """With ``residual_per_disp``: the RMS (over matched pins) of that difference
+    may be at most ``max_residual_px + residual_per_disp * D``, D the median
+    displacement of the pins from rest (px): real strain makes neighbours differ
+    more the more the skin is deformed (measured on the roboskin clips: RMS
+    0.4 px at rest, about 0.25 D under drag)."""
     residual_per_disp: float = 0.35
     min_spacing_pitch: float = 0.4
+    """Two labels closer than this many pitches are a collapse."""
     max_fit_residual_px: float = 1.5
+    """The rest-frame layout fit must be at least this good, px."""
 
 
 def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
@@ -132,7 +115,8 @@ def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
 
     ``labels_px`` (N, 2) labelled pins; ``matched`` (N,) which are measured
     (a detection assigned); ``idx`` (N,) the assigned detection or -1;
-    ``rest_px`` (N, 2) the rest layout; ``nbr`` (N, k) layout neighbours.
+    ``rest_px`` (N, 2) the rest layout; ``nbr`` (N, k) layout neighbours
+    (:func:`device.pi.vision.tracking.layout_neighbours`).
     Checks, in order: enough pins matched; no detection assigned twice; all
     labels finite; no two labels collapsed together; displacement consistent
     with the neighbours' (count and RMS).
@@ -206,14 +190,13 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
 
     The layout (profile rest positions, placed by the clip's dome relative to
     ``layout_dome``) is fitted to the first frame's detections (similarity
-    transform, one-to-one ICP), then tracked: each frame the pins are
-    predicted (last position + last motion), the field's common shift is
-    estimated on a loose gate and the pins are matched mutual-nearest on a
-    tight one (or against the rest layout when that explains more pins, as
-    the skin springs back). A matched pin whose displacement disagrees with
-    its layout neighbours' is dropped; unmatched pins (under glare, merged,
-    lost) get the Gaussian-weighted displacement of matched pins nearby.
-    Every frame is then checked with :func:`check_labels`.
+    transform, one-to-one ICP), then tracked by the Pi's
+    :class:`device.pi.vision.tracking.Tracker` (gate ``GATE_PITCH`` pitches),
+    restarted from the rest layout when that explains more pins (the skin
+    springs back). A tracked pin whose displacement disagrees with its layout
+    neighbours' by more than the gate is counted as unmatched; unmatched pins
+    (under glare, merged, lost) get the Gaussian-weighted displacement of
+    matched pins nearby. Every frame is then checked with :func:`check_labels`.
 
     Returns ``labels_px`` (T, N, 2), ``matched`` (T, N) bool, ``ok`` (T,)
     bool, ``rejected`` (list of {clip, frame, reason}), ``dome``, ``box``,
@@ -237,10 +220,9 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
         s = dome[2] / layout_dome[2]
         L0 = (L0 - layout_dome[:2]) * s + dome[:2]
     det = PinDetector(params, shape, dome)
-    pitch = _pitch_px(L0)
-    nbr = layout_neighbours(L0, 6)
+    pitch = layout_pitch_px(L0)
+    nbr, _ = layout_neighbours(L0, 6)
     W = _interp_weights(L0, pitch)
-    gate_loose, gate_tight = 0.5 * pitch, 0.4 * pitch
     T, N = len(frames), len(L0)
     labels = np.zeros((T, N, 2))
     matched = np.zeros((T, N), bool)
@@ -249,7 +231,7 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
     binaries: list[np.ndarray] = []
 
     xy0, _ = det.detect(frames[0])
-    fit = fit_layout(L0, xy0, gate_tight)
+    fit = fit_layout(L0, xy0, GATE_PITCH * pitch)
     # the real rest layout: measured where a pin was found, the fitted layout elsewhere
     rest = fit["pins_px"].copy()
     m0 = fit["idx"] >= 0
@@ -262,43 +244,32 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
     if not fit["residual_px"] <= checks.max_fit_residual_px:
         bad_fit = (f"layout fit to the rest frame failed (residual {fit['residual_px']:.2f} px "
                    f"> {checks.max_fit_residual_px} px)")
-    cur = rest.copy()
-    vel = np.zeros(2)
+    gate_px = GATE_PITCH * pitch
+    tracker = Tracker(pitch_px=pitch, gate_frac=GATE_PITCH, k=6)
+    tracker.set_reference(rest)
     with progress_bar(T, f"label {clip}", progress) as bar:
         for t in range(T):
             xy, _ = det.detect(frames[t])
             binaries.append(det.binary.copy())
-            xy = xy.astype(np.float64)
-            pred = cur + vel
-            idx = mutual_match(pred, xy, gate_loose)
-            m = idx >= 0
-            shift = np.median(xy[idx[m]] - pred[m], axis=0) if m.sum() >= 10 else np.zeros(2)
-            pred = pred + shift
-            idx = mutual_match(pred, xy, gate_tight)
-            idx_rest = mutual_match(rest, xy, gate_tight)
-            if (idx_rest >= 0).sum() > (idx >= 0).sum():
-                pred, idx = rest.copy(), idx_rest
-            m = idx >= 0
-            new = pred.copy()
-            new[m] = xy[idx[m]]
+            vectors, lost = tracker.update(xy)
+            if np.count_nonzero(mutual_match(rest, xy, gate_px) >= 0) > tracker.n_tracked:
+                # the skin sprang back: the rest layout explains more pins
+                tracker.set_reference(rest)
+                vectors, lost = tracker.update(xy)
+            m = ~lost
             # a pin that jumped to its neighbour's blob disagrees with its neighbours
             if m.sum() >= 3:
-                disp = new - rest
-                local = np.median(disp[nbr], axis=1)
-                jumped = m & (np.hypot(*(disp - local).T) > gate_tight)
-                m &= ~jumped
-                idx[jumped] = -1
+                local = np.median(vectors[nbr], axis=1)
+                m &= np.hypot(*(vectors - local).T) <= gate_px
+            new = rest + vectors
             # unmatched pins follow the matched pins around them
-            disp = new - rest
             if m.any():
                 wm = W[:, m]
                 ws = wm.sum(1)
-                fill = (wm @ disp[m]) / np.maximum(ws, 1e-12)[:, None]
-                far = ws < 1e-3
-                fill[far] = np.median(disp[m], axis=0)
+                fill = (wm @ vectors[m]) / np.maximum(ws, 1e-12)[:, None]
+                fill[ws < 1e-3] = np.median(vectors[m], axis=0)
                 new[~m] = rest[~m] + fill[~m]
-            vel = np.median(new[m] - cur[m], axis=0) if m.sum() >= 10 else np.zeros(2)
-            cur = new
+            idx = np.where(m, tracker.idx, -1)
             labels[t] = new
             matched[t] = m
             reason = bad_fit or check_labels(new, m, idx, rest, nbr, pitch, checks)

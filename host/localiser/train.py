@@ -85,26 +85,17 @@ def _check_args(size, alpha, crop_factor, n_aug) -> None:
 
 
 def train_localiser(
-    out_dir: Path | str,
-    profile: str = "roboskin",
-    real_data=None,
-    seed: int = 0,
-    alpha: float = DEFAULT_ALPHA,
-    size: int = DEFAULT_SIZE,
-    progress: bool = True,
+    out_dir: Path | str, profile: str = "roboskin", real_data=None, seed: int = 0,
+    alpha: float = DEFAULT_ALPHA, size: int = DEFAULT_SIZE, progress: bool = True,
     crop_factor: float = DEFAULT_CROP_FACTOR,
-    n_sim_scenes: int = 120,
-    frames_per_scene: int = 30,
-    n_test_scenes: int = 20,
-    n_aug: int = 3,
-    shift_px: float = 2.0,
-    zoom: float = 0.02,
-    real_clips: Sequence[str] = REAL_CLIPS,
-    real_stride: int = 1,
-    real_weight: float = 2.0,
+    # simulated frames and augmentation
+    n_sim_scenes: int = 120, frames_per_scene: int = 30, n_test_scenes: int = 20,
+    n_aug: int = 3, shift_px: float = 2.0, zoom: float = 0.02,
     max_depth_mm: float = TRAIN_MAX_DEPTH_MM,
-    weights: str = "auto",
+    # real frames
+    real_clips: Sequence[str] = REAL_CLIPS, real_stride: int = 1, real_weight: float = 2.0,
     checks: LabelChecks = LabelChecks(),
+    weights: str = "auto",
 ) -> dict:
     """Train, check and export a localiser; returns the summary (and the estimator).
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from device.pi.vision.extract import ROBOSKIN_PARAMS
+from device.pi.vision.tracking import layout_neighbours
 from device.sim import Simulator, load_profile, parse_scene
 from host.localiser.labels import (
     LabelChecks,
     check_labels,
     fit_layout,
     label_clip,
-    layout_neighbours,
     read_clip,
 )
 from host.localiser.sim import random_scene_doc
@@ -58,7 +58,7 @@ def _sim_labels():
 
 def test_check_labels_rejects_shuffled_and_missing():
     lab, rest = _sim_labels()
-    nbr = layout_neighbours(rest, 6)
+    nbr, _ = layout_neighbours(rest, 6)
     pitch = 11.7
     n = len(lab)
     ok = np.ones(n, bool)
@@ -101,14 +101,6 @@ def test_fit_layout_recovers_a_similarity_transform():
     np.testing.assert_array_equal(det[fit["idx"]], moved)
 
 
-def test_layout_neighbours_are_the_nearest_other_pins():
-    pts = np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [10.0, 0.0]])
-    nb = layout_neighbours(pts, 2)
-    assert nb.shape == (4, 2)
-    assert nb[0].tolist() == [1, 2] and nb[3].tolist() == [2, 1]
-    assert all(i not in row for i, row in enumerate(nb))
-
-
 def test_label_clip_follows_simulated_pins():
     """A simulated drag labelled like a real clip: labels near the true pins."""
     sim = Simulator(parse_scene(random_scene_doc(np.random.default_rng(21))), seed=21)
@@ -147,7 +139,7 @@ def test_label_clip_and_read_clip_name_bad_inputs(tmp_path):
 
 def test_label_checks_defaults_are_what_check_labels_uses():
     lab = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
-    nbr = layout_neighbours(lab, 3)
+    nbr, _ = layout_neighbours(lab, 3)
     ok = np.ones(4, bool)
     strict = LabelChecks(min_matched_frac=1.0)
     ok[0] = False

@@ -35,19 +35,6 @@ from tests.realdata import real_data_dir
 N_PINS = 133
 
 
-def _real_dir_or_none():
-    import os
-    from pathlib import Path
-
-    env = os.environ.get(ENV_VAR)
-    for cand in ([Path(env)] if env else []) + [DEFAULT_DIR]:
-        rb = cand / "roboskin"
-        if (rb / "north.avi").is_file() and (rb / "east.avi").is_file():
-            return cand
-    return None
-
-
-
 # --------------------------------------------------------------------------
 # Artefact
 # --------------------------------------------------------------------------

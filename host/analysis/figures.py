@@ -1,0 +1,22 @@
+"""Writing matplotlib figures of the analysis commands."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["save_figure"]
+
+
+def save_figure(fig, out: Path | str, title: str = "", dpi: int = 90) -> Path:
+    """Title ``fig`` (when ``title`` is given), lay it out, write it to ``out``
+    (making its folder) and close it; returns ``out`` as a Path."""
+    import matplotlib.pyplot as plt
+
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    return out
