@@ -415,7 +415,8 @@ def cmd_calibrate(args):
 
 
 def _load_windows(args, task: str, window: int, min_classes: int = 2):
-    from host.data.specs import DataError, load_specs
+    from host.data.load import load_specs
+    from host.data.windows import DataError
     try:
         return load_specs(args.data, task=task, window=window,
                           contact_only=getattr(args, "contact_only", False),
@@ -453,7 +454,7 @@ def cmd_train(args):
 
 def _train_cnn(args, ws):
     from host.learn.cnn import quantise_cnn, train_cnn
-    from host.data.specs import split_grouped
+    from host.data.splits import split_grouped
     from host.learn.train import TrainError
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")

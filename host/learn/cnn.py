@@ -395,7 +395,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     ``out_dir``), ``onnx`` (the onnx.ModelProto) and ``estimator`` (the FrameCNN).
     Raises ValueError if ONNX Runtime and torch differ by more than ``ONNX_ATOL``.
     """
-    from host.data.specs import CLASS_TASKS
+    from host.data.windows import CLASS_TASKS
     from host.learn.onnx_io import write_model
 
     require_torch()

@@ -186,7 +186,7 @@ def augment_rotations(ws, copies: int, profile: str = "roboskin"):
     layout only (grids are not rotated)."""
     from dataclasses import replace
 
-    from host.data.specs import layout_for_profile
+    from host.data.extract import layout_for_profile
 
     copies = _check_int("augment", copies, 0)
     if copies == 0:
@@ -941,7 +941,8 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
     rotated copies are added to each fold's training part only."""
     from tqdm import tqdm
 
-    from host.data.specs import DataError, group_kfold
+    from host.data.splits import group_kfold
+    from host.data.windows import DataError
 
     k = _check_int("cv", k, 2)
     if len(ws) < k:
@@ -1028,7 +1029,7 @@ def _hyper(model: str, hidden=None, alpha=None, epochs=None, temporal=None) -> d
 
 
 def _check_windows(ws, task: str, what: str) -> None:
-    from host.data.specs import WindowSet
+    from host.data.windows import WindowSet
 
     if not isinstance(ws, WindowSet):
         raise TrainError(f"{what} must be a host.data.specs.WindowSet, got {type(ws).__name__}")
@@ -1048,7 +1049,8 @@ def _check_windows(ws, task: str, what: str) -> None:
 
 def _holdout(ws, seed: int):
     """(train, test, how) when no test windows were given."""
-    from host.data.specs import DataError, split_grouped, split_time
+    from host.data.splits import split_grouped, split_time
+    from host.data.windows import DataError
 
     if len(np.unique(ws.groups)) >= 2:
         tr, te = split_grouped(ws, 0.25, seed)
@@ -1579,7 +1581,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     Data and models go under ``out_dir`` (data folders are reused when present);
     the result is also written to ``out_dir/benchmarks.json``.
     """
-    from host.data.specs import load_spec
+    from host.data.load import load_spec
     from host.data.dataset import atomic_write_text
     from host.learn.evaluate import evaluate_model
 
