@@ -521,7 +521,8 @@ def cmd_realism(args):
 
 
 def cmd_deploy(args):
-    from host.deploy.release import DeployInputError, options_from_args, run, summary_text
+    from host.deploy.options import DeployInputError, options_from_args
+    from host.deploy.release import run, summary_text
     try:
         opts = options_from_args(args)
         opts.check()
@@ -689,7 +690,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("deploy", help="install the runtime on a Pi over SSH (systemd, "
                                       "health check, rollback)")
-    from host.deploy.release import add_arguments as _deploy_arguments
+    from host.deploy.options import add_arguments as _deploy_arguments
     _deploy_arguments(s)
     s.set_defaults(func=cmd_deploy)
     s = sub.add_parser("rig", help="data-collection rig: validate and run trial files")
