@@ -536,7 +536,8 @@ def cmd_deploy(args):
 
 
 def cmd_rig(args):
-    from host.rig.trials import load_plan, plan_summary, run, summary_text
+    from host.rig.plan import load_plan, plan_summary
+    from host.rig.trials import run, summary_text
     plan = load_plan(args.trials)
     if args.rig_command == "check":
         s = plan_summary(plan)
