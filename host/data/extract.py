@@ -16,6 +16,7 @@ from device.pi.vision.layout import layout_for_profile as _layout_for_profile
 from device.pi.vision.pipeline import FAULT_NO_REFERENCE
 from host.data.windows import DataError
 
+
 def layout_for_profile(profile: str) -> np.ndarray:
     """The fixed pin layout (M, 2) px of a sensor profile (:mod:`device.pi.vision.layout`)."""
     try:

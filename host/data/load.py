@@ -13,14 +13,15 @@ A SPEC (``host train --data SPEC``) is one of (docs/datasets.md, "Data specs"):
 Frames go through the Pi's own :class:`device.pi.vision.pipeline.MarkerStream`, from the
 first frame of each recording (so the reference is the recording's rest frame, as on
 the Pi); a frame range only chooses which windows are cut. The per-reference-pin
-vectors are put on the profile's fixed pin layout (:mod:`host.data.extract`). A window is cut wherever all its T frames
-have a reference; its label, contact flag and target are those of its last frame,
-where the decision is made.
+vectors are put on the profile's fixed pin layout (:mod:`host.data.extract`). A
+window is cut wherever all its T frames have a reference; its label, contact flag
+and target are those of its last frame, where the decision is made.
 
 A *trial* is one recording: a clip file, a ``sim://`` scene with its seed, a trial of
 a dataset folder, or a group of an ``.npz``. ``groups`` holds its id, so splits can
-keep trials apart (:func:`host.data.splits.split_grouped`, :func:`host.data.splits.group_kfold`), and
-``t_index`` / ``trial_len`` place each window in it (:func:`host.data.splits.split_time`).
+keep trials apart (:func:`host.data.splits.split_grouped`,
+:func:`host.data.splits.group_kfold`), and ``t_index`` / ``trial_len`` place each
+window in it (:func:`host.data.splits.split_time`).
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ from host.data.spec_folder import load_dataset
 from host.data.spec_npz import load_npz
 from host.data.windows import (DEFAULT_FRAME_SIZE, DataError, WindowSet, check_int, check_task,
                                finalise)
+
 
 def load_spec(spec: str, task: str, window: int, contact_only: bool = False,
               profile: str = "roboskin", progress: bool = True, *, stride: int = 1,

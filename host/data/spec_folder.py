@@ -11,6 +11,7 @@ from host.data.extract import extract_features
 from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
                                finalise, keep_contact, stack_parts, window_ends, window_labels)
 
+
 def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
                   profile: str, frame_size, progress: bool, cache: dict,
                   min_classes: int) -> WindowSet:

@@ -10,6 +10,7 @@ import numpy as np
 from device.profile import load_pipeline_profile
 from host.data.windows import IMU_CHANNELS, DataError, WindowSet, finalise
 
+
 def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
               label: str | None = None, where: str | None = None,
               min_classes: int = 2) -> WindowSet:

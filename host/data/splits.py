@@ -9,6 +9,7 @@ import numpy as np
 
 from host.data.windows import DataError, WindowSet
 
+
 def _group_labels(ws: WindowSet, uniq: np.ndarray, inv: np.ndarray) -> np.ndarray:
     """The most common label of each group ('' for regression)."""
     if ws.labels is None:

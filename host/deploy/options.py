@@ -126,7 +126,6 @@ def project_version() -> str:
         return "0"
 
 
-
 def add_arguments(s):
     """The ``host deploy`` options (shared with host/cli/__init__.py)."""
     s.add_argument("target", help="USER@HOST of the Pi")
