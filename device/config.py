@@ -58,15 +58,21 @@ class Fields:
     def has(self, key: str) -> bool:
         return key in self.table
 
+    def _lookup(self, key: str, default: Any) -> tuple[bool, Any]:
+        """Mark ``key`` as read: (True, value) when the table has it, else (False,
+        default); absent with no default is an error naming the field."""
+        self.seen.add(key)
+        if key in self.table:
+            return True, self.table[key]
+        if default is None:
+            self.fail(self._name(key), None, "is required")
+        return False, default
     def number(self, key: str, default: float | None = None, *, min: float | None = None,
                max: float | None = None, min_exclusive: bool = False,
                integer: bool = False) -> float:
-        self.seen.add(key)
-        if key not in self.table:
-            if default is None:
-                self.fail(self._name(key), None, "is required")
-            return default
-        v = self.table[key]
+        found, v = self._lookup(key, default)
+        if not found:
+            return v
         name = self._name(key)
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             self.fail(name, v, "must be a number")
@@ -88,12 +94,9 @@ class Fields:
 
     def string(self, key: str, default: str | None = None, *,
                choices: Iterable[str] | None = None) -> str:
-        self.seen.add(key)
-        if key not in self.table:
-            if default is None:
-                self.fail(self._name(key), None, "is required")
-            return default
-        v = self.table[key]
+        found, v = self._lookup(key, default)
+        if not found:
+            return v
         if not isinstance(v, str):
             self.fail(self._name(key), v, "must be a string")
         if choices is not None and v not in choices:
@@ -108,12 +111,9 @@ class Fields:
         return v
 
     def pair(self, key: str, default: tuple[float, float] | None = None) -> tuple[float, float]:
-        self.seen.add(key)
-        if key not in self.table:
-            if default is None:
-                self.fail(self._name(key), None, "is required")
-            return default
-        v = self.table[key]
+        found, v = self._lookup(key, default)
+        if not found:
+            return v
         if (not isinstance(v, list) or len(v) != 2
                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
                            and math.isfinite(x) for x in v)):
@@ -122,12 +122,9 @@ class Fields:
 
     def number_list(self, key: str, default: list | None = None, *, min: float | None = None,
                     integer: bool = False) -> list:
-        self.seen.add(key)
-        if key not in self.table:
-            if default is None:
-                self.fail(self._name(key), None, "is required")
-            return list(default)
-        v = self.table[key]
+        found, v = self._lookup(key, default)
+        if not found:
+            return list(v)
         ok = isinstance(v, list) and len(v) > 0 and all(
             isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
             and (not integer or float(x).is_integer()) and (min is None or x >= min)
@@ -139,12 +136,8 @@ class Fields:
         return [int(x) for x in v] if integer else [float(x) for x in v]
 
     def sub(self, key: str, default: dict | None = None) -> "Fields":
-        self.seen.add(key)
-        if key not in self.table:
-            if default is None:
-                self.fail(self._name(key), None, "is required")
-            return Fields(default, self._name(key), self.source)
-        return Fields(self.table[key], self._name(key), self.source)
+        _, v = self._lookup(key, default)
+        return Fields(v, self._name(key), self.source)
 
     def raw(self, key: str, default: Any = None) -> Any:
         self.seen.add(key)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from host.data.specs import WindowSet
+from host.data.windows import WindowSet
 
 T = 3
 def synthetic(n_groups=6, per_group=20, n_pins=5, Tn=T, classes=("a", "b"), imu=True,

@@ -66,7 +66,8 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
              split: str = "grouped", contact_only: bool = False, label: str = "",
              progress: bool = True) -> list[dict]:
     """Rows of the report for one task and data source."""
-    from host.data.specs import load_specs, split_grouped, split_time
+    from host.data.load import load_specs
+    from host.data.splits import split_grouped, split_time
     from host.learn.evaluate import evaluate_model
     from host.learn.train import TrainError
 

@@ -56,7 +56,7 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
                 trials: int | None = None) -> dict:
     """Train one default model into ``out_root/name`` (replaced only when the new
     one is complete). Returns a summary: metrics, int8 check, bytes."""
-    from host.data.specs import load_spec
+    from host.data.load import load_spec
     from host.learn.train import BENCH_MODELS, TrainError, simulate_scenes, train_model
 
     if name not in DEFAULTS:

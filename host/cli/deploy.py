@@ -4,8 +4,8 @@ from __future__ import annotations
 import sys
 
 from host.cli.common import UserError, emit
-from host.deploy.release import (DeployInputError, add_arguments, options_from_args, run,
-                                 summary_text)
+from host.deploy.options import DeployInputError, add_arguments, options_from_args
+from host.deploy.release import run, summary_text
 
 
 def cmd_deploy(args):

@@ -8,7 +8,9 @@ from pathlib import Path
 from device.pi.models.artefact import ModelError, read_manifest
 from host.bench.report import build_report
 from host.cli.common import UserError, emit, json_default, real_data_dir
-from host.data.specs import DataError, load_specs, split_grouped
+from host.data.load import load_specs
+from host.data.splits import split_grouped
+from host.data.windows import DataError
 from host.learn.cnn import quantise_cnn, train_cnn
 from host.learn.evaluate import evaluate_model
 from host.learn.train import TrainError, train_model

@@ -4,7 +4,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from host.cli.common import UserError, emit
-from host.rig.trials import load_plan, plan_summary, run, summary_text
+from host.rig.plan import load_plan, plan_summary
+from host.rig.trials import run, summary_text
 
 
 def cmd_rig(args):

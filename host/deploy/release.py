@@ -27,9 +27,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
-import re
 import secrets
 import shlex
 import shutil
@@ -38,259 +36,11 @@ import sys
 import tarfile
 import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
-UNIT_TEMPLATE = REPO / "device" / "pi" / "tacfoot.service"
-MANAGERS = ("auto", "systemd", "none")
-
-
-class DeployError(Exception):
-    """A deploy step failed; the message names the step."""
-
-
-class DeployInputError(ValueError):
-    """Bad deploy options (a missing models folder, a bad --env ...)."""
-
-
-@dataclass
-class DeployOptions:
-    target: str                                  # [USER@]HOST
-    port: int | None = None
-    identity: str | None = None
-    ssh_options: list[str] = field(default_factory=list)   # extra "-o" values
-    prefix: str = "/opt/tacfoot"
-    models: str | None = None                    # default: the repo's models/
-    config: str | None = None                    # default: device/leg.toml if present
-    python: str = "python3"                      # the Pi's interpreter for the venv
-    service_manager: str = "auto"
-    service_name: str = "tacfoot"
-    service_user: str | None = None              # default: the SSH user unless root
-    unit_dir: str = "/etc/systemd/system"
-    system_site_packages: bool = False
-    no_deps: bool = False
-    camera: str = "v4l2:///dev/video0"
-    imu: str = "i2c://1/0x68"
-    serial: str = "/dev/serial0"
-    runtime_module: str = "device.pi"
-    runtime_args: list[str] = field(default_factory=list)
-    env: list[str] = field(default_factory=list)         # KEY=VALUE for the service
-    watchdog_s: int = 10
-    health_timeout_s: float = 60.0
-    keep: int = 3
-    release: str | None = None
-
-    def check(self):
-        if not self.target or self.target.startswith("-") or any(c.isspace()
-                                                                 for c in self.target):
-            raise DeployInputError(f"target must be [USER@]HOST, got {self.target!r}")
-        if self.port is not None and not 0 < self.port < 65536:
-            raise DeployInputError(f"--port must be 1..65535, got {self.port!r}")
-        if self.service_manager not in MANAGERS:
-            raise DeployInputError(f"--service-manager must be one of {MANAGERS}, "
-                                   f"got {self.service_manager!r}")
-        if not self.prefix.startswith("/") or self.prefix.rstrip("/") in ("", "/"):
-            raise DeployInputError(f"--prefix must be an absolute folder, got {self.prefix!r}")
-        if not self.unit_dir.startswith("/"):
-            raise DeployInputError(f"--unit-dir must be an absolute folder, got {self.unit_dir!r}")
-        if not self.service_name.replace("-", "").replace("_", "").isalnum():
-            raise DeployInputError(f"--service-name must be letters, digits, - or _, "
-                                   f"got {self.service_name!r}")
-        # these end up in the unit and in shell scripts: one line each
-        for name, vals in (("prefix", [self.prefix]), ("unit-dir", [self.unit_dir]),
-                           ("camera", [self.camera]), ("imu", [self.imu]),
-                           ("serial", [self.serial]), ("runtime-arg", self.runtime_args),
-                           ("env", self.env), ("python", [self.python]),
-                           ("service-user", [self.service_user or ""]),
-                           ("runtime-module", [self.runtime_module])):
-            for v in vals:
-                if any(ord(c) < 32 or 127 <= ord(c) < 160 or c in "\u2028\u2029" for c in v):
-                    raise DeployInputError(f"--{name} must not hold control characters "
-                                           f"(newline, tab...), got {v!r}")
-        for kv in self.env:
-            k, eq, _ = kv.partition("=")
-            if not eq or not k.replace("_", "").isalnum() or k[0].isdigit():
-                raise DeployInputError(f"--env must be KEY=VALUE, got {kv!r}")
-        if not self.watchdog_s >= 1:
-            raise DeployInputError(f"--watchdog-s must be >= 1, got {self.watchdog_s!r}")
-        if not (self.health_timeout_s > 0 and math.isfinite(self.health_timeout_s)):
-            raise DeployInputError(f"--health-timeout-s must be > 0, got "
-                                   f"{self.health_timeout_s!r}")
-        if self.keep < 2:
-            raise DeployInputError(f"--keep must be >= 2 (current and previous), got {self.keep}")
-        if self.release is not None and not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]*",
-                                                         self.release):
-            raise DeployInputError(f"--release must be letters, digits, . _ + - (a folder "
-                                   f"name), got {self.release!r}")
-        for name in ("models", "config"):
-            p = getattr(self, name)
-            if p is not None and not Path(p).exists():
-                raise DeployInputError(f"--{name}: {p} not found")
-        if self.models is not None and not Path(self.models).is_dir():
-            raise DeployInputError(f"--models must be a folder, got {self.models!r}")
-        if self.config is not None and not Path(self.config).is_file():
-            raise DeployInputError(f"--config must be a file, got {self.config!r}")
-
-    # -- derived ---------------------------------------------------------------
-    @property
-    def ssh_user(self) -> str | None:
-        return self.target.split("@", 1)[0] if "@" in self.target else None
-
-    def models_dir(self) -> Path | None:
-        if self.models:
-            return Path(self.models)
-        d = REPO / "models"
-        return d if d.is_dir() else None
-
-    def config_file(self) -> Path | None:
-        if self.config:
-            return Path(self.config)
-        f = REPO / "device" / "leg.toml"
-        return f if f.is_file() else None
-
-
-def project_version() -> str:
-    """The version in pyproject.toml (the wheel being built)."""
-    from device.config import tomllib
-    try:
-        with open(REPO / "pyproject.toml", "rb") as fh:
-            return str(tomllib.load(fh)["project"]["version"])
-    except (OSError, KeyError, ValueError):
-        return "0"
-
-
-def q(s) -> str:
-    return shlex.quote(str(s))
-
-
-# -- what runs on the Pi ---------------------------------------------------------
-
-def runtime_argv(o: DeployOptions) -> list[str]:
-    """The runtime command line the service runs (through PREFIX/current)."""
-    cur = f"{o.prefix}/current"
-    argv = [f"{cur}/venv/bin/python", "-m", o.runtime_module, "run",
-            "--camera", o.camera, "--imu", o.imu, "--serial", o.serial]
-    if o.models_dir() is not None:
-        argv += ["--models", f"{cur}/models"]
-    cfg = o.config_file()
-    if cfg is not None:
-        argv += ["--config", f"{cur}/config/{cfg.name}"]
-    argv += ["--status", status_path(o)]
-    return argv + list(o.runtime_args)
-
-
-def status_path(o: DeployOptions) -> str:
-    return f"{o.prefix}/run/status.json"
-
-
-def _systemd_word(arg: str) -> str:
-    """One word of a systemd command line: %, $ escaped; quoted if needed."""
-    s = arg.replace("%", "%%").replace("$", "$$")
-    if s and not any(c.isspace() or c in "\"'\\;" for c in s):
-        return s
-    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
-def render_unit(o: DeployOptions, template: str | None = None) -> str:
-    """The systemd unit for these options, from device/pi/tacfoot.service."""
-    text = template if template is not None else UNIT_TEMPLATE.read_text()
-    user = o.service_user if o.service_user is not None else o.ssh_user
-    env = "\n".join("Environment=" + _systemd_word(kv) for kv in o.env)
-    fields = {"SERVICE": o.service_name, "PREFIX": o.prefix,
-              "EXEC_START": " ".join(_systemd_word(a) for a in runtime_argv(o)),
-              "USER_LINE": f"User={user}" if user and user != "root" else "",
-              "ENVIRONMENT": env, "WATCHDOG_S": str(int(o.watchdog_s))}
-    # one pass, so a value that itself looks like @FIELD@ is left alone
-    return re.sub(r"@([A-Z_]+)@", lambda m: fields.get(m[1], m[0]), text)
-
-
-def render_ctl(o: DeployOptions) -> str:
-    """tacfootctl: start/stop/restart/pid with a pid file, for a Pi without
-    systemd (and the tests). Same command line and environment as the unit."""
-    run = f"{o.prefix}/run"
-    env = "".join(f"export {kv.partition('=')[0]}={q(kv.partition('=')[2])}\n" for kv in o.env)
-    return f"""#!/bin/sh
-# tacfootctl: runs the tacfoot runtime without systemd (pid file {run}/{o.service_name}.pid).
-# Written by host deploy; usage: tacfootctl start|stop|restart|pid
-PIDFILE={q(run + '/' + o.service_name + '.pid')}
-LOG={q(run + '/' + o.service_name + '.log')}
-alive() {{ kill -0 "$1" 2>/dev/null && ! grep -q '^[0-9]* ([^)]*) Z' /proc/"$1"/stat 2>/dev/null; }}
-getpid() {{ p=$(cat "$PIDFILE" 2>/dev/null) || return 1; [ -n "$p" ] && alive "$p" && echo "$p"; }}
-start() {{
-  mkdir -p {q(run)}
-  export PYTHONUNBUFFERED=1
-{env}  cd {q(o.prefix)}
-  nohup setsid sh -c 'echo $$ > "$0"; exec "$@"' "$PIDFILE" {shlex.join(runtime_argv(o))} \\
-    </dev/null >>"$LOG" 2>&1 &
-  i=0; while [ ! -s "$PIDFILE" ] && [ $i -lt 50 ]; do sleep 0.1; i=$((i+1)); done
-}}
-stop() {{
-  p=$(getpid) || {{ rm -f "$PIDFILE"; return 0; }}
-  kill -TERM "$p" 2>/dev/null
-  i=0; while alive "$p" && [ $i -lt 100 ]; do sleep 0.1; i=$((i+1)); done
-  alive "$p" && kill -KILL "$p" 2>/dev/null
-  rm -f "$PIDFILE"
-}}
-case "$1" in
-  start) getpid >/dev/null || {{ rm -f "$PIDFILE"; start; }} ;;
-  stop) stop ;;
-  restart) stop; start ;;
-  pid) getpid ;;
-  *) echo "usage: tacfootctl start|stop|restart|pid" >&2; exit 2 ;;
-esac
-"""
-
-
-HEALTH_PY = r"""
-import json, subprocess, sys, time
-status, pid_cmd, timeout_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
-dead_s = float(sys.argv[4])     # give up when not active this long (0: wait it out)
-t0 = time.monotonic()
-alive_t = t0
-base = None
-why = "no status file"
-out = {"ok": False}
-while time.monotonic() - t0 < timeout_s:
-    r = subprocess.run(pid_cmd, shell=True, capture_output=True, text=True)
-    pid = r.stdout.strip()
-    if r.returncode != 0 or not pid.isdigit() or int(pid) <= 0:
-        why = "service not active"
-        if dead_s > 0 and time.monotonic() - alive_t > dead_s:
-            break
-    else:
-        alive_t = time.monotonic()
-        try:
-            with open(status) as fh:
-                st = json.load(fh)
-        except (OSError, ValueError):
-            st = None
-        if not isinstance(st, dict):
-            why = "no status file"
-        elif st.get("pid") != int(pid):
-            why = "status file is not from the service process (pid %s)" % pid
-        else:
-            sent = st.get("packets_sent")
-            if not isinstance(sent, int):
-                why = "status file has no packets_sent"
-            elif base is None or base[0] != pid:
-                base = (pid, sent, time.monotonic())
-                why = "waiting for packets_sent to grow"
-            elif sent > base[1]:
-                out = {"ok": True, "pid": int(pid), "packets_sent": sent,
-                       "packets_per_s": round((sent - base[1]) /
-                                              max(time.monotonic() - base[2], 1e-3), 1),
-                       "faults": st.get("faults"), "fault_names": st.get("fault_names")}
-                break
-    time.sleep(0.2)
-out["waited_s"] = round(time.monotonic() - t0, 2)
-if not out["ok"]:
-    out["reason"] = why
-print(json.dumps(out))
-sys.exit(0 if out["ok"] else 1)
-"""
-
-_SUDO = 'SUDO=; [ "$(id -u)" = 0 ] || SUDO="sudo -n"\n'
+from host.deploy.options import REPO, DeployError, DeployOptions, project_version
+from host.deploy.scripts import (HEALTH_PY, SUDO, q, render_ctl, render_unit, runtime_argv,
+                                 status_path)
 
 
 class Deployer:
@@ -392,7 +142,7 @@ class Deployer:
         o = self.o
         cur = f"{o.prefix}/current"
         if self.manager == "systemd":
-            return (_SUDO +
+            return (SUDO +
                     f"$SUDO install -m 0644 {q(cur + '/tacfoot.service')} "
                     f"{q(o.unit_dir + '/' + o.service_name + '.service')}\n"
                     "$SUDO systemctl daemon-reload\n"
@@ -404,7 +154,7 @@ class Deployer:
     def _stop_script(self) -> str:
         o = self.o
         if self.manager == "systemd":
-            return _SUDO + f"$SUDO systemctl stop {q(o.service_name)} || true\n"
+            return SUDO + f"$SUDO systemctl stop {q(o.service_name)} || true\n"
         return (f"[ ! -x {q(o.prefix + '/current/tacfootctl')} ] || "
                 f"{q(o.prefix + '/current/tacfootctl')} stop\n")
 
@@ -569,7 +319,7 @@ class Deployer:
             staged = self.stage(wheel, Path(tmp))
             res["wheel"] = wheel.name
             p = q(o.prefix)
-            self.remote("prepare", _SUDO +
+            self.remote("prepare", SUDO +
                         f"if [ ! -d {p} ]; then $SUDO mkdir -p {p}; "
                         f"$SUDO chown \"$(id -u):$(id -g)\" {p}; fi\n"
                         f"mkdir -p {p}/releases {p}/run\n"
@@ -685,7 +435,7 @@ class Deployer:
         """The service's last log lines (journal, or tacfootctl's log file)."""
         o = self.o
         if self.manager == "systemd":
-            script = (_SUDO + f"$SUDO journalctl -u {q(o.service_name)} -n {n} --no-pager "
+            script = (SUDO + f"$SUDO journalctl -u {q(o.service_name)} -n {n} --no-pager "
                       "-o cat 2>/dev/null || true\n")
         else:
             script = f"tail -n {n} {q(o.prefix + '/run/' + o.service_name + '.log')} || true\n"
@@ -730,59 +480,6 @@ def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
         d.close_connection()
     res["steps"] = d.steps
     return res
-
-
-def add_arguments(s):
-    """The ``host deploy`` options (shared with host/cli/__init__.py)."""
-    s.add_argument("target", help="USER@HOST of the Pi")
-    s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
-    s.add_argument("--rollback", action="store_true",
-                   help="switch current back to the previous release and restart")
-    s.add_argument("--port", type=int, help="SSH port")
-    s.add_argument("--identity", help="SSH private key file")
-    s.add_argument("--ssh-option", action="append", default=[], metavar="OPT",
-                   help="extra ssh -o option, e.g. StrictHostKeyChecking=no (repeatable)")
-    s.add_argument("--prefix", default="/opt/tacfoot", help="install folder on the Pi")
-    s.add_argument("--models", help="models folder to ship (default: models/)")
-    s.add_argument("--config", help="runtime config TOML to ship (default: device/leg.toml)")
-    s.add_argument("--python", default="python3", help="Python on the Pi to build the venv with")
-    s.add_argument("--service-manager", choices=MANAGERS, default="auto",
-                   help="systemd, or none (pid file + tacfootctl); auto probes the Pi")
-    s.add_argument("--service-name", default="tacfoot", help="systemd unit / pid file name")
-    s.add_argument("--service-user", help="User= of the unit (default: the SSH user)")
-    s.add_argument("--unit-dir", default="/etc/systemd/system",
-                   help="where the unit file is installed on the Pi")
-    s.add_argument("--system-site-packages", action="store_true",
-                   help="the venv sees the packages --python sees (e.g. apt's numpy/opencv)")
-    s.add_argument("--no-deps", action="store_true",
-                   help="pip install the wheel alone, offline (deps already on the Pi)")
-    s.add_argument("--camera", default="v4l2:///dev/video0", help="runtime --camera source")
-    s.add_argument("--imu", default="i2c://1/0x68", help="runtime --imu source")
-    s.add_argument("--serial", default="/dev/serial0", help="runtime --serial port or URL")
-    s.add_argument("--runtime-module", default="device.pi",
-                   help="module the service runs as `python -m MODULE run ...`")
-    s.add_argument("--runtime-arg", action="append", default=[], metavar="ARG",
-                   help="extra argument for the runtime (repeatable; use --runtime-arg=--x)")
-    s.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
-                   help="environment variable for the service (repeatable)")
-    s.add_argument("--watchdog-s", type=int, default=10, help="WatchdogSec= of the unit")
-    s.add_argument("--health-timeout-s", type=float, default=60.0,
-                   help="how long the health check waits for packets to flow")
-    s.add_argument("--keep", type=int, default=3, help="releases kept on the Pi")
-    s.add_argument("--release", help="release folder name (default: VERSION-UTCSTAMP-RAND)")
-    s.add_argument("--json", action="store_true")
-
-
-def options_from_args(a) -> DeployOptions:
-    return DeployOptions(
-        target=a.target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
-        prefix=a.prefix, models=a.models, config=a.config, python=a.python,
-        service_manager=a.service_manager, service_name=a.service_name,
-        service_user=a.service_user, unit_dir=a.unit_dir,
-        system_site_packages=a.system_site_packages, no_deps=a.no_deps, camera=a.camera, imu=a.imu, serial=a.serial,
-        runtime_module=a.runtime_module, runtime_args=a.runtime_arg, env=a.env,
-        watchdog_s=a.watchdog_s, health_timeout_s=a.health_timeout_s, keep=a.keep,
-        release=a.release)
 
 
 def summary_text(res: dict) -> str:

@@ -1,7 +1,7 @@
 """The paper's CNN over T stacked binary frames, trained with PyTorch on the CPU.
 
 The input is a window of T binary dome crops, downscaled to S x S
-(:attr:`host.data.specs.WindowSet.frames`), encoded by the Pi's own
+(:attr:`host.data.windows.WindowSet.frames`), encoded by the Pi's own
 :func:`device.pi.models.window.encode_frames`: (N, T, S, S) float32 in 0..1, the T frames
 as input channels (manifest ``input_layout: "frames"``). The network, as in the
 paper, uses 8 x 8 filters, a 1000-unit hidden layer and dropout 0.2::
@@ -69,7 +69,7 @@ def frames_input(frames: np.ndarray) -> np.ndarray:
 
     if frames is None:
         raise ValueError("frames is None: the windows carry no binary crops; load the data "
-                         "with frame_size > 0 (host.data.specs.load_spec(..., frame_size=32))")
+                         "with frame_size > 0 (host.data.load.load_spec(..., frame_size=32))")
     f = np.asarray(frames)
     if f.ndim not in (3, 4) or f.shape[-1] != f.shape[-2]:
         raise ValueError(f"frames must have shape (N, T, S, S) or (T, S, S), got {f.shape}")
@@ -380,10 +380,10 @@ def _check_rows(n: int, k: int, seed: int) -> np.ndarray:
 def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
               out_dir: Path | str | None = None, progress: bool = True,
               check_windows: int = 64, **params) -> dict:
-    """Train the CNN on ``ws_train`` (a :class:`host.data.specs.WindowSet` of a
+    """Train the CNN on ``ws_train`` (a :class:`host.data.windows.WindowSet` of a
     classification task, with frames) and export it.
 
-    ``ws_test``: held-out windows (e.g. from :func:`host.data.specs.split_grouped`); their
+    ``ws_test``: held-out windows (e.g. from :func:`host.data.splits.split_grouped`); their
     metrics come from ONNX Runtime running the exported model, as on the Pi.
     ``params`` go to :class:`FrameCNN` (``hidden``, ``filters``, ``lr``, ...).
     ``out_dir``: write model.onnx + manifest.json there (kind = the task).
@@ -395,7 +395,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     ``out_dir``), ``onnx`` (the onnx.ModelProto) and ``estimator`` (the FrameCNN).
     Raises ValueError if ONNX Runtime and torch differ by more than ``ONNX_ATOL``.
     """
-    from host.data.specs import CLASS_TASKS
+    from host.data.windows import CLASS_TASKS
     from host.learn.onnx_io import write_model
 
     require_torch()

@@ -73,7 +73,7 @@ def _percentiles(ms: list[float]) -> dict:
 def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
                    encode_samples: int = 200) -> dict:
     """Metrics, latency, size and kept fraction of the model in ``model_dir`` on
-    the windows ``ws`` (a :class:`host.data.specs.WindowSet` for the model's task and T).
+    the windows ``ws`` (a :class:`host.data.windows.WindowSet` for the model's task and T).
 
     ``variant``: None (the manifest's default: int8 when the model was quantised),
     ``"float"`` or ``"int8"``. Raises :class:`device.pi.models.artefact.ModelError` for a

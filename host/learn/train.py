@@ -1,6 +1,6 @@
 """Training, export, int8 quantisation and the simulated benchmarks (``host train``).
 
-:func:`train_model` turns windows (:class:`host.data.specs.WindowSet`) into a deployable
+:func:`train_model` turns windows (:class:`host.data.windows.WindowSet`) into a deployable
 model folder: ONNX (the scaler folded into the graph) + ``manifest.json``, and with
 ``quantise=True`` an int8 ONNX file beside the float one, checked against it.
 
@@ -26,7 +26,7 @@ frames from the true onset is measured on the held-out trials (:func:`slip_laten
 Held-out data: ``ws_test`` when given; otherwise a grouped split of the training
 trials (25 % of the trials, whole trials only) when there are at least two trials,
 else a time split within the trial. ``cv=K`` adds grouped K-fold cross-validation
-on the training windows (:func:`host.data.specs.group_kfold`).
+on the training windows (:func:`host.data.splits.group_kfold`).
 
 Model folder::
 
@@ -186,7 +186,7 @@ def augment_rotations(ws, copies: int, profile: str = "roboskin"):
     layout only (grids are not rotated)."""
     from dataclasses import replace
 
-    from host.data.specs import layout_for_profile
+    from host.data.extract import layout_for_profile
 
     copies = _check_int("augment", copies, 0)
     if copies == 0:
@@ -936,12 +936,13 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
                          uses_imu: bool | None = None, progress: bool = True,
                          classes: list[str] | None = None, augment: int = 0,
                          profile: str = "roboskin", **hp) -> dict:
-    """Grouped K-fold CV (whole trials per fold, :func:`host.data.specs.group_kfold`):
+    """Grouped K-fold CV (whole trials per fold, :func:`host.data.splits.group_kfold`):
     pooled held-out metrics plus each fold's accuracy (or MAE). ``augment``
     rotated copies are added to each fold's training part only."""
     from tqdm import tqdm
 
-    from host.data.specs import DataError, group_kfold
+    from host.data.splits import group_kfold
+    from host.data.windows import DataError
 
     k = _check_int("cv", k, 2)
     if len(ws) < k:
@@ -1028,10 +1029,10 @@ def _hyper(model: str, hidden=None, alpha=None, epochs=None, temporal=None) -> d
 
 
 def _check_windows(ws, task: str, what: str) -> None:
-    from host.data.specs import WindowSet
+    from host.data.windows import WindowSet
 
     if not isinstance(ws, WindowSet):
-        raise TrainError(f"{what} must be a host.data.specs.WindowSet, got {type(ws).__name__}")
+        raise TrainError(f"{what} must be a host.data.windows.WindowSet, got {type(ws).__name__}")
     if len(ws) == 0:
         raise TrainError(f"{what} holds no windows")
     if ws.task != task:
@@ -1048,7 +1049,8 @@ def _check_windows(ws, task: str, what: str) -> None:
 
 def _holdout(ws, seed: int):
     """(train, test, how) when no test windows were given."""
-    from host.data.specs import DataError, split_grouped, split_time
+    from host.data.splits import split_grouped, split_time
+    from host.data.windows import DataError
 
     if len(np.unique(ws.groups)) >= 2:
         tr, te = split_grouped(ws, 0.25, seed)
@@ -1579,7 +1581,7 @@ def sim_benchmarks(out_dir, quick: bool = False, T: int = 3, seed: int = 0,
     Data and models go under ``out_dir`` (data folders are reused when present);
     the result is also written to ``out_dir/benchmarks.json``.
     """
-    from host.data.specs import load_spec
+    from host.data.load import load_spec
     from host.data.dataset import atomic_write_text
     from host.learn.evaluate import evaluate_model
 

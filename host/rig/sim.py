@@ -43,8 +43,8 @@ X_MAX_SPEED_MM_S = 50
 def _firmware():
     if str(MPY_DIR) not in sys.path:
         sys.path.insert(0, str(MPY_DIR))
-    from rig import firmware
-    return firmware
+    from rig import drivers, firmware
+    return firmware, drivers
 
 
 class _Pin:
@@ -236,11 +236,11 @@ class SimRig:
         self.presses = 0
         from device.pi.protocol import FrameDecoder
         self._sniff = FrameDecoder()
-        fw = _firmware()
+        fw, drv = _firmware()
         c = self.carriage
         self.firmware = fw.Rig(
-            None, fw.Stepper(_StepPin(c), c.dir_pin, steps_per_mm=STEPS_PER_MM, accel_mm_s2=400),
-            fw.DCMotor(c.pwm, c.in1, c.in2, max_speed_mm_s=X_MAX_SPEED_MM_S, timeout_ms=10000),
+            None, drv.Stepper(_StepPin(c), c.dir_pin, steps_per_mm=STEPS_PER_MM, accel_mm_s2=400),
+            drv.DCMotor(c.pwm, c.in1, c.in2, max_speed_mm_s=X_MAX_SPEED_MM_S, timeout_ms=10000),
             _Load(c), _Imu(c, seed), _SwitchPin(lambda: c.steps <= 0), None,
             travel_mm=TRAVEL_MM, speed_mm_s=20, home_speed_mm_s=20, touch_mn=50,
             link_timeout_ms=1000)

@@ -7,7 +7,8 @@ Prints microseconds per poll idle, moving, and moving while streaming, and the
 bytes the link decoder allocates over 1020 bytes (docs/BENCHMARKS.md)."""
 import gc, time
 from machine import Pin, PWM, ADC, UART
-from rig.firmware import Rig, Stepper, DCMotor, AdcLoad, put_i32, put_u16, HOME, MOVE_TO, STREAM
+from rig.drivers import Stepper, DCMotor, AdcLoad
+from rig.firmware import Rig, put_i32, put_u16, HOME, MOVE_TO, STREAM
 from tflink import Encoder
 Pin.levels = {14: 1}
 uart = UART(0, rxbuf=4096)
@@ -16,6 +17,8 @@ rig = Rig(uart, Stepper(Pin(2, Pin.OUT), Pin(3, Pin.OUT), steps_per_mm=100),
           Pin(14, Pin.IN), None, travel_mm=40, link_timeout_ms=100000)
 enc = Encoder(); pl = bytearray(8)
 now = 0
+
+
 def polls(n):
     global now
     t = time.ticks_us()

@@ -8,7 +8,8 @@ import time
 import machine
 import micropython
 
-from rig.firmware import AdcLoad, DCMotor, HX711, Rig, Stepper
+from rig.drivers import AdcLoad, DCMotor, HX711, Stepper
+from rig.firmware import Rig
 
 # -- configuration (edit for your frame) ----------------------------------------------
 STEPS_PER_MM = 400          # 200 steps/rev, 1/16 microstepping, 8 mm lead screw

@@ -82,7 +82,7 @@ def test_the_pressure_default_loads_and_reads_more_load_for_larger_vectors():
 def test_the_surface_default_classifies_unseen_simulated_trials(tmp_path):
     """One fresh trial per surface, seeds and surface parameters never used in
     training (drawn from the wider test ranges), through the Pi's pipeline."""
-    from host.data.specs import load_spec
+    from host.data.load import load_spec
     from host.learn.evaluate import evaluate_model
     from host.learn.train import simulate_scenes
 

@@ -15,7 +15,6 @@ from tests import REPO_ROOT
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -30,7 +29,8 @@ from hypothesis import strategies as st
 from tests.host.deploy.sshd_fixture import SshServer, missing_reason  # noqa: E402
 
 from device.pi.runtime import sdnotify  # noqa: E402
-from host.deploy import release as dp  # noqa: E402
+from host.deploy.options import DeployError, DeployOptions  # noqa: E402
+from host.deploy.release import Deployer, run  # noqa: E402
 
 REPO = REPO_ROOT
 
@@ -132,96 +132,6 @@ def test_watchdog_disabled_without_interval(tmp_path):
             sdnotify.Watchdog(interval_s=bad)
 
 
-# -- the unit file -----------------------------------------------------------------
-
-
-def _opts(**kw) -> dp.DeployOptions:
-    base = dict(target="pi@leg1", camera="sim://walk", imu="sim://walk", serial="loop://")
-    base.update(kw)
-    return dp.DeployOptions(**base)
-
-
-def test_unit_has_the_required_settings():
-    unit = dp.render_unit(_opts(env=["OMP_NUM_THREADS=1", "TAG=a b"], watchdog_s=7))
-    lines = unit.splitlines()
-    for want in ("Type=notify", "NotifyAccess=main", "Restart=on-failure", "WatchdogSec=7",
-                 "User=pi", "Environment=OMP_NUM_THREADS=1", 'Environment="TAG=a b"'):
-        assert want in lines, want
-    assert "@" not in "".join(l for l in lines if not l.startswith("#")), "unfilled field"
-    (exec_line,) = [l for l in lines if l.startswith("ExecStart=")]
-    assert exec_line.startswith("ExecStart=/opt/tacfoot/current/venv/bin/python -m device.pi run ")
-    assert "--status /opt/tacfoot/run/status.json" in exec_line
-    assert "--camera sim://walk" in exec_line
-    # root runs without User=; $ and % are escaped for systemd
-    unit = dp.render_unit(_opts(target="root@leg1", camera="file:///d/50%$x.avi"))
-    assert not any(l.startswith("User=") for l in unit.splitlines())
-    assert "file:///d/50%%$$x.avi" in unit
-
-
-def _exec_start_argv(unit: str) -> list[str]:
-    """ExecStart= split the way systemd does for the quoting render_unit uses."""
-    import shlex
-    (line,) = [l for l in unit.splitlines() if l.startswith("ExecStart=")]
-    return [w.replace("%%", "%").replace("$$", "$") for w in shlex.split(line[10:])]
-
-
-@given(st.text(st.characters(max_codepoint=0x2FF, blacklist_categories=("Cc", "Cs")),
-               min_size=1, max_size=30),
-       st.lists(st.text(st.characters(min_codepoint=32, max_codepoint=126), min_size=1,
-                        max_size=12), max_size=3))
-@settings(max_examples=200, deadline=None)
-def test_unit_command_line_round_trips(camera, extra):
-    o = _opts(camera=camera, runtime_args=extra)
-    o.check()
-    assert _exec_start_argv(dp.render_unit(o)) == dp.runtime_argv(o)
-
-
-def test_control_characters_are_refused():
-    for kw in (dict(camera="sim://walk\nExecStartPre=/bin/rm"), dict(env=["A=1\n[Install]"]),
-               dict(runtime_args=["--x\ty"]), dict(imu="i2c://1/0x68\x85")):
-        with pytest.raises(dp.DeployInputError, match="control characters"):
-            _opts(**kw).check()
-
-
-def test_unit_passes_systemd_analyze_verify(tmp_path):
-    tool = shutil.which("systemd-analyze")
-    if tool is None:
-        pytest.skip("systemd-analyze not installed")
-    prefix = tmp_path / "opt"
-    (prefix / "current" / "venv" / "bin").mkdir(parents=True)
-    os.symlink(sys.executable, prefix / "current" / "venv" / "bin" / "python")
-    unit = tmp_path / "tacfoot.service"
-    unit.write_text(dp.render_unit(_opts(target="root@leg1", prefix=str(prefix),
-                                         env=["OMP_NUM_THREADS=1"])))
-    r = subprocess.run([tool, "verify", str(unit)], capture_output=True, text=True, timeout=60)
-    out = r.stdout + r.stderr
-    if r.returncode != 0 and "tacfoot.service" not in out:
-        pytest.skip(f"systemd-analyze verify cannot run here: {out.strip()[-200:]}")
-    assert r.returncode == 0 and "tacfoot.service:" not in out, out
-    # and it does catch a broken unit, so the check above means something
-    unit.write_text(unit.read_text().replace("Type=notify", "Type=notifyy"))
-    r = subprocess.run([tool, "verify", str(unit)], capture_output=True, text=True, timeout=60)
-    assert "tacfoot.service:" in r.stdout + r.stderr and "notifyy" in r.stdout + r.stderr
-
-
-def test_bad_options_name_the_field():
-    for kw, field in ((dict(port=0), "--port"), (dict(prefix="opt/x"), "--prefix"),
-                      (dict(prefix="/"), "--prefix"), (dict(env=["NOEQUALS"]), "--env"),
-                      (dict(service_manager="upstart"), "--service-manager"),
-                      (dict(target="-oProxyCommand=x"), "target"), (dict(keep=1), "--keep"),
-                      (dict(models="/nonexistent/models"), "--models"),
-                      (dict(release="../x"), "--release"), (dict(release="a'b"), "--release"),
-                      (dict(health_timeout_s=float("nan")), "--health-timeout-s")):
-        with pytest.raises(dp.DeployInputError, match=field.replace("-", r"\-")):
-            _opts(**kw).check()
-
-
-def test_cli_bad_input_exits_2(capsys):
-    from host.cli import main
-    assert main(["deploy", "pi@leg1", "--port", "70000", "--dry-run"]) == 2
-    assert "--port must be 1..65535, got 70000" in capsys.readouterr().err
-
-
 # -- against a real sshd --------------------------------------------------------------
 
 needs_sshd = pytest.mark.skipif(missing_reason() is not None, reason=str(missing_reason()))
@@ -237,7 +147,7 @@ class Pi:
         src = REPO / "device" / "leg.toml"
         self.config.write_text(src.read_text() if src.is_file() else "# default\n")
 
-    def opts(self, **kw) -> dp.DeployOptions:
+    def opts(self, **kw) -> DeployOptions:
         base = dict(target=self.srv.target, port=self.srv.port, identity=self.srv.identity,
                     ssh_options=list(self.srv.ssh_options), prefix=str(self.prefix),
                     python=sys.executable, service_manager="none",
@@ -246,7 +156,7 @@ class Pi:
                     camera="sim://walk?realtime=1&fps=15", imu="sim://walk", serial="loop://",
                     runtime_args=["--fps", "15"], health_timeout_s=20.0)
         base.update(kw)
-        return dp.DeployOptions(**base)
+        return DeployOptions(**base)
 
     def link(self, name) -> str | None:
         p = self.prefix / name
@@ -368,7 +278,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
 def test_second_deploy_keeps_the_first_as_previous(pi):
     old_pid = pi.pid()
     assert old_pid, "needs the first deploy"
-    res = dp.run(pi.opts(release="r2", env=["TAG=r2"]), log=_quiet)
+    res = run(pi.opts(release="r2", env=["TAG=r2"]), log=_quiet)
     assert res["ok"], res
     assert pi.link("current") == "releases/r2" and pi.link("previous") == "releases/r1"
     pid = pi.pid()
@@ -382,7 +292,7 @@ def test_failed_health_check_rolls_back(pi, tmp_path):
     assert pi.link("current") == "releases/r2", "needs the second deploy"
     broken = tmp_path / "leg.toml"
     broken.write_text(pi.config.read_text() + "\n[broken_section]\nbroken = true\n")
-    res = dp.run(pi.opts(release="r3", env=["TAG=r3"], config=str(broken),
+    res = run(pi.opts(release="r3", env=["TAG=r3"], config=str(broken),
                          health_timeout_s=6.0), log=_quiet)
     assert not res["ok"] and res["rolled_back"], res
     assert "health check failed" in res["error"]
@@ -399,7 +309,7 @@ def test_failed_health_check_rolls_back(pi, tmp_path):
 def test_killed_copy_leaves_the_old_release_running(pi):
     pid = pi.pid()
     assert pi.link("current") == "releases/r2" and pid
-    d = dp.Deployer(pi.opts(release="r4", env=["TAG=r4"]), log=_quiet)
+    d = Deployer(pi.opts(release="r4", env=["TAG=r4"]), log=_quiet)
     killed = []
 
     def kill_mid_copy(proc, sent):
@@ -408,7 +318,7 @@ def test_killed_copy_leaves_the_old_release_running(pi):
             proc.kill()
 
     d.copy_hook = kill_mid_copy
-    with pytest.raises(dp.DeployError, match="step copy failed"):
+    with pytest.raises(DeployError, match="step copy failed"):
         d.deploy()
     assert killed
     steps = [s["step"] for s in d.steps]
@@ -421,7 +331,7 @@ def test_killed_copy_leaves_the_old_release_running(pi):
 def test_failing_step_before_switch_changes_nothing(pi):
     pid = pi.pid()
     assert pi.link("current") == "releases/r2" and pid
-    res = dp.run(pi.opts(release="r2"), log=_quiet)   # r2 exists: prepare refuses
+    res = run(pi.opts(release="r2"), log=_quiet)   # r2 exists: prepare refuses
     assert not res["ok"] and "prepare" in res["error"] and "already exists" in res["error"]
     assert not res.get("rolled_back")
     assert pi.link("current") == "releases/r2" and pi.pid() == pid and pi.packets_flow(pid)
@@ -567,7 +477,7 @@ def test_systemd_mode_installs_the_unit_and_restarts(tmp_path):
         pi = Pi(srv, tmp_path)
         kw = dict(service_manager="systemd", unit_dir=str(state / "units"), env=["TAG=s1"],
                   release="s1", watchdog_s=2)
-        res = dp.run(pi.opts(**kw), log=_quiet)
+        res = run(pi.opts(**kw), log=_quiet)
         assert res["ok"] and res["service_manager"] == "systemd", (res.get("error"),
                                                                    res["steps"][-1])
         unit = (state / "units" / "tacfoot.service").read_text()
@@ -590,9 +500,9 @@ def test_systemd_mode_installs_the_unit_and_restarts(tmp_path):
 
 @needs_sshd
 def test_unreachable_pi_and_nothing_to_roll_back_give_clear_errors(pi, tmp_path):
-    res = dp.run(pi.opts(port=1, release="x"), log=_quiet)        # nobody listens on port 1
+    res = run(pi.opts(port=1, release="x"), log=_quiet)        # nobody listens on port 1
     assert not res["ok"] and res["error"].startswith("step probe failed (exit 255)")
     assert [s["step"] for s in res["steps"]] == ["probe"]
-    res = dp.run(pi.opts(prefix=str(tmp_path / "empty")), rollback=True, log=_quiet)
+    res = run(pi.opts(prefix=str(tmp_path / "empty")), rollback=True, log=_quiet)
     assert not res["ok"] and "no previous release under" in res["error"]
     assert not (tmp_path / "empty").exists()

@@ -21,7 +21,7 @@ from device.pi.models.window import encode_frames  # noqa: E402
 from host.data.simulate import simulate_to_dataset  # noqa: E402
 from host.learn.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
                       require_torch, train_cnn)
-from host.data.specs import load_spec  # noqa: E402
+from host.data.load import load_spec  # noqa: E402
 
 T = 3
 SCENE = """\

@@ -20,7 +20,7 @@ from device.pi.numerics import sigmoid, softmax
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import RuleClassifier
 from device.pi.models.window import RollingWindow, encode_vectors
-from host.data.specs import WindowSet
+from host.data.windows import WindowSet
 from host.learn.evaluate import evaluate_model
 from host.learn.train import (QuantisationError, TrainError, bench_scene, compare_int8,
                         model_inputs, quantise_model, scene_toml, slip_latency, train_model)
@@ -56,7 +56,7 @@ def _simulate(out: Path, n_per_kind: int, seed: int, beyond: bool) -> Path:
 def surface_sets(tmp_path_factory):
     """Train: 3 step trials per class; test: 1 per class, unseen seeds, surface
     parameters drawn beyond the training range."""
-    from host.data.specs import load_spec
+    from host.data.load import load_spec
 
     base = tmp_path_factory.mktemp("surface")
     tr = _simulate(base / "train", 3, seed=1, beyond=False)
@@ -504,7 +504,8 @@ def test_rotated_windows_match_a_drag_in_the_rotated_direction(tmp_path):
     """Rotation augmentation: the 0-degree drag rotated by 30 degrees matches the
     30-degree drag (pins moved by the layout's symmetry, vectors and IMU turned)."""
     from host.data.simulate import simulate_to_dataset
-    from host.data.specs import layout_for_profile, load_spec
+    from host.data.extract import layout_for_profile
+    from host.data.load import load_spec
     from host.learn.train import augment_rotations, layout_rotations, rotate_windows
 
     rots = dict(layout_rotations(layout_for_profile("roboskin")))

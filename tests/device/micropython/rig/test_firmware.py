@@ -18,7 +18,8 @@ from tests.mpyrun import MPY_LIB, STANDIN, requires_mpy, run_mpy
 SCRIPT = r'''
 import machine
 from machine import Pin, PWM, ADC, UART, WDT
-from rig.firmware import (Rig, Stepper, DCMotor, AdcLoad, put_i32, put_u16, get_i32, get_u16,
+from rig.drivers import Stepper, DCMotor, AdcLoad
+from rig.firmware import (Rig, put_i32, put_u16, get_i32, get_u16,
                           HOME, MOVE_TO, PRESS, DRAG, LIFT, READ, STREAM, STOP, PING,
                           ACK, NAK, DONE, PONG, SAMPLE)
 from tflink import Encoder, Decoder
@@ -281,7 +282,7 @@ elif scen == "imu":
         show("wrong_whoami", "0x12" in str(exc))
 
 elif scen == "hx711":
-    from rig.firmware import HX711
+    from rig.drivers import HX711
     DOUT, SCK = 10, 11
 
     class Bridge:
@@ -488,55 +489,3 @@ def test_firmware_on_micropython(scen):
     if scen == "commands":
         _check_numbers(got)
     assert got == _cpython(scen), "MicroPython and CPython disagree"
-
-
-# -- the stepper's ramp, for any moves (CPython) ----------------------------------------------
-from hypothesis import given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-
-
-class _CountPin:
-    def __init__(self):
-        self.level = 0
-        self.rising = 0
-
-    def value(self, v=None):
-        if v is None:
-            return self.level
-        if v and not self.level:
-            self.rising += 1
-        self.level = 1 if v else 0
-
-
-@settings(max_examples=30, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 1500), st.integers(100, 4000), st.integers(1, 300)),
-                min_size=1, max_size=4),
-       st.integers(500, 3000))
-def test_stepper_reaches_every_target_within_its_speed_limit(moves, dt_us):
-    """Retargeting mid-move (as a press does at contact) included: the pulses add up
-    to the position, the speed never passes the highest cap given, and the last move
-    ends exactly on its target; braking through a reversal never passes a soft limit."""
-    import importlib
-    from tests.mpyrun import cpython_path
-    cpython_path()
-    fw = importlib.import_module("rig.firmware")
-    step, d = _CountPin(), _CountPin()
-    s = fw.Stepper(step, d, steps_per_mm=100, accel_mm_s2=200)
-    s.lo, s.hi = 0, 1500                                  # soft limits, as after homing
-    net = pulses = cap = 0
-    for i, (target, speed, ticks_before_next) in enumerate(moves):
-        s.move_to(target, speed)
-        cap = max(cap, speed, s.v_start)
-        last = i == len(moves) - 1
-        for _ in range(100000 if last else ticks_before_next):
-            before = s.pos
-            n = s.tick(dt_us)
-            pulses += n
-            net += n if d.level else -n
-            assert s.pos - before == (n if d.level else -n)
-            assert 0 <= s.v <= cap
-            assert 0 <= s.pos <= 1500                          # never past a soft limit
-            if not s.moving:
-                break
-    assert step.rising == pulses
-    assert not s.moving and s.pos == moves[-1][0] and net == s.pos

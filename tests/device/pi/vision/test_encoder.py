@@ -6,7 +6,7 @@ import pytest
 
 from device.pi.vision.encoder import FrameEncoder
 from device.sim import Simulator, load_scene
-from host.data.specs import extract_features
+from host.data.extract import extract_features
 
 
 @pytest.fixture(scope="module")

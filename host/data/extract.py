@@ -1,0 +1,94 @@
+"""Per-frame features of one recording: frames -> the Pi's own frame encoder
+(:class:`device.pi.vision.encoder.FrameEncoder`) -> :class:`ClipFeatures` on the
+profile's fixed pin layout."""
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from typing import Iterable
+
+import numpy as np
+
+from device.pi.vision.encoder import FrameEncoder
+from device.pi.vision.layout import LayoutError, LayoutMapper
+from device.pi.vision.layout import layout_for_profile as _layout_for_profile
+from device.pi.faults import FAULT_NO_REFERENCE
+from host.data.windows import DataError
+
+
+def layout_for_profile(profile: str) -> np.ndarray:
+    """The fixed pin layout (M, 2) px of a sensor profile (:mod:`device.pi.vision.layout`)."""
+    try:
+        return _layout_for_profile(profile)
+    except LayoutError as exc:
+        raise DataError(str(exc)) from None
+
+
+# ----------------------------------------------------------------------------
+# Per-frame features of one recording
+# ----------------------------------------------------------------------------
+
+@dataclass
+class ClipFeatures:
+    """Per-frame features of one recording, frame 0 .. n_frames-1."""
+
+    vectors: np.ndarray           # (F, M, 2) float32 on the fixed layout
+    lost: np.ndarray              # (F, M) bool
+    grids: np.ndarray             # (F, g, g) float32
+    frames: np.ndarray | None     # (F, S, S) uint8
+    contact: np.ndarray           # (F,) bool, the pipeline's contact flag
+    ready: np.ndarray             # (F,) bool, a reference frame was set
+    faults: np.ndarray            # (F,) int32 fault bits
+    fps: float | None
+    seconds: float = 0.0          # time spent extracting
+    imu: np.ndarray | None = None  # (F, 6) from the simulator's truth, sim:// only
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.vectors.shape[0])
+
+
+def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: int | None = 32,
+                     n_frames: int | None = None, progress: bool = True, desc: str = "",
+                     fps: float | None = None, mapper: LayoutMapper | None = None
+                     ) -> ClipFeatures:
+    """Run the Pi's :class:`MarkerStream` over ``frames`` (images, or objects with
+    ``.image`` and ``.t_s`` such as camera ``Frame``) and collect per-frame features
+    on the profile's fixed pin layout."""
+    from tqdm import tqdm
+
+    enc = FrameEncoder(profile, crop_px=frame_size or None,
+                       layout_px=None if mapper is None else mapper.layout_px)
+    stream = enc.stream
+    vecs, losts, grids, crops, contact, ready, faults = [], [], [], [], [], [], []
+    t0 = time.perf_counter()
+    with tqdm(total=n_frames, desc=desc or "features", unit="frame", file=sys.stderr,
+              disable=(not progress) or None, leave=False) as bar:   # None: off if no tty
+        for fr in frames:
+            image = getattr(fr, "image", fr)
+            t_s = getattr(fr, "t_s", None)
+            ef = enc.encode(image, t_s)
+            ff = ef.features
+            vecs.append(ef.vectors.copy())
+            losts.append(ef.lost.copy())
+            grids.append(np.asarray(ff.grid, np.float32))
+            if ef.crop is not None:
+                crops.append(ef.crop)
+            contact.append(bool(ff.contact))
+            ready.append(not (ff.faults & FAULT_NO_REFERENCE) and stream.reference is not None)
+            faults.append(int(ff.faults))
+            bar.update(1)
+    seconds = time.perf_counter() - t0
+    M, g = enc.n_pins, stream.profile.grid_n
+    F = len(vecs)
+
+    def stack(lst, shape, dtype):
+        return np.stack(lst).astype(dtype, copy=False) if lst else np.zeros((0, *shape), dtype)
+
+    return ClipFeatures(
+        vectors=stack(vecs, (M, 2), np.float32), lost=stack(losts, (M,), bool),
+        grids=stack(grids, (g, g), np.float32),
+        frames=stack(crops, (frame_size, frame_size), np.uint8) if frame_size else None,
+        contact=np.array(contact, bool).reshape(F), ready=np.array(ready, bool).reshape(F),
+        faults=np.array(faults, np.int32).reshape(F), fps=fps, seconds=seconds)

@@ -1,0 +1,93 @@
+"""A dataset folder data spec (written by ``host simulate``): labels, contact and
+load per frame from the simulator's truth."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from host.data.dataset import DatasetError, load_trial, read_index
+from host.data.extract import extract_features
+from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
+                               finalise, keep_contact, stack_parts, window_ends, window_labels)
+
+
+def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
+                  profile: str, frame_size, progress: bool, cache: dict,
+                  min_classes: int) -> WindowSet:
+    try:
+        index = read_index(path)
+    except DatasetError as exc:
+        raise DataError(str(exc)) from None
+    entries = index.get("trials", [])
+    if not entries:
+        raise DataError(f"{path}: the dataset has no trials")
+    names = {"surface": index.get("surface_labels"), "texture": index.get("texture_labels")}
+    if task in names and not names[task]:
+        raise DataError(f"{path}: dataset.json has no {task}_labels")
+    parts, trials, dropped_ref = [], {}, 0
+    for i, entry in enumerate(entries):
+        fname = entry.get("file", f"trial {i}")
+        if entry.get("profile") not in (None, profile) and not str(profile).endswith(".toml"):
+            raise DataError(f"{path / fname}: recorded with profile {entry.get('profile')!r}, "
+                            f"features asked for profile {profile!r}")
+        if int(entry.get("frames", T)) < T:
+            raise DataError(f"{path / fname}: window T={T} frames is longer than the trial "
+                            f"({entry.get('frames')} frames)")
+        key = ("trial", str(path.resolve()), i, profile, frame_size)
+        tr = None
+        if key in cache:
+            clip, truth = cache[key]
+        else:
+            try:
+                tr = load_trial(path, i)
+            except (OSError, ValueError, KeyError) as exc:
+                raise DataError(f"{path / fname}: cannot read the trial: {exc}") from None
+            frames = tr["frames"]
+            clip = extract_features(frames, profile, frame_size, n_frames=len(frames),
+                                    progress=progress, desc=f"{path.name}/{fname}",
+                                    fps=float(entry.get("fps") or 0) or None)
+            truth = {k: tr[k] for k in ("contact", "surface", "texture", "slip", "load_n", "imu")
+                     if k in tr}
+            cache[key] = (clip, truth)
+        F = clip.n_frames
+        for k in ("contact", "surface", "texture", "slip", "load_n"):
+            if k not in truth or len(truth[k]) != F:
+                raise DataError(f"{path / fname}: truth array {k!r} is missing or not one per "
+                                f"frame ({F} frames)")
+        ends, nref = window_ends(clip.ready, 0, F, T, stride)
+        dropped_ref += nref
+        contact = np.asarray(truth["contact"], bool)[ends]
+        labels = targets = None
+        if task in ("surface", "texture"):
+            codes = np.asarray(truth[task], np.int64)[ends]
+            nm = list(names[task])
+            if codes.size and (codes.min() < 0 or codes.max() >= len(nm)):
+                raise DataError(f"{path / fname}: {task} code {int(codes.max())} has no name in "
+                                f"{task}_labels {nm}")
+            labels = window_labels(task, np.array(nm, object)[codes], contact)
+        elif task == "slip":
+            labels = np.array(SLIP_LABELS, object)[np.asarray(truth["slip"], bool)[ends]
+                                                   .astype(int)]
+        else:
+            targets = np.asarray(truth["load_n"], np.float64)[ends]
+        imu = truth.get("imu")
+        if imu is not None:
+            imu = np.asarray(imu, np.float64)
+            if imu.shape != (F, IMU_CHANNELS):
+                raise DataError(f"{path / fname}: imu has shape {imu.shape}, expected ({F}, 6)")
+        trials[i] = {"kind": "dataset", "path": str(path / fname), "span_start": 0,
+                     "frames": F, "fps": clip.fps, "scene": entry.get("scene"),
+                     "seed": entry.get("seed")}
+        parts.append(TrialPart(clip, ends, labels, targets, contact, imu, i, 0, F))
+    parts, cut, kept = keep_contact(parts, contact_only)
+    arrays = stack_parts(parts, task, T, trials)
+    notes = [f"{dropped_ref} windows dropped: they start before the reference frame"] \
+        if dropped_ref else []
+    src = {"specs": [str(path)], "trials": [dict(v, group=i) for i, v in enumerate(trials.values())],
+           "windows_cut": cut, "windows_kept": kept, "contact_only": contact_only,
+           "kept_fraction": kept / cut if cut else 1.0, "contact_from": "truth", "notes": notes,
+           "extract_frames": sum(p.clip.n_frames for p in parts),
+           "extract_s": sum(p.clip.seconds for p in parts)}
+    return finalise(WindowSet(task=task, window=T, classes=[], source=src, **arrays),
+                     min_classes, str(path))

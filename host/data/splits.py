@@ -1,0 +1,103 @@
+"""Splits that never leak: whole trials to one side (:func:`split_grouped`,
+:func:`group_kfold`) or, within each trial, earlier frames to train and later ones to
+test with a gap (:func:`split_time`). Each returns index arrays into a WindowSet."""
+from __future__ import annotations
+
+from typing import Iterator
+
+import numpy as np
+
+from host.data.windows import DataError, WindowSet
+
+
+def _group_labels(ws: WindowSet, uniq: np.ndarray, inv: np.ndarray) -> np.ndarray:
+    """The most common label of each group ('' for regression)."""
+    if ws.labels is None:
+        return np.array([""] * len(uniq), object)
+    out = []
+    lab = ws.labels.astype(str)
+    for g in range(len(uniq)):
+        names, counts = np.unique(lab[inv == g], return_counts=True)
+        out.append(names[np.argmax(counts)])
+    return np.array(out, object)
+
+
+def split_grouped(ws: WindowSet, test_frac: float = 0.3, seed: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(train_idx, test_idx): whole trials to one side, about ``test_frac`` of the
+    trials to test, spread over the trials' majority labels."""
+    if not (isinstance(test_frac, (int, float)) and 0.0 < test_frac < 1.0):
+        raise DataError(f"test_frac must be between 0 and 1, got test_frac={test_frac!r}")
+    uniq, inv = np.unique(ws.groups, return_inverse=True)
+    n = len(uniq)
+    if n < 2:
+        raise DataError(f"split_grouped needs at least 2 groups (trials), the data have {n}; "
+                        f"use split_time to split within a trial")
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n)
+    glab = _group_labels(ws, uniq, inv)
+    order = order[np.argsort(glab[order].astype(str), kind="stable")]
+    pos = np.arange(n)
+    u = rng.random()             # systematic sampling: test_frac of each label's trials
+    pick = np.floor((pos + 1) * test_frac + u) > np.floor(pos * test_frac + u)
+    test_groups = order[pick]
+    if len(test_groups) == 0:
+        test_groups = order[:1]
+    if len(test_groups) == n:
+        test_groups = order[1:]
+    is_test = np.isin(inv, test_groups)
+    return np.flatnonzero(~is_test), np.flatnonzero(is_test)
+
+
+def split_time(ws: WindowSet, train_frac: float = 0.7, gap: int | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(train_idx, test_idx) within each trial: windows that end in the first
+    ``train_frac`` of its frames to train, windows that start at least ``gap`` frames
+    (default T) after that to test. No window overlaps both sides."""
+    if not (isinstance(train_frac, (int, float)) and 0.0 < train_frac < 1.0):
+        raise DataError(f"train_frac must be between 0 and 1, got train_frac={train_frac!r}")
+    T = ws.window
+    gap = T if gap is None else gap
+    if isinstance(gap, bool) or not isinstance(gap, (int, np.integer)) or gap < 0:
+        raise DataError(f"gap must be a whole number of frames >= 0, got gap={gap!r}")
+    if (ws.t_index < 0).any():
+        raise DataError("split_time: some windows have no time order (from an .npz); "
+                        "use split_grouped")
+    boundary = np.floor(train_frac * ws.trial_len).astype(np.int64)
+    first = ws.t_index - T + 1
+    train = ws.t_index < boundary
+    test = first >= boundary + gap
+    if not train.any() or not test.any():
+        raise DataError(f"split_time: train_frac={train_frac} with gap={gap} leaves "
+                        f"{int(train.sum())} train and {int(test.sum())} test windows; "
+                        f"the trials are too short for T={T}")
+    return np.flatnonzero(train), np.flatnonzero(test)
+
+
+def group_kfold(ws: WindowSet, k: int, seed: int = 0
+                ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """K folds of whole trials: yields (train_idx, test_idx) ``k`` times. Each trial
+    is in exactly one test fold; folds are balanced by window count."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 2:
+        raise DataError(f"k must be a whole number >= 2, got k={k!r}")
+    uniq, inv = np.unique(ws.groups, return_inverse=True)
+    if len(uniq) < k:
+        raise DataError(f"too few groups for {k} folds: the data have {len(uniq)} trials "
+                        f"(groups); use k <= {len(uniq)} or more trials")
+    sizes = np.bincount(inv, minlength=len(uniq))
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(uniq))
+    order = order[np.argsort(-sizes[order], kind="stable")]
+    fold_of = np.empty(len(uniq), np.int64)
+    load = np.zeros(k, np.int64)
+    for i, g in enumerate(order):
+        f = i if i < k else int(np.argmin(load))   # every fold gets a trial first
+        fold_of[g] = f
+        load[f] += sizes[g]
+    win_fold = fold_of[inv]
+
+    def gen():
+        for f in range(k):
+            yield np.flatnonzero(win_fold != f), np.flatnonzero(win_fold == f)
+
+    return gen()

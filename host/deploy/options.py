@@ -1,0 +1,181 @@
+"""``host deploy`` options: what to deploy where, checked before any step runs, and
+the command-line arguments that fill them."""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from device.config import tomllib
+
+REPO = Path(__file__).resolve().parents[2]
+MANAGERS = ("auto", "systemd", "none")
+
+
+class DeployError(Exception):
+    """A deploy step failed; the message names the step."""
+
+
+class DeployInputError(ValueError):
+    """Bad deploy options (a missing models folder, a bad --env ...)."""
+
+
+@dataclass
+class DeployOptions:
+    target: str                                  # [USER@]HOST
+    port: int | None = None
+    identity: str | None = None
+    ssh_options: list[str] = field(default_factory=list)   # extra "-o" values
+    prefix: str = "/opt/tacfoot"
+    models: str | None = None                    # default: the repo's models/
+    config: str | None = None                    # default: device/leg.toml if present
+    python: str = "python3"                      # the Pi's interpreter for the venv
+    service_manager: str = "auto"
+    service_name: str = "tacfoot"
+    service_user: str | None = None              # default: the SSH user unless root
+    unit_dir: str = "/etc/systemd/system"
+    system_site_packages: bool = False
+    no_deps: bool = False
+    camera: str = "v4l2:///dev/video0"
+    imu: str = "i2c://1/0x68"
+    serial: str = "/dev/serial0"
+    runtime_module: str = "device.pi"
+    runtime_args: list[str] = field(default_factory=list)
+    env: list[str] = field(default_factory=list)         # KEY=VALUE for the service
+    watchdog_s: int = 10
+    health_timeout_s: float = 60.0
+    keep: int = 3
+    release: str | None = None
+
+    def check(self):
+        if not self.target or self.target.startswith("-") or any(c.isspace()
+                                                                 for c in self.target):
+            raise DeployInputError(f"target must be [USER@]HOST, got {self.target!r}")
+        if self.port is not None and not 0 < self.port < 65536:
+            raise DeployInputError(f"--port must be 1..65535, got {self.port!r}")
+        if self.service_manager not in MANAGERS:
+            raise DeployInputError(f"--service-manager must be one of {MANAGERS}, "
+                                   f"got {self.service_manager!r}")
+        if not self.prefix.startswith("/") or self.prefix.rstrip("/") in ("", "/"):
+            raise DeployInputError(f"--prefix must be an absolute folder, got {self.prefix!r}")
+        if not self.unit_dir.startswith("/"):
+            raise DeployInputError(f"--unit-dir must be an absolute folder, got {self.unit_dir!r}")
+        if not self.service_name.replace("-", "").replace("_", "").isalnum():
+            raise DeployInputError(f"--service-name must be letters, digits, - or _, "
+                                   f"got {self.service_name!r}")
+        # these end up in the unit and in shell scripts: one line each
+        for name, vals in (("prefix", [self.prefix]), ("unit-dir", [self.unit_dir]),
+                           ("camera", [self.camera]), ("imu", [self.imu]),
+                           ("serial", [self.serial]), ("runtime-arg", self.runtime_args),
+                           ("env", self.env), ("python", [self.python]),
+                           ("service-user", [self.service_user or ""]),
+                           ("runtime-module", [self.runtime_module])):
+            for v in vals:
+                if any(ord(c) < 32 or 127 <= ord(c) < 160 or c in "\u2028\u2029" for c in v):
+                    raise DeployInputError(f"--{name} must not hold control characters "
+                                           f"(newline, tab...), got {v!r}")
+        for kv in self.env:
+            k, eq, _ = kv.partition("=")
+            if not eq or not k.replace("_", "").isalnum() or k[0].isdigit():
+                raise DeployInputError(f"--env must be KEY=VALUE, got {kv!r}")
+        if not self.watchdog_s >= 1:
+            raise DeployInputError(f"--watchdog-s must be >= 1, got {self.watchdog_s!r}")
+        if not (self.health_timeout_s > 0 and math.isfinite(self.health_timeout_s)):
+            raise DeployInputError(f"--health-timeout-s must be > 0, got "
+                                   f"{self.health_timeout_s!r}")
+        if self.keep < 2:
+            raise DeployInputError(f"--keep must be >= 2 (current and previous), got {self.keep}")
+        if self.release is not None and not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]*",
+                                                         self.release):
+            raise DeployInputError(f"--release must be letters, digits, . _ + - (a folder "
+                                   f"name), got {self.release!r}")
+        for name in ("models", "config"):
+            p = getattr(self, name)
+            if p is not None and not Path(p).exists():
+                raise DeployInputError(f"--{name}: {p} not found")
+        if self.models is not None and not Path(self.models).is_dir():
+            raise DeployInputError(f"--models must be a folder, got {self.models!r}")
+        if self.config is not None and not Path(self.config).is_file():
+            raise DeployInputError(f"--config must be a file, got {self.config!r}")
+
+    # -- derived ---------------------------------------------------------------
+    @property
+    def ssh_user(self) -> str | None:
+        return self.target.split("@", 1)[0] if "@" in self.target else None
+
+    def models_dir(self) -> Path | None:
+        if self.models:
+            return Path(self.models)
+        d = REPO / "models"
+        return d if d.is_dir() else None
+
+    def config_file(self) -> Path | None:
+        if self.config:
+            return Path(self.config)
+        f = REPO / "device" / "leg.toml"
+        return f if f.is_file() else None
+
+
+def project_version() -> str:
+    """The version in pyproject.toml (the wheel being built)."""
+    try:
+        with open(REPO / "pyproject.toml", "rb") as fh:
+            return str(tomllib.load(fh)["project"]["version"])
+    except (OSError, KeyError, ValueError):
+        return "0"
+
+
+def add_arguments(s):
+    """The ``host deploy`` options (shared with host/cli/__init__.py)."""
+    s.add_argument("target", help="USER@HOST of the Pi")
+    s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
+    s.add_argument("--rollback", action="store_true",
+                   help="switch current back to the previous release and restart")
+    s.add_argument("--port", type=int, help="SSH port")
+    s.add_argument("--identity", help="SSH private key file")
+    s.add_argument("--ssh-option", action="append", default=[], metavar="OPT",
+                   help="extra ssh -o option, e.g. StrictHostKeyChecking=no (repeatable)")
+    s.add_argument("--prefix", default="/opt/tacfoot", help="install folder on the Pi")
+    s.add_argument("--models", help="models folder to ship (default: models/)")
+    s.add_argument("--config", help="runtime config TOML to ship (default: device/leg.toml)")
+    s.add_argument("--python", default="python3", help="Python on the Pi to build the venv with")
+    s.add_argument("--service-manager", choices=MANAGERS, default="auto",
+                   help="systemd, or none (pid file + tacfootctl); auto probes the Pi")
+    s.add_argument("--service-name", default="tacfoot", help="systemd unit / pid file name")
+    s.add_argument("--service-user", help="User= of the unit (default: the SSH user)")
+    s.add_argument("--unit-dir", default="/etc/systemd/system",
+                   help="where the unit file is installed on the Pi")
+    s.add_argument("--system-site-packages", action="store_true",
+                   help="the venv sees the packages --python sees (e.g. apt's numpy/opencv)")
+    s.add_argument("--no-deps", action="store_true",
+                   help="pip install the wheel alone, offline (deps already on the Pi)")
+    s.add_argument("--camera", default="v4l2:///dev/video0", help="runtime --camera source")
+    s.add_argument("--imu", default="i2c://1/0x68", help="runtime --imu source")
+    s.add_argument("--serial", default="/dev/serial0", help="runtime --serial port or URL")
+    s.add_argument("--runtime-module", default="device.pi",
+                   help="module the service runs as `python -m MODULE run ...`")
+    s.add_argument("--runtime-arg", action="append", default=[], metavar="ARG",
+                   help="extra argument for the runtime (repeatable; use --runtime-arg=--x)")
+    s.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                   help="environment variable for the service (repeatable)")
+    s.add_argument("--watchdog-s", type=int, default=10, help="WatchdogSec= of the unit")
+    s.add_argument("--health-timeout-s", type=float, default=60.0,
+                   help="how long the health check waits for packets to flow")
+    s.add_argument("--keep", type=int, default=3, help="releases kept on the Pi")
+    s.add_argument("--release", help="release folder name (default: VERSION-UTCSTAMP-RAND)")
+    s.add_argument("--json", action="store_true")
+
+
+def options_from_args(a) -> DeployOptions:
+    return DeployOptions(
+        target=a.target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
+        prefix=a.prefix, models=a.models, config=a.config, python=a.python,
+        service_manager=a.service_manager, service_name=a.service_name,
+        service_user=a.service_user, unit_dir=a.unit_dir,
+        system_site_packages=a.system_site_packages, no_deps=a.no_deps, camera=a.camera,
+        imu=a.imu, serial=a.serial,
+        runtime_module=a.runtime_module, runtime_args=a.runtime_arg, env=a.env,
+        watchdog_s=a.watchdog_s, health_timeout_s=a.health_timeout_s, keep=a.keep,
+        release=a.release)
+

@@ -1,0 +1,65 @@
+"""host/data/spec_folder.py: a dataset folder -> windows with the simulator's truth labels."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.data.dataset import load_trial
+from host.data.load import load_spec
+from host.data.windows import NO_TOUCH, SLIP_LABELS
+
+
+
+def test_dataset_windows_have_the_right_shapes_and_truth_labels(sim_ds, cache):
+    T = 4
+    ws = load_spec(str(sim_ds), "surface", T, progress=False, cache=cache)
+    n = len(ws)
+    assert ws.vectors.shape == (n, T, 133, 2) and ws.vectors.dtype == np.float32
+    assert ws.lost.shape == (n, T, 133) and ws.lost.dtype == bool
+    assert ws.imu.shape == (n, T, 6) and ws.imu.dtype == np.float32
+    assert ws.grids.shape == (n, T, 8, 8) and ws.frames.shape == (n, T, 32, 32)
+    assert ws.frames.dtype == np.uint8 and ws.frames.max() > 0
+    assert np.isfinite(ws.vectors).all() and np.isfinite(ws.grids).all()
+    assert ws.classes == ["hard", "no-touch", "soft"]
+    assert sorted(np.unique(ws.groups)) == [0, 1, 2]
+    # each label, contact flag, imu row is the truth of the window's last frame
+    trials = [load_trial(sim_ds, i) for i in range(3)]
+    names = ["no-touch", "hard", "soft", "slippery"]
+    for i in range(0, n, 7):
+        tr, t = trials[ws.groups[i]], ws.t_index[i]
+        assert ws.trial_len[i] == len(tr["frames"])
+        assert ws.contact[i] == tr["contact"][t]
+        want = names[tr["surface"][t]] if tr["contact"][t] else NO_TOUCH
+        assert ws.labels[i] == want
+        assert np.allclose(ws.imu[i], tr["imu"][t - T + 1:t + 1])
+    # stride 1: consecutive windows of a trial share T-1 frames
+    same = (ws.groups[1:] == ws.groups[:-1]) & (ws.t_index[1:] == ws.t_index[:-1] + 1)
+    k = np.flatnonzero(same)[5]
+    assert np.array_equal(ws.vectors[k, 1:], ws.vectors[k + 1, :-1])
+    # no-touch windows exist, and pins move far more under contact than in the air
+    assert (ws.labels == NO_TOUCH).any() and (ws.labels != NO_TOUCH).any()
+    mag = np.hypot(*np.moveaxis(ws.vectors[:, -1], -1, 0)).mean(axis=1)
+    assert mag[ws.contact].mean() > 5 * mag[~ws.contact].mean()
+
+
+def test_dataset_contact_only_drops_no_touch_and_records_the_fraction(sim_ds, cache):
+    full = load_spec(str(sim_ds), "surface", 4, progress=False, cache=cache)
+    ws = load_spec(str(sim_ds), "surface", 4, contact_only=True, progress=False, cache=cache)
+    assert ws.contact.all() and NO_TOUCH not in ws.classes
+    assert len(ws) == int(full.contact.sum())
+    assert ws.kept_fraction == pytest.approx(len(ws) / len(full))
+    assert 0.2 < ws.kept_fraction < 0.9
+
+
+def test_dataset_texture_slip_and_pressure_tasks(sim_ds, cache):
+    tex = load_spec(str(sim_ds), "texture", 2, progress=False, cache=cache)
+    assert set(tex.classes) == {"smooth", NO_TOUCH}
+    assert (tex.labels[~tex.contact] == NO_TOUCH).all()
+    slip = load_spec(str(sim_ds), "slip", 2, progress=False, cache=cache, min_classes=1)
+    assert set(slip.labels) <= set(SLIP_LABELS)
+    pr = load_spec(str(sim_ds), "pressure", 2, progress=False, cache=cache)
+    assert pr.labels is None and pr.targets.dtype == np.float64
+    load = load_trial(sim_ds, 0)["load_n"]
+    sel = np.flatnonzero(pr.groups == 0)
+    assert np.allclose(pr.targets[sel], load[pr.t_index[sel]])
+    assert pr.targets.max() > 1.0 and pr.targets.min() == 0.0

@@ -1,0 +1,101 @@
+"""host/data/splits.py: grouped and time splits and group k-fold never leak a trial."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from host.data.load import load_spec
+from host.data.splits import group_kfold, split_grouped, split_time
+from host.data.windows import DataError, WindowSet
+
+
+def synthetic(trial_lens, T, stride=1, labels=("a", "b")):
+    """A WindowSet with only the bookkeeping arrays filled in."""
+    g, t, L = [], [], []
+    for k, n in enumerate(trial_lens):
+        ends = np.arange(T - 1, n, stride)
+        g += [k] * len(ends)
+        t += list(ends)
+        L += [n] * len(ends)
+    N = len(g)
+    lab = np.array([labels[x % len(labels)] for x in g], object)
+    return WindowSet(task="surface", window=T, vectors=np.zeros((N, T, 1, 2), np.float32),
+                     lost=np.zeros((N, T, 1), bool), imu=None, grids=None, frames=None,
+                     contact=np.ones(N, bool), labels=lab, targets=None,
+                     groups=np.array(g, np.int64), t_index=np.array(t, np.int64),
+                     trial_len=np.array(L, np.int64), classes=sorted(set(labels)))
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.integers(30, 300), min_size=1, max_size=4), st.integers(1, 10),
+       st.integers(1, 3), st.floats(0.3, 0.9), st.integers(0, 15))
+def test_time_split_never_overlaps_and_keeps_the_gap(assert_time_split_ok, lens, T, stride, frac,
+                                                     gap):
+    ws = synthetic(lens, T, stride)
+    b = np.floor(frac * ws.trial_len)
+    n_train = int((ws.t_index < b).sum())
+    n_test = int((ws.t_index - T + 1 >= b + gap).sum())
+    if n_train == 0 or n_test == 0:                 # trials too short: a clear error
+        with pytest.raises(DataError, match="too short"):
+            split_time(ws, frac, gap)
+        return
+    tr, te = split_time(ws, frac, gap)
+    assert (len(tr), len(te)) == (n_train, n_test)
+    assert_time_split_ok(ws, tr, te, gap)
+    for i in tr:      # train windows lie in the first frac of their trial
+        assert ws.t_index[i] < np.floor(frac * ws.trial_len[i])
+
+
+def test_time_split_default_gap_is_T(assert_time_split_ok):
+    ws = synthetic([100, 80], 5)
+    tr, te = split_time(ws)
+    assert_time_split_ok(ws, tr, te, 5)
+    first_test = ws.t_index[te] - 4
+    assert first_test[ws.groups[te] == 0].min() == 70 + 5
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(2, 30), st.floats(0.1, 0.6), st.integers(0, 1000))
+def test_grouped_split_never_shares_a_trial(n_trials, frac, seed):
+    ws = synthetic([20 + 3 * k for k in range(n_trials)], 3)
+    tr, te = split_grouped(ws, frac, seed)
+    assert len(tr) and len(te) and len(tr) + len(te) == len(ws)
+    assert not set(ws.groups[tr]) & set(ws.groups[te])
+
+
+def test_grouped_split_spreads_labels_and_kfold_covers_each_trial_once():
+    ws = synthetic([30] * 10, 3)               # 5 trials of 'a', 5 of 'b'
+    tr, te = split_grouped(ws, 0.4, seed=3)
+    assert set(ws.labels[te]) == {"a", "b"} and set(ws.labels[tr]) == {"a", "b"}
+    seen = []
+    for tr, te in group_kfold(ws, 5):
+        assert not set(ws.groups[tr]) & set(ws.groups[te])
+        assert len(tr) + len(te) == len(ws)
+        seen += sorted(set(ws.groups[te]))
+    assert sorted(seen) == list(range(10))
+
+
+def test_grouped_split_on_a_simulated_dataset(sim_ds, cache, assert_time_split_ok):
+    ws = load_spec(str(sim_ds), "surface", 3, progress=False, cache=cache)
+    tr, te = split_grouped(ws, 0.34, seed=0)
+    assert not set(ws.groups[tr]) & set(ws.groups[te])
+    tr, te = split_time(ws)
+    assert_time_split_ok(ws, tr, te, 3)
+
+
+def test_too_few_groups_for_k_folds():
+    ws = synthetic([30, 30, 30], 3)
+    with pytest.raises(DataError, match="too few groups for 5 folds.*3 trials"):
+        group_kfold(ws, 5)
+    with pytest.raises(DataError, match="at least 2 groups"):
+        split_grouped(synthetic([30], 3), 0.3)
+    with pytest.raises(DataError, match="no time order"):
+        split_time(_untimed(ws))
+
+
+def _untimed(ws):
+    ws = ws.subset(np.arange(len(ws)))
+    ws.t_index[:] = -1
+    return ws
