@@ -25,7 +25,7 @@ def _emit(args, data, text: str | None = None):
 
 
 def _json_default(o):
-    from host.learn.train import _plain
+    from host.learn.onnx_io import json_default as _plain
     return _plain(o)
 
 
@@ -430,7 +430,7 @@ def _jsonable(res: dict) -> dict:
 
 
 def cmd_train(args):
-    from host.learn.train import TrainError
+    from host.learn.tasks import TrainError
     ws = _load_windows(args, args.task, args.window)
     try:
         if args.model == "cnn":
@@ -454,7 +454,7 @@ def cmd_train(args):
 def _train_cnn(args, ws):
     from host.learn.cnn import quantise_cnn, train_cnn
     from host.data.specs import split_grouped
-    from host.learn.train import TrainError
+    from host.learn.tasks import TrainError
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
     tr, te = split_grouped(ws, test_frac=0.3, seed=args.seed)
