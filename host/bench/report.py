@@ -49,7 +49,7 @@ def _int8_why(agreement: float | None, required: float | None, message: str) -> 
             f"(< {required * 100:g} %); float kept")
 
 
-def _train(task, model, tr, te, out, seed) -> str | None:
+def train_row(task, model, tr, te, out, seed) -> str | None:
     """Train one row's model into ``out`` (float, and int8 when it passes its
     check). Returns why there is no int8 model, or None."""
     if model == "cnn":
@@ -88,7 +88,7 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
             with tempfile.TemporaryDirectory() as d:
                 t0 = time.perf_counter()
                 try:
-                    int8_failed = _train(task, model, tr, te, d, seed)
+                    int8_failed = train_row(task, model, tr, te, d, seed)
                 except (TrainError, ValueError) as exc:
                     rows.append({"task": task, "data": label, "model": model, "T": T,
                                  "error": str(exc)[:200]})

@@ -57,14 +57,6 @@ def calibration_reader(X: np.ndarray, input_name: str, batch: int = 64):
     return _Reader()
 
 
-def model_bytes(m) -> bytes:
-    if hasattr(m, "SerializeToString"):
-        return m.SerializeToString()
-    if isinstance(m, bytes):
-        return m
-    return Path(m).read_bytes()
-
-
 def int8_saturation(float_onnx, int8_onnx, X: np.ndarray) -> dict:
     """Share of the values reaching each quantised activation (run through the float
     model on X) that fall outside the int8 range calibrated for it: the inputs the

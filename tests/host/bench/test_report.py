@@ -32,7 +32,7 @@ def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_p
     monkeypatch.setattr(host.learn.train, "fit_estimator",
                         lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     ws = synthetic()
-    why = report._train("surface", "fnn", ws, ws, tmp_path / "m", 0)
+    why = report.train_row("surface", "fnn", ws, ws, tmp_path / "m", 0)
     assert len(fits) == 1                                  # trained once, not twice
     assert why == ("int8 check failed: 97.18% argmax agreement with float (< 99 %); "
                    "float kept")
@@ -53,7 +53,7 @@ def test_a_failed_regressor_check_is_reported_by_its_message(monkeypatch, tmp_pa
 
     monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
     ws = synthetic(targets=True, imu=False)
-    why = report._train("pressure", "ridge", ws, ws, tmp_path / "p", 0)
+    why = report.train_row("pressure", "ridge", ws, ws, tmp_path / "p", 0)
     assert why.startswith("int8 check failed") and "raises the MAE by 0.5" in why
     assert not (tmp_path / "p" / "model.int8.onnx").exists()
 
