@@ -13,7 +13,14 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+from host.bench.scenes import simulate_scenes
+from host.data.dataset import atomic_write_text
+from host.data.load import load_specs
+from host.data.splits import split_grouped, split_time
+from host.learn.evaluate import evaluate_model
+from host.learn.onnx_io import INT8_NAME
+from host.learn.tasks import TASK_MODELS, QuantisationError, TrainError
+from host.learn.train import train_model
 
 WINDOWS = (1, 2, 3, 5, 10)
 FPS = (30, 120)
@@ -28,49 +35,44 @@ def _have_torch() -> bool:
 
 
 def models_for(task: str) -> list[str]:
-    from host.learn.train import TASK_MODELS
     models = list(TASK_MODELS[task])
     if task != "pressure" and _have_torch():
         models.append("cnn")
     return models
 
 
-def _int8_why(exc) -> str:
-    """The int8 check's verdict in a few words (the agreement it reached)."""
-    import re
-    m = re.search(r"agrees with the float model on ([0-9.]+%)", str(exc))
-    return (f"int8 check failed: {m.group(1)} argmax agreement with float (< 99 %); "
-            "float kept" if m else f"int8 check failed: {str(exc)[:120]}")
+def _int8_why(agreement: float | None, required: float | None, message: str) -> str:
+    """The int8 check's verdict in a few words: the agreement it reached and the bar,
+    or the start of ``message`` when the check has no agreement (a regressor)."""
+    if agreement is None or required is None:
+        return f"int8 check failed: {message[:120]}"
+    return (f"int8 check failed: {agreement:.2%} argmax agreement with float "
+            f"(< {required * 100:g} %); float kept")
 
 
-def _train(task, model, tr, te, out, seed) -> str | None:
+def train_row(task, model, tr, te, out, seed) -> str | None:
     """Train one row's model into ``out`` (float, and int8 when it passes its
     check). Returns why there is no int8 model, or None."""
-    from host.learn.train import QuantisationError
     if model == "cnn":
         from host.learn.cnn import quantise_cnn, train_cnn
         res = train_cnn(tr, te, seed=seed, out_dir=out, progress=False, epochs=15)
         try:
-            quantise_cnn(res["onnx_path"], tr, Path(out) / "model.int8.onnx", seed=seed)
+            quantise_cnn(res["onnx_path"], tr, Path(out) / INT8_NAME, seed=seed)
         except QuantisationError as exc:
-            return _int8_why(exc)
+            return _int8_why(exc.agreement, exc.required, str(exc))
         return None
-    from host.learn.train import train_model
     res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
                       seed=seed, out_dir=out, progress=False)
     failed = (res.get("int8") or {}).get("failed")
-    return _int8_why(failed) if failed else None
+    if not failed:
+        return None
+    return _int8_why(res["int8"].get("agreement"), res["int8"].get("required"), failed)
 
 
 def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int = 0,
              split: str = "grouped", contact_only: bool = False, label: str = "",
              progress: bool = True) -> list[dict]:
     """Rows of the report for one task and data source."""
-    from host.data.load import load_specs
-    from host.data.splits import split_grouped, split_time
-    from host.learn.evaluate import evaluate_model
-    from host.learn.train import TrainError
-
     rows = []
     cache: dict = {}
     for T in windows:
@@ -87,7 +89,7 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
             with tempfile.TemporaryDirectory() as d:
                 t0 = time.perf_counter()
                 try:
-                    int8_failed = _train(task, model, tr, te, d, seed)
+                    int8_failed = train_row(task, model, tr, te, d, seed)
                 except (TrainError, ValueError) as exc:
                     rows.append({"task": task, "data": label, "model": model, "T": T,
                                  "error": str(exc)[:200]})
@@ -98,7 +100,7 @@ def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int
                         rows.append({"task": task, "data": label, "model": model,
                                      "variant": "int8", "T": T, "error": int8_failed})
                         continue
-                    if variant == "int8" and not (Path(d) / "model.int8.onnx").exists():
+                    if variant == "int8" and not (Path(d) / INT8_NAME).exists():
                         continue
                     r = evaluate_model(d, te, variant=variant)
                     m = r["metrics"]
@@ -190,8 +192,6 @@ def table(rows: list[dict]) -> str:
 def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
                  command: str) -> Path:
     """sections: (title, png name, rows). Writes the markdown and the PNGs beside it."""
-    from host.data.dataset import atomic_write_text
-
     out = Path(out)
     img_dir = out.parent / "img"
     parts = ["# What accuracy costs in time", "",
@@ -217,7 +217,7 @@ def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
     return out
 
 
-#: the simulated scene kinds behind each task (host.learn.train.simulate_scenes)
+#: the simulated scene kinds behind each task (host.bench.scenes.simulate_scenes)
 TASK_KINDS = {"surface": ("hard", "soft", "wet", "no-touch"),
               "texture": ("lego", "concrete", "smooth"),
               "slip": ("slip",), "pressure": ("press-hard", "press-soft")}
@@ -242,8 +242,6 @@ def real_manifest(data_dir, work: Path) -> Path:
 def build_report(out, work, data_dir=None, windows=WINDOWS, quick: bool = False,
                  tasks=tuple(TASK_KINDS), seed: int = 0, progress: bool = True,
                  command: str = "host report") -> Path:
-    from host.learn.train import simulate_scenes
-
     work = Path(work)
     counts = REPORT_TRIALS["quick" if quick else "full"]
     sections = []

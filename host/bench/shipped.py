@@ -3,14 +3,14 @@
     python -m host.bench.shipped --out models [--real-data ../shared/data] [--only surface,slip]
 
 Each model is trained on simulated trials of the roboskin sensor (surface
-parameters drawn from the training ranges of :data:`host.learn.train.SURFACE_RANGES`,
+parameters drawn from the training ranges of :data:`host.bench.scenes.SURFACE_RANGES`,
 fixed seeds), exported to ONNX with the scaler folded in, quantised to int8 and
 checked against float, and written as ``models/<name>/`` (manifest.json,
 model.onnx, model.int8.onnx). The surface model must pass the int8 check; for the
 others a failed check ships the float model alone (the texture FNN's first layer
 reads frame-to-frame changes of ~0.1 px, finer than its int8 input step). The model settings are the simulated benchmark's
-(:data:`host.learn.train.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
-``host.learn.train.sim_benchmarks`` describe these models.
+(:data:`host.bench.benchmarks.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
+``host.bench.benchmarks.sim_benchmarks`` describe these models.
 
 =========  ======================  =========================================
 folder     task / model            classes or target
@@ -36,6 +36,12 @@ import sys
 import time
 from pathlib import Path
 
+from host.bench.benchmarks import BENCH_MODELS
+from host.bench.scenes import simulate_scenes
+from host.data.load import load_spec
+from host.learn.tasks import TrainError
+from host.learn.train import train_model
+
 __all__ = ["DEFAULTS", "build_model", "build_defaults", "main"]
 
 #: name -> (task, simulated kinds, trials per kind, T)
@@ -45,7 +51,7 @@ DEFAULTS = {
     "slip": ("slip", ["slip"], 30, 3),
     "pressure": ("pressure", ["press-hard", "press-soft"], 30, 3),
 }
-#: these must ship as int8 (the issue asks for an int8 surface FNN); the others fall
+#: these must ship as int8 (the surface FNN is shipped int8); the others fall
 #: back to float when their int8 copy fails the >= 99 % agreement check
 MUST_INT8 = ("surface",)
 #: largest shipped model folder
@@ -56,15 +62,12 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
                 trials: int | None = None) -> dict:
     """Train one default model into ``out_root/name`` (replaced only when the new
     one is complete). Returns a summary: metrics, int8 check, bytes."""
-    from host.data.load import load_spec
-    from host.learn.train import BENCH_MODELS, TrainError, simulate_scenes, train_model
-
     if name not in DEFAULTS:
         raise TrainError(f"unknown default model {name!r}; choose from {sorted(DEFAULTS)}")
     task, kinds, n, T = DEFAULTS[name]
     n = trials or n
     t0 = time.perf_counter()
-    # the same folder and seeds as the training part of host.learn.train.sim_benchmarks
+    # the same folder and seeds as the training part of host.bench.benchmarks.sim_benchmarks
     data = simulate_scenes(Path(work) / f"{task}-train", kinds, n, 10 * seed + 1, False,
                            progress)
     ws = load_spec(str(data), task, T, progress=progress)
@@ -116,7 +119,6 @@ def main(argv=None) -> int:
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     names = [n.strip() for n in args.only.split(",")] if args.only else None
-    from host.learn.train import TrainError
     try:
         rows = build_defaults(args.out, args.work, names, seed=args.seed,
                               progress=not args.quiet)

@@ -14,7 +14,7 @@ from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
 from host.data.dataset import is_dataset
-from host.learn.train import _plain
+from host.learn.onnx_io import json_default as _plain
 
 EXIT_BAD_INPUT = 2
 

@@ -13,7 +13,8 @@ from host.data.splits import split_grouped
 from host.data.windows import DataError
 from host.learn.cnn import quantise_cnn, train_cnn
 from host.learn.evaluate import evaluate_model
-from host.learn.train import TrainError, train_model
+from host.learn.tasks import TrainError
+from host.learn.train import train_model
 
 
 def _load_windows(args, task: str, window: int, min_classes: int = 2):

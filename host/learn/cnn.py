@@ -30,6 +30,7 @@ without it :func:`require_torch` raises an ImportError that says how to install 
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import sys
@@ -39,6 +40,14 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+
+from device.pi.models.artefact import MANIFEST
+from host.data.windows import CLASS_TASKS
+from host.learn.metrics import label_metrics
+from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, run_onnx, session, write_model,
+                                write_variants)
+from host.learn.quantise import quantise_model
+from host.learn.tasks import check_int
 
 __all__ = ["MODEL", "OUTPUT_NAME", "INPUT_NAME", "ONNX_ATOL", "FrameCNN", "require_torch",
            "train_cnn", "quantise_cnn", "frames_input"]
@@ -79,12 +88,6 @@ def frames_input(frames: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------
 # Parameters
 # ----------------------------------------------------------------------------
-
-def _check_int(name: str, value, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise ValueError(f"{name} must be a whole number >= {lo}, got {name}={value!r}")
-    return int(value)
-
 
 def _check_float(name: str, value, lo: float, hi: float | None = None,
                  lo_open: bool = False) -> float:
@@ -191,7 +194,7 @@ class FrameCNN:
         for name, lo in (("filters", 1), ("kernel", 1), ("stride", 1), ("pool", 1),
                          ("hidden", 1), ("epochs", 1), ("batch_size", 1), ("seed", 0),
                          ("threads", 1)):
-            _check_int(name, getattr(self, name), lo)
+            check_int(name, getattr(self, name), lo)
         _check_float("dropout", self.dropout, 0.0, 1.0)
         _check_float("lr", self.lr, 0.0, lo_open=True)
         _check_float("weight_decay", self.weight_decay, 0.0)
@@ -325,48 +328,8 @@ class FrameCNN:
 
 
 # ----------------------------------------------------------------------------
-# Metrics and checks
+# Checks
 # ----------------------------------------------------------------------------
-
-def _class_metrics(y_true: np.ndarray, y_pred: np.ndarray, classes: list) -> dict:
-    y_true = np.asarray(y_true).astype(str)
-    y_pred = np.asarray(y_pred).astype(str)
-    names = list(classes) + sorted(set(y_true.tolist()) - set(classes))
-    ix = {c: i for i, c in enumerate(names)}
-    cm = np.zeros((len(names), len(names)), np.int64)
-    np.add.at(cm, ([ix[v] for v in y_true], [ix[v] for v in y_pred]), 1)
-    tp = np.diag(cm).astype(np.float64)
-    prec = np.divide(tp, cm.sum(0), out=np.zeros_like(tp), where=cm.sum(0) > 0)
-    rec = np.divide(tp, cm.sum(1), out=np.zeros_like(tp), where=cm.sum(1) > 0)
-    f1 = np.divide(2 * prec * rec, prec + rec, out=np.zeros_like(tp), where=prec + rec > 0)
-    present = cm.sum(1) > 0
-    return {"accuracy": float(tp.sum() / max(1, cm.sum())),
-            "f1": {c: round(float(f1[i]), 6) for i, c in enumerate(names) if present[i]},
-            "macro_f1": float(f1[present].mean()) if present.any() else 0.0,
-            "confusion": {"labels": names, "matrix": cm.tolist()},
-            "windows": int(len(y_true))}
-
-
-def _session(model_or_path, threads: int = 1):
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
-    if isinstance(model_or_path, (str, Path)):
-        src = str(model_or_path)
-    else:
-        src = model_or_path.SerializeToString()
-    return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
-
-
-def _ort_proba(sess, X: np.ndarray, batch: int = 512) -> np.ndarray:
-    name = sess.get_inputs()[0].name
-    return np.concatenate([sess.run(None, {name: X[s:s + batch]})[0]
-                           for s in range(0, len(X), batch)] or
-                          [np.zeros((0, 0), np.float32)])
-
 
 def _check_rows(n: int, k: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
@@ -395,9 +358,6 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     ``out_dir``), ``onnx`` (the onnx.ModelProto) and ``estimator`` (the FrameCNN).
     Raises ValueError if ONNX Runtime and torch differ by more than ``ONNX_ATOL``.
     """
-    from host.data.windows import CLASS_TASKS
-    from host.learn.onnx_io import write_model
-
     require_torch()
     t0 = time.perf_counter()
     task = ws_train.task
@@ -409,7 +369,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     if ws_test is not None and (ws_test.task != task or ws_test.window != ws_train.window):
         raise ValueError(f"ws_test is task={ws_test.task!r} T={ws_test.window}, ws_train is "
                          f"task={task!r} T={ws_train.window}")
-    check_windows = _check_int("check_windows", check_windows, 1)
+    check_windows = check_int("check_windows", check_windows, 1)
     X = frames_input(ws_train.frames)
     y = ws_train.labels.astype(str)
     est = FrameCNN(epochs=epochs, seed=seed, progress=progress, **params)
@@ -420,10 +380,9 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
 
     onx = est.to_onnx()
     size_bytes = len(onx.SerializeToString())
-    sess = _session(onx)
-    p_train = _ort_proba(sess, X)
-    metrics = {"train": _class_metrics(y, np.asarray(classes, object)[p_train.argmax(1)],
-                                       classes)}
+    sess = session(onx)
+    p_train = run_onnx(sess, X)
+    metrics = {"train": label_metrics(y, p_train.argmax(1), classes)}
     rows = _check_rows(len(X), check_windows, seed)
     diff = float(np.abs(p_train[rows] - est.predict_proba(X[rows])).max())
     if ws_test is not None:
@@ -433,10 +392,9 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
         if Xt.shape[1:] != X.shape[1:]:
             raise ValueError(f"ws_test windows are {Xt.shape[1:]}, ws_train windows "
                              f"{X.shape[1:]}; use the same T and frame_size")
-        p_test = _ort_proba(sess, Xt)
+        p_test = run_onnx(sess, Xt)
         yt = ws_test.labels.astype(str)
-        metrics["heldout"] = _class_metrics(yt, np.asarray(classes, object)[p_test.argmax(1)],
-                                            classes)
+        metrics["heldout"] = label_metrics(yt, p_test.argmax(1), classes)
         unseen = sorted(set(yt.tolist()) - set(classes))
         if unseen:
             metrics["heldout"]["classes_not_in_training"] = unseen
@@ -479,14 +437,9 @@ def quantise_cnn(float_onnx: Path | str, ws_calib, out_path: Path | str,
     """An int8 copy (static QDQ) of an exported CNN, calibrated on up to
     ``max_windows`` windows of ``ws_calib`` (training windows), built exactly as the
     Pi builds its input. The quantiser is the toolkit's one,
-    :func:`host.learn.train.quantise_model`; this only prepares its calibration inputs and
+    :func:`host.learn.quantise.quantise_model`; this only prepares its calibration inputs and
     returns what it returns."""
-    try:
-        from host.learn.train import quantise_model
-    except ImportError as exc:
-        raise ImportError(f"int8 quantisation of the CNN uses host.learn.train.quantise_model, "
-                          f"which cannot be imported: {exc}") from exc
-    max_windows = _check_int("max_windows", max_windows, 1)
+    max_windows = check_int("max_windows", max_windows, 1)
     rows = _check_rows(len(ws_calib), max_windows, seed)
     report = quantise_model(float_onnx, frames_input(ws_calib.frames[rows]), out_path)
     _adopt_int8(Path(out_path), report)
@@ -497,12 +450,6 @@ def _adopt_int8(q: Path, report: dict) -> None:
     """When the int8 file was written into a CNN model folder as model.int8.onnx,
     make it the folder's default as ``host train --quantise`` does: manifest.json
     names the int8 file (checksums of both), manifest.float.json the float one."""
-    import json
-
-    from device.pi.models.artefact import MANIFEST, sha256_file
-    from host.data.dataset import atomic_write_text
-    from host.learn.train import FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME
-
     folder = q.parent
     if q.name != INT8_NAME or not (folder / MANIFEST).is_file() \
             or not (folder / FLOAT_NAME).is_file():
@@ -510,15 +457,5 @@ def _adopt_int8(q: Path, report: dict) -> None:
     doc = json.loads((folder / MANIFEST).read_text())
     if doc.get("model") != MODEL:
         return
-    files = {n: {"variant": v, "size_bytes": (folder / n).stat().st_size,
-                 "sha256": sha256_file(folder / n)}
-             for n, v in ((FLOAT_NAME, "float"), (INT8_NAME, "int8"))}
-    doc.update({"sha256": {n: f["sha256"] for n, f in files.items()}, "files": files,
-                "variants": {"float": FLOAT_NAME, "int8": INT8_NAME},
-                "int8": {k: v for k, v in report.items() if k != "path"}})
-    atomic_write_text(folder / FLOAT_MANIFEST, json.dumps(
-        dict(doc, onnx=FLOAT_NAME, variant="float",
-             size_bytes=files[FLOAT_NAME]["size_bytes"]), indent=1, default=float))
-    atomic_write_text(folder / MANIFEST, json.dumps(
-        dict(doc, onnx=INT8_NAME, variant="int8",
-             size_bytes=files[INT8_NAME]["size_bytes"]), indent=1, default=float))
+    write_variants(folder, int8=True,
+                   updates={"int8": {k: v for k, v in report.items() if k != "path"}})

@@ -18,6 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.models.artefact import MANIFEST, ModelError, read_manifest
+from device.pi.models.classifier import Classifier
+from device.pi.models.regressor import Regressor
+from device.pi.models.window import encode
+from host.learn.inputs import model_inputs
+from host.learn.metrics import classification_metrics, regression_metrics, slip_latency
+from host.learn.onnx_io import FLOAT_MANIFEST
+from host.learn.tasks import label_ids
 
 __all__ = ["evaluate_model", "load_variant", "VARIANTS"]
 
@@ -26,8 +33,6 @@ VARIANTS = ("float", "int8")
 
 def _manifest_for(model_dir, variant: str | None) -> Path:
     """The manifest file that loads ``variant`` (None: the default)."""
-    from host.learn.train import FLOAT_MANIFEST
-
     doc, folder = read_manifest(model_dir)
     mpath = Path(model_dir) if Path(model_dir).is_file() else folder / MANIFEST
     if variant is None or doc.get("model") == "rule":
@@ -49,9 +54,6 @@ def _manifest_for(model_dir, variant: str | None) -> Path:
 def load_variant(model_dir, variant: str | None = None):
     """(predictor, manifest, kind) for a model folder: a Classifier, RuleClassifier
     or Regressor, loaded with the Pi's code."""
-    from device.pi.models.classifier import Classifier
-    from device.pi.models.regressor import Regressor
-
     mpath = _manifest_for(model_dir, variant)
     doc, _ = read_manifest(mpath)
     if doc.get("model") == "rule":
@@ -79,9 +81,6 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     ``"float"`` or ``"int8"``. Raises :class:`device.pi.models.artefact.ModelError` for a
     bad model folder and ValueError for windows that do not fit the model.
     """
-    from host.learn.train import (classification_metrics, model_inputs, regression_metrics,
-                            slip_latency, _label_ids)
-
     pred_obj, doc, kind = load_variant(model_dir, variant)
     task = doc.get("kind")
     T = doc.get("T")
@@ -120,8 +119,6 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         outs.append(o)
     enc = []
     idx = np.linspace(0, len(ws) - 1, min(encode_samples, len(ws))).astype(int)
-    from device.pi.models.window import encode
-
     for i in idx:
         parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],
                  "frames": None if ws.frames is None else ws.frames[i],
@@ -143,7 +140,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         pred = np.array([o[0] for o in outs], np.int64)
         if not np.isfinite(probs).all():
             raise ModelError(f"{model_dir}: non-finite probabilities")  # never expected
-        true = _label_ids(ws.labels, classes)
+        true = label_ids(ws.labels, classes)
         res["classes"] = classes
         res["metrics"] = classification_metrics(true, pred, classes, ws.labels)
         if task == "slip" and "slip" in classes:

@@ -1,4 +1,10 @@
-"""Write model artefacts (ONNX + manifest.json) that ``device.pi.models.artefact`` loads."""
+"""Model artefacts on the host: write ONNX + manifest.json (the one manifest writer,
+read back by ``device.pi.models.artefact``) and run ONNX models with ONNX Runtime.
+
+A model folder holds ``model.onnx`` (float32) and, for a quantised model,
+``model.int8.onnx`` beside it; ``manifest.json`` loads the default variant and
+``manifest.float.json`` the float one (:func:`write_variants`).
+"""
 from __future__ import annotations
 
 import json
@@ -8,6 +14,25 @@ import numpy as np
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
 from host.data.dataset import atomic_write, atomic_write_text
+
+__all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
+           "write_manifest", "write_model", "write_variants", "model_bytes", "session",
+           "run_onnx", "is_classifier"]
+
+FLOAT_NAME = "model.onnx"
+INT8_NAME = "model.int8.onnx"
+FLOAT_MANIFEST = "manifest.float.json"
+
+
+def json_default(o):
+    """``json.dumps(default=...)`` for numpy scalars and arrays and paths."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
 
 
 def sklearn_to_onnx(estimator, n_features: int, input_name: str = "x"):
@@ -19,8 +44,16 @@ def sklearn_to_onnx(estimator, n_features: int, input_name: str = "x"):
         [None, n_features]))], target_opset=17)
 
 
+def write_manifest(folder: Path | str, doc: dict, name: str = MANIFEST) -> Path:
+    """Write ``doc`` as ``folder/name`` atomically; returns the path."""
+    path = Path(folder) / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(doc, indent=1, default=json_default))
+    return path
+
+
 def write_model(onnx_model, out_dir: Path | str, kind: str, n_features: int,
-                extra: dict | None = None, onnx_name: str = "model.onnx",
+                extra: dict | None = None, onnx_name: str = FLOAT_NAME,
                 input_name: str = "x") -> Path:
     """Write ``onnx_model`` (an onnx.ModelProto) and its manifest atomically."""
     out = Path(out_dir)
@@ -34,13 +67,72 @@ def write_model(onnx_model, out_dir: Path | str, kind: str, n_features: int,
                 "input": {"name": input_name, "shape": [None, int(n_features)],
                           "dtype": "float32"}}
     manifest.update(extra or {})
-    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=1, default=_plain))
+    write_manifest(out, manifest)
     return out
 
 
-def _plain(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
+def write_variants(folder: Path | str, int8: bool, updates: dict | None = None) -> dict:
+    """Record every model file of ``folder`` in its manifest.json (sha256 and size
+    of ``model.onnx`` and, with ``int8``, ``model.int8.onnx``; ``variants``), with
+    ``updates`` merged in. With ``int8`` the manifest loads the int8 file and
+    ``manifest.float.json`` the float one; without, the float file is the default
+    and a stale ``manifest.float.json`` is removed. Returns the files' records."""
+    folder = Path(folder)
+    names = {FLOAT_NAME: "float"}
+    if int8:
+        names[INT8_NAME] = "int8"
+    files = {n: {"variant": v, "size_bytes": (folder / n).stat().st_size,
+                 "sha256": sha256_file(folder / n)} for n, v in names.items()}
+    default = INT8_NAME if int8 else FLOAT_NAME
+    doc = json.loads((folder / MANIFEST).read_text())
+    doc.update(updates or {})
+    doc.update({"sha256": {n: f["sha256"] for n, f in files.items()}, "files": files,
+                "variants": {f["variant"]: n for n, f in files.items()},
+                "onnx": default, "variant": names[default],
+                "size_bytes": files[default]["size_bytes"]})
+    write_manifest(folder, doc)
+    if int8:
+        write_manifest(folder, dict(doc, onnx=FLOAT_NAME, variant="float",
+                                    size_bytes=files[FLOAT_NAME]["size_bytes"]), FLOAT_MANIFEST)
+    else:
+        (folder / FLOAT_MANIFEST).unlink(missing_ok=True)
+    return files
+
+
+def model_bytes(m) -> bytes:
+    """The serialised model of a ModelProto, bytes or a path."""
+    if hasattr(m, "SerializeToString"):
+        return m.SerializeToString()
+    if isinstance(m, bytes):
+        return m
+    return Path(m).read_bytes()
+
+
+def session(model, threads: int = 1):
+    """An ONNX Runtime CPU session (``threads`` intra-op threads, quiet logging) for a
+    ModelProto, bytes or a path."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    src = model_bytes(model) if not isinstance(model, (str, Path)) else str(model)
+    return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
+
+
+def is_classifier(sess) -> bool:
+    """Whether the session's model has a ``probabilities`` output."""
+    return "probabilities" in [o.name for o in sess.get_outputs()]
+
+
+def run_onnx(sess, X: np.ndarray, batch: int = 1024) -> np.ndarray:
+    """float64 probabilities (N, C) of a classifier or values (N,) of a regressor."""
+    names = [o.name for o in sess.get_outputs()]
+    out = "probabilities" if "probabilities" in names else names[0]
+    inp = sess.get_inputs()[0].name
+    parts = [sess.run([out], {inp: np.ascontiguousarray(X[i:i + batch], np.float32)})[0]
+             for i in range(0, len(X), batch)]
+    res = np.concatenate(parts) if parts else np.zeros((0,), np.float32)
+    return res.astype(np.float64) if out == "probabilities" else res.reshape(-1).astype(
+        np.float64)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from host.bench import report
-from host.learn.train import QuantisationError
+from host.learn.tasks import QuantisationError
 
 
 def row(model, variant, T, acc, p50):
@@ -15,28 +15,47 @@ def row(model, variant, T, acc, p50):
 
 def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_path):
     """When the int8 copy fails its check the float model is still written (trained
-    once) and measured; the int8 row carries the agreement it reached."""
+    once) and measured; the int8 row carries the agreement it reached, taken from
+    the check's fields."""
     import json
 
     import host.learn.train
     from tests.windows import synthetic
 
     def failing_quantise(*a, **k):
-        raise QuantisationError("int8 check failed: x agrees with the float model on "
-                                "97.18% of 779 held-out windows (argmax), below")
+        raise QuantisationError("int8 check failed: the agreement is too low",
+                                kind="classifier", agreement=0.9718, required=0.99)
 
     fits = []
-    real_fit = host.learn.train._fit_mlp
+    real_fit = host.learn.train.fit_estimator
     monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
-    monkeypatch.setattr(host.learn.train, "_fit_mlp", lambda *a, **k: fits.append(1) or real_fit(*a, **k))
+    monkeypatch.setattr(host.learn.train, "fit_estimator",
+                        lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     ws = synthetic()
-    why = report._train("surface", "fnn", ws, ws, tmp_path / "m", 0)
+    why = report.train_row("surface", "fnn", ws, ws, tmp_path / "m", 0)
     assert len(fits) == 1                                  # trained once, not twice
-    assert "97.18%" in why and "float kept" in why
+    assert why == ("int8 check failed: 97.18% argmax agreement with float (< 99 %); "
+                   "float kept")
     assert (tmp_path / "m" / "model.onnx").is_file()
     assert not (tmp_path / "m" / "model.int8.onnx").exists()
     doc = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert doc["variant"] == "float" and "97.18%" in doc["int8"]["failed"]
+    assert doc["variant"] == "float" and doc["int8"]["agreement"] == 0.9718
+    assert "the agreement is too low" in doc["int8"]["failed"]
+
+
+def test_a_failed_regressor_check_is_reported_by_its_message(monkeypatch, tmp_path):
+    import host.learn.train
+    from tests.windows import synthetic
+
+    def failing_quantise(*a, **k):
+        raise QuantisationError("int8 check failed: raises the MAE by 0.5", kind="regressor",
+                                mae_change=0.5, mae_change_of_range=0.1)
+
+    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
+    ws = synthetic(targets=True, imu=False)
+    why = report.train_row("pressure", "ridge", ws, ws, tmp_path / "p", 0)
+    assert why.startswith("int8 check failed") and "raises the MAE by 0.5" in why
+    assert not (tmp_path / "p" / "model.int8.onnx").exists()
 
 
 def test_table_marks_the_pareto_front_and_lists_failures():

@@ -84,7 +84,7 @@ def test_the_surface_default_classifies_unseen_simulated_trials(tmp_path):
     training (drawn from the wider test ranges), through the Pi's pipeline."""
     from host.data.load import load_spec
     from host.learn.evaluate import evaluate_model
-    from host.learn.train import simulate_scenes
+    from host.bench.scenes import simulate_scenes
 
     data = simulate_scenes(tmp_path / "s", ["hard", "soft", "wet", "no-touch"], 1, 777, True,
                            progress=False)

@@ -83,9 +83,10 @@ def test_cnn_learns_surfaces_it_never_saw(data, trained):
     assert res["classes"] == ["hard", "no-touch", "slippery", "soft"]
     held = res["metrics"]["heldout"]
     chance = max(np.unique(ws_test.labels, return_counts=True)[1]) / len(ws_test)
-    assert held["windows"] == len(ws_test)
+    assert held["n"] == len(ws_test)
     assert held["accuracy"] >= 0.8 > chance + 0.4, held
-    assert set(held["f1"]) == set(res["classes"])
+    assert set(held["per_class"]) == set(res["classes"])
+    assert all(0.0 <= m["f1"] <= 1.0 for m in held["per_class"].values())
     cm = np.array(held["confusion"]["matrix"])
     assert cm.sum() == len(ws_test) and np.trace(cm) / cm.sum() == pytest.approx(
         held["accuracy"])
@@ -213,8 +214,8 @@ def test_int8_cnn_quantises_its_convs_and_agrees_with_float(data, trained, tmp_p
     assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
     assert rep["int8_bytes"] < rep["float_bytes"]
     # the int8 model runs on 4-D windows one at a time, as on the Pi
-    from host.learn.train import _session
-    s = _session(q.read_bytes())
+    from host.learn.onnx_io import session
+    s = session(q.read_bytes())
     p = s.run(None, {s.get_inputs()[0].name: frames_input(ws_test.frames[:1])})[0]
     assert p.shape == (1, 4) and np.isfinite(p).all()
 

@@ -1,88 +1,31 @@
-"""host/learn/train.py, host/learn/evaluate.py, device/pi/models/classifier.py, device/pi/models/rules.py:
-training, ONNX export, int8 quantisation and its check, manifests, refusal of bad
-artefacts, hard cases, and the numerics the Pi relies on."""
+"""host/learn/train.py (``host train``) with the Pi's loaders
+(device/pi/models/classifier.py, regressor.py, rules.py): training, ONNX export,
+int8 default, manifests, refusal of bad artefacts, hard cases, and the numerics
+the Pi relies on."""
 from __future__ import annotations
-from tests import REPO_ROOT
-from tests.windows import synthetic
 
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+import host.learn.train
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError, sha256_file
-from device.pi.models.classifier import Classifier, clean_probabilities
-from device.pi.numerics import sigmoid, softmax
+from device.pi.models.classifier import Classifier, clean_probabilities, sigmoid, softmax
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import RuleClassifier
 from device.pi.models.window import RollingWindow, encode_vectors
-from host.data.windows import WindowSet
 from host.learn.evaluate import evaluate_model
-from host.learn.train import (QuantisationError, TrainError, bench_scene, compare_int8,
-                        model_inputs, quantise_model, scene_toml, slip_latency, train_model)
+from host.learn.inputs import model_inputs
+from host.learn.tasks import QuantisationError, TrainError
+from host.learn.train import train_model
+from tests.windows import synthetic
 
 T = 3
-SURFACE_KINDS = ("hard", "soft", "wet", "no-touch")
-
-
-# -- data ----------------------------------------------------------------------
-
-def _simulate(out: Path, n_per_kind: int, seed: int, beyond: bool) -> Path:
-    """Small randomised step scenes: bench_scene without camera effects (for speed)
-    and with the stance direction near 90 degrees (12 trials cannot teach that the
-    direction does not matter)."""
-    from host.data.simulate import simulate_to_dataset
-
-    scenes = out.parent / f"{out.name}-scenes"
-    scenes.mkdir(parents=True)
-    for k in range(n_per_kind):
-        for i, kind in enumerate(SURFACE_KINDS):
-            doc = bench_scene(kind, np.random.default_rng([seed, i, k]), beyond=beyond)
-            doc["effects"] = ["imu_noise"]
-            for a in doc["timeline"]:
-                if a["action"] == "drag":
-                    a["direction_deg"] = 90.0 + 10.0 * (k - 1)
-            path = scenes / f"{kind}_{k}.toml"
-            path.write_text(scene_toml(doc))
-            simulate_to_dataset(str(path), out, seed=seed * 1000 + k, progress=False)
-    return out
-
-
-@pytest.fixture(scope="module")
-def surface_sets(tmp_path_factory):
-    """Train: 3 step trials per class; test: 1 per class, unseen seeds, surface
-    parameters drawn beyond the training range."""
-    from host.data.load import load_spec
-
-    base = tmp_path_factory.mktemp("surface")
-    tr = _simulate(base / "train", 3, seed=1, beyond=False)
-    te = _simulate(base / "test", 1, seed=2, beyond=True)
-    cache = {}
-    return (load_spec(str(tr), "surface", T, progress=False, cache=cache),
-            load_spec(str(te), "surface", T, progress=False, cache=cache))
-
-
-@pytest.fixture(scope="module")
-def surface_model(surface_sets, tmp_path_factory):
-    ws_tr, ws_te = surface_sets
-    out = tmp_path_factory.mktemp("models") / "surface"
-    res = train_model("surface", "fnn", ws_tr, ws_te, quantise=True, seed=0, out_dir=out,
-                      progress=False, alpha=0.1, epochs=200)
-    return res, out
-
-
-@pytest.fixture(scope="module")
-def small_model(tmp_path_factory):
-    """A quick FNN on synthetic windows (for numerics and refusal tests)."""
-    ws = synthetic()
-    out = tmp_path_factory.mktemp("small") / "m"
-    res = train_model("surface", "fnn", ws, quantise=True, out_dir=out, progress=False,
-                      hidden=(8, 4), epochs=60, min_agreement=0.9)
-    return res, out, ws
 
 
 # -- training on simulated steps -------------------------------------------------
@@ -145,29 +88,6 @@ def test_manifest_lists_everything_and_the_pi_loads_both_variants(surface_model,
     assert clf.predict_window(w)[0] == clf.predict(X[5])[0]
 
 
-def test_evaluate_reports_metrics_latency_size_and_kept_fraction(surface_model, surface_sets):
-    res, out = surface_model
-    _, ws_te = surface_sets
-    ev = evaluate_model(out, ws_te)
-    assert ev["variant"] == "int8" and ev["n_windows"] == len(ws_te)
-    assert ev["metrics"]["accuracy"] == pytest.approx(res["int8"]["metrics"]["accuracy"])
-    conf = np.array(ev["metrics"]["confusion"]["matrix"])
-    assert conf.sum() == len(ws_te) and np.trace(conf) == round(ev["metrics"]["accuracy"]
-                                                                * len(ws_te))
-    assert set(ev["metrics"]["per_class"]) == set(res["classes"])
-    lat = ev["latency_ms"]
-    assert 0 < lat["p50"] <= lat["p99"] and lat["n"] == len(ws_te)
-    assert ev["model_bytes"] == (out / "model.int8.onnx").stat().st_size
-    assert ev["kept_fraction"] == ws_te.kept_fraction and ev["threads"] == 1
-    evf = evaluate_model(out, ws_te, variant="float")
-    assert evf["model_bytes"] == (out / "model.onnx").stat().st_size
-    assert evf["metrics"]["accuracy"] == pytest.approx(res["metrics"]["test"]["accuracy"])
-    from dataclasses import replace
-
-    with pytest.raises(ValueError, match="the windows have T=5 frames, the model sees T=3"):
-        evaluate_model(out, replace(ws_te.subset(np.arange(4)), window=5))
-
-
 def test_rule_and_grid_fnn_train_export_and_load(surface_sets, tmp_path):
     ws_tr, ws_te = surface_sets
     res = train_model("surface", "rule", ws_tr, ws_te, quantise=True, out_dir=tmp_path / "rule",
@@ -195,51 +115,6 @@ def test_rule_and_grid_fnn_train_export_and_load(surface_sets, tmp_path):
     assert doc["input"]["shape"][1] == 2 * T * ws_tr.grids.shape[2] ** 2
     assert not (tmp_path / "grid" / "model.int8.onnx").exists()
     assert g["metrics"]["test"]["accuracy"] > 0.5
-
-
-# -- int8 checks ---------------------------------------------------------------
-
-def test_int8_check_fails_loudly_and_keeps_nothing(small_model, tmp_path, monkeypatch):
-    res, out, ws = small_model
-    X = model_inputs(ws, "vectors", True)
-    y = np.array([sorted(set(ws.labels)).index(x) for x in ws.labels])
-    fbytes = (out / "model.onnx").read_bytes()
-    rep = quantise_model(fbytes, X, tmp_path / "q.onnx", check_inputs=X, check_targets=y)
-    assert rep["passed"] and rep["agreement"] >= 0.99 and (tmp_path / "q.onnx").exists()
-    # corrupt the int8 weights: the comparison catches it
-    import onnx
-    from onnx import numpy_helper
-
-    q = onnx.load(str(tmp_path / "q.onnx"))
-    last = [n for n in q.graph.node if n.op_type == "MatMul"][-1]       # the output layer
-    dq = next(n for n in q.graph.node if last.input[1] in n.output)
-    init = next(i for i in q.graph.initializer if i.name == dq.input[0])
-    a = numpy_helper.to_array(init)
-    assert a.dtype == np.int8                                        # its int8 weights
-    init.CopyFrom(numpy_helper.from_array((-a.astype(np.int16)).clip(-127, 127)
-                                          .astype(np.int8), init.name))
-    bad = compare_int8(fbytes, q.SerializeToString(), X, y)
-    assert not bad["passed"] and bad["agreement"] < 0.99 and bad["accuracy_int8"] < 0.9
-    # force the disagreement inside quantise_model: it raises and keeps no file
-    import host.learn.train as ht
-
-    real = ht.compare_int8
-
-    def disagree(*a, **kw):
-        r = real(*a, **kw)
-        return dict(r, agreement=0.9, passed=False)
-
-    monkeypatch.setattr(ht, "compare_int8", disagree)
-    with pytest.raises(QuantisationError, match=r"q2\.onnx agrees with the float model on "
-                                                r"90\.00% of \d+ held-out windows .*below the "
-                                                r"required 99\.00%"):
-        quantise_model(fbytes, X, tmp_path / "q2.onnx", check_inputs=X)
-    assert not (tmp_path / "q2.onnx").exists()
-    # and train --quantise fails as a whole, writing nothing
-    with pytest.raises(QuantisationError, match="int8 check failed"):
-        train_model("surface", "fnn", ws, quantise=True, out_dir=tmp_path / "m",
-                    progress=False, hidden=(8, 4), epochs=20)
-    assert not (tmp_path / "m").exists()
 
 
 def test_ridge_pressure_int8_and_the_pi_regressor(tmp_path):
@@ -358,33 +233,6 @@ def test_constant_windows_single_class_and_too_few_folds_are_clear_errors(tmp_pa
         assert not (tmp_path / p).exists()
 
 
-def test_grouped_cv_reports_each_fold(tmp_path):
-    ws = synthetic(n_groups=8)
-    res = train_model("surface", "fnn", ws, out_dir=tmp_path / "m", cv=3, progress=False,
-                      hidden=(8, 4), epochs=100)
-    cv = res["metrics"]["cv"]
-    assert cv["folds"] == 3 and cv["grouped"] and len(cv["fold_accuracy"]) == 3
-    assert cv["n"] == len(ws) - res["metrics"]["test"]["n"]     # on the training part
-    assert cv["accuracy"] > 0.9
-
-
-# -- slip latency ------------------------------------------------------------------
-
-def test_slip_latency_counts_frames_from_each_true_onset():
-    lab = np.array(["no-slip"] * 3 + ["slip"] * 4 + ["no-slip"] * 2 + ["slip"] * 3
-                   + ["no-slip"] * 2 + ["slip"] * 2, object)
-    n = len(lab)
-    ws = synthetic(n_groups=1, per_group=n)
-    ws.labels = lab
-    pred = np.zeros(n, bool)
-    pred[[4, 5]] = True          # onset at 3, detected at 4: 1 frame
-    pred[[9]] = True             # onset at 9, detected at once: 0 frames
-    # the third onset (14) is never detected: missed
-    res = slip_latency(ws, pred)
-    assert res["onsets"] == 3 and res["detected"] == 2 and res["missed"] == 1
-    assert res["latencies_frames"] == [1, 0] and res["median_frames"] == 0.5
-
-
 # -- numerics on the Pi ---------------------------------------------------------------
 
 finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -424,45 +272,6 @@ def test_probabilities_are_cleaned(p):
         assert np.allclose(q, 1.0 / len(p))
 
 
-@st.composite
-def training_matrix(draw):
-    n = draw(st.integers(3, 12))
-    d = draw(st.integers(1, 5))
-    scale = draw(st.sampled_from([1e-3, 1.0, 1e3, 1e6]))
-    X = draw(arrays(np.float32, (n, d), elements=st.floats(-1, 1, width=32))) * np.float32(scale)
-    const = draw(st.lists(st.integers(0, d - 1), max_size=d))
-    X[:, const] = np.float32(draw(st.floats(-100, 100, width=32)))   # zero-variance columns
-    return X
-
-
-@given(training_matrix(), arrays(np.float32, 5, elements=st.floats(width=32, allow_nan=False)))
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-def test_the_folded_scaler_matches_sklearn_and_stays_finite(X, probe):
-    """The MLPs' scaler in the graph (Sub, Mul, Clip) equals sklearn's StandardScaler
-    clipped to +-8 standard deviations, zero-variance columns included, and its
-    output is finite and bounded for any input without NaN (inf included)."""
-    from sklearn.preprocessing import StandardScaler
-    from skl2onnx import convert_sklearn
-    from skl2onnx.common.data_types import FloatTensorType
-
-    from host.learn.train import SCALED_CLIP, _scaler_class, _session
-
-    sc = _scaler_class()().fit(X)
-    m = convert_sklearn(sc, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
-                        target_opset=17)
-    sess = _session(m)
-    got = sess.run(None, {"x": X})[0]
-    want = np.clip(StandardScaler().fit(X).transform(X.astype(np.float64)), -8.0, 8.0)
-    assert SCALED_CLIP == 8.0
-    assert np.allclose(got, sc.transform(X), rtol=1e-5, atol=1e-5)
-    assert np.allclose(got, want, rtol=1e-3, atol=1e-3)
-    const = np.ptp(X, axis=0) == 0          # every value identical
-    assert np.allclose(got[:, const], 0.0, atol=1e-3)
-    x = np.resize(probe, X.shape[1])[None].astype(np.float32)
-    out = sess.run(None, {"x": x})[0]
-    assert np.isfinite(out).all() and (np.abs(out) <= SCALED_CLIP).all()
-
-
 @given(arrays(np.float32, st.integers(1, 400), elements=st.floats(width=32, allow_nan=True,
                                                                    allow_infinity=True)))
 @settings(max_examples=60, deadline=None)
@@ -472,85 +281,6 @@ def test_the_classifier_is_finite_for_any_window(small_model_module, values):
     k, p = clf.predict(x)
     assert np.isfinite(p).all() and p.sum() == pytest.approx(1.0) and 0 <= k < clf.n_classes
     assert not clf.fault
-
-
-@pytest.fixture(scope="module")
-def small_model_module(small_model):
-    return Classifier.load(small_model[1])
-
-
-# -- scenes ------------------------------------------------------------------------
-
-def test_bench_scenes_parse_and_test_ranges_reach_beyond_training():
-    from device.sim.scene import parse_scene
-
-    try:
-        import tomllib
-    except ModuleNotFoundError:   # Python 3.10
-        import tomli as tomllib
-    from host.learn.train import BENCH_KINDS, SURFACE_RANGES
-
-    for kind in BENCH_KINDS:
-        for beyond in (False, True):
-            doc = bench_scene(kind, np.random.default_rng(0), beyond)
-            sc = parse_scene(tomllib.loads(scene_toml(doc)), source=kind)
-            assert sc.duration_s > 0.3
-    mus = [bench_scene("wet", np.random.default_rng(k), True)["surface"]["mu"] for k in range(60)]
-    lo, hi = SURFACE_RANGES["wet"]["mu"][0]
-    assert min(mus) < lo and max(mus) > hi
-
-
-def test_rotated_windows_match_a_drag_in_the_rotated_direction(tmp_path):
-    """Rotation augmentation: the 0-degree drag rotated by 30 degrees matches the
-    30-degree drag (pins moved by the layout's symmetry, vectors and IMU turned)."""
-    from host.data.simulate import simulate_to_dataset
-    from host.data.extract import layout_for_profile
-    from host.data.load import load_spec
-    from host.learn.train import augment_rotations, layout_rotations, rotate_windows
-
-    rots = dict(layout_rotations(layout_for_profile("roboskin")))
-    assert sorted(rots) == list(range(30, 360, 30))
-    base = (REPO_ROOT / "device/sim/scenes/drag-0.toml").read_text()
-    ws = {}
-    for deg in (0, 30):
-        scene = tmp_path / f"d{deg}.toml"
-        scene.write_text(base.replace("direction_deg = 0", f"direction_deg = {deg}"))
-        simulate_to_dataset(str(scene), tmp_path / f"ds{deg}", seed=0, progress=False)
-        ws[deg] = load_spec(str(tmp_path / f"ds{deg}"), "slip", T, progress=False,
-                            min_classes=1)
-    n = min(len(ws[0]), len(ws[30]))
-    want = ws[30].vectors[:n, -1]
-    got = rotate_windows(ws[0], 30, rots[30]).vectors[:n, -1]
-    wrong = rotate_windows(ws[0], 330, rots[330]).vectors[:n, -1]
-    scale = np.abs(want).mean()
-    assert np.abs(got - want).mean() < 0.08 * scale < np.abs(wrong - want).mean()
-    assert np.allclose(rotate_windows(ws[0], 30, rots[30]).imu[:n], ws[30].imu[:n], atol=1e-3)
-    aug = augment_rotations(ws[0], 3)
-    assert len(aug) == 4 * len(ws[0]) and aug.source["augmented_deg"] == [0, 90, 180, 270]
-    assert np.array_equal(aug.labels[:len(ws[0])], ws[0].labels) and aug.grids is None
-
-
-def test_the_fnn_first_layer_in_onnx_equals_its_numpy_transform():
-    from skl2onnx import convert_sklearn
-    from skl2onnx.common.data_types import FloatTensorType
-
-    from host.learn.train import _session, _temporal_class
-
-    rng = np.random.default_rng(0)
-    for Tn, imu in ((2, False), (3, True), (5, True)):
-        M = 7
-        X = (rng.normal(0, 3, (50, Tn * M * 2 + (6 * Tn if imu else 0)))).astype(np.float32)
-        tf = _temporal_class()(T=Tn, n_pins=M, uses_imu=imu).fit(X)
-        m = convert_sklearn(tf, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
-                            target_opset=17)
-        got = _session(m).run(None, {"x": X})[0]
-        want = tf.transform(X)
-        assert got.shape == want.shape == (50, tf.n_features_out_)
-        assert np.allclose(got, want, atol=1e-5)
-        # the appended columns hold what they say: e.g. the last frame's mean |v|
-        v = X[:, :Tn * M * 2].reshape(50, Tn, M, 2)
-        assert np.allclose(want[:, -1], np.hypot(v[:, -1, :, 0], v[:, -1, :, 1]).mean(1),
-                           atol=1e-5)
 
 
 def test_fnn_regressor_and_slip_rule_and_fnn_on_synthetic_windows(tmp_path):
@@ -602,10 +332,9 @@ def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
 
 
 def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch, tmp_path):
-    import host.learn.train
-
     def failing_quantise(*a, **k):
-        raise QuantisationError("int8 check failed: agrees with the float model on 90.00%")
+        raise QuantisationError("int8 check failed: agrees with the float model on 90.00%",
+                                kind="classifier", agreement=0.9, required=0.99)
 
     monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
     ws = synthetic()
@@ -615,5 +344,9 @@ def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch,
     assert not (tmp_path / "a").exists()
     res = train_model("surface", "fnn", ws, quantise="if-passes", **dict(kw, out_dir=tmp_path / "b"))
     assert "90.00%" in res["int8"]["failed"] and res["default"] == "model.onnx"
+    assert res["int8"]["agreement"] == 0.9 and res["int8"]["required"] == 0.99
+    doc = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert doc["variant"] == "float" and doc["int8"]["agreement"] == 0.9
+    assert not (tmp_path / "b" / "manifest.float.json").exists()
     with pytest.raises(TrainError, match="quantise must be"):
         train_model("surface", "fnn", ws, quantise="yes", **dict(kw, out_dir=tmp_path / "c"))

@@ -1,0 +1,195 @@
+"""The fixed layers in front of the MLP, each with its ONNX converter:
+:class:`TemporalFeatures` (frame-to-frame changes of a ``vectors`` window) and
+:class:`ClippedScaler` (standard scaling clipped to +-8 sd).
+
+The classes are defined on first use by :func:`temporal_class` and
+:func:`scaler_class` (scikit-learn and skl2onnx are host-only, optional imports).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from host.learn.tasks import TrainError
+
+__all__ = ["SCALED_CLIP", "temporal_class", "scaler_class"]
+
+
+def temporal_class():
+    """:class:`TemporalFeatures`, defined on first use (sklearn is host-only)."""
+    global TemporalFeatures
+    if "TemporalFeatures" in globals():
+        return TemporalFeatures
+    from sklearn.base import BaseEstimator, TransformerMixin
+
+    class TemporalFeatures(TransformerMixin, BaseEstimator):
+        """The FNN's first, fixed layer over a ``vectors`` window input: it keeps
+        the input and appends, from the T frames of M pin vectors,
+
+        * the per-pin frame-to-frame changes, (T-1) x M x 2;
+        * the average vector of each frame, T x 2, and its changes, (T-1) x 2;
+        * the length of each average-vector change, T-1 (how far the patch moved);
+        * the mean length of the per-pin changes, T-1 (how much the pins shook);
+        * the mean pin displacement |v| of each frame, T (the pressure).
+
+        Texture shake, slip and a wet floor show in these changes, which are small
+        next to the vectors themselves; given explicitly, the MLP finds them from
+        few trials. No weights: in ONNX it is Slice / Sub / ReduceMean /
+        ReduceSumSquare / Sqrt / Concat (:func:`_temporal_to_onnx`), left in float
+        by the int8 quantiser.
+        """
+
+        def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False):
+            self.T = T
+            self.n_pins = n_pins
+            self.uses_imu = uses_imu
+
+        def _n_in(self) -> int:
+            return self.T * self.n_pins * 2 + (6 * self.T if self.uses_imu else 0)
+
+        def fit(self, X, y=None):
+            X = np.asarray(X)
+            if X.ndim != 2 or X.shape[1] != self._n_in():
+                raise TrainError(f"temporal features: expected (N, {self._n_in()}) inputs for "
+                                 f"T={self.T}, {self.n_pins} pins, imu={self.uses_imu}, got "
+                                 f"{X.shape}")
+            T, M = self.T, self.n_pins
+            self.n_features_in_ = X.shape[1]
+            self.n_features_out_ = (X.shape[1] + (T - 1) * M * 2 + 2 * T + 2 * (T - 1)
+                                    + 2 * (T - 1) + T)
+            return self
+
+        def transform(self, X):
+            X = np.asarray(X, np.float32)
+            T, M, N = self.T, self.n_pins, X.shape[0]
+            v = X[:, :T * M * 2].reshape(N, T, M, 2)
+            avg = v.mean(axis=2, dtype=np.float32)
+            parts = [X]
+            dv = v[:, 1:] - v[:, :-1]
+            davg = avg[:, 1:] - avg[:, :-1]
+            parts += [dv.reshape(N, -1), avg.reshape(N, -1), davg.reshape(N, -1),
+                      np.sqrt((davg * davg).sum(axis=2)),
+                      np.sqrt((dv * dv).sum(axis=3)).mean(axis=2),
+                      np.sqrt((v * v).sum(axis=3)).mean(axis=2)]
+            return np.concatenate(parts, axis=1).astype(np.float32)
+
+    globals()["TemporalFeatures"] = TemporalFeatures
+    _register_temporal(TemporalFeatures)
+    return TemporalFeatures
+
+
+#: standardised MLP inputs are clipped to this many standard deviations
+SCALED_CLIP = 8.0
+
+
+def scaler_class():
+    """:class:`ClippedScaler`, defined on first use (sklearn is host-only)."""
+    global ClippedScaler
+    if "ClippedScaler" in globals():
+        return ClippedScaler
+    from sklearn.base import BaseEstimator, TransformerMixin
+    from sklearn.preprocessing import StandardScaler
+
+    class ClippedScaler(TransformerMixin, BaseEstimator):
+        """Standard scaling (sklearn's: a zero-variance feature keeps scale 1), then
+        every value clipped to +-``clip`` standard deviations. The clip bounds what
+        an extreme window can do to the MLP and keeps one outlying feature from
+        stretching the int8 range of the first layer's input for all the others.
+        In ONNX: Sub, Mul, Clip (standard ops)."""
+
+        def __init__(self, clip: float = SCALED_CLIP):
+            self.clip = clip
+
+        def fit(self, X, y=None):
+            sc = StandardScaler().fit(X)
+            self.mean_ = sc.mean_.astype(np.float32)
+            self.scale_ = sc.scale_
+            self.inv_scale_ = (1.0 / sc.scale_).astype(np.float32)
+            self.n_features_in_ = sc.n_features_in_
+            return self
+
+        def transform(self, X):
+            z = (np.asarray(X, np.float32) - self.mean_) * self.inv_scale_
+            return np.clip(z, -self.clip, self.clip).astype(np.float32)
+
+    globals()["ClippedScaler"] = ClippedScaler
+    from onnx import TensorProto
+    from skl2onnx import update_registered_converter
+    from skl2onnx.common.data_types import FloatTensorType
+
+    def shape(operator):
+        operator.outputs[0].type = FloatTensorType([None, operator.raw_operator.n_features_in_])
+
+    def convert(scope, operator, container):
+        op = operator.raw_operator
+
+        def init(values, dims):
+            name = scope.get_unique_variable_name("c")
+            container.add_initializer(name, TensorProto.FLOAT, dims,
+                                      np.asarray(values, np.float32).ravel().tolist())
+            return name
+
+        def node(op_type, inputs, out=None):
+            out = out or scope.get_unique_variable_name(op_type.lower())
+            container.add_node(op_type, inputs, out,
+                               name=scope.get_unique_operator_name(op_type))
+            return out
+
+        D = int(op.n_features_in_)
+        z = node("Mul", [node("Sub", [operator.inputs[0].full_name, init(op.mean_, [D])]),
+                         init(op.inv_scale_, [D])])
+        node("Clip", [z, init([-op.clip], []), init([op.clip], [])],
+             operator.outputs[0].full_name)
+
+    update_registered_converter(ClippedScaler, "TacfootClippedScaler", shape, convert)
+    return ClippedScaler
+
+
+def _register_temporal(cls) -> None:
+    from skl2onnx import update_registered_converter
+    from skl2onnx.common.data_types import FloatTensorType
+
+    def shape(operator):
+        operator.outputs[0].type = FloatTensorType([None, operator.raw_operator.n_features_out_])
+
+    update_registered_converter(cls, "TacfootTemporalFeatures", shape, _temporal_to_onnx)
+
+
+def _temporal_to_onnx(scope, operator, container):
+    """ONNX for :class:`TemporalFeatures` (the same numbers as its transform)."""
+    from onnx import TensorProto
+
+    op = operator.raw_operator
+    T, M = int(op.T), int(op.n_pins)
+
+    def const(values):
+        name = scope.get_unique_variable_name("c")
+        container.add_initializer(name, TensorProto.INT64, [len(values)], list(values))
+        return name
+
+    def node(op_type, inputs, **attrs):
+        out = scope.get_unique_variable_name(op_type.lower())
+        container.add_node(op_type, inputs, out, name=scope.get_unique_operator_name(op_type),
+                           **attrs)
+        return out
+
+    def frames(a, lo, hi):          # a[:, lo:hi] along axis 1
+        return node("Slice", [a, const([lo]), const([hi]), const([1])])
+
+    def flat(a, width):
+        return node("Reshape", [a, const([-1, width])])
+
+    x = operator.inputs[0].full_name
+    v = node("Reshape", [node("Slice", [x, const([0]), const([T * M * 2]), const([1])]),
+                         const([-1, T, M, 2])])
+    avg = node("ReduceMean", [v], axes=[2], keepdims=0)                       # (N, T, 2)
+    dv = node("Sub", [frames(v, 1, T), frames(v, 0, T - 1)])                  # (N, T-1, M, 2)
+    davg = node("Sub", [frames(avg, 1, T), frames(avg, 0, T - 1)])            # (N, T-1, 2)
+    parts = [x, flat(dv, (T - 1) * M * 2), flat(avg, 2 * T), flat(davg, 2 * (T - 1)),
+             node("Sqrt", [node("ReduceSumSquare", [davg], axes=[2], keepdims=0)]),
+             node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [dv], axes=[3],
+                                                    keepdims=0)])], axes=[2], keepdims=0),
+             node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [v], axes=[3],
+                                                   keepdims=0)])], axes=[2], keepdims=0)]
+    container.add_node("Concat", parts, operator.outputs[0].full_name, axis=1,
+                       name=scope.get_unique_operator_name("Concat"))
+

@@ -1,0 +1,87 @@
+"""Tasks, models and their defaults (``host train --task T --model M``), the
+training errors and the argument checks the training modules share.
+
+==========  =====================================================================
+rule        the paper's rules, no weights (:mod:`device.pi.models.rules`): surface, slip
+ridge       Ridge (alpha 150) over all pin vectors of the window: pressure
+fnn         MLP over T frames of ``encode_vectors`` (+ IMU when present), two
+            hidden layers, logistic (sigmoid) units, standard scaling: surface,
+            texture, slip; an MLP regressor for pressure
+grid-fnn    the same MLP over ``encode_grids`` (contact-grid maps and their
+            frame-to-frame changes): texture, surface, slip
+==========  =====================================================================
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "LAYOUT", "TrainError", "QuantisationError",
+           "check_choice", "check_int", "label_ids"]
+
+TASKS = ("surface", "texture", "slip", "pressure")
+MODELS = ("rule", "ridge", "fnn", "grid-fnn")
+#: which models serve which task
+TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn"), "texture": ("fnn", "grid-fnn"),
+               "slip": ("rule", "fnn", "grid-fnn"), "pressure": ("ridge", "fnn")}
+LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids"}
+DEFAULT_HIDDEN = (64, 32)
+DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
+DEFAULT_EPOCHS = 300
+MIN_AGREEMENT = 0.99
+#: an int8 regressor fails its check when its MAE grows by more than this share of
+#: the target range
+MAX_REGRESSION_CHANGE = 0.01
+
+
+class TrainError(ValueError):
+    """Bad training input or a failed check; the message names the field and value."""
+
+
+class QuantisationError(TrainError):
+    """The int8 model disagrees with the float model; the int8 file is not kept.
+
+    ``kind`` is ``"classifier"`` or ``"regressor"``; ``agreement`` the argmax
+    agreement reached and ``required`` the bar (classifiers); ``mae_change`` and
+    ``mae_change_of_range`` (regressors); ``path`` the int8 file not written.
+    """
+
+    def __init__(self, message: str, *, kind: str | None = None,
+                 agreement: float | None = None, required: float | None = None,
+                 mae_change: float | None = None, mae_change_of_range: float | None = None,
+                 path: str | None = None):
+        super().__init__(message)
+        self.kind = kind
+        self.agreement = agreement
+        self.required = required
+        self.mae_change = mae_change
+        self.mae_change_of_range = mae_change_of_range
+        self.path = path
+
+    def with_message(self, message: str) -> "QuantisationError":
+        """The same verdict with another message (e.g. naming another file)."""
+        return QuantisationError(message, kind=self.kind, agreement=self.agreement,
+                                 required=self.required, mae_change=self.mae_change,
+                                 mae_change_of_range=self.mae_change_of_range,
+                                 path=self.path)
+
+
+def check_choice(name: str, value, choices) -> str:
+    """``value``, or a TrainError naming the field when it is not one of ``choices``."""
+    if value not in choices:
+        raise TrainError(f"{name} must be one of {list(choices)}, got {name}={value!r}")
+    return value
+
+
+def check_int(name: str, value, lo: int) -> int:
+    """``value`` as an int, or a TrainError naming the field when it is not a whole
+    number >= ``lo``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
+        raise TrainError(f"{name} must be a whole number >= {lo}, got {name}={value!r}")
+    return int(value)
+
+
+def label_ids(labels, classes: list[str]) -> np.ndarray:
+    """Class ids of ``labels`` in ``classes``; -1 for a label the model never saw."""
+    index = {c: i for i, c in enumerate(classes)}
+    return np.array([index.get(str(x), -1) for x in labels], np.int64)
+

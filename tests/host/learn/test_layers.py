@@ -1,0 +1,72 @@
+"""host/learn/layers.py: the MLP's fixed layers (clipped scaler, frame-to-frame changes)
+and their ONNX graphs."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+
+@st.composite
+def training_matrix(draw):
+    n = draw(st.integers(3, 12))
+    d = draw(st.integers(1, 5))
+    scale = draw(st.sampled_from([1e-3, 1.0, 1e3, 1e6]))
+    X = draw(arrays(np.float32, (n, d), elements=st.floats(-1, 1, width=32))) * np.float32(scale)
+    const = draw(st.lists(st.integers(0, d - 1), max_size=d))
+    X[:, const] = np.float32(draw(st.floats(-100, 100, width=32)))   # zero-variance columns
+    return X
+
+
+@given(training_matrix(), arrays(np.float32, 5, elements=st.floats(width=32, allow_nan=False)))
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_the_folded_scaler_matches_sklearn_and_stays_finite(X, probe):
+    """The MLPs' scaler in the graph (Sub, Mul, Clip) equals sklearn's StandardScaler
+    clipped to +-8 standard deviations, zero-variance columns included, and its
+    output is finite and bounded for any input without NaN (inf included)."""
+    from sklearn.preprocessing import StandardScaler
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.layers import SCALED_CLIP, scaler_class
+    from host.learn.onnx_io import session
+
+    sc = scaler_class()().fit(X)
+    m = convert_sklearn(sc, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                        target_opset=17)
+    sess = session(m)
+    got = sess.run(None, {"x": X})[0]
+    want = np.clip(StandardScaler().fit(X).transform(X.astype(np.float64)), -8.0, 8.0)
+    assert SCALED_CLIP == 8.0
+    assert np.allclose(got, sc.transform(X), rtol=1e-5, atol=1e-5)
+    assert np.allclose(got, want, rtol=1e-3, atol=1e-3)
+    const = np.ptp(X, axis=0) == 0          # every value identical
+    assert np.allclose(got[:, const], 0.0, atol=1e-3)
+    x = np.resize(probe, X.shape[1])[None].astype(np.float32)
+    out = sess.run(None, {"x": x})[0]
+    assert np.isfinite(out).all() and (np.abs(out) <= SCALED_CLIP).all()
+
+
+def test_the_fnn_first_layer_in_onnx_equals_its_numpy_transform():
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.layers import temporal_class
+    from host.learn.onnx_io import session
+
+    rng = np.random.default_rng(0)
+    for Tn, imu in ((2, False), (3, True), (5, True)):
+        M = 7
+        X = (rng.normal(0, 3, (50, Tn * M * 2 + (6 * Tn if imu else 0)))).astype(np.float32)
+        tf = temporal_class()(T=Tn, n_pins=M, uses_imu=imu).fit(X)
+        m = convert_sklearn(tf, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                            target_opset=17)
+        got = session(m).run(None, {"x": X})[0]
+        want = tf.transform(X)
+        assert got.shape == want.shape == (50, tf.n_features_out_)
+        assert np.allclose(got, want, atol=1e-5)
+        # the appended columns hold what they say: e.g. the last frame's mean |v|
+        v = X[:, :Tn * M * 2].reshape(50, Tn, M, 2)
+        assert np.allclose(want[:, -1], np.hypot(v[:, -1, :, 0], v[:, -1, :, 1]).mean(1),
+                           atol=1e-5)

@@ -1,0 +1,43 @@
+"""host/learn/onnx_io.py: the one manifest writer, the float/int8 variants of a model
+folder, JSON of numpy values, and running ONNX on the host."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from device.pi.models.artefact import MANIFEST, sha256_file
+from host.learn.onnx_io import (FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME, json_default,
+                                write_manifest, write_variants)
+
+
+def test_json_default_writes_numpy_values_and_paths_and_refuses_the_rest():
+    doc = {"a": np.float32(1.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x/y")}
+    assert json.loads(json.dumps(doc, default=json_default)) == {
+        "a": 1.5, "b": [0, 1, 2], "c": 7, "p": "x/y"}
+    with pytest.raises(TypeError, match="set"):
+        json.dumps({"s": {1}}, default=json_default)
+
+
+def test_write_variants_records_both_files_and_makes_int8_the_default(tmp_path):
+    (tmp_path / FLOAT_NAME).write_bytes(b"float model")
+    (tmp_path / INT8_NAME).write_bytes(b"int8")
+    write_manifest(tmp_path, {"kind": "surface", "onnx": FLOAT_NAME, "n": np.int32(3)})
+    files = write_variants(tmp_path, int8=True, updates={"int8": {"agreement": 1.0}})
+    doc = json.loads((tmp_path / MANIFEST).read_text())
+    fdoc = json.loads((tmp_path / FLOAT_MANIFEST).read_text())
+    assert doc["onnx"] == INT8_NAME and doc["variant"] == "int8" and doc["n"] == 3
+    assert doc["size_bytes"] == 4 and doc["int8"] == {"agreement": 1.0}
+    assert doc["variants"] == {"float": FLOAT_NAME, "int8": INT8_NAME}
+    for name in (FLOAT_NAME, INT8_NAME):
+        assert doc["sha256"][name] == sha256_file(tmp_path / name) == files[name]["sha256"]
+    assert fdoc["onnx"] == FLOAT_NAME and fdoc["variant"] == "float"
+    assert fdoc["size_bytes"] == len(b"float model") and fdoc["sha256"] == doc["sha256"]
+    # float only: the float file is the default and the stale float manifest goes
+    (tmp_path / INT8_NAME).unlink()
+    write_variants(tmp_path, int8=False)
+    doc = json.loads((tmp_path / MANIFEST).read_text())
+    assert doc["onnx"] == FLOAT_NAME and doc["variant"] == "float"
+    assert list(doc["sha256"]) == [FLOAT_NAME] and not (tmp_path / FLOAT_MANIFEST).exists()
