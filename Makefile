@@ -43,6 +43,7 @@ demo: $(VENV)/.installed
 	$(VENV)/bin/host demo --out $(DEMO_OUT)
 
 test: $(VENV)/.installed-test node_modules/.installed
+	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest
 
 bench: $(VENV)/.installed
