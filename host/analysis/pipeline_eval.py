@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from device.pi.vision.pipeline import MarkerStream
-from device.pi.vision.tracking import match_pins
+from device.pi.vision.matching import match_pins
 
 DRAGS = tuple(f"drag-{d}" for d in range(0, 360, 45))
 PRESSES = ("press-hard", "press-soft", "press-wet")

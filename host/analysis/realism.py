@@ -21,7 +21,7 @@ from typing import Iterable, Sequence
 import cv2
 import numpy as np
 
-from device.pi.vision.tracking import mutual_match
+from device.pi.vision.matching import mutual_match
 from device.pi.vision.extract import (
     PinDetector,
     VisionParams,

@@ -62,7 +62,7 @@ from device.pi.vision.localiser import (
     localiser_input,
     to_normalised,
 )
-from device.pi.vision.tracking import mutual_match
+from device.pi.vision.matching import mutual_match
 from device.pi.vision.extract import (
     ROBOSKIN_PARAMS,
     TACTIP_SHEAR_PARAMS,

@@ -30,7 +30,7 @@ def layout_assignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_px: 
     pins, ``rounds`` times, starting from a gate of 1.5 x ``gate_px``), then matched
     one to one, nearest first, within ``gate_px``. Returns int64 (M_layout,).
     """
-    from device.pi.vision.tracking import match_pins
+    from device.pi.vision.matching import match_pins
 
     ref = np.asarray(reference_px, np.float64).reshape(-1, 2)
     lay = np.asarray(layout_px, np.float64).reshape(-1, 2)

@@ -18,7 +18,8 @@ import numpy as np
 
 from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum, vector_features
 from device.profile import PipelineProfile, load_pipeline_profile
-from device.pi.vision.tracking import Tracker, match_pins
+from device.pi.vision.matching import match_pins
+from device.pi.vision.tracking import Tracker
 from device.pi.vision.extract import PinDetector, find_dome, to_gray
 
 # fault bits (also carried in the SURFACE packet)

@@ -15,16 +15,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from device.pi.vision.tracking import (
-    FAULT_BAD_INPUT,
-    FAULT_NO_REFERENCE,
-    FAULT_TOO_FEW_PINS,
-    Tracker,
-    layout_neighbours,
-    layout_pitch_px,
-    match_pins,
-    track_with_neighbours,
-)
+from device.pi.vision.matching import match_pins
+from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, track_with_neighbours
+from device.pi.vision.tracking import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, Tracker
 from device.sim import Simulator, load_profile, load_scene
 
 from tests.realdata import real_data_dir
@@ -548,7 +541,7 @@ def test_tactip_shear_regression_beats_the_mean(shear_result):
 def test_mutual_match_keeps_only_pairs_that_choose_each_other():
     """Both pins are nearest to detection 0, which is nearest to pin 1: only that
     pair survives. Greedy matching (match_pins) gives pin 0 its second choice."""
-    from device.pi.vision.tracking import match_pins, mutual_match
+    from device.pi.vision.matching import match_pins, mutual_match
     pred = np.array([[0.0, 0.0], [2.0, 0.0]])
     det = np.array([[1.2, 0.0], [-1.5, 0.0]])
     assert mutual_match(pred, det, 5.0).tolist() == [-1, 0]
