@@ -810,7 +810,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     from device.config import ConfigError
     from device.pi.models.artefact import ModelError
     from device.pi.sources.camera import CameraError, open_camera
-    from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
+    from device.pi.sources.imu import RetryingImuSource, open_imu
+    from device.pi.sources.mpu6050 import IMUError, IMUUnavailable
     from device.pi.runtime.config import load_leg_config
     from device.pi.runtime.link import LinkError, open_port
 

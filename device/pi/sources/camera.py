@@ -43,11 +43,13 @@ import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 import cv2
 import numpy as np
+
+from device.pi.sources.options import opt_bool, opt_float, opt_int, parse_options
 
 __all__ = [
     "CameraError",
@@ -81,50 +83,10 @@ class Frame:
 
 
 # ------------------------------------------------------------------ options
-def _opt_int(name: str, value: Any) -> int:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be an int, got {value!r}")
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, str) and re.fullmatch(r"[+-]?\d+", value.strip()):
-        return int(value)
-    raise ValueError(f"{name} must be an int, got {value!r}")
-
-
-def _opt_float(name: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return v
-
-
-def _opt_bool(name: str, value: Any) -> bool:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-        return value.strip().lower() in ("1", "true", "yes", "on")
-    raise ValueError(f"{name} must be a bool, got {value!r}")
-
-
 def _opt_fourcc(name: str, value: Any) -> str:
     if not isinstance(value, str) or len(value) != 4 or not value.isascii():
         raise ValueError(f"{name} must be 4 ASCII characters such as 'MJPG', got {value!r}")
     return value
-
-
-def _parse_opts(source: str, query: dict, kwargs: dict, spec: dict[str, Callable[[str, Any], Any]]) -> dict:
-    merged = {**query, **kwargs}
-    unknown = sorted(set(merged) - set(spec))
-    if unknown:
-        raise ValueError(f"unknown option {unknown[0]!r} for camera source {source!r}; known: {sorted(spec)}")
-    return {k: spec[k](k, v) for k, v in merged.items()}
 
 
 def _range_opts(opts: dict) -> tuple[int, int | None]:
@@ -144,7 +106,7 @@ def _fps_opt(opts: dict) -> float | None:
     return fps
 
 
-_STREAM_OPTS = {"start_frame": _opt_int, "end_frame": _opt_int, "fps": _opt_float, "realtime": _opt_bool}
+_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_float, "realtime": opt_bool}
 
 
 # ------------------------------------------------------------------ base class
@@ -461,13 +423,13 @@ class V4L2Source(CameraSource):
 
 
 # ------------------------------------------------------------------ factory
-_V4L2_OPTS = {"width": _opt_int, "height": _opt_int, "fps": _opt_float, "fourcc": _opt_fourcc,
-              "buffersize": _opt_int}
-_SIM_OPTS = {**_STREAM_OPTS, "seed": _opt_int}
+_V4L2_OPTS = {"width": opt_int, "height": opt_int, "fps": opt_float, "fourcc": _opt_fourcc,
+              "buffersize": opt_int}
+_SIM_OPTS = {**_STREAM_OPTS, "seed": opt_int}
 
 
 def _open_path(path_str: str, source: str, query: dict, opts: dict) -> CameraSource:
-    o = _parse_opts(source, query, opts, _STREAM_OPTS)
+    o = parse_options("camera", source, query, opts, _STREAM_OPTS)
     path = Path(path_str).expanduser()
     if path.is_dir() or path.suffix.lower() in IMAGE_SUFFIXES or path_str.endswith(("/", os.sep)):
         return ImageFolderSource(path, source=source, **o)
@@ -498,11 +460,11 @@ def open_camera(source: str, **opts) -> CameraSource:
     if scheme == "sim":
         parts = urlsplit(source)
         scene = unquote(parts.netloc + parts.path)
-        o = _parse_opts(source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _SIM_OPTS)
+        o = parse_options("camera", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _SIM_OPTS)
         return SimSource(scene, source=source, **o)
     if scheme == "v4l2":
         parts = urlsplit(source)
-        o = _parse_opts(source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _V4L2_OPTS)
+        o = parse_options("camera", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _V4L2_OPTS)
         if parts.path:
             device: str | int = unquote(parts.path)
         elif parts.netloc.isdigit():

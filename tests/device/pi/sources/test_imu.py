@@ -1,4 +1,4 @@
-"""device/pi/sources/imu.py: the MPU6050 driver on smbus2 (against FakeMPU6050) and open_imu."""
+"""device/pi/sources/mpu6050.py and imu.py: the MPU6050 driver on smbus2 (against FakeMPU6050) and open_imu."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi.sources import imu as im
-from device.pi.sources.imu import (FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE, IMUError, MPU6050,
-                           open_imu)
+from device.pi.sources import mpu6050 as drv
+from device.pi.sources.imu import open_imu
+from device.pi.sources.mpu6050 import FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE, IMUError, MPU6050
 from device.sim import fake_mpu6050 as fm
 from device.sim.fake_mpu6050 import FakeMPU6050
 
@@ -419,7 +420,7 @@ def test_file_source_without_loop_holds_last_row_with_fault(tmp_path):
     assert src.read()[1] == 0 and src.read()[1] == 0
     v, f = src.read()
     assert f == FAULT_ENDED and np.array_equal(v, m[1].astype(np.float32))
-    assert im.fault_names(f | FAULT_STALE) == ["imu_stale", "imu_ended"]
+    assert drv.fault_names(f | FAULT_STALE) == ["imu_stale", "imu_ended"]
 
 
 @pytest.mark.parametrize("arr,match", [
@@ -565,13 +566,13 @@ def test_sim_source_realtime_follows_the_clock():
 
 # ------------------------------------------------------- absent at start-up
 def test_nothing_answering_is_unavailable_but_a_wrong_chip_is_refused():
-    with pytest.raises(im.IMUUnavailable, match=r"0x68"):
+    with pytest.raises(drv.IMUUnavailable, match=r"0x68"):
         MPU6050(fake(stuck=True))
-    with pytest.raises(im.IMUUnavailable, match=r"/dev/i2c-97"):
+    with pytest.raises(drv.IMUUnavailable, match=r"/dev/i2c-97"):
         open_imu("i2c://97/0x68")
     with pytest.raises(IMUError) as ei:
         open_imu("i2c://1/0x68", bus=fake(who_am_i=0x12))
-    assert not isinstance(ei.value, im.IMUUnavailable)
+    assert not isinstance(ei.value, drv.IMUUnavailable)
 
 
 def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
@@ -584,7 +585,7 @@ def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
     def opener():
         tries.append(t[0])
         if len(tries) < 3:
-            raise im.IMUUnavailable("no MPU6050 answering at address 0x68")
+            raise drv.IMUUnavailable("no MPU6050 answering at address 0x68")
         return im.MPU6050Source(MPU6050(good), "i2c://1/0x68")
 
     src = im.RetryingImuSource("i2c://1/0x68", OSError("first"), backoff_s=0.5,
