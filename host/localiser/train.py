@@ -674,7 +674,7 @@ def real_samples(real_data, profile: str = "roboskin", params: VisionParams | No
     rejected frames: clip, frame, reason), ``labelled`` (accepted count per
     clip) and ``fits`` (rest fit per clip).
     """
-    from device.sim import load_profile
+    from device.profile import load_profile
 
     prof = load_profile(profile)
     params = params or vision_params_for(profile)
@@ -803,7 +803,7 @@ def train_localiser(
     ``estimator`` (the fitted scikit-learn Ridge; it is not written
     anywhere: the artefact is model.onnx + manifest.json).
     """
-    from device.sim import load_profile
+    from device.profile import load_profile
     from host.learn.onnx_io import write_model
 
     _check_args(size, alpha, crop_factor, n_aug)

@@ -27,7 +27,8 @@ from device.pi.vision.localiser import (
     to_normalised,
 )
 from device.pi.vision.extract import ROBOSKIN_PARAMS, PinDetector, find_dome
-from device.sim import Simulator, load_profile, parse_scene
+from device.profile import load_profile
+from device.sim import Simulator, parse_scene
 from host.localiser.train import (
     check_labels,
     fit_layout,

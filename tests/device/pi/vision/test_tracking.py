@@ -18,7 +18,8 @@ from hypothesis.extra import numpy as hnp
 from device.pi.vision.matching import match_pins
 from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, track_with_neighbours
 from device.pi.vision.tracking import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, Tracker
-from device.sim import Simulator, load_profile, load_scene
+from device.profile import load_profile
+from device.sim import Simulator, load_scene
 
 from tests.realdata import real_data_dir
 
