@@ -152,6 +152,17 @@ class CameraSource:
                 self._pace(index)
         return Frame(index, t_s, image)
 
+    def _open_file(self, path, source: str | None, start_frame: int, end_frame: int | None,
+                   fps: float | None, realtime: bool) -> tuple[Path, int, int | None, float | None]:
+        """Set-up shared by the file-backed sources: ``path``, ``source`` (default the
+        path) and ``realtime``; returns the path, the checked frame range and fps."""
+        path = Path(path)
+        self.source = source if source is not None else str(path)
+        self.path = path
+        self._realtime = realtime
+        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
+        return path, start, end, _fps_opt({"fps": fps})
+
     def _pace(self, index: int) -> None:
         now = time.monotonic()
         if self._pace_t0 is None:
@@ -201,11 +212,7 @@ class VideoFileSource(CameraSource):
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
                  fps: float | None = None, realtime: bool = False, source: str | None = None):
         super().__init__()
-        path = Path(path)
-        self.source = source if source is not None else str(path)
-        self.path = path
-        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
-        fps = _fps_opt({"fps": fps})
+        path, start, end, fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
         if not path.is_file():
             raise CameraError(errno.ENOENT, "no such video file", str(path))
         self._cap = cv2.VideoCapture(str(path))
@@ -224,7 +231,6 @@ class VideoFileSource(CameraSource):
         elif end is not None:
             self.n_frames = None
         self._end = end
-        self._realtime = realtime
         # Skip by decoding: seeking by CAP_PROP_POS_FRAMES is not frame-exact for
         # every codec, and labels are indexed by decoded frame number.
         self._eof = False
@@ -264,12 +270,7 @@ class ImageFolderSource(CameraSource):
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
                  fps: float | None = None, realtime: bool = False, source: str | None = None):
         super().__init__()
-        path = Path(path)
-        self.source = source if source is not None else str(path)
-        self.path = path
-        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
-        self.fps = _fps_opt({"fps": fps})
-        self._realtime = realtime
+        path, start, end, self.fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
         if path.is_dir():
             files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
             files.sort(key=lambda p: natural_key(p.name))
