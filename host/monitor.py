@@ -15,6 +15,7 @@ from collections import deque
 from pathlib import Path
 
 from device.pi import protocol as P
+from device.sim.mpy.runner import MPY_LIB, cpython_path, mpy_unavailable, run_mpy
 
 
 class LinkMonitor:
@@ -254,10 +255,7 @@ def _ref_loop(n):
 def _count_opcodes(wire: bytes) -> dict:
     """CPython bytecodes executed to decode one packet with the MicroPython code
     (tflink.Decoder.feed + SurfaceLink's SURFACE parse), counted with a tracer."""
-    root = Path(__file__).resolve().parents[1]
-    for d in (root / "tests" / "mpy", root / "device" / "micropython"):
-        if str(d) not in sys.path:
-            sys.path.insert(0, str(d))
+    cpython_path()
     import surface_link
 
     class _U:
@@ -297,8 +295,6 @@ def bench_link(repeats: int = 20000, mpy_packets: int = 5000) -> dict:
     WebAssembly port (if Node and the package are installed), and an RP2040-class
     estimate from the bytecode count."""
     import statistics
-    import subprocess
-    import shutil
 
     s = P.Surface(1, (0.02, 0.9, 0.05, 0.03), True, False, 0.05, 45.0, 3.21, 25.5, 331, 0, 2)
     wire = s.encode(1, 1000)
@@ -326,19 +322,8 @@ def bench_link(repeats: int = 20000, mpy_packets: int = 5000) -> dict:
                rp2040_estimate_us={"at_1us_per_iteration": round(iters),
                                    "at_2us_per_iteration": round(2 * iters)},
                goal_us=1000)
-    root = Path(__file__).resolve().parents[1]
-    runner = root / "tests" / "mpy" / "run.mjs"
-    if shutil.which("node") and runner.is_file():
-        import tempfile
-        with tempfile.NamedTemporaryFile("w", suffix=".py", delete=False) as tf:
-            tf.write(_MPY_BENCH)
-        try:
-            r = subprocess.run(["node", str(runner), "--lib", str(root / "tests" / "mpy"),
-                                "--lib", str(root / "device" / "micropython"), tf.name,
-                                wire.hex(), str(mpy_packets)],
-                               capture_output=True, text=True, timeout=120, cwd=root)
-        finally:
-            Path(tf.name).unlink(missing_ok=True)
+    if mpy_unavailable() is None:
+        r = run_mpy(_MPY_BENCH, libs=[MPY_LIB], args=[wire.hex(), str(mpy_packets)], timeout=120)
         if r.returncode == 0:
             us, ref_us, ok = r.stdout.split()
             res["micropython_wasm_us_per_packet"] = float(us)

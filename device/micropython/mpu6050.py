@@ -139,11 +139,14 @@ class MPU6050:
             raise MPU6050Error("no MPU6050 answering at address 0x%02x: %s" % (addr, e))
 
     # -- bus helpers (retry ``retries`` times, then re-raise) ------------------------
-    def _rd(self, reg, buf):
+    def _xfer(self, write, reg, buf):
         n = self.retries
         while True:
             try:
-                self.i2c.readfrom_mem_into(self.addr, reg, buf)
+                if write:
+                    self.i2c.writeto_mem(self.addr, reg, buf)
+                else:
+                    self.i2c.readfrom_mem_into(self.addr, reg, buf)
                 return
             except OSError:
                 self.errors += 1
@@ -151,18 +154,12 @@ class MPU6050:
                     raise
                 n -= 1
 
+    def _rd(self, reg, buf):
+        self._xfer(False, reg, buf)
+
     def _wr(self, reg, value):
         self._b1[0] = value
-        n = self.retries
-        while True:
-            try:
-                self.i2c.writeto_mem(self.addr, reg, self._b1)
-                return
-            except OSError:
-                self.errors += 1
-                if n <= 0:
-                    raise
-                n -= 1
+        self._xfer(True, reg, self._b1)
 
     # -- start-up -----------------------------------------------------------------
     def init(self):

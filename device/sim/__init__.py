@@ -5,7 +5,7 @@ It lives beside the Pi runtime (not in ``host``) so that the runtime can take
 and OpenCV. The host commands (``host simulate``, ``host view``, ...) wrap it.
 """
 from device.config import ConfigError
-from .profiles import SensorProfile, builtin_profiles, load_profile
+from device.profile import SensorProfile, builtin_profiles, load_profile
 from .scene import (EFFECTS, PRESETS, SURFACE_LABELS, TEXTURE_LABELS, Effect, Scene,
                     builtin_scenes, load_scene, parse_scene)
 from .simulator import TRUTH_KEYS, Simulator

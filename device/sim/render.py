@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from .physics import stream
-from .profiles import SensorProfile
+from device.profile import SensorProfile
 
 SUBPIXEL = 4          # sprite phases per pixel and axis
 NOISE_BANK = 16       # pre-drawn noise frames

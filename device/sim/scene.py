@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from device.config import ConfigError, Fields, read_toml
-from .profiles import SensorProfile, load_profile
+from device.profile import SensorProfile, builtin_toml, load_profile
 
 SCENE_DIR = Path(__file__).with_name("scenes")
 
@@ -119,12 +119,7 @@ def builtin_scenes() -> list[str]:
 
 
 def load_scene(name_or_path: str | Path) -> Scene:
-    p = Path(name_or_path)
-    if p.suffix != ".toml":
-        p = SCENE_DIR / f"{name_or_path}.toml"
-        if not p.exists():
-            raise ConfigError(f"scene: unknown scene {str(name_or_path)!r}; built-in scenes "
-                              f"are {builtin_scenes()} or give a .toml path")
+    p = builtin_toml(name_or_path, SCENE_DIR, "scene", "scene")
     doc = read_toml(p)
     return parse_scene(doc, source=str(p), default_name=p.stem, base_dir=p.parent)
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from device.pi.vision.extract import dome_mask, to_gray
 from device.pi.vision.pipeline import MarkerStream
-from device.pi.vision.tracking import match_pins
+from device.pi.vision.matching import match_pins
 from device.sim import Simulator, load_scene
 from host.analysis.recall import pin_hits
 

@@ -41,7 +41,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from device.pi.vision.tracking import layout_neighbours, layout_pitch_px, track_with_neighbours
+from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, track_with_neighbours
 from device.pi.vision.extract import TACTIP_SHEAR_PARAMS, extract_pins, find_dome
 
 TARGETS = ("pose_z", "shear_x", "shear_y", "pose_Rx", "pose_Ry")

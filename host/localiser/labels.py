@@ -17,8 +17,10 @@ import cv2
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
-from device.pi.vision.tracking import Tracker, layout_neighbours, layout_pitch_px, mutual_match
-from device.sim import load_profile
+from device.pi.vision.matching import mutual_match
+from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px
+from device.pi.vision.tracking import Tracker
+from device.profile import load_profile
 from host.localiser.samples import Sample, progress_bar, vision_params_for
 
 __all__ = [

@@ -47,7 +47,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
-from device.sim import load_profile
+from device.profile import load_profile
 from host.learn.onnx_io import write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px
 from host.localiser.fit import DEFAULT_ALPHA, fit_ridge, onnx_vs_sklearn, ridge_to_onnx

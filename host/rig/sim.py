@@ -118,7 +118,7 @@ class Carriage:
 
     def __init__(self, start_mm: float, surface_mm: float, plate: str = "hard",
                  profile: str = "roboskin"):
-        from device.sim.profiles import load_profile
+        from device.profile import load_profile
         self.steps = int(round(start_mm * STEPS_PER_MM))
         self.surface_mm = float(surface_mm)
         self.profile = load_profile(profile)

@@ -399,7 +399,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
                              "scene_file": plan.source, "rig": rig_url})
                 if profile:
                     try:
-                        from device.sim.profiles import load_profile
+                        from device.profile import load_profile
                         info["n_pins"] = load_profile(profile).n_pins
                     except ConfigError:
                         pass

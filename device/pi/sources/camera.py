@@ -43,11 +43,13 @@ import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 import cv2
 import numpy as np
+
+from device.pi.sources.options import opt_bool, opt_float, opt_int, parse_options
 
 __all__ = [
     "CameraError",
@@ -81,50 +83,10 @@ class Frame:
 
 
 # ------------------------------------------------------------------ options
-def _opt_int(name: str, value: Any) -> int:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be an int, got {value!r}")
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, str) and re.fullmatch(r"[+-]?\d+", value.strip()):
-        return int(value)
-    raise ValueError(f"{name} must be an int, got {value!r}")
-
-
-def _opt_float(name: str, value: Any) -> float:
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    return v
-
-
-def _opt_bool(name: str, value: Any) -> bool:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    if isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-        return value.strip().lower() in ("1", "true", "yes", "on")
-    raise ValueError(f"{name} must be a bool, got {value!r}")
-
-
 def _opt_fourcc(name: str, value: Any) -> str:
     if not isinstance(value, str) or len(value) != 4 or not value.isascii():
         raise ValueError(f"{name} must be 4 ASCII characters such as 'MJPG', got {value!r}")
     return value
-
-
-def _parse_opts(source: str, query: dict, kwargs: dict, spec: dict[str, Callable[[str, Any], Any]]) -> dict:
-    merged = {**query, **kwargs}
-    unknown = sorted(set(merged) - set(spec))
-    if unknown:
-        raise ValueError(f"unknown option {unknown[0]!r} for camera source {source!r}; known: {sorted(spec)}")
-    return {k: spec[k](k, v) for k, v in merged.items()}
 
 
 def _range_opts(opts: dict) -> tuple[int, int | None]:
@@ -144,7 +106,7 @@ def _fps_opt(opts: dict) -> float | None:
     return fps
 
 
-_STREAM_OPTS = {"start_frame": _opt_int, "end_frame": _opt_int, "fps": _opt_float, "realtime": _opt_bool}
+_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_float, "realtime": opt_bool}
 
 
 # ------------------------------------------------------------------ base class
@@ -189,6 +151,17 @@ class CameraSource:
             if self._realtime and self.fps:
                 self._pace(index)
         return Frame(index, t_s, image)
+
+    def _open_file(self, path, source: str | None, start_frame: int, end_frame: int | None,
+                   fps: float | None, realtime: bool) -> tuple[Path, int, int | None, float | None]:
+        """Set-up shared by the file-backed sources: ``path``, ``source`` (default the
+        path) and ``realtime``; returns the path, the checked frame range and fps."""
+        path = Path(path)
+        self.source = source if source is not None else str(path)
+        self.path = path
+        self._realtime = realtime
+        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
+        return path, start, end, _fps_opt({"fps": fps})
 
     def _pace(self, index: int) -> None:
         now = time.monotonic()
@@ -239,11 +212,7 @@ class VideoFileSource(CameraSource):
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
                  fps: float | None = None, realtime: bool = False, source: str | None = None):
         super().__init__()
-        path = Path(path)
-        self.source = source if source is not None else str(path)
-        self.path = path
-        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
-        fps = _fps_opt({"fps": fps})
+        path, start, end, fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
         if not path.is_file():
             raise CameraError(errno.ENOENT, "no such video file", str(path))
         self._cap = cv2.VideoCapture(str(path))
@@ -262,7 +231,6 @@ class VideoFileSource(CameraSource):
         elif end is not None:
             self.n_frames = None
         self._end = end
-        self._realtime = realtime
         # Skip by decoding: seeking by CAP_PROP_POS_FRAMES is not frame-exact for
         # every codec, and labels are indexed by decoded frame number.
         self._eof = False
@@ -302,12 +270,7 @@ class ImageFolderSource(CameraSource):
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
                  fps: float | None = None, realtime: bool = False, source: str | None = None):
         super().__init__()
-        path = Path(path)
-        self.source = source if source is not None else str(path)
-        self.path = path
-        start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
-        self.fps = _fps_opt({"fps": fps})
-        self._realtime = realtime
+        path, start, end, self.fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
         if path.is_dir():
             files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
             files.sort(key=lambda p: natural_key(p.name))
@@ -461,13 +424,13 @@ class V4L2Source(CameraSource):
 
 
 # ------------------------------------------------------------------ factory
-_V4L2_OPTS = {"width": _opt_int, "height": _opt_int, "fps": _opt_float, "fourcc": _opt_fourcc,
-              "buffersize": _opt_int}
-_SIM_OPTS = {**_STREAM_OPTS, "seed": _opt_int}
+_V4L2_OPTS = {"width": opt_int, "height": opt_int, "fps": opt_float, "fourcc": _opt_fourcc,
+              "buffersize": opt_int}
+_SIM_OPTS = {**_STREAM_OPTS, "seed": opt_int}
 
 
 def _open_path(path_str: str, source: str, query: dict, opts: dict) -> CameraSource:
-    o = _parse_opts(source, query, opts, _STREAM_OPTS)
+    o = parse_options("camera", source, query, opts, _STREAM_OPTS)
     path = Path(path_str).expanduser()
     if path.is_dir() or path.suffix.lower() in IMAGE_SUFFIXES or path_str.endswith(("/", os.sep)):
         return ImageFolderSource(path, source=source, **o)
@@ -498,11 +461,11 @@ def open_camera(source: str, **opts) -> CameraSource:
     if scheme == "sim":
         parts = urlsplit(source)
         scene = unquote(parts.netloc + parts.path)
-        o = _parse_opts(source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _SIM_OPTS)
+        o = parse_options("camera", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _SIM_OPTS)
         return SimSource(scene, source=source, **o)
     if scheme == "v4l2":
         parts = urlsplit(source)
-        o = _parse_opts(source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _V4L2_OPTS)
+        o = parse_options("camera", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _V4L2_OPTS)
         if parts.path:
             device: str | int = unquote(parts.path)
         elif parts.netloc.isdigit():

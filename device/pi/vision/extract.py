@@ -20,10 +20,11 @@ Pipeline per frame::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from device.profile import VisionParams
 
 __all__ = [
     "VisionParams",
@@ -42,60 +43,6 @@ __all__ = [
 # --------------------------------------------------------------------------
 # Parameters
 # --------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class VisionParams:
-    """Parameters of the marker front end.
-
-    block: side of the adaptive-threshold neighbourhood, px (odd, >= 3).
-    offset: a pixel is "pin" when it is more than ``offset`` gray levels above
-        the mean of its ``block`` x ``block`` neighbourhood.
-    blur_sigma_px: Gaussian pre-blur before thresholding (0 disables). A light
-        blur removes MPEG block noise that otherwise breaks pins into pieces.
-    min_area_px: blobs smaller than this are noise, not pins.
-    max_area_px: blobs larger than this are glare (LED reflections), not pins.
-    roi_shrink: the pin search disc is ``roi_shrink`` times the dome radius;
-        below 1 it keeps the bright specular glints on the dome rim out.
-    """
-
-    block: int = 11
-    offset: float = 14.0
-    blur_sigma_px: float = 1.0
-    min_area_px: int = 10
-    max_area_px: int = 100
-    roi_shrink: float = 0.75
-
-    def __post_init__(self) -> None:
-        _check_int("block", self.block, lo=3)
-        if self.block % 2 != 1:
-            raise ValueError(f"block must be odd, got block={self.block!r}")
-        _check_real("offset", self.offset, lo=-255.0, hi=255.0)
-        _check_real("blur_sigma_px", self.blur_sigma_px, lo=0.0, hi=50.0)
-        _check_int("min_area_px", self.min_area_px, lo=1)
-        _check_int("max_area_px", self.max_area_px, lo=1)
-        if self.max_area_px < self.min_area_px:
-            raise ValueError(
-                f"max_area_px must be >= min_area_px, got max_area_px={self.max_area_px!r} "
-                f"with min_area_px={self.min_area_px!r}"
-            )
-        _check_real("roi_shrink", self.roi_shrink, lo=0.0, hi=1.5)
-        if self.roi_shrink <= 0.0:
-            raise ValueError(f"roi_shrink must be > 0, got roi_shrink={self.roi_shrink!r}")
-
-
-def _check_int(name: str, value, lo: int | None = None) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer, got {name}={value!r}")
-    if lo is not None and value < lo:
-        raise ValueError(f"{name} must be >= {lo}, got {name}={value!r}")
-
-
-def _check_real(name: str, value, lo: float, hi: float) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number, got {name}={value!r}")
-    if not math.isfinite(float(value)) or not (lo <= float(value) <= hi):
-        raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {name}={value!r}")
 
 
 #: Tuned on the roboskin recordings (640x480, pins ~6.6 px across, ~11.7 px apart):

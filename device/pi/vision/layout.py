@@ -14,6 +14,9 @@ import math
 import cv2
 import numpy as np
 
+from device.pi.vision.matching import match_pins
+from device.profile import load_profile
+
 __all__ = ["LayoutError", "layout_assignment", "to_layout", "LayoutMapper",
            "layout_for_profile", "binary_crop"]
 
@@ -30,8 +33,6 @@ def layout_assignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_px: 
     pins, ``rounds`` times, starting from a gate of 1.5 x ``gate_px``), then matched
     one to one, nearest first, within ``gate_px``. Returns int64 (M_layout,).
     """
-    from device.pi.vision.tracking import match_pins
-
     ref = np.asarray(reference_px, np.float64).reshape(-1, 2)
     lay = np.asarray(layout_px, np.float64).reshape(-1, 2)
     if not (math.isfinite(gate_px) and gate_px > 0):
@@ -106,8 +107,6 @@ class LayoutMapper:
 
 def layout_for_profile(profile: str) -> np.ndarray:
     """The fixed pin layout (M, 2) px of a sensor profile (ring by ring for roboskin)."""
-    from device.sim import load_profile
-
     try:
         return np.asarray(load_profile(profile).pins_px, np.float64)
     except Exception as exc:   # a calibrated [vision]-only file has no layout

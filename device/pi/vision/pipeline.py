@@ -22,7 +22,8 @@ from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_L
                               FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
 from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum
 from device.profile import PipelineProfile, load_pipeline_profile
-from device.pi.vision.tracking import Tracker, match_pins
+from device.pi.vision.matching import match_pins
+from device.pi.vision.tracking import Tracker
 from device.pi.vision.extract import PinDetector, find_dome, to_gray
 
 STAGES = ("gray", "detect", "track", "localise", "grid", "features")

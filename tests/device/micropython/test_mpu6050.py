@@ -281,7 +281,7 @@ class SimDevice:
 
 def test_twin_matches_the_pi_driver_reading_by_reading():
     machine, mpu6050 = _import_twin()
-    from device.pi.sources.imu import MPU6050 as PiMPU6050
+    from device.pi.sources.mpu6050 import MPU6050 as PiMPU6050
     from device.sim.fake_mpu6050 import FakeMPU6050
 
     bus_pi = FakeMPU6050.from_scene("walk", seed=4, clock=None)
@@ -331,7 +331,7 @@ def test_twin_recovers_from_the_sim_fakes_eio_and_stuck():
 @given(raw=st.binary(min_size=14, max_size=14), ai=st.integers(0, 3), gi=st.integers(0, 3))
 def test_any_14_raw_bytes_decode_finite_in_range_and_equal_to_the_pi_decode(raw, ai, gi):
     machine, mpu6050 = _import_twin()
-    from device.pi.sources.imu import MPU6050 as PiMPU6050
+    from device.pi.sources.mpu6050 import MPU6050 as PiMPU6050
 
     class RawDev:
         def __init__(self):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from device.pi.vision.extract import ROBOSKIN_PARAMS
-from device.pi.vision.tracking import layout_neighbours
+from device.pi.vision.neighbours import layout_neighbours
 from device.sim import Simulator, load_profile, parse_scene
 from host.localiser.labels import (
     LabelChecks,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from device.sim import load_profile
+from device.profile import load_profile
 from host.localiser.sim import random_scene_doc, sim_frames
 
 

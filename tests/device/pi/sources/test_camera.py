@@ -407,9 +407,7 @@ def test_sim_source_real_simulator():
 # ------------------------------------------------------------------ real recordings
 @pytest.mark.real
 def test_real_smooth_avi():
-    path = real_data_dir() / "roboskin" / "smooth.avi"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    path = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
     with open_camera(f"file://{path}") as cam:
         assert (cam.width, cam.height) == (640, 480)
         assert cam.fps == pytest.approx(200.0)          # declared, not measured
@@ -424,9 +422,7 @@ def test_real_smooth_avi():
 
 @pytest.mark.real
 def test_real_smooth_avi_window_matches_full_read():
-    path = real_data_dir() / "roboskin" / "smooth.avi"
-    if not path.is_file():
-        pytest.skip(f"{path} not present")
+    path = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
     with open_camera(str(path), end_frame=12) as cam:
         full = [f.image for f in cam]
     with open_camera(str(path), start_frame=10, end_frame=12) as cam:
@@ -438,9 +434,7 @@ def test_real_smooth_avi_window_matches_full_read():
 
 @pytest.mark.real
 def test_real_tactip_shear_folder():
-    d = real_data_dir() / "tactip_shear" / "images"
-    if not d.is_dir():
-        pytest.skip(f"{d} not present")
+    d = real_data_dir("tactip_shear/images") / "tactip_shear" / "images"
     with open_camera(f"file://{d}/") as cam:
         assert (cam.width, cam.height, cam.n_frames) == (445, 440, 400)
         names = [p.name for p in cam.files]

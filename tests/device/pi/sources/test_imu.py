@@ -1,10 +1,8 @@
-"""device/pi/sources/imu.py: the MPU6050 driver on smbus2 (against FakeMPU6050) and open_imu."""
+"""device/pi/sources/imu.py: the IMU sources open_imu opens (i2c://, file://, sim://, none)."""
 
 from __future__ import annotations
 
 import errno
-import struct
-import warnings
 
 import numpy as np
 import pytest
@@ -12,335 +10,22 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi.sources import imu as im
-from device.pi.sources.imu import (FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE, IMUError, MPU6050,
-                           open_imu)
+from device.pi.sources import mpu6050 as drv
+from device.pi.sources.imu import open_imu
+from device.pi.sources.mpu6050 import FAULT_ENDED, FAULT_OFFLINE, FAULT_STALE, IMUError, MPU6050
 from device.sim import fake_mpu6050 as fm
 from device.sim.fake_mpu6050 import FakeMPU6050
-
-ADDR = 0x68
-MOTION = np.array([
-    [0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
-    [0.5, -0.25, 0.98, 10.0, -20.0, 30.0],
-    [-1.5, 1.25, -0.5, -100.5, 200.25, -240.0],
-])
+from tests.mpu_bus import Clock, Recorder, fake, tol
 
 
-class Clock:
-    def __init__(self, t=0.0):
-        self.t = t
-
-    def __call__(self):
-        return self.t
-
-
-class Recorder:
-    """Wraps a bus and logs every transaction in order."""
-
-    def __init__(self, bus):
-        self.bus = bus
-        self.log = []
-
-    def read_byte_data(self, a, r):
-        self.log.append(("rb", r))
-        return self.bus.read_byte_data(a, r)
-
-    def write_byte_data(self, a, r, v):
-        self.log.append(("wb", r, v))
-        return self.bus.write_byte_data(a, r, v)
-
-    def read_i2c_block_data(self, a, r, n):
-        self.log.append(("rblk", r, n))
-        return self.bus.read_i2c_block_data(a, r, n)
-
-
-def fake(motion=MOTION, **kw):
-    kw.setdefault("clock", None)
-    return FakeMPU6050(motion, 100.0, **kw)
-
-
-def tol(lsb, v):
-    """Half an LSB plus float32 rounding of the value."""
-    return 0.5 / lsb + abs(float(v)) * 2.0 ** -23 + 1e-12
-
-
-# ------------------------------------------------------------------ start-up
-@pytest.mark.parametrize("rate_hz,dlpf,accel_g,gyro_dps,div", [
-    (200, 3, 4, 500, 4), (1000, 1, 2, 250, 0), (100, 0, 16, 2000, 79), (50, 6, 8, 1000, 19)])
-def test_startup_sequence_wakes_then_configures(rate_hz, dlpf, accel_g, gyro_dps, div):
-    bus = fake()
-    rec = Recorder(bus)
-    assert bus.asleep
-    d = MPU6050(rec, rate_hz=rate_hz, dlpf=dlpf, accel_g=accel_g, gyro_dps=gyro_dps)
-    assert rec.log[0] == ("rb", fm.WHO_AM_I)                  # identity before any write
-    writes = [e[1] for e in rec.log if e[0] == "wb"]
-    assert writes == [fm.PWR_MGMT_1, fm.PWR_MGMT_2, fm.SMPLRT_DIV, fm.CONFIG, fm.GYRO_CONFIG, fm.ACCEL_CONFIG]
-    assert not bus.asleep
-    assert bus.register(fm.SMPLRT_DIV) == div
-    assert bus.register(fm.CONFIG) & 7 == dlpf
-    assert bus.gyro_lsb_per_dps == fm.GYRO_LSB_PER_DPS[fm.GYRO_RANGE_DPS.index(gyro_dps)]
-    assert bus.accel_lsb_per_g == fm.ACCEL_LSB_PER_G[fm.ACCEL_RANGE_G.index(accel_g)]
-    assert bus.sample_rate_hz == pytest.approx(rate_hz)
-    assert d.rate_hz == pytest.approx(rate_hz)
-
-
-@pytest.mark.parametrize("kw,match", [
-    ({"accel_g": 3}, r"accel_g.*\[2, 4, 8, 16\].*3"),
-    ({"gyro_dps": 300}, r"gyro_dps.*300"),
-    ({"dlpf": 7}, r"dlpf.*7"),
-    ({"rate_hz": 2, "dlpf": 3}, r"rate_hz.*2"),
-    ({"rate_hz": -5}, r"rate_hz.*-5"),
-    ({"address": 200}, r"address.*200"),
-])
-def test_bad_driver_options_name_the_field(kw, match):
-    with pytest.raises(ValueError, match=match):
-        MPU6050(fake(), **kw)
-
-
-def test_genuine_who_am_i_gives_no_warning():
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        d = MPU6050(fake())
-    assert d.who_am_i == 0x68
-
-
-@pytest.mark.parametrize("clone", [0x70, 0x72, 0x98])
-def test_clone_who_am_i_accepted_with_warning(clone):
-    bus = fake(who_am_i=clone)
-    with pytest.warns(RuntimeWarning, match=f"0x{clone:02x}.*clone"):
-        d = MPU6050(bus)
-    bus.seek(1)
-    v, f = d.read()
-    assert f == 0 and abs(v[0] - 0.5) <= tol(8192, 0.5)
-
-
-@pytest.mark.parametrize("who", [0x00, 0x12, 0x69, 0xFF])
-def test_unknown_who_am_i_refused_naming_address_and_nothing_written(who):
-    bus = fake(who_am_i=who, address=0x69)
-    rec = Recorder(bus)
-    with pytest.raises(IMUError, match=f"address 0x69.*WHO_AM_I reads 0x{who:02x}"):
-        MPU6050(rec, address=0x69)
-    assert [e for e in rec.log if e[0] == "wb"] == []
-    assert bus.asleep
-
-
-@pytest.mark.parametrize("addr", [0x69, 0x50])
-def test_wrong_address_error_names_it(addr):
-    with pytest.raises(IMUError, match=f"0x{addr:02x}"):
-        MPU6050(fake(), address=addr)
-
-
+# ------------------------------------------------------------------ sources
 def test_wrong_address_through_open_imu_names_address_and_source():
     with pytest.raises(IMUError, match=r"0x69.*i2c://1/0x69"):
         open_imu("i2c://1/0x69", bus=fake())
 
 
-def test_stuck_bus_at_startup_is_a_clear_error():
-    with pytest.raises(IMUError, match=r"0x68.*timed out"):
-        MPU6050(fake(stuck=True))
 
 
-# ------------------------------------------------------------------ scaling
-@pytest.mark.parametrize("accel_g", [2, 4, 8, 16])
-@pytest.mark.parametrize("gyro_dps", [250, 500, 1000, 2000])
-def test_scaling_matches_the_motion_within_half_an_lsb(accel_g, gyro_dps):
-    rng = np.random.default_rng(accel_g * 7 + gyro_dps)
-    m = np.column_stack([rng.uniform(-0.95, 0.95, (20, 3)) * accel_g,
-                         rng.uniform(-0.95, 0.95, (20, 3)) * gyro_dps])
-    bus = fake(m, temp_c=31.5)
-    d = MPU6050(bus, accel_g=accel_g, gyro_dps=gyro_dps)
-    a_lsb, g_lsb = d.accel_lsb_per_g, d.gyro_lsb_per_dps
-    assert a_lsb == 32768 / accel_g
-    for i in range(len(m)):
-        bus.seek(i)
-        v, f = d.read()
-        assert f == 0 and v.dtype == np.float32 and v.shape == (6,)
-        for k in range(3):
-            assert abs(v[k] - m[i, k]) <= tol(a_lsb, m[i, k])
-            assert abs(v[3 + k] - m[i, 3 + k]) <= tol(g_lsb, m[i, 3 + k])
-    assert abs(d.temp_c - 31.5) <= 0.5 / 340 + 1e-9
-
-
-def test_saturation_sets_fault_bit_with_finite_full_scale_values():
-    m = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], [5.0, 0.0, 1.0, 0.0, -900.0, 0.0]])
-    bus = fake(m)
-    d = MPU6050(bus, accel_g=4, gyro_dps=500)
-    assert d.read()[1] == 0
-    bus.seek(1)
-    v, f = d.read()
-    assert f == FAULT_SATURATED
-    assert np.all(np.isfinite(v))
-    assert v[0] == pytest.approx(32767 / 8192) and v[4] == pytest.approx(-32768 / 65.5)
-
-
-def test_read_reuses_its_buffer_and_out_gets_a_copy():
-    bus = fake()
-    d = MPU6050(bus)
-    v1, _ = d.read()
-    bus.seek(1)
-    v2, _ = d.read()
-    assert v1 is v2 is d.values
-    out = np.full(6, -7.0, dtype=np.float32)
-    bus.seek(2)
-    r, _ = d.read(out=out)
-    assert r is out and out[3] == pytest.approx(-100.5, abs=0.01)
-    bus.seek(0)
-    d.read()
-    assert out[3] == pytest.approx(-100.5, abs=0.01)      # untouched by later reads
-
-
-# ------------------------------------------------------------------ faults
-def make(clock=None, **kw):
-    bus = fake(**{k: kw.pop(k) for k in list(kw) if k in ("stuck", "faults", "who_am_i")})
-    d = MPU6050(bus, clock=clock or Clock(), **kw)
-    bus.seek(1)
-    return bus, d
-
-
-def test_short_eio_burst_is_retried_without_a_fault():
-    bus, d = make(retries=2)
-    good = d.read()[0].copy()
-    bus.inject("eio", count=2)
-    v, f = d.read()
-    assert f == 0 and np.array_equal(v, good)
-    assert d.errors == 2 and d.fault_count == 0 and d.reinit_count == 0
-
-
-@pytest.mark.parametrize("kind", ["eio", "eremoteio"])
-def test_eio_burst_raises_fault_bit_then_reinits_and_recovers(kind):
-    clk = Clock()
-    bus, d = make(clk, retries=2, backoff_s=0.05)
-    good = d.read()[0].copy()
-    bus.inject(kind, count=3)                     # more than 1 + retries
-    v, f = d.read()
-    assert f == FAULT_STALE | FAULT_OFFLINE
-    assert np.array_equal(v, good)                # last good values held
-    assert d.fault_count == 1 and not d.online
-    n = bus.transactions
-    clk.t = 0.01                                  # inside the back-off: bus left alone
-    v, f = d.read()
-    assert f & FAULT_STALE and bus.transactions == n
-    clk.t = 0.06                                  # back-off over: re-init and read
-    bus.seek(2)
-    v, f = d.read()
-    assert f == 0 and d.online and d.reinit_count == 1
-    assert v[0] == pytest.approx(-1.5, abs=1e-3)
-    assert not bus.asleep
-
-
-def test_stuck_bus_backs_off_then_recovers_by_itself():
-    clk = Clock()
-    bus, d = make(clk, retries=1, backoff_s=0.05, backoff_max_s=1.0)
-    d.read()
-    bus.inject("stuck")
-    t0 = bus.transactions
-    for i in range(2000):                         # 10 s of 200 Hz frames
-        clk.t = i / 200.0
-        v, f = d.read()
-        assert f == FAULT_STALE | FAULT_OFFLINE
-        assert np.all(np.isfinite(v))
-    assert bus.transactions - t0 < 60             # not re-initialising on every frame
-    assert d.fault_count == 2000
-    bus.unstick()
-    recovered_at = None
-    for i in range(2000, 2000 + 400):
-        clk.t = i / 200.0
-        if d.read()[1] == 0:
-            recovered_at = clk.t
-            break
-    assert recovered_at is not None and recovered_at - 10.0 <= 1.0 + 1e-9   # within backoff_max_s
-    assert d.reinit_count == 1
-
-
-def test_brownout_reset_is_detected_and_reinitialised():
-    clk = Clock()
-    bus, d = make(clk, check_s=1.0, gyro_dps=1000)
-    assert d.read()[1] == 0
-    bus.write_byte_data(ADDR, fm.PWR_MGMT_1, fm.DEVICE_RESET)   # chip resets: asleep, ranges lost
-    assert bus.asleep
-    clk.t = 1.5
-    d.read()                                      # health check finds SLEEP set
-    assert d.reinit_count == 1 and not bus.asleep
-    assert bus.gyro_lsb_per_dps == 32.8
-    clk.t = 1.6
-    v, f = d.read()
-    assert f == 0 and v[3] == pytest.approx(10.0, abs=0.02)
-
-
-def test_chip_swapped_for_wrong_device_while_running_stays_a_fault():
-    clk = Clock()
-    bus, d = make(clk, retries=0)
-    d.read()
-    bus.inject("eio")
-    assert d.read()[1] & FAULT_OFFLINE
-    bus.who_am_i = 0x12
-    bus._regs[fm.WHO_AM_I] = 0x12
-    for i in range(1, 50):
-        clk.t = i * 0.1
-        v, f = d.read()                            # never raises
-        assert f == FAULT_STALE | FAULT_OFFLINE
-    assert d.reinit_count == 0
-
-
-@settings(max_examples=40, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["read", "eio", "eremoteio", "stuck", "unstick", "tick", "seek"]),
-                          st.integers(0, 5)), max_size=60))
-def test_loop_never_crashes_under_any_fault_sequence(ops):
-    clk = Clock()
-    bus, d = make(clk, retries=1, backoff_s=0.02, backoff_max_s=0.2)
-    for op, n in ops:
-        if op == "eio" or op == "eremoteio":
-            bus.inject(op, count=n)
-        elif op == "stuck":
-            bus.inject("stuck")
-        elif op == "unstick":
-            bus.unstick()
-        elif op == "tick":
-            clk.t += n * 0.05
-        elif op == "seek":
-            bus.seek(n % bus.n_frames)
-        v, f = d.read()
-        assert v.shape == (6,) and np.all(np.isfinite(v)) and isinstance(f, int)
-        assert (f & FAULT_STALE) == (0 if d.online else FAULT_STALE)
-    # once the bus is healthy again it recovers by itself
-    bus.clear_faults()
-    clk.t += 1.0
-    assert d.read()[1] == 0 and d.online
-
-
-# ------------------------------------------------------------------ property
-@settings(max_examples=300, deadline=None)
-@given(raw=st.binary(min_size=14, max_size=14), a=st.sampled_from([2, 4, 8, 16]),
-       g=st.sampled_from([250, 500, 1000, 2000]))
-def test_any_14_raw_bytes_decode_finite_and_within_range(raw, a, g):
-    class Bus:                                    # a bus that answers with these bytes
-        def __init__(self):
-            self.regs = bytearray(256)
-            self.regs[fm.WHO_AM_I] = 0x68
-
-        def read_byte_data(self, addr, r):
-            return self.regs[r]
-
-        def write_byte_data(self, addr, r, v):
-            self.regs[r] = v
-
-        def read_i2c_block_data(self, addr, r, n):
-            return list(raw) if r == fm.ACCEL_XOUT_H else list(self.regs[r:r + n])
-
-    d = MPU6050(Bus(), accel_g=a, gyro_dps=g)
-    v, f = d.read()
-    ints = struct.unpack(">7h", raw)
-    assert np.all(np.isfinite(v)) and np.isfinite(d.temp_c)
-    assert np.all(np.abs(v[:3]) <= 32768 / d.accel_lsb_per_g) and np.all(np.abs(v[:3]) <= a)
-    assert np.all(np.abs(v[3:]) <= 32768 / d.gyro_lsb_per_dps + 1e-3)
-    assert -60.0 < d.temp_c < 133.0
-    sat = any(x in (-32768, 32767) for x in ints[:3] + ints[4:])
-    assert bool(f & FAULT_SATURATED) == sat
-    dec, t = d.decode(raw)
-    assert np.array_equal(dec, v) and t == d.temp_c
-    assert v[0] == pytest.approx(ints[0] / d.accel_lsb_per_g, rel=1e-6)
-
-
-# ------------------------------------------------------------------ sources
 def test_i2c_source_parses_address_and_options():
     bus = fake(address=0x69)
     src = open_imu("i2c://1/0x69?rate_hz=100&accel_g=8&gyro_dps=1000&dlpf=2", bus=bus)
@@ -419,7 +104,7 @@ def test_file_source_without_loop_holds_last_row_with_fault(tmp_path):
     assert src.read()[1] == 0 and src.read()[1] == 0
     v, f = src.read()
     assert f == FAULT_ENDED and np.array_equal(v, m[1].astype(np.float32))
-    assert im.fault_names(f | FAULT_STALE) == ["imu_stale", "imu_ended"]
+    assert drv.fault_names(f | FAULT_STALE) == ["imu_stale", "imu_ended"]
 
 
 @pytest.mark.parametrize("arr,match", [
@@ -565,13 +250,13 @@ def test_sim_source_realtime_follows_the_clock():
 
 # ------------------------------------------------------- absent at start-up
 def test_nothing_answering_is_unavailable_but_a_wrong_chip_is_refused():
-    with pytest.raises(im.IMUUnavailable, match=r"0x68"):
+    with pytest.raises(drv.IMUUnavailable, match=r"0x68"):
         MPU6050(fake(stuck=True))
-    with pytest.raises(im.IMUUnavailable, match=r"/dev/i2c-97"):
+    with pytest.raises(drv.IMUUnavailable, match=r"/dev/i2c-97"):
         open_imu("i2c://97/0x68")
     with pytest.raises(IMUError) as ei:
         open_imu("i2c://1/0x68", bus=fake(who_am_i=0x12))
-    assert not isinstance(ei.value, im.IMUUnavailable)
+    assert not isinstance(ei.value, drv.IMUUnavailable)
 
 
 def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
@@ -584,7 +269,7 @@ def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
     def opener():
         tries.append(t[0])
         if len(tries) < 3:
-            raise im.IMUUnavailable("no MPU6050 answering at address 0x68")
+            raise drv.IMUUnavailable("no MPU6050 answering at address 0x68")
         return im.MPU6050Source(MPU6050(good), "i2c://1/0x68")
 
     src = im.RetryingImuSource("i2c://1/0x68", OSError("first"), backoff_s=0.5,

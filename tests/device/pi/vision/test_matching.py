@@ -1,0 +1,171 @@
+"""device/pi/vision/matching.py: one-to-one matching with a gate (match_pins,
+mutual_match) - properties, hard inputs and the greedy answer."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from device.pi.vision.matching import match_pins, mutual_match
+from tests.pins import hex_pins
+from tests.pins import points
+
+
+# -- helpers ------------------------------------------------------------------------
+
+def jittered_grid(rng, n: int, spacing: float = 10.0, jitter: float = 1.0) -> np.ndarray:
+    side = int(math.ceil(math.sqrt(max(n, 1))))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n]
+    return g * spacing + rng.uniform(-jitter, jitter, (n, 2))
+
+
+def pair_d2(a, b):
+    return ((np.asarray(a)[:, None, :] - np.asarray(b)[None, :, :]) ** 2).sum(-1)
+
+
+def check_greedy(ref, cur, gate, idx):
+    """One to one, inside the gate, and no blocking pair (=> the greedy answer)."""
+    ref, cur = np.asarray(ref, float), np.asarray(cur, float)
+    assert idx.shape == (ref.shape[0],) and idx.dtype.kind == "i"
+    hit = idx >= 0
+    assert len(set(idx[hit].tolist())) == int(hit.sum()), "a current pin used twice"
+    if ref.shape[0] == 0 or cur.shape[0] == 0:
+        assert not hit.any()
+        return
+    d2 = pair_d2(ref, cur)
+    assert (d2[np.flatnonzero(hit), idx[hit]] <= gate * gate + 1e-9).all()
+    mine = np.full(ref.shape[0], np.inf)
+    mine[hit] = d2[np.flatnonzero(hit), idx[hit]]
+    owner = np.full(cur.shape[0], np.inf)
+    owner[idx[hit]] = mine[hit]
+    spread = max(np.ptp(np.vstack([ref, cur]), axis=0).max(), 1.0)
+    tol = 1e-6 * spread * spread + 1e-6
+    blocking = (d2 <= gate * gate) & (d2 < mine[:, None] - tol) & (d2 < owner[None, :] - tol)
+    assert not blocking.any(), "a closer free pair was left unmatched (not greedy)"
+
+
+def greedy_reference(ref, cur, gate):
+    """Slow, obvious greedy-by-distance matching for comparison."""
+    d2 = pair_d2(ref, cur)
+    order = np.argsort(d2, axis=None, kind="stable")
+    idx = np.full(len(ref), -1)
+    used = set()
+    for k in order:
+        i, j = divmod(int(k), d2.shape[1])
+        if d2[i, j] > gate * gate:
+            break
+        if idx[i] < 0 and j not in used:
+            idx[i] = j
+            used.add(j)
+    return idx
+
+
+# -- match_pins -----------------------------------------------------------------------
+
+def test_match_recovers_a_permutation_with_noise():
+    rng = np.random.default_rng(1)
+    ref = hex_pins(10, 20.0)                                    # 331 pins
+    perm = rng.permutation(len(ref))
+    cur = ref[perm] + rng.normal(0, 1.0, ref.shape)
+    idx = match_pins(ref, cur, 8.0)
+    assert (perm[idx] == np.arange(len(ref))).all()
+
+
+def test_match_marks_lost_pins_and_never_invents():
+    ref = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    cur = np.array([[10.5, 0.0], [0.2, 0.1]])                     # pin 2 missing
+    idx = match_pins(ref, cur, 3.0)
+    assert idx.tolist() == [1, 0, -1]
+    assert match_pins(ref, cur + 5.0, 3.0).tolist() == [-1, -1, -1]   # all beyond the gate
+
+
+def test_match_prefers_the_shortest_pair():
+    # ref 1 is nearer to cur 0 than ref 0 is: ref 0 must not take it
+    ref = np.array([[0.0, 0.0], [3.0, 0.0]])
+    cur = np.array([[2.0, 0.0], [6.0, 0.0]])
+    assert match_pins(ref, cur, 4.0).tolist() == [-1, 0]
+    assert match_pins(ref, cur, 4.0).tolist() == greedy_reference(ref, cur, 4.0).tolist()
+
+
+@pytest.mark.parametrize("m,n", [(0, 0), (0, 5), (5, 0)])
+def test_match_empty_sets(m, n):
+    idx = match_pins(np.zeros((m, 2)), np.ones((n, 2)), 2.0)
+    assert idx.shape == (m,) and (idx == -1).all()
+
+
+def test_match_one_pin_and_empty_lists():
+    assert match_pins([[1.0, 1.0]], [[1.5, 1.0]], 1.0).tolist() == [0]
+    assert match_pins([[1.0, 1.0]], [[3.5, 1.0]], 1.0).tolist() == [-1]
+    assert match_pins([], [], 1.0).shape == (0,)
+
+
+def test_match_non_finite_rows_never_match():
+    ref = np.array([[0.0, 0.0], [np.nan, 0.0], [10.0, 10.0], [1e300, 0.0]])
+    cur = np.array([[np.inf, 0.0], [0.1, 0.0], [10.0, 10.2], [np.nan, np.nan]])
+    assert match_pins(ref, cur, 1.0).tolist() == [1, -1, 2, -1]
+
+
+@pytest.mark.parametrize("gate", [0, -1.0, float("nan"), float("inf"), "3", None, True])
+def test_match_bad_gate_names_the_field(gate):
+    with pytest.raises(ValueError, match="max_dist_px"):
+        match_pins([[0.0, 0.0]], [[0.0, 0.0]], gate)
+
+
+@pytest.mark.parametrize("field,ref,cur", [("ref", np.zeros((3, 3)), np.zeros((3, 2))),
+                                           ("cur", np.zeros((3, 2)), np.zeros(5))])
+def test_match_bad_shapes_name_the_field(field, ref, cur):
+    with pytest.raises(ValueError, match=field):
+        match_pins(ref, cur, 1.0)
+
+
+
+@settings(max_examples=150, deadline=None)
+@given(ref=points, cur=points, gate=st.floats(0.1, 200.0))
+def test_match_is_one_to_one_and_greedy(ref, cur, gate):
+    idx = match_pins(ref, cur, gate)
+    check_greedy(ref, cur, gate, idx)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(1, 200), seed=st.integers(0, 2**31 - 1),
+       drop=st.floats(0.0, 0.5), n_dup=st.integers(0, 10), n_extra=st.integers(0, 10))
+def test_match_permutation_dropout_duplicates(n, seed, drop, n_dup, n_extra):
+    """Pins 10 px apart, moved < 2 px, shuffled, some dropped, some detected
+    twice, some spurious far away: every kept pin finds itself, dropped pins
+    are lost, nothing is used twice."""
+    rng = np.random.default_rng(seed)
+    ref = jittered_grid(rng, n)
+    keep = np.flatnonzero(rng.random(n) >= drop)
+    cur = ref[keep] + rng.uniform(-1.4, 1.4, (keep.size, 2))
+    ids = keep.copy()
+    if keep.size and n_dup:
+        d = rng.choice(keep.size, n_dup)
+        cur = np.vstack([cur, cur[d]])                             # exact duplicates
+        ids = np.concatenate([ids, ids[d]])
+    if n_extra:
+        cur = np.vstack([cur, 1e4 + rng.random((n_extra, 2))])    # spurious, far away
+        ids = np.concatenate([ids, np.full(n_extra, -1)])
+    perm = rng.permutation(len(cur))
+    cur, ids = cur[perm], ids[perm]
+    idx = match_pins(ref, cur, 4.0)
+    check_greedy(ref, cur, 4.0, idx)
+    hit = idx >= 0
+    assert set(np.flatnonzero(hit)) == set(keep.tolist())
+    assert (ids[idx[hit]] == np.flatnonzero(hit)).all()
+
+
+def test_mutual_match_keeps_only_pairs_that_choose_each_other():
+    """Both pins are nearest to detection 0, which is nearest to pin 1: only that
+    pair survives. Greedy matching (match_pins) gives pin 0 its second choice."""
+    pred = np.array([[0.0, 0.0], [2.0, 0.0]])
+    det = np.array([[1.2, 0.0], [-1.5, 0.0]])
+    assert mutual_match(pred, det, 5.0).tolist() == [-1, 0]
+    assert match_pins(pred, det, 5.0).tolist() == [1, 0]
+    assert mutual_match(pred, det[::-1], 5.0).tolist() == [-1, 1]     # order does not matter
+    assert mutual_match(pred, det, 0.5).tolist() == [-1, -1]          # the gate
+    assert mutual_match(pred[:0], det, 5.0).tolist() == []
+    assert mutual_match(pred, det[:0], 5.0).tolist() == [-1, -1]

@@ -1,0 +1,103 @@
+"""device/pi/vision/neighbours.py: layout neighbours and tracking through
+deformations larger than the pin pitch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from device.pi.vision.matching import match_pins
+from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, track_with_neighbours
+from tests.pins import hex_pins
+from tests.pins import big_deformation, points
+
+
+# -- track_with_neighbours ---------------------------------------------------------------
+
+def test_track_with_neighbours_follows_moves_larger_than_the_pitch():
+    rng = np.random.default_rng(3)
+    pitch = 20.0
+    ref = hex_pins(10, pitch)
+    moved = big_deformation(ref, pitch, rng)
+    keep = np.flatnonzero(rng.random(len(ref)) >= 0.03)           # 3% of pins missing
+    perm = rng.permutation(keep.size)
+    cur = moved[keep][perm]
+    ids = keep[perm]
+    idx, disp = track_with_neighbours(ref, cur, layout_pitch_px(ref))
+    hit = idx >= 0
+    correct = hit & (ids[np.maximum(idx, 0)] == np.arange(len(ref)))
+    wrong = hit & ~correct
+    assert correct.sum() >= 0.97 * keep.size
+    assert wrong.sum() <= 0.005 * len(ref)
+    assert np.isfinite(disp).all() and disp.shape == ref.shape
+    assert np.allclose(disp[correct], moved[correct] - ref[correct])
+    # plain nearest-neighbour matching with the same gate cannot do this
+    plain = match_pins(ref, cur, 0.4 * pitch)
+    plain_ok = (plain >= 0) & (ids[np.maximum(plain, 0)] == np.arange(len(ref)))
+    assert plain_ok.sum() < 0.6 * keep.size
+
+
+def test_track_with_neighbours_grows_from_a_prior():
+    """Without the coarse stage: a good prior for part of the layout and the
+    neighbour prediction grows tracking into the rest."""
+    rng = np.random.default_rng(4)
+    ref = hex_pins(6, 20.0)
+    shift = np.array([13.0, 0.0])                                  # 0.65 pitch everywhere
+    cur = ref + shift + rng.normal(0, 0.2, ref.shape)
+    prior = np.zeros_like(ref)
+    near = np.hypot(*(ref - ref.mean(0)).T) < 30
+    prior[near] = shift                                            # only the middle is known
+    idx, disp = track_with_neighbours(ref, cur, 20.0, init_disp_px=prior, coarse=False)
+    assert (idx == np.arange(len(ref))).all()
+    assert np.allclose(disp, shift, atol=1.0)
+    idx0, _ = track_with_neighbours(ref, cur, 20.0, coarse=False, grow_rounds=0)
+    assert (idx0 == np.arange(len(ref))).mean() < 0.5              # no prior, no growth: lost/swapped
+
+
+def test_track_with_neighbours_edge_cases():
+    idx, disp = track_with_neighbours(np.zeros((0, 2)), np.ones((4, 2)), 10.0)
+    assert idx.shape == (0,) and disp.shape == (0, 2)
+    idx, disp = track_with_neighbours([[5.0, 5.0]], np.zeros((0, 2)), 10.0)
+    assert idx.tolist() == [-1] and np.isfinite(disp).all()
+    idx, disp = track_with_neighbours([[5.0, 5.0]], [[7.0, 5.0]], 10.0)
+    assert idx.tolist() == [0] and np.allclose(disp, [[2.0, 0.0]])
+    ref = np.array([[0.0, 0.0], [np.nan, 1.0], [20.0, 0.0]])
+    cur = np.array([[np.inf, 0.0], [0.5, 0.0], [20.5, 0.0]])
+    idx, disp = track_with_neighbours(ref, cur, 20.0)
+    assert idx.tolist() == [1, -1, 2] and np.isfinite(disp).all()
+
+
+@pytest.mark.parametrize("kw,field", [({"pitch_px": 0.0}, "pitch_px"), ({"pitch_px": np.nan}, "pitch_px"),
+                                      ({"gate_frac": -1.0}, "gate_frac"),
+                                      ({"anneal_steps": 0}, "anneal_steps"),
+                                      ({"init_disp_px": np.zeros((2, 2))}, "init_disp_px")])
+def test_track_with_neighbours_bad_arguments_name_the_field(kw, field):
+    args = {"ref": np.zeros((3, 2)) + [[0, 0], [10, 0], [0, 10]], "cur": np.zeros((3, 2)), "pitch_px": 10.0}
+    args.update(kw)
+    with pytest.raises(ValueError, match=field):
+        track_with_neighbours(**args)
+
+
+@settings(max_examples=60, deadline=None)
+@given(ref=points, cur=points, pitch=st.floats(1.0, 50.0), coarse=st.booleans())
+def test_track_with_neighbours_outputs_are_finite_and_one_to_one(ref, cur, pitch, coarse):
+    idx, disp = track_with_neighbours(ref, cur, pitch, coarse=coarse, anneal_steps=4)
+    assert idx.shape == (len(ref),) and disp.shape == (len(ref), 2)
+    assert np.isfinite(disp).all()
+    hit = idx >= 0
+    assert len(set(idx[hit].tolist())) == int(hit.sum())
+    assert (idx < len(cur)).all()
+
+
+def test_layout_neighbours_and_pitch():
+    ref = hex_pins(3, 10.0)
+    assert layout_pitch_px(ref) == pytest.approx(10.0)
+    nb, valid = layout_neighbours(ref, 6)
+    centre = int(np.argmin(np.hypot(*(ref - ref.mean(0)).T)))
+    assert valid[centre].all()
+    assert np.allclose(np.hypot(*(ref[nb[centre]] - ref[centre]).T), 10.0)
+    assert layout_pitch_px(np.zeros((1, 2))) == 0.0
+    nb1, valid1 = layout_neighbours(np.zeros((1, 2)))
+    assert nb1.shape == (1, 6) and not valid1.any()

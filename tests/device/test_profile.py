@@ -1,0 +1,72 @@
+"""device/profile.py: one parser for a sensor profile's geometry, layout and [vision]."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from device.config import ConfigError
+from device.profile import (PROFILE_DIR, ProfileError, builtin_profiles, builtin_toml, hex_layout,
+                            load_pipeline_profile, load_profile, radial_layout)
+
+MINE = ('[profile]\nname="mine"\nwidth=200\nheight=200\ndome_centre_px=[100,100]\n'
+        'dome_radius_px=90\npx_per_mm=5\ndome_radius_mm=15\npin_diameter_px=5\n'
+        '[layout]\nkind="radial"\nrings=[1,8,16]\nring_radii_px=[0,20,40]\n'
+        '[vision]\npitch_px=20.0\nn_pins=25\n')
+
+
+def test_builtin_profiles_have_their_pin_counts():
+    assert builtin_profiles() == ["roboskin", "tactip331"]
+    assert load_profile("roboskin").n_pins == 133
+    assert load_profile("tactip331").n_pins == 331
+
+
+def test_one_file_gives_the_geometry_and_the_pipeline_view(tmp_path):
+    p = tmp_path / "mine.toml"
+    p.write_text(MINE)
+    geo = load_profile(p)
+    pipe = load_pipeline_profile(p)
+    assert geo.name == pipe.name == "mine"
+    assert geo.n_pins == pipe.n_pins == 25
+    assert pipe.pitch_px == 20.0 and pipe.match_gate_px == pytest.approx(8.0)
+    assert np.allclose(geo.pins_px[0], [100.0, 100.0])
+    for name in builtin_profiles():
+        assert load_profile(name).n_pins == load_pipeline_profile(name).n_pins
+
+
+def test_unknown_builtin_names_the_field_and_the_choices():
+    with pytest.raises(ConfigError, match=r"sensor\.profile: unknown profile 'nope'.*roboskin"):
+        load_profile("nope")
+    with pytest.raises(ProfileError, match=r"profile: unknown profile 'nope'.*tactip331"):
+        load_pipeline_profile("nope")
+    with pytest.raises(ConfigError, match=r"scene: unknown scene 'x'; built-in scenes are \['roboskin'"):
+        builtin_toml("x", PROFILE_DIR, "scene", "scene")
+    assert builtin_toml("roboskin", PROFILE_DIR, "f", "profile") == PROFILE_DIR / "roboskin.toml"
+
+
+def test_bad_profile_names_the_field(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text('[profile]\nname="x"\nwidth=200\nheight=200\ndome_centre_px=[100,100]\n'
+                 'dome_radius_px=-3\npx_per_mm=5\ndome_radius_mm=15\npin_diameter_px=5\n'
+                 '[layout]\nkind="hex"\nhex_rings=3\npitch_px=10\n')
+    with pytest.raises(ConfigError, match=r"profile\.dome_radius_px .*-3"):
+        load_profile(p)
+
+
+def test_a_vision_only_profile_has_no_geometry(tmp_path):
+    p = tmp_path / "cal.toml"
+    p.write_text("[vision]\npitch_px=12.0\nn_pins=133\n")
+    assert load_pipeline_profile(p).n_pins == 133
+    with pytest.raises(ConfigError, match="profile"):
+        load_profile(p)
+
+
+def test_layouts_have_their_pin_counts_and_spacing():
+    hexp = hex_layout(3, 10.0, (50.0, 60.0))
+    assert hexp.shape == (1 + 3 * 3 * 4, 2)
+    assert np.allclose(hexp[0], [50.0, 60.0])
+    d = np.hypot(*(hexp[1:7] - hexp[0]).T)
+    assert np.allclose(d, 10.0)
+    rad = radial_layout([1, 6], [0.0, 5.0], [0.0, 90.0], (0.0, 0.0))
+    assert rad.shape == (7, 2)
+    assert np.allclose(rad[1], [0.0, 5.0], atol=1e-12)
