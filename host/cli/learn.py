@@ -9,17 +9,17 @@ from device.pi.models.artefact import ModelError, read_manifest
 from host.bench.report import build_report
 from host.cli.common import UserError, emit, json_default, real_data_dir
 from host.data.load import load_specs
-from host.data.splits import split_grouped
+from host.data.splits import split_holdout
 from host.data.windows import DataError
 from host.learn.cnn import quantise_cnn, train_cnn
 from host.learn.evaluate import evaluate_model
-from host.learn.tasks import TrainError
-from host.learn.train import train_model
+from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
+from host.learn.train import check_classes, train_model
 
 
-def _load_windows(args, task: str, window: int, min_classes: int = 2):
+def _load_windows(args, task: str, window: int, min_classes: int = 2, specs=None):
     try:
-        return load_specs(args.data, task=task, window=window,
+        return load_specs(specs or args.data, task=task, window=window,
                           contact_only=getattr(args, "contact_only", False),
                           profile=args.profile, progress=not args.json,
                           min_classes=min_classes)
@@ -32,14 +32,22 @@ def _jsonable(res: dict) -> dict:
 
 
 def cmd_train(args):
-    ws = _load_windows(args, args.task, args.window)
+    args.model = args.model or DEFAULT_MODEL[args.task]
+    if args.window is None:
+        args.window = DEFAULT_WINDOW[args.task]
+    if args.window < 1:
+        raise UserError(f"--window must be >= 1 frame, got {args.window}")
+    ws = _load_windows(args, args.task, args.window, min_classes=1)
+    ws_test = (_load_windows(args, args.task, args.window, min_classes=1, specs=args.test)
+               if args.test else None)
     try:
         if args.model == "cnn":
-            res = _train_cnn(args, ws)
+            res = _train_cnn(args, ws, ws_test)
         else:
-            res = train_model(args.task, args.model, ws, cv=args.cv, quantise=args.quantise,
-                              seed=args.seed, out_dir=args.out, progress=not args.json)
-    except TrainError as exc:
+            res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
+                              quantise=args.quantise, seed=args.seed, out_dir=args.out,
+                              progress=not args.json)
+    except (TrainError, DataError) as exc:
         raise UserError(str(exc)) from None
     res = _jsonable(res)
     m = res.get("metrics", {})
@@ -48,15 +56,21 @@ def cmd_train(args):
                          if isinstance(m.get(k), (int, float)))
     if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
         headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
-    emit(args, res, f"wrote {args.out}: {headline}")
+    emit(args, res, f"wrote {args.out} ({args.task} {args.model}, T={args.window}): "
+                    f"{headline}; held out: {res.get('holdout')}")
 
 
-def _train_cnn(args, ws):
+def _train_cnn(args, ws, ws_test=None):
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
-    tr, te = split_grouped(ws, test_frac=0.3, seed=args.seed)
-    res = train_cnn(ws.subset(tr), ws.subset(te), seed=args.seed, out_dir=args.out,
-                    progress=not args.json)
+    if ws_test is None:
+        tr, te, how = split_holdout(ws, 0.3, seed=args.seed)
+        ws, ws_test = ws.subset(tr), ws.subset(te)
+    else:
+        how = "given"
+    check_classes(ws, ws_test, ws.labels)
+    res = train_cnn(ws, ws_test, seed=args.seed, out_dir=args.out, progress=not args.json)
+    res["holdout"] = how
     if args.quantise:
         res["int8"] = quantise_cnn(res["onnx_path"], ws.subset(tr),
                                    Path(args.out) / "model.int8.onnx", seed=args.seed)
@@ -95,11 +109,17 @@ def register(sub) -> None:
     """The sub-commands train, eval and report."""
     s = sub.add_parser("train", help="train a surface/texture/slip/pressure model")
     s.add_argument("--task", required=True, choices=["surface", "texture", "slip", "pressure"])
-    s.add_argument("--model", required=True,
-                   choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"])
-    s.add_argument("--window", type=int, default=3, help="T, frames per window")
+    s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"],
+                   help="model kind (default per task: " +
+                   ", ".join(f"{t} {m}" for t, m in DEFAULT_MODEL.items()) + ")")
+    s.add_argument("--window", type=int,
+                   help="T, frames per window (default per task: " +
+                   ", ".join(f"{t} {w}" for t, w in DEFAULT_WINDOW.items()) + ")")
     s.add_argument("--data", action="append", required=True,
                    help="CSV manifest, dataset folder or .npz (repeatable)")
+    s.add_argument("--test", action="append",
+                   help="held-out data spec (repeatable); default: a split of --data that "
+                        "keeps every class (whole trials, else the end of each trial)")
     s.add_argument("--cv", type=int, help="also report grouped K-fold CV metrics")
     s.add_argument("--quantise", action="store_true", help="also write an int8 model")
     s.add_argument("--contact-only", action="store_true",

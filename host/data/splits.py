@@ -1,6 +1,7 @@
 """Splits that never leak: whole trials to one side (:func:`split_grouped`,
 :func:`group_kfold`) or, within each trial, earlier frames to train and later ones to
-test with a gap (:func:`split_time`). Each returns index arrays into a WindowSet."""
+test with a gap (:func:`split_time`). Each returns index arrays into a WindowSet.
+:func:`split_holdout` picks between the two so that no class is lost."""
 from __future__ import annotations
 
 from typing import Iterator
@@ -72,6 +73,49 @@ def split_time(ws: WindowSet, train_frac: float = 0.7, gap: int | None = None
                         f"{int(train.sum())} train and {int(test.sum())} test windows; "
                         f"the trials are too short for T={T}")
     return np.flatnonzero(train), np.flatnonzero(test)
+
+
+def missing_classes(ws: WindowSet, idx: np.ndarray, classes) -> list[str]:
+    """The ``classes`` that no window ``idx`` of ``ws`` carries."""
+    have = set() if ws.labels is None else {str(x) for x in ws.labels[idx]}
+    return sorted(str(c) for c in classes if str(c) not in have)
+
+
+def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: int = 32,
+                  grouped_frac: float = 0.25) -> tuple[np.ndarray, np.ndarray, str]:
+    """(train_idx, test_idx, how): a held-out split that keeps every class on both
+    sides.
+
+    Whole trials go to one side (:func:`split_grouped` holding out ``grouped_frac`` of
+    the trials; up to ``tries`` seeds from ``seed``) when that keeps every class in train and test. Otherwise, as with one
+    recording per class, each trial is split in time (:func:`split_time`): its first
+    ``1 - test_frac`` to train, its last ``test_frac`` to test, with a gap of T frames.
+    ``how`` says which, and why. A DataError names the classes that no split keeps.
+    """
+    classes = [] if ws.labels is None else sorted({str(x) for x in ws.labels})
+    n_groups = len(np.unique(ws.groups))
+    why = f"{n_groups} trial(s)"
+    if n_groups >= 2:
+        for k in range(tries):
+            tr, te = split_grouped(ws, grouped_frac, seed + k)
+            lost = missing_classes(ws, tr, classes) + missing_classes(ws, te, classes)
+            if not lost:
+                return tr, te, (f"grouped split: {len(np.unique(ws.groups[te]))} of "
+                                f"{n_groups} trials held out")
+        why = (f"no split of whole trials keeps every class on both sides "
+               f"(e.g. {sorted(set(lost))} would be lost)")
+    try:
+        tr, te = split_time(ws, 1.0 - test_frac)
+    except DataError as exc:
+        raise DataError(f"no held-out split: {why}, and {exc}") from None
+    lost_tr, lost_te = missing_classes(ws, tr, classes), missing_classes(ws, te, classes)
+    if lost_tr or lost_te:
+        raise DataError(f"no held-out split keeps every class: {why}, and the time split "
+                        f"leaves class(es) {sorted(set(lost_tr + lost_te))} without "
+                        f"{'training' if lost_tr else 'test'} windows (too few frames for "
+                        f"T={ws.window}); record more of them or give --test")
+    return tr, te, (f"time split within each trial: last {test_frac:.0%} held out after a "
+                    f"gap of {ws.window} frames, because {why}")
 
 
 def group_kfold(ws: WindowSet, k: int, seed: int = 0

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "LAYOUT", "TrainError", "QuantisationError",
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "LAYOUT", "TrainError", "QuantisationError",
            "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
@@ -23,6 +23,12 @@ MODELS = ("rule", "ridge", "fnn", "grid-fnn")
 #: which models serve which task
 TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn"), "texture": ("fnn", "grid-fnn"),
                "slip": ("rule", "fnn", "grid-fnn"), "pressure": ("ridge", "fnn")}
+#: ``host train`` without ``--model``: the kind that does best on real recordings where
+#: they exist (texture: roboskin clips; pressure: the soft-plate vectors), else on
+#: simulated data (surface, slip); see docs/accuracy-vs-time.md
+DEFAULT_MODEL = {"surface": "fnn", "texture": "grid-fnn", "slip": "fnn", "pressure": "ridge"}
+#: ``host train`` without ``--window``: frames per window T
+DEFAULT_WINDOW = {"surface": 3, "texture": 10, "slip": 3, "pressure": 1}
 LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids"}
 DEFAULT_HIDDEN = (64, 32)
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}

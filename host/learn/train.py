@@ -13,9 +13,11 @@ built by :mod:`device.pi.models.window`, the encoders the Pi runs
 probability); its detection latency in frames from the true onset is measured on
 the held-out trials (:func:`host.learn.metrics.slip_latency`).
 
-Held-out data: ``ws_test`` when given; otherwise a grouped split of the training
-trials (25 % of the trials, whole trials only) when there are at least two trials,
-else a time split within the trial. ``cv=K`` adds grouped K-fold cross-validation
+Held-out data: ``ws_test`` when given; otherwise :func:`host.data.splits.split_holdout`:
+about 30 % of the trials, whole trials only, when that keeps every class on both
+sides, else the last 30 % of each trial after a gap of T frames. A class that the
+data or the test windows carry but the training windows do not is a TrainError
+that names it. ``cv=K`` adds grouped K-fold cross-validation
 on the training windows (:func:`host.learn.cv.cross_validate_model`).
 
 Model folder::
@@ -36,7 +38,7 @@ import numpy as np
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION
 from host.data.dataset import atomic_write
-from host.data.splits import split_grouped, split_time
+from host.data.splits import split_holdout
 from host.data.windows import DataError, WindowSet
 from host.learn.cv import cross_validate_model
 from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hyperparameters,
@@ -50,7 +52,7 @@ from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_MODELS, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
                               label_ids)
 
-__all__ = ["train_model"]
+__all__ = ["train_model", "check_classes"]
 
 
 def _check_windows(ws, task: str, what: str) -> None:
@@ -72,14 +74,26 @@ def _check_windows(ws, task: str, what: str) -> None:
 
 def _holdout(ws, seed: int):
     """(train, test, how) when no test windows were given."""
-    if len(np.unique(ws.groups)) >= 2:
-        tr, te = split_grouped(ws, 0.25, seed)
-        return ws.subset(tr), ws.subset(te), "grouped split: 25% of the trials held out"
     try:
-        tr, te = split_time(ws, 0.7)
-        return ws.subset(tr), ws.subset(te), "time split: last 30% of the trial held out"
-    except DataError:
+        tr, te, how = split_holdout(ws, 0.3, seed)
+    except DataError as exc:
+        if len(np.unique(ws.groups)) >= 2 or (ws.t_index >= 0).all():
+            raise TrainError(str(exc)) from None
         return ws, None, "none: one trial without time order; metrics on the training windows"
+    return ws.subset(tr), ws.subset(te), how
+
+
+def check_classes(ws_train, ws_test, classes_wanted) -> None:
+    """A TrainError naming every class that the test windows or the data carry but
+    the training windows do not."""
+    have = {str(x) for x in ws_train.labels}
+    wanted = {str(x) for x in classes_wanted}
+    if ws_test is not None and ws_test.labels is not None:
+        wanted |= {str(x) for x in ws_test.labels}
+    missing = sorted(wanted - have)
+    if missing:
+        raise TrainError(f"class(es) {missing} have no training windows (training classes: "
+                         f"{sorted(have)}); add training data for them or drop them")
 
 
 def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = None,
@@ -128,6 +142,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         raise TrainError("out_dir is required: the folder to write the model to")
     _check_windows(ws_train, task, "ws_train")
     holdout = "given"
+    all_classes = [] if task == "pressure" else sorted({str(x) for x in ws_train.labels})
     if ws_test is None:
         ws_train, ws_test, holdout = _holdout(ws_train, seed)
     else:
@@ -179,6 +194,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         if not (y.std() > 0):
             raise TrainError(f"targets: every training target is {y[0]}; nothing to learn")
     else:
+        check_classes(ws_train, ws_test, all_classes)
         classes = sorted({str(x) for x in ws_train.labels})
         if len(classes) < 2:
             raise TrainError(f"labels: task {task} needs training windows of at least 2 "

@@ -7,7 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from host.data.load import load_spec
-from host.data.splits import group_kfold, split_grouped, split_time
+from host.data.splits import (group_kfold, missing_classes, split_grouped, split_holdout,
+                               split_time)
 from host.data.windows import DataError, WindowSet
 
 
@@ -99,3 +100,39 @@ def _untimed(ws):
     ws = ws.subset(np.arange(len(ws)))
     ws.t_index[:] = -1
     return ws
+
+
+def test_split_holdout_keeps_whole_trials_when_every_class_survives():
+    ws = synthetic([40] * 8, 3)                 # 4 trials per class
+    tr, te, how = split_holdout(ws, 0.3, seed=0)
+    assert how.startswith("grouped split")
+    assert set(ws.groups[tr]).isdisjoint(ws.groups[te])
+    assert set(ws.labels[tr]) == set(ws.labels[te]) == {"a", "b"}
+
+
+@pytest.mark.parametrize("n_trials", [1, 2, 3])
+def test_split_holdout_falls_back_to_time_within_each_trial_and_says_why(n_trials):
+    """One recording per class (the paper's data): a whole-trial split would lose a
+    class, so each trial's last 30 % is held out after a gap of T frames."""
+    T = 4
+    ws = synthetic([60] * n_trials, T, labels=("a", "b", "c")[:n_trials])
+    tr, te, how = split_holdout(ws, 0.3, seed=0)
+    assert how.startswith("time split within each trial")
+    assert "gap of 4 frames" in how
+    assert set(ws.labels[tr]) == set(ws.labels[te]) == set(ws.labels)
+    for g in np.unique(ws.groups):
+        last_train = ws.t_index[tr][ws.groups[tr] == g].max()
+        first_test = (ws.t_index[te][ws.groups[te] == g] - T + 1).min()
+        assert first_test - last_train >= T         # the gap: no frame shared, T apart
+        assert first_test >= int(0.7 * 60)
+
+
+def test_split_holdout_names_a_class_no_split_can_keep():
+    ws = synthetic([6, 60], 5, labels=("rare", "common"))   # 2 windows of "rare"
+    with pytest.raises(DataError, match=r"no held-out split keeps every class.*\[.rare.\]"):
+        split_holdout(ws, 0.3, seed=0)
+
+
+def test_missing_classes_lists_absent_ones():
+    ws = synthetic([10, 10], 2)
+    assert missing_classes(ws, np.flatnonzero(ws.groups == 0), ["a", "b", "z"]) == ["b", "z"]
