@@ -171,30 +171,7 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
     )
     f.done()
 
-    lay = top.sub("layout")
-    kind = lay.string("kind", choices=("radial", "hex"))
-    lay_centre = lay.pair("centre_px", centre)
-    if kind == "radial":
-        rings = lay.number_list("rings", integer=True, min=1)
-        radii = lay.number_list("ring_radii_px", min=0)
-        phases = lay.number_list("ring_phase_deg", [0.0] * len(rings))
-        if not (len(rings) == len(radii) == len(phases)):
-            lay.fail("layout.ring_radii_px", radii, f"must have one entry per ring ({len(rings)})")
-        pins = radial_layout(rings, radii, phases, lay_centre)
-    else:
-        n_rings = lay.integer("hex_rings", min=0, max=60)
-        pitch = lay.number("pitch_px", min=0, min_exclusive=True)
-        count = lay.integer("count", 0, min=0)
-        pins = hex_layout(n_rings, pitch, lay_centre)
-        # a hexagon's corners can stick out of a round dome: keep what fits, and
-        # with ``count`` the pins nearest the centre (a hex grid cut to a disc)
-        keep = np.hypot(*(pins - centre).T) <= dome_r - pin_d / 2
-        pins = pins[keep]
-        if count:
-            if count > len(pins):
-                lay.fail("layout.count", count, f"must be <= the {len(pins)} pins that fit")
-            pins = pins[np.argsort(np.hypot(*(pins - lay_centre).T), kind="stable")[:count]]
-    lay.done()
+    pins = _layout_pins(top.sub("layout"), centre, dome_r, pin_d)
 
     top.raw("vision")      # the pipeline's section (parse_pipeline_profile)
     glare = GlareSpec()
@@ -217,6 +194,72 @@ def parse_profile(doc: dict, source: str = "") -> SensorProfile:
                          pin_diameter_px=pin_d, style=style, dome_level=dome_level,
                          pin_level=pin_level, surround_level=surround_level, vignette=vignette,
                          pins_px=pins, glare=glare, rim_radius_px=rim_r, **mech)
+
+
+def _layout_pins(lay: Fields, centre: tuple[float, float], dome_r: float | None,
+                 pin_d: float | None) -> np.ndarray:
+    """The rest pin positions (M, 2) px of a ``[layout]`` section: ``radial`` rings,
+    a ``hex`` grid cut to the dome, or measured ``points`` (``pins_px = [[x, y], ...]``,
+    as ``host calibrate`` writes them)."""
+    kind = lay.string("kind", choices=("radial", "hex", "points"))
+    if kind == "points":
+        raw = lay.raw("pins_px")
+        try:
+            pins = np.asarray(raw, np.float64)
+        except (TypeError, ValueError):
+            pins = np.zeros((0, 3))
+        if pins.ndim != 2 or pins.shape[1:] != (2,) or len(pins) == 0 \
+                or not np.isfinite(pins).all():
+            lay.fail("layout.pins_px", raw if isinstance(raw, (int, float, str)) else
+                     f"<{type(raw).__name__}>", "must be a non-empty list of finite [x, y] pairs")
+        lay.done()
+        return pins
+    lay_centre = lay.pair("centre_px", centre)
+    if kind == "radial":
+        rings = lay.number_list("rings", integer=True, min=1)
+        radii = lay.number_list("ring_radii_px", min=0)
+        phases = lay.number_list("ring_phase_deg", [0.0] * len(rings))
+        if not (len(rings) == len(radii) == len(phases)):
+            lay.fail("layout.ring_radii_px", radii, f"must have one entry per ring ({len(rings)})")
+        pins = radial_layout(rings, radii, phases, lay_centre)
+    else:
+        n_rings = lay.integer("hex_rings", min=0, max=60)
+        pitch = lay.number("pitch_px", min=0, min_exclusive=True)
+        count = lay.integer("count", 0, min=0)
+        pins = hex_layout(n_rings, pitch, lay_centre)
+        # a hexagon's corners can stick out of a round dome: keep what fits, and
+        # with ``count`` the pins nearest the centre (a hex grid cut to a disc)
+        if dome_r is not None:
+            keep = np.hypot(*(pins - centre).T) <= dome_r - (pin_d or 0.0) / 2
+            pins = pins[keep]
+        if count:
+            if count > len(pins):
+                lay.fail("layout.count", count, f"must be <= the {len(pins)} pins that fit")
+            pins = pins[np.argsort(np.hypot(*(pins - lay_centre).T), kind="stable")[:count]]
+    lay.done()
+    return pins
+
+
+def load_layout(name_or_path: str | Path) -> np.ndarray:
+    """The fixed pin layout (M, 2) px of a built-in profile or a profile TOML: its
+    ``[layout]`` section, which a calibrated profile (``[vision]`` + ``[layout]
+    kind = "points"``) has without the simulator's ``[profile]`` geometry."""
+    p = builtin_toml(name_or_path, PROFILE_DIR, "sensor.profile", "profile")
+    doc = read_toml(p)
+    if isinstance(doc.get("profile"), dict) and "width" in doc["profile"]:
+        return load_profile(p).pins_px
+    top = Fields(doc, "", str(p))
+    if not top.has("layout"):
+        top.fail("layout", None, "section is required: the rest pin layout (host calibrate "
+                                 "writes it from no-contact frames)")
+    centre = (0.0, 0.0)
+    if isinstance(doc.get("vision"), dict) and isinstance(doc["vision"].get("dome_px"), list) \
+            and len(doc["vision"]["dome_px"]) == 3:
+        centre = tuple(float(v) for v in doc["vision"]["dome_px"][:2])
+    pins = _layout_pins(top.sub("layout"), centre, None, None)
+    if len(pins) == 0:
+        raise ConfigError(f"{p}: layout gives no pins")
+    return pins
 
 
 # ---------------------------------------------------------------- [vision]

@@ -4,8 +4,10 @@ It finds the dome, then searches the adaptive-threshold block and offset for
 the setting under which the blobs look most like a pin lattice: many blobs, a
 steady count from frame to frame, and nearest-neighbour distances that agree
 with each other. Blob-size limits and the pin pitch follow from the blobs
-found with that setting. The result is a ``[vision]`` section
-(``device/profile.py``) that the Pi loads as it is.
+found with that setting, and the rest pin layout (the pins found in most of the
+frames, at their median positions) from the same frames. The result is a
+``[vision]`` and a ``[layout]`` section (``device/profile.py``) that the Pi loads as
+it is and that ``host train --profile`` maps every frame onto.
 """
 from __future__ import annotations
 
@@ -14,6 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
+from device.pi.vision.matching import match_pins
+from device.pi.vision.pipeline import MarkerStream
+from device.profile import parse_pipeline_profile
 from host.analysis.frames import nearest_neighbour_px
 from host.data.dataset import atomic_write_text
 
@@ -81,9 +86,58 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated") -> dict:
     _, fin = _score(grays, final, dome)
     if fin is not None:
         vision["n_pins"] = int(round(fin["count"]))
-    return {"name": name, "vision": vision, "frames": len(grays),
+    layout = rest_layout(grays, final, dome, vision["pitch_px"])
+    vision.update(rest_contact(grays, vision))
+    return {"name": name, "vision": vision, "layout": layout, "frames": len(grays),
             "fit": {"score": score, "regular_fraction": info["regular"],
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
+
+
+#: a rest pin must be found in at least this share of the calibration frames
+MIN_SEEN = 0.5
+
+
+def rest_layout(grays, params: VisionParams, dome, pitch_px: float) -> list[list[float]]:
+    """The rest pin layout [[x, y], ...] px: the pins of the frame with the most
+    detections, each matched in every frame within 0.4 pitch, kept when seen in at
+    least ``MIN_SEEN`` of the frames, at its median position; sorted by angle
+    around the dome centre within rings of one pitch, so the order is stable."""
+    det = PinDetector(params, grays[0].shape, dome)
+    found = [det.detect(g)[0].astype(np.float64) for g in grays]
+    ref = max(found, key=len)
+    pos = np.full((len(found), len(ref), 2), np.nan)
+    for k, xy in enumerate(found):
+        idx = match_pins(ref, xy, 0.4 * pitch_px)
+        ok = idx >= 0
+        pos[k, ok] = xy[idx[ok]]
+    seen = np.isfinite(pos[..., 0]).mean(axis=0) >= MIN_SEEN
+    pins = np.nanmedian(pos[:, seen], axis=0) if seen.any() else np.zeros((0, 2))
+    d = pins - np.asarray(dome[:2], np.float64)
+    ring = np.round(np.hypot(d[:, 0], d[:, 1]) / max(pitch_px, 1e-9))
+    order = np.lexsort((np.arctan2(d[:, 1], d[:, 0]), ring))
+    return [[round(float(x), 2), round(float(y), 2)] for x, y in pins[order]]
+
+
+#: contact thresholds sit this far above the largest value seen on the rest frames
+CONTACT_MARGIN = 1.5
+
+
+def rest_contact(grays, vision: dict) -> dict:
+    """``grid_contact`` and ``contact_px`` for the fitted ``vision``: the defaults,
+    raised to ``CONTACT_MARGIN`` times the largest contact-grid cell change and
+    mean pin displacement that the rest frames show, so that none of them reads as
+    contact (a low threshold offset gives a busier binary image than the default)."""
+    prof = parse_pipeline_profile({"vision": dict(vision)}, source="<calibrate>")
+    stream = MarkerStream(prof)
+    grid_max, mag_max = 0.0, 0.0
+    for g in grays:
+        ff = stream.process(g)
+        if stream.reference is not None:
+            grid_max = max(grid_max, float(ff.grid.max()))
+            mag_max = max(mag_max, float(ff.magnitude_sum) / max(1, len(ff.vectors)))
+    return {"grid_contact": round(min(1.0, max(prof.grid_contact,
+                                               CONTACT_MARGIN * grid_max)), 4),
+            "contact_px": round(max(prof.contact_px, CONTACT_MARGIN * mag_max), 3)}
 
 
 def profile_toml(res: dict) -> str:
@@ -93,9 +147,16 @@ def profile_toml(res: dict) -> str:
              f"lattice spacing; count steadiness {res['fit']['count_steadiness']:.3f}.",
              "[profile]", f'name = "{res["name"]}"', "", "[vision]"]
     for k in ("block", "offset", "blur_sigma_px", "min_area_px", "max_area_px", "roi_shrink",
-              "pitch_px", "n_pins"):
+              "pitch_px", "n_pins", "grid_contact", "contact_px"):
         lines.append(f"{k} = {v[k]}")
     lines.append(f"dome_px = [{', '.join(str(x) for x in v['dome_px'])}]")
+    lay = res.get("layout") or []
+    if lay:
+        lines += ["", f"# the rest pin layout: {len(lay)} pins found in at least "
+                      f"{MIN_SEEN:.0%} of the frames; every model reads them in this order",
+                  "[layout]", 'kind = "points"', "pins_px = ["]
+        lines += [f"  [{x}, {y}]," for x, y in lay]
+        lines.append("]")
     return "\n".join(lines) + "\n"
 
 

@@ -70,3 +70,36 @@ def test_layouts_have_their_pin_counts_and_spacing():
     rad = radial_layout([1, 6], [0.0, 5.0], [0.0, 90.0], (0.0, 0.0))
     assert rad.shape == (7, 2)
     assert np.allclose(rad[1], [0.0, 5.0], atol=1e-12)
+
+
+def test_a_points_layout_loads_without_simulator_geometry(tmp_path):
+    from device.profile import load_layout
+    p = tmp_path / "cal.toml"
+    p.write_text('[vision]\npitch_px = 10\nn_pins = 3\n\n[layout]\nkind = "points"\n'
+                 'pins_px = [[1, 2], [3.5, 4], [5, 6]]\n')
+    assert load_layout(p).tolist() == [[1, 2], [3.5, 4], [5, 6]]
+    assert load_pipeline_profile(p).n_pins == 3
+
+
+@pytest.mark.parametrize("layout,match", [
+    ('kind = "points"\npins_px = [[1, 2, 3]]', "layout.pins_px must be a non-empty list"),
+    ('kind = "points"\npins_px = []', "layout.pins_px must be a non-empty list"),
+    ('kind = "points"\npins_px = "x"', "layout.pins_px must be a non-empty list"),
+    ('kind = "grid"', "layout.kind"),
+])
+def test_a_bad_points_layout_is_one_clear_error(tmp_path, layout, match):
+    from device.config import ConfigError
+    from device.profile import load_layout
+    p = tmp_path / "cal.toml"
+    p.write_text(f"[vision]\npitch_px = 10\nn_pins = 3\n\n[layout]\n{layout}\n")
+    with pytest.raises(ConfigError, match=match):
+        load_layout(p)
+
+
+def test_a_vision_only_profile_names_the_missing_layout(tmp_path):
+    from device.config import ConfigError
+    from device.profile import load_layout
+    p = tmp_path / "old.toml"
+    p.write_text("[vision]\npitch_px = 10\nn_pins = 3\n")
+    with pytest.raises(ConfigError, match="layout.*host calibrate"):
+        load_layout(p)

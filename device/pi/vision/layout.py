@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from device.pi.vision.matching import match_pins
-from device.profile import load_profile
+from device.profile import load_layout
 
 __all__ = ["LayoutError", "layout_assignment", "to_layout", "LayoutMapper",
            "layout_for_profile", "binary_crop"]
@@ -106,10 +106,11 @@ class LayoutMapper:
 
 
 def layout_for_profile(profile: str) -> np.ndarray:
-    """The fixed pin layout (M, 2) px of a sensor profile (ring by ring for roboskin)."""
+    """The fixed pin layout (M, 2) px of a sensor profile (ring by ring for roboskin;
+    measured rest pins for a profile from ``host calibrate``)."""
     try:
-        return np.asarray(load_profile(profile).pins_px, np.float64)
-    except Exception as exc:   # a calibrated [vision]-only file has no layout
+        return np.asarray(load_layout(profile), np.float64)
+    except Exception as exc:   # a [vision]-only file has no layout
         raise LayoutError(f"profile {profile!r}: no fixed pin layout ([profile]/[layout]) to "
                         f"map pins onto: {exc}") from None
 

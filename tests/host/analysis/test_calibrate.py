@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 
 from device.profile import ProfileError, load_pipeline_profile, parse_pipeline_profile
@@ -58,3 +60,49 @@ def test_calibrate_without_a_dome_is_exit_2(tmp_path, capsys):
 def test_bad_profile_gets_one_clear_error(vision, match):
     with pytest.raises(ProfileError, match=match):
         parse_pipeline_profile({"vision": vision}, source="p.toml")
+
+
+def _rest_contact_frames(clip, profile, n_rest):
+    from device.pi.vision.encoder import FrameEncoder
+    from tests.realdata import read_video
+    enc = FrameEncoder(profile, crop_px=None)
+    return sum(enc.encode(f).features.contact for f in read_video(clip, 0, n_rest))
+
+
+def test_a_calibrated_profile_carries_the_rest_layout_and_reads_rest_as_rest(tmp_path):
+    """From smooth.avi's leading rest frames: a [layout] of measured pins that the
+    frame encoder maps onto, and no more rest frames read as contact than with the
+    default profile."""
+    from device.pi.vision.encoder import FrameEncoder
+    from device.profile import load_layout
+    from tests.realdata import real_data_dir
+    clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    out = tmp_path / "my-sensor.toml"
+    assert main(["calibrate", str(clip), "--out", str(out), "--frames", "12"]) == 0
+    lay = load_layout(out)
+    assert 110 <= len(lay) <= 150 and np.isfinite(lay).all()
+    d = np.hypot(*(lay[:, None] - lay[None]).transpose(2, 0, 1)) + np.eye(len(lay)) * 1e9
+    assert np.median(d.min(axis=1)) == pytest.approx(11.7, rel=0.1)   # the pin pitch
+    enc = FrameEncoder(str(out), crop_px=None)
+    assert enc.n_pins == len(lay)
+    assert _rest_contact_frames(clip, str(out), 12) <= _rest_contact_frames(clip, "roboskin", 12)
+
+
+def test_train_takes_a_calibrated_profile(tmp_path, capsys):
+    from device.profile import load_layout
+    from tests.realdata import real_data_dir
+    clips = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi") / "roboskin"
+    prof = tmp_path / "my-sensor.toml"
+    assert main(["calibrate", str(clips / "smooth.avi"), "--out", str(prof)]) == 0
+    spec = tmp_path / "tex.csv"
+    spec.write_text(f"path,label\n{clips / 'smooth.avi'},smooth\n"
+                    f"{clips / 'concrete.avi'},concrete\n")
+    capsys.readouterr()
+    assert main(["train", "--task", "texture", "--model", "fnn", "--window", "2",
+                 "--data", str(spec), "--contact-only", "--profile", str(prof),
+                 "--out", str(tmp_path / "m"), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    n = len(load_layout(prof))
+    assert man["input"]["shape"][1] >= n * 2 * 2           # T=2 frames of M (x, y) vectors
+    assert res["metrics"]["test"]["accuracy"] > 0.6

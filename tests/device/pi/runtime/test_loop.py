@@ -452,7 +452,7 @@ def model_dir(tmp_path_factory):
 
     from host.learn.train import train_model
     d = tmp_path_factory.mktemp("models")
-    ws = synthetic(n_groups=4, per_group=12, n_pins=133, Tn=3,
+    ws = synthetic(n_groups=4, per_group=30, n_pins=133, Tn=3,
                    classes=("hard", "no-touch", "slippery", "soft"))
     train_model("surface", "fnn", ws, quantise=True, out_dir=d / "surface", progress=False,
                 hidden=(8, 4), epochs=20, min_agreement=0.01)
