@@ -1,9 +1,13 @@
-"""``host rig check`` and ``host rig run``: the data-collection rig."""
+"""``host rig check``, ``host rig run`` (the data-collection rig) and ``host record``
+(a labelled trial from any camera, without the rig)."""
 from __future__ import annotations
 
 from pathlib import Path
 
-from host.cli.common import UserError, emit
+from device.pi.sources.camera import CameraError
+from device.pi.sources.imu import IMUError, open_imu
+from host.cli.common import UserError, emit, open_source, progress_bar
+from host.rig.record import RecordError, record
 from host.rig.plan import load_plan, plan_summary
 from host.rig.trials import run, summary_text
 
@@ -25,8 +29,46 @@ def cmd_rig(args):
     return 1 if s["failed"] or s["remaining"] else 0
 
 
+def cmd_record(args):
+    camera = open_source(args.camera)
+    imu = None
+    if args.imu:
+        try:
+            imu = open_imu(args.imu)
+        except (IMUError, ValueError) as exc:
+            camera.close()
+            raise UserError(f"--imu {args.imu}: {exc}") from None
+    fps = getattr(camera, "fps", None) or 120.0
+    try:
+        with camera, progress_bar(int(round(args.seconds * fps)), f"record {args.label}",
+                                  not args.json) as bar:
+            entry = record(camera, imu, args.label, args.seconds, args.out,
+                           camera_url=args.camera, imu_url=args.imu or "",
+                           progress=bar.update)
+    except (RecordError, CameraError, IMUError) as exc:
+        raise UserError(f"host record: {exc}; nothing was added to {args.out}") from None
+    finally:
+        if imu is not None:
+            imu.close()
+    emit(args, entry, f"wrote {entry['path']}: {entry['frames']} frames of {args.label!r} "
+                      f"({entry['seconds']:.2f} s" + (f", {entry['fps']:.1f} fps" if entry["fps"]
+                                                      else "") + ")")
+    return 0
+
+
 def register(sub) -> None:
-    """The sub-command rig, with check and run."""
+    """The sub-commands rig (check and run) and record."""
+    s = sub.add_parser("record", help="record a labelled trial from a camera, without the rig")
+    s.add_argument("--camera", required=True,
+                   help="v4l2:///dev/video0, a video file, a folder of images or sim://SCENE")
+    s.add_argument("--imu", help="i2c://1/0x68, file://imu.npy or sim://SCENE (optional)")
+    s.add_argument("--label", required=True, help="the surface or texture name, e.g. lego")
+    s.add_argument("--seconds", type=float, default=30.0,
+                   help="how long to record (a file source may end sooner); default 30")
+    s.add_argument("--out", required=True, help="dataset folder to append the trial to")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_record)
+
     s = sub.add_parser("rig", help="data-collection rig: validate and run trial files")
     rig_sub = s.add_subparsers(dest="rig_command", required=True)
     r = rig_sub.add_parser("check", help="validate a trial file (nothing moves)")

@@ -1,5 +1,6 @@
-"""A dataset folder data spec (written by ``host simulate``): labels, contact and
-load per frame from the simulator's truth."""
+"""A dataset folder data spec (written by ``host simulate``, ``host rig run`` or
+``host record``): labels, contact and load per frame from the trial's truth; a
+recorded trial without contact truth takes contact from the marker pipeline."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -26,6 +27,7 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
     if task in names and not names[task]:
         raise DataError(f"{path}: dataset.json has no {task}_labels")
     parts, trials, dropped_ref = [], {}, 0
+    contact_from: set = set()
     for i, entry in enumerate(entries):
         fname = entry.get("file", f"trial {i}")
         if entry.get("profile") not in (None, profile) and not str(profile).endswith(".toml"):
@@ -51,13 +53,22 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
                      if k in tr}
             cache[key] = (clip, truth)
         F = clip.n_frames
-        for k in ("contact", "surface", "texture", "slip", "load_n"):
+        need = {"surface": "surface", "texture": "texture", "slip": "slip",
+                "pressure": "load_n"}[task]
+        for k in ("contact", need):
+            if k == "contact" and k not in truth:
+                continue        # a recording without the rig: contact from the pipeline
             if k not in truth or len(truth[k]) != F:
-                raise DataError(f"{path / fname}: truth array {k!r} is missing or not one per "
-                                f"frame ({F} frames)")
+                why = ("is missing" if k not in truth else
+                       f"has {len(truth[k])} rows, not one per frame ({F} frames)")
+                raise DataError(f"{path / fname}: truth array {k!r} {why}"
+                                + (f"; task {task} needs it (a trial recorded without the "
+                                   f"rig has only its label)" if k not in truth else ""))
         ends, nref = window_ends(clip.ready, 0, F, T, stride)
         dropped_ref += nref
-        contact = np.asarray(truth["contact"], bool)[ends]
+        contact_from.add("truth" if "contact" in truth else "pipeline")
+        contact = (np.asarray(truth["contact"], bool) if "contact" in truth
+                   else np.asarray(clip.contact, bool))[ends]
         labels = targets = None
         if task in ("surface", "texture"):
             codes = np.asarray(truth[task], np.int64)[ends]
@@ -86,7 +97,7 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
         if dropped_ref else []
     src = {"specs": [str(path)], "trials": [dict(v, group=i) for i, v in enumerate(trials.values())],
            "windows_cut": cut, "windows_kept": kept, "contact_only": contact_only,
-           "kept_fraction": kept / cut if cut else 1.0, "contact_from": "truth", "notes": notes,
+           "kept_fraction": kept / cut if cut else 1.0, "contact_from": sorted(contact_from), "notes": notes,
            "extract_frames": sum(p.clip.n_frames for p in parts),
            "extract_s": sum(p.clip.seconds for p in parts)}
     return finalise(WindowSet(task=task, window=T, classes=[], source=src, **arrays),

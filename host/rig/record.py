@@ -1,0 +1,134 @@
+"""``host record``: a labelled trial from any camera (and IMU) without the rig.
+
+One call records one trial of ``seconds`` of frames (or until a file source ends)
+with one label, and appends it to a dataset folder (:mod:`host.data.dataset`), as
+``host rig run`` does: the trial file is written under a temporary name and renamed
+when complete, then the index. Frames are spooled to a temporary file in the
+folder while they arrive, so a 30 s, 120 fps recording does not sit in memory; a
+crash or Ctrl-C loses only the trial being recorded and leaves no temporary file.
+
+A recorded trial has no ground truth for contact or load: the dataset loader takes
+contact from the marker pipeline (as for a CSV manifest of clips), and the label is
+the surface and texture name of every contact frame. ``dataset.json`` keeps the
+labels in ``record_labels`` (the ``surface_labels`` and ``texture_labels`` of the
+folder) and each trial's ``label``, ``camera`` and ``imu``.
+"""
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.sources.camera import CameraSource
+from device.pi.sources.imu import ImuSource
+from host.data.dataset import DatasetError, DatasetWriter, is_dataset, read_index
+
+__all__ = ["RecordError", "record", "LABEL_RE"]
+
+#: a label: letters, digits, '-', '_' and '.', starting with a letter or digit
+LABEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: labels the loader gives windows without contact; not a recorded class
+RESERVED = ("none", "no-touch")
+
+
+class RecordError(ValueError):
+    """A bad argument or an unusable output folder; the message names it."""
+
+
+def _labels(writer: DatasetWriter, label: str) -> list[str]:
+    idx = writer.index
+    if idx.get("source") not in (None, "record"):
+        raise RecordError(f"{writer.dir}: a {idx['source']!r} dataset; record into its own "
+                          f"folder")
+    names = list(idx.get("record_labels") or [])
+    if label not in names:
+        names.append(label)
+    return names
+
+
+def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: float,
+           out: Path | str, *, camera_url: str = "", imu_url: str = "",
+           progress=None) -> dict:
+    """Record frames from ``camera`` for ``seconds`` of stream time (or until it
+    ends), one IMU row per frame from ``imu`` when given, and append the trial to
+    the dataset folder ``out``. ``progress``: a callable taking the number of new
+    frames (a progress bar's ``update``). Returns the trial's index entry."""
+    if not isinstance(label, str) or not LABEL_RE.fullmatch(label) or label in RESERVED:
+        raise RecordError(f"--label must be 1-64 letters, digits, '-', '_' or '.', and not "
+                          f"{' or '.join(RESERVED)}; got {label!r}")
+    if not (isinstance(seconds, (int, float)) and np.isfinite(seconds) and seconds > 0):
+        raise RecordError(f"--seconds must be a number > 0, got {seconds!r}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RecordError(f"--out {out}: exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not is_dataset(out):
+        raise RecordError(f"--out {out}: a folder that is not a tacfoot dataset; choose an "
+                          f"empty or new folder")
+    if not out.parent.is_dir():
+        raise RecordError(f"--out {out}: the parent folder {out.parent} does not exist")
+    try:
+        if is_dataset(out):
+            read_index(out)
+        writer = DatasetWriter(out)
+    except DatasetError as exc:
+        raise RecordError(str(exc)) from None
+    names = _labels(writer, label)
+
+    fd, spool = tempfile.mkstemp(prefix=".record.", suffix=".tmp", dir=out)
+    shape = None
+    t_s, imu_rows, imu_faults = [], [], []
+    t_wall = time.time()
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            t0 = None
+            for fr in camera:
+                img = fr.image
+                if img.ndim == 3:
+                    import cv2
+                    img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+                if shape is None:
+                    shape = img.shape
+                    t0 = fr.t_s
+                elif img.shape != shape:
+                    raise RecordError(f"{camera_url or camera}: frame {fr.index} is "
+                                      f"{img.shape[1]}x{img.shape[0]}, the first was "
+                                      f"{shape[1]}x{shape[0]}")
+                if fr.t_s - t0 >= seconds:
+                    break
+                fh.write(np.ascontiguousarray(img, np.uint8).tobytes())
+                t_s.append(fr.t_s - t0)
+                if imu is not None:
+                    v, f = imu.read()
+                    imu_rows.append(np.array(v, np.float32))
+                    imu_faults.append(int(f))
+                if progress is not None:
+                    progress(1)
+        n = len(t_s)
+        if n == 0:
+            raise RecordError(f"{camera_url or camera}: no frames")
+        frames = np.memmap(spool, np.uint8, "r", shape=(n, *shape))
+        code = names.index(label)
+        truth = {"t_s": np.asarray(t_s, np.float64),
+                 "surface": np.full(n, code, np.int8), "texture": np.full(n, code, np.int8)}
+        if imu is not None:
+            truth["imu"] = np.stack(imu_rows)
+            truth["imu_faults"] = np.asarray(imu_faults, np.uint16)
+        fps = (n - 1) / t_s[-1] if n > 1 and t_s[-1] > 0 else None
+        writer.index.update({"source": "record", "record_labels": names,
+                             "surface_labels": names, "texture_labels": names})
+        info = {"label": label, "camera": camera_url, "imu": imu_url or None,
+                "fps": None if fps is None else round(fps, 3), "width": int(shape[1]),
+                "height": int(shape[0]), "recorded_at": round(t_wall, 3),
+                "seconds": round(float(t_s[-1]), 4)}
+        path = writer.add_trial(frames, truth, info)
+        del frames
+        return dict(writer.index["trials"][-1], path=str(path))
+    finally:
+        try:
+            os.unlink(spool)
+        except FileNotFoundError:
+            pass

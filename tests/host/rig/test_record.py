@@ -1,0 +1,85 @@
+"""host record (host.rig.record): a labelled dataset from any camera without the rig,
+written atomically and read back by the dataset loader."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from host.cli import main
+from host.data.dataset import load_trial, read_index
+from host.data.load import load_spec
+from tests.realdata import real_data_dir
+
+
+def test_record_from_the_simulator_appends_labelled_trials(tmp_path, capsys):
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", "sim://drag-90", "--imu", "sim://drag-90",
+                 "--label", "hard", "--seconds", "0.5", "--out", str(out), "--json"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert main(["record", "--camera", "sim://press-soft", "--label", "soft",
+                 "--seconds", "0.25", "--out", str(out)]) == 0
+    idx = read_index(out)
+    assert idx["source"] == "record" and idx["record_labels"] == ["hard", "soft"]
+    assert [t["label"] for t in idx["trials"]] == ["hard", "soft"]
+    t0 = load_trial(out, 0)
+    assert t0["frames"].shape[0] == first["frames"] == 60          # 0.5 s at 120 fps
+    assert t0["imu"].shape == (60, 6) and np.isfinite(t0["imu"]).all()
+    assert (t0["surface"] == 0).all() and (load_trial(out, 1)["surface"] == 1).all()
+    assert np.all(np.diff(t0["t_s"]) > 0)
+    assert not list(out.glob("*.tmp")) and not list(out.glob(".*tmp"))
+
+
+def test_a_recorded_real_clip_trains_like_the_clip_itself(tmp_path):
+    """The real clips as file sources: the recorded trials load as windows with
+    contact from the pipeline, the same windows as a CSV manifest of the clips."""
+    clips = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi",
+                          "roboskin/concrete_gyro.npy") / "roboskin"
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clips / "concrete.avi"), "--imu",
+                 f"file://{clips / 'concrete_gyro.npy'}", "--label", "concrete",
+                 "--seconds", "1.5", "--out", str(out)]) == 0
+    assert main(["record", "--camera", str(clips / "smooth.avi"), "--label", "smooth",
+                 "--seconds", "1.5", "--out", str(out)]) == 0
+    ws = load_spec(str(out), "texture", 3, contact_only=True, progress=False)
+    assert set(ws.labels) == {"concrete", "smooth"}
+    assert ws.source["contact_from"] == ["pipeline"]
+    man = tmp_path / "clips.csv"
+    man.write_text(f"path,label,start_frame,end_frame\n{clips / 'concrete.avi'},concrete,0,"
+                   f"{load_trial(out, 0)['frames'].shape[0]}\n")
+    ref = load_spec(str(man), "texture", 3, contact_only=True, progress=False, min_classes=1)
+    n0 = int((ws.groups == ws.groups[0]).sum())
+    assert n0 == len(ref)
+    assert np.array_equal(ws.vectors[:n0], ref.vectors)
+
+
+def test_record_refuses_bad_input_with_one_line(tmp_path, capsys):
+    assert main(["record", "--camera", "sim://drag-90", "--label", "no touch!",
+                 "--seconds", "1", "--out", str(tmp_path / "a")]) == 2
+    assert "--label" in capsys.readouterr().err
+    assert main(["record", "--camera", "sim://drag-90", "--label", "x",
+                 "--seconds", "-1", "--out", str(tmp_path / "a")]) == 2
+    assert "--seconds" in capsys.readouterr().err
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("mine")
+    assert main(["record", "--camera", "sim://drag-90", "--label", "x", "--seconds", "0.1",
+                 "--out", str(tmp_path / "other")]) == 2
+    assert "not a tacfoot dataset" in capsys.readouterr().err
+
+
+def test_a_failed_recording_leaves_the_dataset_as_it_was(tmp_path, capsys):
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i, size in enumerate([(40, 40)] * 3 + [(50, 40)]):
+        cv2.imwrite(str(folder / f"f{i}.png"), np.full(size, 100, np.uint8))
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", "sim://drag-90", "--label", "a", "--seconds", "0.1",
+                 "--out", str(out)]) == 0
+    before = sorted(p.name for p in out.iterdir())
+    assert main(["record", "--camera", str(folder), "--label", "b", "--seconds", "10",
+                 "--out", str(out)]) == 2
+    assert "first is 40x40" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == before
+    assert len(read_index(out)["trials"]) == 1
