@@ -240,14 +240,22 @@ def _layout_pins(lay: Fields, centre: tuple[float, float], dome_r: float | None,
     return pins
 
 
+def has_sim_geometry(name_or_path: str | Path) -> bool:
+    """Whether a profile carries the simulator's ``[profile]`` geometry (image size,
+    dome, optics), as the built-in ones do; a calibrated profile does not."""
+    p = builtin_toml(name_or_path, PROFILE_DIR, "sensor.profile", "profile")
+    doc = read_toml(p)
+    return isinstance(doc.get("profile"), dict) and "width" in doc["profile"]
+
+
 def load_layout(name_or_path: str | Path) -> np.ndarray:
     """The fixed pin layout (M, 2) px of a built-in profile or a profile TOML: its
     ``[layout]`` section, which a calibrated profile (``[vision]`` + ``[layout]
     kind = "points"``) has without the simulator's ``[profile]`` geometry."""
     p = builtin_toml(name_or_path, PROFILE_DIR, "sensor.profile", "profile")
-    doc = read_toml(p)
-    if isinstance(doc.get("profile"), dict) and "width" in doc["profile"]:
+    if has_sim_geometry(p):
         return load_profile(p).pins_px
+    doc = read_toml(p)
     top = Fields(doc, "", str(p))
     if not top.has("layout"):
         top.fail("layout", None, "section is required: the rest pin layout (host calibrate "

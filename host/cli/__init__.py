@@ -10,11 +10,11 @@ import argparse
 import sys
 
 from device.config import ConfigError
-from host.cli import analyse, bench, deploy, learn, monitor, rig, sim
+from host.cli import analyse, bench, deploy, learn, localiser, monitor, rig, sim
 from host.cli.common import EXIT_BAD_INPUT, UserError
 from host.data.dataset import DatasetError
 
-GROUPS = (sim, analyse, learn, bench, deploy, rig, monitor)
+GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor)
 
 
 def build_parser() -> argparse.ArgumentParser:

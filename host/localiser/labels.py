@@ -20,8 +20,7 @@ from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gr
 from device.pi.vision.matching import mutual_match
 from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px
 from device.pi.vision.tracking import Tracker
-from device.profile import load_profile
-from host.localiser.samples import Sample, progress_bar, vision_params_for
+from host.localiser.samples import Sample, progress_bar, sensor_geometry, vision_params_for
 
 __all__ = [
     "REAL_CLIPS",
@@ -285,7 +284,9 @@ def label_clip(frames: Sequence[np.ndarray], layout_px: np.ndarray, params: Visi
 
 
 def _real_clips(real_data, clips: Sequence[str]):
-    """Yield ``(clip name, gray frames)`` from ``real_data`` (a folder or a mapping).
+    """Yield ``(clip name, gray frames)`` from ``real_data`` (a folder of the roboskin
+    clips named in ``clips``, or a mapping name -> frames), or with ``real_data``
+    None from the clip files ``clips``.
 
     A folder's clips are checked up front and then read one at a time, so only
     one clip's frames are in memory at once.
@@ -293,6 +294,13 @@ def _real_clips(real_data, clips: Sequence[str]):
     if isinstance(real_data, Mapping):
         for k, v in real_data.items():
             yield str(k), [to_gray(f) for f in v]
+        return
+    if real_data is None:                # clips are paths to any sensor's recordings
+        for p in clips:
+            if not Path(p).is_file():
+                raise ValueError(f"no such clip: {str(p)!r}")
+        for p in clips:
+            yield Path(p).stem, read_clip(p)
         return
     root = Path(real_data)
     if (root / "roboskin").is_dir():
@@ -321,12 +329,11 @@ def real_samples(real_data, profile: str = "roboskin", params: VisionParams | No
     rejected frames: clip, frame, reason), ``labelled`` (accepted count per
     clip) and ``fits`` (rest fit per clip).
     """
-    prof = load_profile(profile)
+    layout_px, layout_dome = sensor_geometry(profile)
     params = params or vision_params_for(profile)
     train, test, rejected, labelled, fits = [], [], [], {}, {}
-    layout_dome = (*prof.dome_centre_px, prof.dome_radius_px)
     for name, frames in _real_clips(real_data, clips):
-        lab = label_clip(frames, prof.pins_px, params, clip=name, layout_dome=layout_dome,
+        lab = label_clip(frames, layout_px, params, clip=name, layout_dome=layout_dome,
                          checks=checks, progress=progress)
         rejected += lab["rejected"]
         labelled[name] = {"frames": len(frames), "accepted": int(lab["ok"].sum()),

@@ -16,21 +16,45 @@ from typing import Sequence
 
 import numpy as np
 
+from device.config import ConfigError
 from device.pi.vision.extract import ROBOSKIN_PARAMS, TACTIP_SHEAR_PARAMS, VisionParams
+from device.profile import has_sim_geometry, load_layout, load_pipeline_profile, load_profile
 from device.pi.models.localiser import localiser_input, to_normalised
 
-__all__ = ["Sample", "vision_params_for", "progress_bar", "augment_rows"]
+__all__ = ["Sample", "vision_params_for", "sensor_geometry", "progress_bar", "augment_rows"]
 
 _PARAMS_BY_PROFILE = {"roboskin": ROBOSKIN_PARAMS, "tactip331": TACTIP_SHEAR_PARAMS}
 
 
 def vision_params_for(profile: str) -> VisionParams:
-    """The PinDetector parameters the Pi uses for a built-in profile."""
+    """The PinDetector parameters the Pi uses for a built-in profile, or the
+    ``[vision]`` section of a profile TOML (such as one from ``host calibrate``)."""
+    if str(profile).endswith(".toml"):
+        try:
+            return load_pipeline_profile(profile).vision
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
     try:
         return _PARAMS_BY_PROFILE[profile]
     except KeyError:
         raise ValueError(f"profile has no vision parameters: profile={profile!r} "
-                         f"(known: {sorted(_PARAMS_BY_PROFILE)})") from None
+                         f"(known: {sorted(_PARAMS_BY_PROFILE)}, or a .toml path)") from None
+
+
+def sensor_geometry(profile: str) -> tuple[np.ndarray, tuple | None]:
+    """(rest pin layout (N, 2) px, dome (cx, cy, r) px or None) of a built-in profile
+    or a profile TOML: the simulator's geometry when the profile has it, else the
+    ``[layout]`` and ``[vision] dome_px`` that ``host calibrate`` writes."""
+    try:
+        layout = load_layout(profile)
+        if str(profile).endswith(".toml") and not has_sim_geometry(profile):
+            dome = load_pipeline_profile(profile).dome_px
+        else:
+            prof = load_profile(profile)
+            dome = (*prof.dome_centre_px, prof.dome_radius_px)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
+    return np.asarray(layout, np.float64), dome
 
 
 def progress_bar(total: int, desc: str, enabled: bool):

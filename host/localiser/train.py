@@ -47,15 +47,16 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
-from device.profile import load_profile
+from device.profile import has_sim_geometry
 from host.learn.onnx_io import write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px
 from host.localiser.fit import DEFAULT_ALPHA, fit_ridge, onnx_vs_sklearn, ridge_to_onnx
 from host.localiser.labels import REAL_CLIPS, REAL_HOLDOUT_FRAC, LabelChecks, real_samples
-from host.localiser.samples import augment_rows, vision_params_for
+from host.localiser.samples import augment_rows, sensor_geometry, vision_params_for
 from host.localiser.sim import sim_frames
 
-__all__ = ["DEFAULT_SIZE", "TRAIN_MAX_DEPTH_MM", "TEST_MAX_DEPTH_MM", "train_localiser", "main"]
+__all__ = ["DEFAULT_SIZE", "TRAIN_MAX_DEPTH_MM", "TEST_MAX_DEPTH_MM", "train_localiser",
+           "add_arguments", "run", "main"]
 
 DEFAULT_SIZE = 32          # 32 x 32 inputs: 1024 x 266 weights, float16: 0.55 MB
 #: the Pi checks the input's foreground share per cell of this grid (see Localiser)
@@ -99,9 +100,12 @@ def train_localiser(
 ) -> dict:
     """Train, check and export a localiser; returns the summary (and the estimator).
 
-    ``real_data``: None (simulated frames only), a folder holding the
-    roboskin clips (``<dir>/roboskin/<clip>.avi`` or ``<dir>/<clip>.avi``),
-    or a mapping clip name -> list of frames. Training scenes use seeds
+    ``profile``: a built-in profile or a profile TOML; one from ``host calibrate``
+    has no simulator geometry, so it trains on real clips only (``n_sim_scenes=0``).
+    ``real_data``: None (simulated frames only, or the clip files ``real_clips``
+    of any sensor), a folder holding the roboskin clips named in ``real_clips``
+    (``<dir>/roboskin/<clip>.avi`` or ``<dir>/<clip>.avi``), or a mapping clip
+    name -> list of frames. Training scenes use seeds
     ``seed .. seed + n_sim_scenes - 1``; held-out scenes the seeds from
     ``seed + 100000`` on; the last 20 % of each real clip is held out.
     Real rows weigh ``real_weight`` times a simulated row in the fit (the
@@ -117,29 +121,34 @@ def train_localiser(
     """
     _check_args(size, alpha, crop_factor, n_aug)
     params = vision_params_for(profile)
+    clip_files = real_data is None and real_clips is not REAL_CLIPS and bool(real_clips)
     if real_data is not None and not isinstance(real_data, Mapping) and not (
             Path(real_data).is_dir()):
         raise ValueError(f"real_data must be a folder with the roboskin clips or a mapping "
                          f"clip -> frames, got real_data={str(real_data)!r}")
+    if n_sim_scenes and not has_sim_geometry(profile):
+        raise ValueError(f"profile {str(profile)!r} has no simulator geometry, so there are "
+                         f"no simulated frames to train on: use n_sim_scenes=0 "
+                         f"(--sim-scenes 0) with real clips of the sensor")
     if isinstance(real_weight, bool) or not isinstance(real_weight, (int, float)) or not (
             math.isfinite(real_weight) and real_weight > 0):
         raise ValueError(f"real_weight must be a finite number > 0, "
                          f"got real_weight={real_weight!r}")
     t0 = time.perf_counter()
     stage_s: dict = {}
-    prof = load_profile(profile)
-    n_pins = prof.n_pins
+    n_pins = len(sensor_geometry(profile)[0])
     rng = np.random.default_rng(seed)
 
     sim_train = sim_frames(n_sim_scenes, frames_per_scene, seed, profile, params, progress,
                            max_depth_mm)
     # held out: unseen seeds, and deeper presses than in training (up to 3 mm)
+    n_test_scenes = n_test_scenes if n_sim_scenes else 0
     sim_test = sim_frames(n_test_scenes, max(4, frames_per_scene // 2), seed + 100000, profile,
                           params, progress, TEST_MAX_DEPTH_MM)
     stage_s["simulate"] = round(time.perf_counter() - t0, 1)
     t1 = time.perf_counter()
     real = {"train": [], "test": [], "rejected": [], "labelled": {}, "fits": {}}
-    if real_data is not None:
+    if real_data is not None or clip_files:
         real = real_samples(real_data, profile, params, real_clips, REAL_HOLDOUT_FRAC, checks,
                             real_stride, progress)
     stage_s["label_real"] = round(time.perf_counter() - t1, 1)
@@ -171,13 +180,12 @@ def train_localiser(
 
     t1 = time.perf_counter()
     r_train = np.array([effective_dome(s.dome, crop_factor)[2] for s in train])
-    metrics = {
-        "sim_heldout": evaluate(model, sim_test, size, crop_factor, False),
-        "sim_heldout_perturbed_dome": evaluate_perturbed(model, sim_test, size, crop_factor,
-                                                          shift_px, zoom, seed + 7),
-        "train_fit": error_stats(pin_errors_px(fit_pred[::n_aug], Y[::n_aug], r_train)),
-    }
-    if real_data is not None:
+    metrics = {"train_fit": error_stats(pin_errors_px(fit_pred[::n_aug], Y[::n_aug], r_train))}
+    if sim_test:
+        metrics["sim_heldout"] = evaluate(model, sim_test, size, crop_factor, False)
+        metrics["sim_heldout_perturbed_dome"] = evaluate_perturbed(
+            model, sim_test, size, crop_factor, shift_px, zoom, seed + 7)
+    if real["test"]:
         metrics["real_heldout_measured"] = evaluate(model, real["test"], size, crop_factor, True)
         metrics["real_heldout_all_labels"] = evaluate(model, real["test"], size, crop_factor,
                                                        False)
@@ -230,24 +238,39 @@ def train_localiser(
 # --------------------------------------------------------------------------
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m host.localiser",
-                                 description="train the fixed-count pin localiser (ONNX + JSON)")
+def add_arguments(ap) -> None:
+    """The localiser trainer's options (``host localiser`` and ``python -m host.localiser``)."""
     ap.add_argument("--out", required=True, type=Path, help="model folder to write")
     ap.add_argument("--profile", default="roboskin")
     ap.add_argument("--real-data", type=Path, default=None,
                     help="folder with the real roboskin clips (e.g. ../shared/data)")
+    ap.add_argument("--clip", action="append", default=[],
+                    help="a recording of the sensor (repeatable), starting at rest; "
+                         "with a calibrated --profile, use --sim-scenes 0")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--alpha", type=float, default=DEFAULT_ALPHA)
     ap.add_argument("--size", type=int, default=DEFAULT_SIZE)
     ap.add_argument("--sim-scenes", type=int, default=120)
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--quiet", action="store_true", help="no progress bars")
-    args = ap.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m host.localiser",
+                                 description="train the fixed-count pin localiser (ONNX + JSON)")
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
+
+
+def run(args) -> int:
+    """Train from parsed options; 2 with one line on stderr for bad input."""
     try:
+        kw = {"real_clips": tuple(args.clip)} if args.clip else {}
+        if args.clip and args.real_data is not None:
+            raise ValueError("give --clip files or --real-data, not both")
         res = train_localiser(args.out, profile=args.profile, real_data=args.real_data,
                               seed=args.seed, alpha=args.alpha, size=args.size,
-                              n_sim_scenes=args.sim_scenes, progress=not args.quiet)
+                              n_sim_scenes=args.sim_scenes, progress=not args.quiet, **kw)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
