@@ -38,10 +38,28 @@ import tempfile
 import time
 from pathlib import Path
 
+from device.config import ConfigError, read_toml
 from host.deploy.options import REPO, DeployError, DeployOptions, project_version
 from host.deploy.scripts import (HEALTH_PY, SUDO, q, render_ctl, render_unit, runtime_argv,
                                  status_path)
 
+
+
+def config_profile_file(cfg: Path) -> Path | None:
+    """The sensor profile file a leg config names by a relative path (``[models]
+    profile = "my-sensor.toml"``), which must sit beside the config; None for a
+    built-in profile. A missing file is a ConfigError naming it."""
+    doc = read_toml(cfg)
+    prof = (doc.get("models") or {}).get("profile") if isinstance(doc, dict) else None
+    if not isinstance(prof, str) or not prof.endswith(".toml") or Path(prof).is_absolute():
+        return None
+    if Path(prof).parent != Path("."):
+        raise ConfigError(f"{cfg}: models.profile {prof!r}: put the profile file beside the "
+                          f"config and name it without a folder")
+    path = cfg.parent / prof
+    if not path.is_file():
+        raise ConfigError(f"{cfg}: models.profile {prof!r}: no such file {path}")
+    return path
 
 class Deployer:
     """Runs (or, with dry_run, only lists) the steps of one deploy or rollback."""
@@ -202,9 +220,11 @@ class Deployer:
         o = self.o
         st = out_dir / "stage"
         models, cfg = o.models_dir(), o.config_file()
+        prof = config_profile_file(cfg) if cfg is not None else None
         self._record("stage", "local", f"stage {wheel.name}"
                      + (f", models {models}" if models else "")
-                     + (f", config {cfg}" if cfg else "") + ", tacfoot.service, tacfootctl")
+                     + (f", config {cfg}" if cfg else "")
+                     + (f", profile {prof.name}" if prof else "") + ", tacfoot.service, tacfootctl")
         if self.dry_run:
             return st
         st.mkdir()
@@ -215,6 +235,8 @@ class Deployer:
         if cfg is not None:
             (st / "config").mkdir()
             shutil.copy2(cfg, st / "config" / cfg.name)
+            if prof is not None:       # a calibrated profile named beside the config
+                shutil.copy2(prof, st / "config" / prof.name)
         (st / "tacfoot.service").write_text(render_unit(o))
         (st / "tacfootctl").write_text(render_ctl(o))
         (st / "tacfootctl").chmod(0o755)

@@ -27,7 +27,7 @@ Sections and keys (units in the names)::
 """
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from device.config import ConfigError, Fields, read_toml
@@ -186,9 +186,16 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
 
 
 def load_leg_config(path: Path | str | None = None) -> LegConfig:
-    """The config in ``path`` (default :data:`DEFAULT_CONFIG`)."""
+    """The config in ``path`` (default :data:`DEFAULT_CONFIG`). A relative
+    ``models.profile`` .toml path is taken relative to the config's folder, so a
+    calibrated profile travels beside its config (``host deploy`` ships both)."""
     path = Path(path) if path is not None else DEFAULT_CONFIG
-    return parse_leg_config(read_toml(path), source=path.name)
+    cfg = parse_leg_config(read_toml(path), source=path.name)
+    prof = Path(cfg.models.profile)
+    if prof.suffix == ".toml" and not prof.is_absolute():
+        # a sensor profile file (from host calibrate) beside the config
+        cfg = replace(cfg, models=replace(cfg.models, profile=str(path.parent / prof)))
+    return cfg
 
 
 __all__ = ["ConfigError", "LegConfig", "load_leg_config", "parse_leg_config",
