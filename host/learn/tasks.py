@@ -57,12 +57,14 @@ class QuantisationError(TrainError):
         self.mae_change_of_range = mae_change_of_range
         self.path = path
 
+    def fields(self) -> dict:
+        """The verdict's fields (all but ``path``), as the manifest's ``int8`` records them."""
+        return {"kind": self.kind, "agreement": self.agreement, "required": self.required,
+                "mae_change": self.mae_change, "mae_change_of_range": self.mae_change_of_range}
+
     def with_message(self, message: str) -> "QuantisationError":
         """The same verdict with another message (e.g. naming another file)."""
-        return QuantisationError(message, kind=self.kind, agreement=self.agreement,
-                                 required=self.required, mae_change=self.mae_change,
-                                 mae_change_of_range=self.mae_change_of_range,
-                                 path=self.path)
+        return QuantisationError(message, **self.fields(), path=self.path)
 
 
 def check_choice(name: str, value, choices) -> str:

@@ -256,9 +256,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 if quantise != "if-passes":
                     raise exc.with_message(msg) from None
                 # keep the float model, say why
-                int8 = {"failed": msg, "kind": exc.kind, "agreement": exc.agreement,
-                        "required": exc.required, "mae_change": exc.mae_change,
-                        "mae_change_of_range": exc.mae_change_of_range}
+                int8 = {"failed": msg, **exc.fields()}
         if qbytes is not None:
             int8.pop("path", None)
             q_out = run_onnx(session(qbytes), check_X)
