@@ -13,6 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from host.analysis.figures import pyplot, save_figure
 from host.bench.scenes import simulate_scenes
 from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
@@ -146,9 +147,7 @@ def pareto(rows: list[dict], lower_better: bool) -> set[int]:
 
 
 def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ok = [r for r in rows if "error" not in r]
     lower = ok and ok[0].get("mae") is not None
@@ -173,11 +172,7 @@ def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
     ax.legend(fontsize=8)
     sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, 10))
     fig.colorbar(sm, ax=ax, label="window T [frames]")
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)
 
 
 def table(rows: list[dict]) -> str:
