@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
+from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST, VERSION,
+                                      sha256_file)
 from host.data.dataset import atomic_write, atomic_write_text
 
 __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
@@ -21,7 +22,6 @@ __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn
 
 FLOAT_NAME = "model.onnx"
 INT8_NAME = "model.int8.onnx"
-FLOAT_MANIFEST = "manifest.float.json"
 
 
 def json_default(o):
