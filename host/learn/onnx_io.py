@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST, VERSION,
-                                      sha256_file)
+                                      ort_session, sha256_file)
 from host.data.dataset import atomic_write, atomic_write_text
 
 __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
@@ -109,16 +109,10 @@ def model_bytes(m) -> bytes:
 
 
 def session(model, threads: int = 1):
-    """An ONNX Runtime CPU session (``threads`` intra-op threads, quiet logging) for a
+    """:func:`device.pi.models.artefact.ort_session` (the Pi's set-up) for a
     ModelProto, bytes or a path."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
     src = model_bytes(model) if not isinstance(model, (str, Path)) else str(model)
-    return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
+    return ort_session(src, threads)
 
 
 def is_classifier(sess) -> bool:

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from host.learn.onnx_io import session
+
 __all__ = ["DEFAULT_ALPHA", "MAX_FLOAT32_BYTES", "fit_ridge", "ridge_to_onnx", "onnx_vs_sklearn"]
 
 DEFAULT_ALPHA = 150.0      # the seed paper's Ridge alpha
@@ -74,11 +76,6 @@ def ridge_to_onnx(model, n_features: int, weights: str = "auto", input_name: str
 
 def onnx_vs_sklearn(onx, model, X: np.ndarray) -> float:
     """Largest |ONNX - scikit-learn| output on rows X (normalised units)."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
-    so.log_severity_level = 3
-    sess = ort.InferenceSession(onx.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    sess = session(onx)
     got = sess.run(None, {sess.get_inputs()[0].name: X.astype(np.float32)})[0]
     return float(np.abs(got - model.predict(X)).max())

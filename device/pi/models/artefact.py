@@ -80,6 +80,18 @@ def manifest_for(folder: Path | str, variant: str) -> Path:
     return folder / MANIFEST if (folder / MANIFEST).is_file() else folder
 
 
+def ort_session(model: str | bytes, threads: int = 1):
+    """The one ONNX Runtime set-up: a CPU session with ``threads`` intra-op threads,
+    one inter-op thread and quiet logging, for a model file path or its bytes."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(model, sess_options=so, providers=["CPUExecutionProvider"])
+
+
 @dataclass
 class Model:
     """An ONNX Runtime session (single thread) with its manifest."""
@@ -98,8 +110,6 @@ class Model:
 
 def load_model(path: Path | str, expect_kind: str | None = None,
                feature_spec: int = FEATURE_SPEC_VERSION, threads: int = 1) -> Model:
-    import onnxruntime as ort
-
     doc, folder = read_manifest(path)
     if int(doc["feature_spec"]) != feature_spec:
         raise ModelError(f"{folder / MANIFEST}: feature-spec version {doc['feature_spec']} "
@@ -115,13 +125,8 @@ def load_model(path: Path | str, expect_kind: str | None = None,
     if want != got:
         raise ModelError(f"{onnx_path}: checksum {got[:12]}... does not match the manifest "
                          f"({str(want)[:12]}...); the file is corrupt, truncated or replaced")
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
     try:
-        sess = ort.InferenceSession(str(onnx_path), sess_options=so,
-                                    providers=["CPUExecutionProvider"])
+        sess = ort_session(str(onnx_path), threads)
     except Exception as exc:  # onnxruntime raises its own exception types
         raise ModelError(f"{onnx_path}: ONNX Runtime cannot load it ({exc})") from None
     return Model(doc, folder, sess, sess.get_inputs()[0].name)
