@@ -61,3 +61,16 @@ def test_every_onnx_runtime_session_is_set_up_by_the_pis_code(monkeypatch):
     assert made == [1, 2]
     assert (opts.intra_op_num_threads, opts.inter_op_num_threads, opts.log_severity_level) == (
         2, 1, 3)
+
+
+def test_new_manifest_is_what_the_pi_reads_for_onnx_and_for_rule_models(tmp_path):
+    from device.pi.models.artefact import read_manifest
+    from host.learn.onnx_io import new_manifest
+
+    onnx = new_manifest(12, {"kind": "surface", "T": 3}, FLOAT_NAME, "ab" * 32, 99)
+    rule = new_manifest(12, {"model": "rule", "kind": "surface"})
+    assert onnx["sha256"] == {FLOAT_NAME: "ab" * 32} and onnx["size_bytes"] == 99
+    assert rule["onnx"] is None and rule["sha256"] == {} and rule["input"]["shape"] == [None, 12]
+    for name, doc in (("o", onnx), ("r", rule)):
+        read, _ = read_manifest(write_manifest(tmp_path / name, doc))
+        assert read == doc
