@@ -48,7 +48,7 @@ import numpy as np
 
 from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
 from device.profile import load_profile
-from host.learn.onnx_io import write_model
+from host.learn.onnx_io import json_default, write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px
 from host.localiser.fit import DEFAULT_ALPHA, fit_ridge, onnx_vs_sklearn, ridge_to_onnx
 from host.localiser.labels import REAL_CLIPS, REAL_HOLDOUT_FRAC, LabelChecks, real_samples
@@ -253,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     res.pop("estimator", None)
     if args.json:
-        print(json.dumps(res, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+        print(json.dumps(res, default=json_default))
     else:
         m = res["metrics"]
         print(f"wrote {res['out_dir']} ({res['size_bytes'] / 1e6:.2f} MB) in {res['train_s']} s")
