@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from device.checks import whole_number
+
 __all__ = ["TASKS", "MODELS", "TASK_MODELS", "LAYOUT", "TrainError", "QuantisationError",
            "check_choice", "check_int", "label_ids"]
 
@@ -77,9 +79,7 @@ def check_choice(name: str, value, choices) -> str:
 def check_int(name: str, value, lo: int) -> int:
     """``value`` as an int, or a TrainError naming the field when it is not a whole
     number >= ``lo``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise TrainError(f"{name} must be a whole number >= {lo}, got {name}={value!r}")
-    return int(value)
+    return whole_number(name, value, lo, error=TrainError)
 
 
 def label_ids(labels, classes: list[str]) -> np.ndarray:

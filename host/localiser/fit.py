@@ -8,10 +8,9 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
+from device.checks import finite_number
 from host.learn.onnx_io import session
 
 __all__ = ["DEFAULT_ALPHA", "MAX_FLOAT32_BYTES", "fit_ridge", "ridge_to_onnx", "onnx_vs_sklearn"]
@@ -24,9 +23,7 @@ def fit_ridge(X: np.ndarray, Y: np.ndarray, alpha: float = DEFAULT_ALPHA,
     """scikit-learn Ridge (float64 solve) fitted on X -> Y."""
     from sklearn.linear_model import Ridge
 
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not (
-            math.isfinite(alpha) and alpha >= 0):
-        raise ValueError(f"alpha must be a finite number >= 0, got alpha={alpha!r}")
+    alpha = finite_number("alpha", alpha, 0)
     model = Ridge(alpha=float(alpha), fit_intercept=True, solver="cholesky")
     model.fit(X.astype(np.float64), Y.astype(np.float64), sample_weight=sample_weight)
     return model

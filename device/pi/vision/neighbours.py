@@ -15,8 +15,8 @@ import math
 
 import numpy as np
 
-from device.pi.vision.matching import (all_rows_usable, as_points, count_at_least,
-                                       match_pins, positive_number, usable_rows)
+from device.checks import finite_number, positive_number, whole_number
+from device.pi.vision.matching import all_rows_usable, as_points, match_pins, usable_rows
 
 __all__ = ["layout_pitch_px", "layout_neighbours", "track_with_neighbours", "match_and_grow",
            "neighbour_median", "neighbour_consistency"]
@@ -52,7 +52,7 @@ def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tupl
     still have neighbours) or than ``max_dist_px`` when given. Computed once
     per reference.
     """
-    k = count_at_least("k", k, 1)
+    k = whole_number("k", k, 1)
     r = as_points("ref", ref)
     m = r.shape[0]
     nb = np.tile(np.arange(m)[:, None], (1, k))
@@ -246,14 +246,12 @@ def track_with_neighbours(
     """
     pitch = positive_number("pitch_px", pitch_px)
     gate_frac = positive_number("gate_frac", gate_frac)
-    anneal_steps = count_at_least("anneal_steps", anneal_steps, 1)
-    sinkhorn_iters = count_at_least("sinkhorn_iters", sinkhorn_iters, 1)
+    anneal_steps = whole_number("anneal_steps", anneal_steps, 1)
+    sinkhorn_iters = whole_number("sinkhorn_iters", sinkhorn_iters, 1)
     outlier_sigmas = positive_number("outlier_sigmas", outlier_sigmas)
-    if isinstance(smooth, bool) or not isinstance(smooth, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(float(smooth)) and float(smooth) >= 0.0):
-        raise ValueError(f"smooth must be a finite number >= 0, got smooth={smooth!r}")
-    grow_rounds = count_at_least("grow_rounds", grow_rounds, 0)
-    min_support = count_at_least("min_support", min_support, 1)
+    smooth = finite_number("smooth", smooth, 0)
+    grow_rounds = whole_number("grow_rounds", grow_rounds, 0)
+    min_support = whole_number("min_support", min_support, 1)
     r = as_points("ref", ref)
     c = as_points("cur", cur)
     m = r.shape[0]
