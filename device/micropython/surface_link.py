@@ -60,6 +60,11 @@ def _i16(b, i):
     return v - 0x10000 if v & 0x8000 else v
 
 
+def _decoder_count(name):
+    """A read-only property: the decoder's counter ``name``."""
+    return property(lambda self: getattr(self.decoder, name))
+
+
 class SurfaceState:
     """The latest SURFACE message, as wire integers. ``valid`` is False until the
     first one arrives; ``stale`` is True when none arrived for ``stale_ms``."""
@@ -120,25 +125,11 @@ class SurfaceLink:
         self.imu_samples = 0
 
     # -- counters of the decoder -----------------------------------------------
-    @property
-    def frames_ok(self):
-        return self.decoder.frames_ok
-
-    @property
-    def crc_errors(self):
-        return self.decoder.crc_errors
-
-    @property
-    def too_long(self):
-        return self.decoder.too_long
-
-    @property
-    def malformed(self):
-        return self.decoder.malformed
-
-    @property
-    def newer_version(self):
-        return self.decoder.newer_version
+    frames_ok = _decoder_count("frames_ok")
+    crc_errors = _decoder_count("crc_errors")
+    too_long = _decoder_count("too_long")
+    malformed = _decoder_count("malformed")
+    newer_version = _decoder_count("newer_version")
 
     # -- receiving ----------------------------------------------------------------
     def poll(self, max_bytes=512):
