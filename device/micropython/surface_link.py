@@ -25,6 +25,9 @@ SURFACE_LEN = const(18)
 IMU_LEN = const(17)
 HEARTBEAT_LEN = const(11)
 FAULT_LEN = const(6)
+# the Pi -> MCU messages this consumer reads, and the payload each needs
+_PAYLOAD_LEN = {MSG_SURFACE: SURFACE_LEN, MSG_IMU_SUMMARY: IMU_LEN,
+                MSG_HEARTBEAT: HEARTBEAT_LEN, MSG_FAULT: FAULT_LEN}
 
 CLASS_NO_TOUCH = const(0)
 CLASS_HARD = const(1)
@@ -160,11 +163,14 @@ class SurfaceLink:
         self._last_seq = seq
         t = d.msg_type
         p = d.payload
-        n = d.payload_len
+        need = _PAYLOAD_LEN.get(t)
+        if need is None:
+            self.unknown_type += 1
+            return
+        if d.payload_len < need:
+            self.short_payload += 1
+            return
         if t == MSG_SURFACE:
-            if n < SURFACE_LEN:
-                self.short_payload += 1
-                return
             s = self._state
             s.valid = True
             s.rx_ms = self._now
@@ -186,31 +192,20 @@ class SurfaceLink:
             s.pins = _u16(p, 14)
             s.faults = _u16(p, 16)
         elif t == MSG_IMU_SUMMARY:
-            if n < IMU_LEN:
-                self.short_payload += 1
-                return
             im = self.imu
             for i in range(6):
                 im[i] = _i16(p, 2 * i)
             self.imu_samples = p[14]
         elif t == MSG_HEARTBEAT:
-            if n < HEARTBEAT_LEN:
-                self.short_payload += 1
-                return
             self.heartbeats += 1
             self.heartbeat_rx_ms = self._now
             self.pi_uptime_s = _u16(p, 0) | (_u16(p, 2) << 16)
             self.pi_rate_fps_x10 = _u16(p, 4)
             self.fault_bits = _u16(p, 9)
-        elif t == MSG_FAULT:
-            if n < FAULT_LEN:
-                self.short_payload += 1
-                return
+        else:                       # MSG_FAULT
             self.fault_bits = _u16(p, 0)
             self.fault_raised = _u16(p, 2)
             self.pins_lost = _u16(p, 4)
-        else:
-            self.unknown_type += 1
 
     def state(self, now_ms=None):
         """The latest SurfaceState with age_ms and stale brought up to date."""
