@@ -16,11 +16,12 @@ manifest.json (keys the loader needs; writers add more, e.g. metrics)::
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from device.jsondoc import read_json_doc
 
 FORMAT = "tacfoot-model"
 VERSION = 1
@@ -47,20 +48,7 @@ def sha256_file(path: Path) -> str:
 
 def read_manifest(path: Path | str) -> tuple[dict, Path]:
     """(manifest, folder) from a model folder or a manifest path."""
-    path = Path(path)
-    mpath = path / MANIFEST if path.is_dir() else path
-    try:
-        doc = json.loads(mpath.read_text())
-    except FileNotFoundError:
-        raise ModelError(f"{mpath}: model manifest not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ModelError(f"{mpath}: corrupt manifest ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise ModelError(f"{mpath}: not a tacfoot model manifest (format "
-                         f"{doc.get('format') if isinstance(doc, dict) else doc!r})")
-    if int(doc.get("version", 0)) > VERSION:
-        raise ModelError(f"{mpath}: manifest version {doc.get('version')} is newer than "
-                         f"this runtime reads ({VERSION})")
+    doc, mpath = read_json_doc(path, MANIFEST, FORMAT, VERSION, "model", "manifest", ModelError)
     for key in ("onnx", "sha256", "feature_spec", "input"):
         if key not in doc:
             raise ModelError(f"{mpath}: manifest lacks {key!r}")
