@@ -18,8 +18,8 @@ import numpy as np
 from device.checks import finite_number, positive_number, whole_number
 from device.pi.vision.matching import all_rows_usable, as_points, match_pins, usable_rows
 
-__all__ = ["layout_pitch_px", "layout_neighbours", "track_with_neighbours", "match_and_grow",
-           "neighbour_median", "neighbour_consistency"]
+__all__ = ["layout_pitch_px", "nearest_neighbour_px", "layout_neighbours", "track_with_neighbours",
+           "match_and_grow", "neighbour_median", "neighbour_consistency"]
 
 
 # --------------------------------------------------------------------------
@@ -27,18 +27,30 @@ __all__ = ["layout_pitch_px", "layout_neighbours", "track_with_neighbours", "mat
 # --------------------------------------------------------------------------
 
 
+def _nearest_d2(name: str, points) -> np.ndarray:
+    """Squared distance from each usable point to its nearest other one (k,)."""
+    r = as_points(name, points)
+    r = r[usable_rows(r)]
+    if r.shape[0] < 2:
+        return np.zeros(0, np.float64)
+    d2 = ((r[:, None, :] - r[None, :, :]) ** 2).sum(axis=2)
+    np.fill_diagonal(d2, np.inf)
+    return d2.min(axis=1)
+
+
+def nearest_neighbour_px(points) -> np.ndarray:
+    """Distance from each point to its nearest other point, px (k,): rows with NaN,
+    inf or beyond ``MAX_COORD_PX`` are left out; empty for fewer than two."""
+    return np.sqrt(_nearest_d2("points", points))
+
+
 def layout_pitch_px(ref) -> float:
     """Typical pin spacing of a layout: the median nearest-neighbour distance, px.
 
     Returns 0.0 for fewer than two finite pins.
     """
-    r = as_points("ref", ref)
-    r = r[usable_rows(r)]
-    if r.shape[0] < 2:
-        return 0.0
-    d2 = ((r[:, None, :] - r[None, :, :]) ** 2).sum(axis=2)
-    np.fill_diagonal(d2, np.inf)
-    return float(np.sqrt(np.median(d2.min(axis=1))))
+    d2 = _nearest_d2("ref", ref)
+    return float(np.sqrt(np.median(d2))) if len(d2) else 0.0
 
 
 def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
