@@ -102,8 +102,13 @@ def scaler_class():
         def fit(self, X, y=None):
             sc = StandardScaler().fit(X)
             self.mean_ = sc.mean_.astype(np.float32)
-            self.scale_ = sc.scale_
-            self.inv_scale_ = (1.0 / sc.scale_).astype(np.float32)
+            # a spread too small for float32 to invert (a standard deviation below
+            # about 3e-39) counts as zero variance: scale 1, like sklearn's constant
+            # features, so the feature maps to ~0 instead of inf * 0 = NaN
+            inv = 1.0 / np.asarray(sc.scale_, np.float64)
+            flat = ~(inv <= np.finfo(np.float32).max)
+            self.scale_ = np.where(flat, 1.0, sc.scale_)
+            self.inv_scale_ = np.where(flat, 1.0, inv).astype(np.float32)
             self.n_features_in_ = sc.n_features_in_
             return self
 
