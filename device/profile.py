@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from device.checks import finite_number, whole_number
 from device.config import ConfigError, Fields, read_toml
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
@@ -295,36 +296,19 @@ class VisionParams:
     roi_shrink: float = 0.75
 
     def __post_init__(self) -> None:
-        _check_int("block", self.block, lo=3)
+        whole_number("block", self.block, lo=3)
         if self.block % 2 != 1:
             raise ValueError(f"block must be odd, got block={self.block!r}")
-        _check_real("offset", self.offset, lo=-255.0, hi=255.0)
-        _check_real("blur_sigma_px", self.blur_sigma_px, lo=0.0, hi=50.0)
-        _check_int("min_area_px", self.min_area_px, lo=1)
-        _check_int("max_area_px", self.max_area_px, lo=1)
+        finite_number("offset", self.offset, lo=-255.0, hi=255.0)
+        finite_number("blur_sigma_px", self.blur_sigma_px, lo=0.0, hi=50.0)
+        whole_number("min_area_px", self.min_area_px, lo=1)
+        whole_number("max_area_px", self.max_area_px, lo=1)
         if self.max_area_px < self.min_area_px:
             raise ValueError(
                 f"max_area_px must be >= min_area_px, got max_area_px={self.max_area_px!r} "
                 f"with min_area_px={self.min_area_px!r}"
             )
-        _check_real("roi_shrink", self.roi_shrink, lo=0.0, hi=1.5)
-        if self.roi_shrink <= 0.0:
-            raise ValueError(f"roi_shrink must be > 0, got roi_shrink={self.roi_shrink!r}")
-
-
-def _check_int(name: str, value, lo: int | None = None) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an integer, got {name}={value!r}")
-    if lo is not None and value < lo:
-        raise ValueError(f"{name} must be >= {lo}, got {name}={value!r}")
-
-
-def _check_real(name: str, value, lo: float, hi: float) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number, got {name}={value!r}")
-    if not math.isfinite(float(value)) or not (lo <= float(value) <= hi):
-        raise ValueError(f"{name} must be a finite number in [{lo}, {hi}], got {name}={value!r}")
-
+        finite_number("roi_shrink", self.roi_shrink, lo=0.0, hi=1.5, lo_open=True)
 
 
 class ProfileError(ConfigError):

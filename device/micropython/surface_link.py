@@ -25,6 +25,9 @@ SURFACE_LEN = const(18)
 IMU_LEN = const(17)
 HEARTBEAT_LEN = const(11)
 FAULT_LEN = const(6)
+# the Pi -> MCU messages this consumer reads, and the payload each needs
+_PAYLOAD_LEN = {MSG_SURFACE: SURFACE_LEN, MSG_IMU_SUMMARY: IMU_LEN,
+                MSG_HEARTBEAT: HEARTBEAT_LEN, MSG_FAULT: FAULT_LEN}
 
 CLASS_NO_TOUCH = const(0)
 CLASS_HARD = const(1)
@@ -58,6 +61,11 @@ def _u16(b, i):
 def _i16(b, i):
     v = b[i] | (b[i + 1] << 8)
     return v - 0x10000 if v & 0x8000 else v
+
+
+def _decoder_count(name):
+    """A read-only property: the decoder's counter ``name``."""
+    return property(lambda self: getattr(self.decoder, name))
 
 
 class SurfaceState:
@@ -120,25 +128,11 @@ class SurfaceLink:
         self.imu_samples = 0
 
     # -- counters of the decoder -----------------------------------------------
-    @property
-    def frames_ok(self):
-        return self.decoder.frames_ok
-
-    @property
-    def crc_errors(self):
-        return self.decoder.crc_errors
-
-    @property
-    def too_long(self):
-        return self.decoder.too_long
-
-    @property
-    def malformed(self):
-        return self.decoder.malformed
-
-    @property
-    def newer_version(self):
-        return self.decoder.newer_version
+    frames_ok = _decoder_count("frames_ok")
+    crc_errors = _decoder_count("crc_errors")
+    too_long = _decoder_count("too_long")
+    malformed = _decoder_count("malformed")
+    newer_version = _decoder_count("newer_version")
 
     # -- receiving ----------------------------------------------------------------
     def poll(self, max_bytes=512):
@@ -169,11 +163,14 @@ class SurfaceLink:
         self._last_seq = seq
         t = d.msg_type
         p = d.payload
-        n = d.payload_len
+        need = _PAYLOAD_LEN.get(t)
+        if need is None:
+            self.unknown_type += 1
+            return
+        if d.payload_len < need:
+            self.short_payload += 1
+            return
         if t == MSG_SURFACE:
-            if n < SURFACE_LEN:
-                self.short_payload += 1
-                return
             s = self._state
             s.valid = True
             s.rx_ms = self._now
@@ -195,31 +192,20 @@ class SurfaceLink:
             s.pins = _u16(p, 14)
             s.faults = _u16(p, 16)
         elif t == MSG_IMU_SUMMARY:
-            if n < IMU_LEN:
-                self.short_payload += 1
-                return
             im = self.imu
             for i in range(6):
                 im[i] = _i16(p, 2 * i)
             self.imu_samples = p[14]
         elif t == MSG_HEARTBEAT:
-            if n < HEARTBEAT_LEN:
-                self.short_payload += 1
-                return
             self.heartbeats += 1
             self.heartbeat_rx_ms = self._now
             self.pi_uptime_s = _u16(p, 0) | (_u16(p, 2) << 16)
             self.pi_rate_fps_x10 = _u16(p, 4)
             self.fault_bits = _u16(p, 9)
-        elif t == MSG_FAULT:
-            if n < FAULT_LEN:
-                self.short_payload += 1
-                return
+        else:                       # MSG_FAULT
             self.fault_bits = _u16(p, 0)
             self.fault_raised = _u16(p, 2)
             self.pins_lost = _u16(p, 4)
-        else:
-            self.unknown_type += 1
 
     def state(self, now_ms=None):
         """The latest SurfaceState with age_ms and stale brought up to date."""

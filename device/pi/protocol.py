@@ -282,6 +282,42 @@ def _wrap_deg(value) -> tuple[int, int]:
     return int(round((v % 360.0) * 100.0)) % 36000, 0
 
 
+class _Fields:
+    """Quantises one message's fields, OR-ing the fault bits each earns into
+    ``faults`` (the wire's FAULT_CLAMPED / FAULT_NONFINITE)."""
+    __slots__ = ("faults",)
+
+    def __init__(self):
+        self.faults = 0
+
+    def _keep(self, qe: tuple[int, int]) -> int:
+        self.faults |= qe[1]
+        return qe[0]
+
+    def num(self, value, scale: float, lo: int, hi: int) -> int:
+        return self._keep(_quant(value, scale, lo, hi))
+
+    def whole(self, value, lo: int, hi: int, default: int = 0) -> int:
+        return self._keep(_int_field(value, lo, hi, default))
+
+    def deg(self, value) -> int:
+        return self._keep(_wrap_deg(value))
+
+    def nums(self, values, n: int, scale: float, lo: int, hi: int,
+             scalar_is_first: bool = False) -> list[int]:
+        """``n`` values of a sequence; a shorter or longer one, or no sequence, is
+        padded with 0 and flagged (with ``scalar_is_first`` a lone number is the
+        first value, the rest 0, unflagged)."""
+        if _is_seq(values):
+            v = list(values)[:n]
+        else:
+            v = [values] + [0.0] * (n - 1) if scalar_is_first else []
+        if len(v) != n:
+            self.faults |= FAULT_NONFINITE
+            v = (v + [0.0] * n)[:n]
+        return [self.num(x, scale, lo, hi) for x in v]
+
+
 # -- typed messages ------------------------------------------------------------
 
 _SURFACE = struct.Struct("<BBBBBBBBHHHHH")      # 18 bytes
@@ -309,34 +345,16 @@ class Surface:
     msg_type = MSG_SURFACE
 
     def pack(self) -> bytes:
-        f = 0
-        cid, e = _int_field(self.class_id, 0, 255, CLASS_UNKNOWN)
-        f |= e
-        probs = list(self.probs)[:4] if _is_seq(self.probs) else []
-        if len(probs) != 4:
-            f |= FAULT_NONFINITE
-            probs = (probs + [0.0] * 4)[:4]
-        pq = []
-        for p in probs:
-            q, e = _quant(p, 255.0, 0, 255)
-            f |= e
-            pq.append(q)
-        conf, e = _quant(self.slip_conf, 255.0, 0, 255)
-        f |= e
-        dir_c, e = _wrap_deg(self.shear_dir_deg)
-        f |= e
-        mag, e = _quant(self.shear_px, 100.0, 0, 0xFFFF)
-        f |= e
-        load, e = _quant(self.load_n, 100.0, 0, 0xFFFF)
-        f |= e
-        pins, e = _int_field(self.pins, 0, 0xFFFF, 0)
-        f |= e
-        tex, e = _int_field(self.texture_id, 0, 255, TEXTURE_NONE)
-        f |= e
-        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
-        f |= e
+        k = _Fields()
+        cid = k.whole(self.class_id, 0, 255, CLASS_UNKNOWN)
+        probs = k.nums(self.probs, 4, 255.0, 0, 255)
         flags = (1 if _truthy(self.contact) else 0) | (2 if _truthy(self.slip) else 0)
-        return _SURFACE.pack(cid, *pq, flags, conf, tex, dir_c, mag, load, pins, faults | f)
+        conf = k.num(self.slip_conf, 255.0, 0, 255)
+        tex = k.whole(self.texture_id, 0, 255, TEXTURE_NONE)
+        rest = (k.deg(self.shear_dir_deg), k.num(self.shear_px, 100.0, 0, 0xFFFF),
+                k.num(self.load_n, 100.0, 0, 0xFFFF), k.whole(self.pins, 0, 0xFFFF))
+        faults = k.whole(self.faults, 0, 0xFFFF)
+        return _SURFACE.pack(cid, *probs, flags, conf, tex, *rest, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Surface":
@@ -361,23 +379,13 @@ class ImuSummary:
     msg_type = MSG_IMU_SUMMARY
 
     def pack(self) -> bytes:
-        f = 0
-        vals = []
-        for vec, scale in ((self.acc_mg, 1.0), (self.gyro_dps, 10.0)):
-            v = list(vec)[:3] if _is_seq(vec) else []
-            if len(v) != 3:
-                f |= FAULT_NONFINITE
-                v = (v + [0.0] * 3)[:3]
-            for x in v:
-                q, e = _quant(x, scale, -32768, 32767)
-                f |= e
-                vals.append(q)
-        peak, e = _quant(self.acc_peak_mg, 1.0, 0, 0xFFFF)
-        f |= e
-        n, e = _int_field(self.samples, 0, 255, 0)
-        f |= e
-        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
-        return _IMU.pack(*vals, peak, n, faults | f | e)
+        k = _Fields()
+        acc = k.nums(self.acc_mg, 3, 1.0, -32768, 32767)
+        gyro = k.nums(self.gyro_dps, 3, 10.0, -32768, 32767)
+        peak = k.num(self.acc_peak_mg, 1.0, 0, 0xFFFF)
+        n = k.whole(self.samples, 0, 255)
+        faults = k.whole(self.faults, 0, 0xFFFF)
+        return _IMU.pack(*acc, *gyro, peak, n, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "ImuSummary":
@@ -397,17 +405,13 @@ class Heartbeat:
     msg_type = MSG_HEARTBEAT
 
     def pack(self) -> bytes:
-        f = 0
-        up, e = _int_field(self.uptime_s, 0, 0xFFFFFFFF, 0)
-        f |= e
-        rate, e = _quant(self.rate_fps, 10.0, 0, 0xFFFF)
-        f |= e
-        dropped, e = _int_field(self.frames_dropped, 0, 0xFFFF, 0)
-        f |= e
-        temp, e = _quant(self.temp_c, 1.0, -128, 127)
-        f |= e
-        faults, e = _int_field(self.faults, 0, 0xFFFF, 0)
-        return _HEARTBEAT.pack(up, rate, dropped, temp, faults | f | e)
+        k = _Fields()
+        up = k.whole(self.uptime_s, 0, 0xFFFFFFFF)
+        rate = k.num(self.rate_fps, 10.0, 0, 0xFFFF)
+        dropped = k.whole(self.frames_dropped, 0, 0xFFFF)
+        temp = k.num(self.temp_c, 1.0, -128, 127)
+        faults = k.whole(self.faults, 0, 0xFFFF)
+        return _HEARTBEAT.pack(up, rate, dropped, temp, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Heartbeat":
@@ -424,10 +428,11 @@ class Fault:
     msg_type = MSG_FAULT
 
     def pack(self) -> bytes:
-        faults, e1 = _int_field(self.faults, 0, 0xFFFF, 0)
-        raised, e2 = _int_field(self.raised, 0, 0xFFFF, 0)
-        lost, e3 = _int_field(self.pins_lost, 0, 0xFFFF, 0)
-        return _FAULT.pack(faults | e1 | e2 | e3, raised, lost)
+        k = _Fields()
+        faults = k.whole(self.faults, 0, 0xFFFF)
+        raised = k.whole(self.raised, 0, 0xFFFF)
+        lost = k.whole(self.pins_lost, 0, 0xFFFF)
+        return _FAULT.pack(faults | k.faults, raised, lost)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Fault":
@@ -444,24 +449,14 @@ class Gait:
     msg_type = MSG_GAIT
 
     def pack(self) -> bytes:
-        f = 0
-        phase, e = _int_field(self.phase, 0, 1, PHASE_STANCE)
-        f |= e
-        load, e = _quant(self.load_n, 10.0, 0, 0xFFFF)
-        f |= e
-        v = list(self.vel_mm_s)[:3] if _is_seq(self.vel_mm_s) else [self.vel_mm_s, 0.0, 0.0]
-        if len(v) != 3:
-            f |= FAULT_NONFINITE
-            v = (v + [0.0] * 3)[:3]
-        vq = []
-        for x in v:
-            q, e = _quant(x, 1.0, -32768, 32767)
-            f |= e
-            vq.append(q)
+        k = _Fields()
+        phase = k.whole(self.phase, 0, 1, PHASE_STANCE)
+        load = k.num(self.load_n, 10.0, 0, 0xFFFF)
+        vel = k.nums(self.vel_mm_s, 3, 1.0, -32768, 32767, scalar_is_first=True)
         flags, _ = _int_field(self.flags, 0, 255, 0)
-        flags |= (GAIT_FLAG_CLAMPED if f & FAULT_CLAMPED else 0) | \
-                 (GAIT_FLAG_NONFINITE if f & FAULT_NONFINITE else 0)
-        return _GAIT.pack(phase, load, *vq, flags)
+        flags |= (GAIT_FLAG_CLAMPED if k.faults & FAULT_CLAMPED else 0) | \
+                 (GAIT_FLAG_NONFINITE if k.faults & FAULT_NONFINITE else 0)
+        return _GAIT.pack(phase, load, *vel, flags)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Gait":

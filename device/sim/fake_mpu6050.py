@@ -66,6 +66,8 @@ from typing import Callable, Iterable, Mapping
 
 import numpy as np
 
+from device.checks import finite_number, positive_number, whole_number
+
 __all__ = [
     "FakeMPU6050",
     "MPU6050_ADDR",
@@ -172,25 +174,6 @@ STUCK_ERRNO = errno.ETIMEDOUT       # 110
 _NOT_PINNED = object()
 
 
-def _check_int(name: str, value, lo: int, hi: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {value!r}")
-    value = int(value)
-    if not lo <= value <= hi:
-        raise ValueError(f"{name} must be in [{lo}, {hi}], got {value!r}")
-    return value
-
-
-def _check_nonneg_float(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-    return v
-
-
 def _to_raw(value: float, lsb_per_unit: float) -> int:
     """Scale, round to nearest and saturate to int16 (finite for any finite input)."""
     scaled = value * lsb_per_unit
@@ -243,30 +226,20 @@ class FakeMPU6050:
         if bad.any():
             r, c = np.argwhere(bad)[0]
             raise ValueError(f"motion must be finite, got motion[{r}, {c}] = {float(arr[r, c])!r}")
-        try:
-            fps_f = float(fps)
-        except (TypeError, ValueError):
-            raise ValueError(f"fps must be a finite number > 0, got {fps!r}") from None
-        if not math.isfinite(fps_f) or fps_f <= 0:
-            raise ValueError(f"fps must be a finite number > 0, got {fps!r}")
-        try:
-            temp = float(temp_c)
-        except (TypeError, ValueError):
-            raise ValueError(f"temp_c must be a finite number, got {temp_c!r}") from None
-        if not math.isfinite(temp):
-            raise ValueError(f"temp_c must be a finite number, got {temp_c!r}")
+        fps_f = positive_number("fps", fps)
+        temp = finite_number("temp_c", temp_c)
         if clock is not None and not callable(clock):
             raise ValueError(f"clock must be callable or None, got {clock!r}")
 
         self.motion = arr
         self.motion.setflags(write=False)
         self.fps = fps_f
-        self.address = _check_int("address", address, 0x00, 0x7F)
-        self.who_am_i = _check_int("who_am_i", who_am_i, 0x00, 0xFF)
+        self.address = whole_number("address", address, 0x00, 0x7F)
+        self.who_am_i = whole_number("who_am_i", who_am_i, 0x00, 0xFF)
         self.temp_c = temp
-        self.noise_g = _check_nonneg_float("noise_g", noise_g)
-        self.noise_dps = _check_nonneg_float("noise_dps", noise_dps)
-        self.seed = _check_int("seed", seed, 0, 2**63 - 1)
+        self.noise_g = finite_number("noise_g", noise_g, 0)
+        self.noise_dps = finite_number("noise_dps", noise_dps, 0)
+        self.seed = whole_number("seed", seed, 0, 2**63 - 1)
 
         self._clock = clock
         self._t0 = clock() if clock is not None else 0.0
@@ -311,7 +284,7 @@ class FakeMPU6050:
                 raise ValueError("frame_index=None needs a clock, but clock is None")
             self._pinned = None
             return
-        self._pinned = _check_int("frame_index", frame_index, 0, self.n_frames - 1)
+        self._pinned = whole_number("frame_index", frame_index, 0, self.n_frames - 1)
 
     def inject(self, kind: str, count: int | None = None) -> None:
         """Inject a bus fault: "eio" / "eremoteio" for the next ``count`` (default 1)
@@ -323,7 +296,7 @@ class FakeMPU6050:
             return
         if kind not in FAULT_ERRNO:
             raise ValueError(f"kind must be one of {sorted(FAULT_ERRNO) + ['stuck']}, got {kind!r}")
-        n = 1 if count is None else _check_int("count", count, 0, 10**9)
+        n = 1 if count is None else whole_number("count", count, 0, 10**9)
         self._faults.extend([FAULT_ERRNO[kind]] * n)
 
     def unstick(self) -> None:
@@ -362,25 +335,25 @@ class FakeMPU6050:
 
     def register(self, reg: int) -> int:
         """The stored value of a register, without a bus transaction (for tests)."""
-        return self._regs[_check_int("reg", reg, 0, 0xFF)]
+        return self._regs[whole_number("reg", reg, 0, 0xFF)]
 
     # ------------------------------------------------------------- smbus2 API
     def read_byte_data(self, i2c_addr: int, register: int, force=None) -> int:
         return self._read(i2c_addr, register, 1)[0]
 
     def write_byte_data(self, i2c_addr: int, register: int, value: int, force=None) -> None:
-        value = _check_int("value", value, 0, 0xFF)
+        value = whole_number("value", value, 0, 0xFF)
         self._write(i2c_addr, register, [value])
 
     def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force=None) -> list[int]:
-        length = _check_int("length", length, 1, I2C_SMBUS_BLOCK_MAX)
+        length = whole_number("length", length, 1, I2C_SMBUS_BLOCK_MAX)
         return self._read(i2c_addr, register, length)
 
     def write_i2c_block_data(self, i2c_addr: int, register: int, data: Iterable[int], force=None) -> None:
         data = list(data)
         if not 1 <= len(data) <= I2C_SMBUS_BLOCK_MAX:
             raise ValueError(f"data length must be 1..{I2C_SMBUS_BLOCK_MAX}, got {len(data)}")
-        data = [_check_int(f"data[{i}]", v, 0, 0xFF) for i, v in enumerate(data)]
+        data = [whole_number(f"data[{i}]", v, 0, 0xFF) for i, v in enumerate(data)]
         self._write(i2c_addr, register, data)
 
     def close(self) -> None:
@@ -406,8 +379,8 @@ class FakeMPU6050:
         """Checks common to every transaction; raises the injected faults."""
         if self._closed:
             raise ValueError("I2C transaction on a closed bus")
-        i2c_addr = _check_int("i2c_addr", i2c_addr, 0x00, 0x7F)
-        register = _check_int("register", register, 0x00, 0xFF)
+        i2c_addr = whole_number("i2c_addr", i2c_addr, 0x00, 0x7F)
+        register = whole_number("register", register, 0x00, 0xFF)
         self.transactions += 1
         if self._stuck:
             self.errors += 1

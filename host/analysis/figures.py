@@ -4,14 +4,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["save_figure"]
+__all__ = ["pyplot", "save_figure"]
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend: the commands write files and never
+    open a window."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def save_figure(fig, out: Path | str, title: str = "", dpi: int = 90) -> Path:
     """Title ``fig`` (when ``title`` is given), lay it out, write it to ``out``
     (making its folder) and close it; returns ``out`` as a Path."""
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -1,5 +1,5 @@
 """Small measures shared by the realism checks: frame lists, the dome over a
-few frames, nearest-neighbour spacing, and finite statistics (0.0 instead of NaN).
+few frames, nearest-neighbour spacing (device.pi.vision.neighbours), and finite statistics (0.0 instead of NaN).
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from device.pi.vision.extract import find_dome
+from device.pi.vision.neighbours import nearest_neighbour_px  # the one copy; re-exported
 
 __all__ = ["finite", "stat", "frame_list", "locate_dome", "nearest_neighbour_px"]
 
@@ -51,13 +52,3 @@ def locate_dome(frames: Sequence[np.ndarray], max_frames: int = 5) -> tuple[floa
         return None
     cx, cy, r = np.median(np.asarray(found), axis=0)
     return float(cx), float(cy), float(r)
-
-
-def nearest_neighbour_px(xy: np.ndarray) -> np.ndarray:
-    """Distance from each point to its nearest other point, px (n,). Empty for n < 2."""
-    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    if len(p) < 2:
-        return np.zeros((0,), np.float64)
-    d2 = ((p[:, None, :] - p[None, :, :]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    return np.sqrt(d2.min(axis=1))

@@ -12,9 +12,12 @@ from device.pi.vision.pipeline import MarkerStream
 from device.pi.vision.matching import match_pins
 from device.sim import Simulator, load_scene
 from host.analysis.recall import pin_hits
+from host.learn.metrics import classification_metrics
 
 DRAGS = tuple(f"drag-{d}" for d in range(0, 360, 45))
 PRESSES = ("press-hard", "press-soft", "press-wet")
+#: contact detection scored as a two-class classifier (host.learn.metrics)
+CONTACT_CLASSES = ["no contact", "contact"]
 
 
 def _angle_err(a: float, b: float) -> float:
@@ -70,10 +73,12 @@ def evaluate_scene(scene_name: str, effects=("glare", "camera_noise"), seed: int
                                       math.degrees(math.atan2(s[1], s[0]))))
         pred_c.append(out.contact)
         true_c.append(bool(tr["contact"][i]))
-    pred_c, true_c = np.array(pred_c), np.array(true_c)
-    tp = int((pred_c & true_c).sum())
-    denom = int(pred_c.sum() + true_c.sum())
-    f1 = 2 * tp / denom if denom else 1.0       # no contact at all, none claimed
+    pred_c, true_c = np.array(pred_c, bool), np.array(true_c, bool)
+    if true_c.any() or pred_c.any():
+        f1 = classification_metrics(true_c.astype(int), pred_c.astype(int), CONTACT_CLASSES)[
+            "per_class"]["contact"]["f1"]
+    else:
+        f1 = 1.0                                # no contact at all, none claimed
     return {"scene": scene_name, "frames": sim.n_frames,
             "recall": hits / max(1, n_true), "precision": found_ok / max(1, n_found),
             "centroid_err_px_median": float(np.median(cerr)) if cerr else float("inf"),

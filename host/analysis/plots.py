@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from host.analysis.directions import compare_directions, direction_series, read_lines
+from host.analysis.figures import pyplot, save_figure
 
 SENSATIONS = ("left", "right", "centre")
 
@@ -37,9 +38,7 @@ def load_directions(path: Path | str) -> dict:
 
 
 def plot_directions(inputs: list[dict], out: Path | str, title: str = "") -> Path:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     n = len(inputs)
     fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4.4), squeeze=False)
@@ -67,14 +66,7 @@ def plot_directions(inputs: list[dict], out: Path | str, title: str = "") -> Pat
         ax.set_xlabel("average vector x [px]")
         ax.legend(fontsize=7, loc="lower right")
     axes[0][0].set_ylabel("average vector y [px] (down)")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out, title)
 
 
 def load_comparison(path: Path | str) -> tuple[list[dict], dict]:

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
-from host.analysis.figures import save_figure
+from host.analysis.figures import pyplot, save_figure
 
 
 def to_bgr(frame: np.ndarray) -> np.ndarray:
@@ -96,9 +96,7 @@ def save_images(images: list[np.ndarray], out: Path, fps: float = 15.0, width: i
 
 def truth_plot(truth: dict, out: Path, title: str = "") -> Path:
     """Ground truth over time: load, shear, contact/slip and the surface label."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     t = truth["t_s"]
     fig, ax = plt.subplots(4, 1, figsize=(9, 7.5), sharex=True)

@@ -13,13 +13,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from host.analysis.figures import pyplot, save_figure
 from host.bench.scenes import simulate_scenes
 from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
 from host.data.splits import split_grouped, split_time
 from host.learn.evaluate import evaluate_model
 from host.learn.onnx_io import INT8_NAME
-from host.learn.tasks import TASK_MODELS, QuantisationError, TrainError
+from host.learn.tasks import MAX_REGRESSION_CHANGE, TASK_MODELS, QuantisationError, TrainError
 from host.learn.train import train_model
 
 WINDOWS = (1, 2, 3, 5, 10)
@@ -41,13 +42,25 @@ def models_for(task: str) -> list[str]:
     return models
 
 
-def _int8_why(agreement: float | None, required: float | None, message: str) -> str:
-    """The int8 check's verdict in a few words: the agreement it reached and the bar,
-    or the start of ``message`` when the check has no agreement (a regressor)."""
-    if agreement is None or required is None:
-        return f"int8 check failed: {message[:120]}"
-    return (f"int8 check failed: {agreement:.2%} argmax agreement with float "
-            f"(< {required * 100:g} %); float kept")
+INT8_FAILED = "int8 check failed: "
+
+
+def _int8_why(fields: dict, message: str) -> str:
+    """The int8 check's verdict in a few words, formatted once from its fields
+    (:meth:`QuantisationError.fields`, or the manifest's ``int8``): the agreement
+    reached and the bar (a classifier), or the MAE change (a regressor). Only a
+    verdict with neither falls back to the start of the check's ``message``."""
+    agreement, required = fields.get("agreement"), fields.get("required")
+    mae_change, share = fields.get("mae_change"), fields.get("mae_change_of_range")
+    if agreement is not None and required is not None:
+        why = f"{agreement:.2%} argmax agreement with float (< {required * 100:g} %)"
+    elif mae_change is not None:
+        why = f"raises the MAE by {mae_change:.4g}" + (
+            "" if share is None else
+            f" ({share:.2%} of the target range, > {MAX_REGRESSION_CHANGE:.0%})")
+    else:
+        return INT8_FAILED + message.removeprefix(INT8_FAILED)[:120]
+    return f"{INT8_FAILED}{why}; float kept"
 
 
 def train_row(task, model, tr, te, out, seed) -> str | None:
@@ -59,14 +72,14 @@ def train_row(task, model, tr, te, out, seed) -> str | None:
         try:
             quantise_cnn(res["onnx_path"], tr, Path(out) / INT8_NAME, seed=seed)
         except QuantisationError as exc:
-            return _int8_why(exc.agreement, exc.required, str(exc))
+            return _int8_why(exc.fields(), str(exc))
         return None
     res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
                       seed=seed, out_dir=out, progress=False)
     failed = (res.get("int8") or {}).get("failed")
     if not failed:
         return None
-    return _int8_why(res["int8"].get("agreement"), res["int8"].get("required"), failed)
+    return _int8_why(res["int8"], failed)
 
 
 def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int = 0,
@@ -134,9 +147,7 @@ def pareto(rows: list[dict], lower_better: bool) -> set[int]:
 
 
 def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     ok = [r for r in rows if "error" not in r]
     lower = ok and ok[0].get("mae") is not None
@@ -161,11 +172,7 @@ def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
     ax.legend(fontsize=8)
     sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, 10))
     fig.colorbar(sm, ax=ax, label="window T [frames]")
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=90)
-    plt.close(fig)
-    return out
+    return save_figure(fig, out)
 
 
 def table(rows: list[dict]) -> str:

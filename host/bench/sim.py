@@ -5,6 +5,8 @@ import time
 
 import numpy as np
 
+from host.analysis.recall import recall_precision
+
 
 def single_thread():
     import cv2
@@ -135,15 +137,6 @@ class BaselineBlobTracker:
             if best >= 0:
                 vec[i] = pins[best] - r
         return pins, vec
-
-
-def recall_precision(found: np.ndarray, truth: np.ndarray, gate_px: float = 2.0):
-    """Share of true pins with a found pin within ``gate_px``, and share of found pins
-    with a true pin within it."""
-    if len(truth) == 0 or len(found) == 0:
-        return 0.0, 0.0
-    d = np.linalg.norm(found[:, None, :] - truth[None, :, :], axis=-1)
-    return float((d.min(axis=0) <= gate_px).mean()), float((d.min(axis=1) <= gate_px).mean())
 
 
 def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin") -> dict:

@@ -14,18 +14,13 @@ from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
 from host.data.dataset import is_dataset
-from host.learn.onnx_io import json_default as _plain
+from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 
 EXIT_BAD_INPUT = 2
 
 
 class UserError(Exception):
     """Bad input from the user: printed as one line, exit status 2."""
-
-
-def json_default(o):
-    """``json.dumps(default=...)`` for numpy scalars and arrays."""
-    return _plain(o)
 
 
 def emit(args, data, text: str | None = None) -> None:

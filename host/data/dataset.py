@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from device.jsondoc import read_json_doc
+
 FORMAT = "tacfoot-dataset"
 VERSION = 1
 INDEX = "dataset.json"
@@ -84,20 +86,7 @@ class DatasetWriter:
 
 
 def read_index(path: Path | str) -> dict:
-    path = Path(path)
-    idx = path / INDEX if path.is_dir() else path
-    try:
-        doc = json.loads(idx.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: not a tacfoot dataset (no {INDEX})") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{idx}: corrupt index: {exc}") from None
-    if doc.get("format") != FORMAT:
-        raise DatasetError(f"{idx}: format is {doc.get('format')!r}, expected {FORMAT!r}")
-    if int(doc.get("version", 0)) > VERSION:
-        raise DatasetError(f"{idx}: version {doc.get('version')} is newer than this "
-                           f"tacfoot reads ({VERSION})")
-    return doc
+    return read_json_doc(path, INDEX, FORMAT, VERSION, "dataset", "index", DatasetError)[0]
 
 
 def load_trial(dataset_dir: Path | str, i: int) -> dict:

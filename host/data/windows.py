@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
+from device.checks import whole_number
+
 if TYPE_CHECKING:
     from host.data.extract import ClipFeatures
 
@@ -247,9 +249,7 @@ def check_task(task) -> str:
 
 
 def check_int(name: str, value, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise DataError(f"{name} must be a whole number >= {lo}, got {name}={value!r}")
-    return int(value)
+    return whole_number(name, value, lo, error=DataError)
 
 
 def finalise(ws: WindowSet, min_classes: int, spec: str) -> WindowSet:

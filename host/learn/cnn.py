@@ -31,7 +31,6 @@ without it :func:`require_torch` raises an ImportError that says how to install 
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import tempfile
@@ -41,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from device.checks import finite_number, positive_number
 from device.pi.models.artefact import MANIFEST
 from host.data.windows import CLASS_TASKS
 from host.learn.metrics import label_metrics
@@ -88,17 +88,6 @@ def frames_input(frames: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------
 # Parameters
 # ----------------------------------------------------------------------------
-
-def _check_float(name: str, value, lo: float, hi: float | None = None,
-                 lo_open: bool = False) -> float:
-    ok = (not isinstance(value, bool) and isinstance(value, (int, float, np.floating))
-          and math.isfinite(value) and (value > lo if lo_open else value >= lo)
-          and (hi is None or value < hi))
-    if not ok:
-        rng = f"{'>' if lo_open else '>='} {lo}" + ("" if hi is None else f" and < {hi}")
-        raise ValueError(f"{name} must be a finite number {rng}, got {name}={value!r}")
-    return float(value)
-
 
 def conv_out(size: int, kernel: int, stride: int, pool: int) -> int:
     """Side of the feature map after the conv (padding (kernel - stride) // 2) and pool."""
@@ -195,9 +184,9 @@ class FrameCNN:
                          ("hidden", 1), ("epochs", 1), ("batch_size", 1), ("seed", 0),
                          ("threads", 1)):
             check_int(name, getattr(self, name), lo)
-        _check_float("dropout", self.dropout, 0.0, 1.0)
-        _check_float("lr", self.lr, 0.0, lo_open=True)
-        _check_float("weight_decay", self.weight_decay, 0.0)
+        finite_number("dropout", self.dropout, 0.0, 1.0, hi_open=True)
+        positive_number("lr", self.lr)
+        finite_number("weight_decay", self.weight_decay, 0.0)
 
     @staticmethod
     def _check_X(X, name: str = "X") -> np.ndarray:

@@ -11,6 +11,7 @@ import warnings
 
 import numpy as np
 
+from device.checks import finite_number
 from device.pi.models.rules import RuleClassifier, window_measures
 from host.learn.layers import scaler_class, temporal_class
 from host.learn.regression import ridge_pipeline
@@ -29,9 +30,7 @@ def hyperparameters(model: str, hidden=None, alpha=None, epochs=None, temporal=N
     if len(hidden) != 2 or not all(isinstance(h, (int, np.integer)) and h >= 1 for h in hidden):
         raise TrainError(f"hidden must be two layer sizes >= 1, got hidden={hidden!r}")
     alpha = DEFAULT_ALPHA.get(model, 0.0) if alpha is None else alpha
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not (
-            math.isfinite(alpha) and alpha >= 0):
-        raise TrainError(f"alpha must be a finite number >= 0, got alpha={alpha!r}")
+    alpha = finite_number("alpha", alpha, 0, error=TrainError)
     epochs = check_int("epochs", DEFAULT_EPOCHS if epochs is None else epochs, 1)
     return {"hidden": [int(h) for h in hidden], "alpha": float(alpha), "epochs": epochs,
             "temporal": temporal}

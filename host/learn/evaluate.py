@@ -17,38 +17,32 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import MANIFEST, ModelError, read_manifest
+from device.pi.models.artefact import MANIFEST, VARIANTS, ModelError, manifest_for, read_manifest
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import encode
 from host.learn.inputs import model_inputs
 from host.learn.metrics import classification_metrics, regression_metrics, slip_latency
-from host.learn.onnx_io import FLOAT_MANIFEST
 from host.learn.tasks import label_ids
 
 __all__ = ["evaluate_model", "load_variant", "VARIANTS"]
 
-VARIANTS = ("float", "int8")
-
 
 def _manifest_for(model_dir, variant: str | None) -> Path:
-    """The manifest file that loads ``variant`` (None: the default)."""
+    """The manifest file that loads ``variant`` (None: the default), picked by the
+    Pi's :func:`device.pi.models.artefact.manifest_for`. Unlike the Pi, which runs
+    the model it has, an evaluation refuses a folder without the variant asked for."""
     doc, folder = read_manifest(model_dir)
     mpath = Path(model_dir) if Path(model_dir).is_file() else folder / MANIFEST
     if variant is None or doc.get("model") == "rule":
         if variant == "int8" and doc.get("model") == "rule":
             raise ModelError(f"{mpath}: a rule model has no int8 variant")
         return mpath
-    if variant not in VARIANTS:
-        raise ValueError(f"variant must be one of {list(VARIANTS)} or None, got "
-                         f"variant={variant!r}")
-    have = doc.get("variant", "float")
-    if have == variant:
-        return mpath
-    if variant == "float" and (folder / FLOAT_MANIFEST).is_file():
-        return folder / FLOAT_MANIFEST
-    raise ModelError(f"{mpath}: the model folder has no {variant} model"
-                     + (" (train with --quantise)" if variant == "int8" else ""))
+    picked = manifest_for(folder, variant)          # ValueError for an unknown variant
+    if read_manifest(picked)[0].get("variant", "float") != variant:
+        raise ModelError(f"{mpath}: the model folder has no {variant} model"
+                         + (" (train with --quantise)" if variant == "int8" else ""))
+    return picked
 
 
 def load_variant(model_dir, variant: str | None = None):

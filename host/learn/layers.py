@@ -79,9 +79,6 @@ def temporal_class():
 
 #: standardised MLP inputs are clipped to this many standard deviations
 SCALED_CLIP = 8.0
-#: a feature whose standard deviation is below this is constant for the models: it
-#: keeps scale 1, as a zero-variance one does (1/sd would overflow float32)
-MIN_SCALE = 1e-12
 
 
 def scaler_class():
@@ -93,8 +90,7 @@ def scaler_class():
     from sklearn.preprocessing import StandardScaler
 
     class ClippedScaler(TransformerMixin, BaseEstimator):
-        """Standard scaling (sklearn's: a zero-variance feature, or one with a standard
-        deviation below ``MIN_SCALE``, keeps scale 1), then
+        """Standard scaling (sklearn's: a zero-variance feature keeps scale 1), then
         every value clipped to +-``clip`` standard deviations. The clip bounds what
         an extreme window can do to the MLP and keeps one outlying feature from
         stretching the int8 range of the first layer's input for all the others.
@@ -106,8 +102,13 @@ def scaler_class():
         def fit(self, X, y=None):
             sc = StandardScaler().fit(X)
             self.mean_ = sc.mean_.astype(np.float32)
-            self.scale_ = np.where(sc.scale_ < MIN_SCALE, 1.0, sc.scale_)
-            self.inv_scale_ = (1.0 / self.scale_).astype(np.float32)
+            # a spread too small for float32 to invert (a standard deviation below
+            # about 3e-39) counts as zero variance: scale 1, like sklearn's constant
+            # features, so the feature maps to ~0 instead of inf * 0 = NaN
+            inv = 1.0 / np.asarray(sc.scale_, np.float64)
+            flat = ~(inv <= np.finfo(np.float32).max)
+            self.scale_ = np.where(flat, 1.0, sc.scale_)
+            self.inv_scale_ = np.where(flat, 1.0, inv).astype(np.float32)
             self.n_features_in_ = sc.n_features_in_
             return self
 

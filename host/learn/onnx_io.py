@@ -12,16 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION, sha256_file
+from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST,
+                                      VERSION, ort_session, sha256_file)
 from host.data.dataset import atomic_write, atomic_write_text
 
 __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
-           "write_manifest", "write_model", "write_variants", "model_bytes", "session",
-           "run_onnx", "is_classifier"]
+           "new_manifest", "write_manifest", "write_model", "write_variants", "model_bytes",
+           "session", "run_onnx", "is_classifier"]
 
 FLOAT_NAME = "model.onnx"
 INT8_NAME = "model.int8.onnx"
-FLOAT_MANIFEST = "manifest.float.json"
 
 
 def json_default(o):
@@ -44,6 +44,17 @@ def sklearn_to_onnx(estimator, n_features: int, input_name: str = "x"):
         [None, n_features]))], target_opset=17)
 
 
+def new_manifest(n_features: int, keys: dict, onnx: str | None = None,
+                 sha256: str | None = None, size_bytes: int = 0, input_name: str = "x") -> dict:
+    """A manifest: the keys :func:`device.pi.models.artefact.read_manifest` needs (format,
+    version, feature spec, the ONNX file and its checksum, a float32 input of
+    ``n_features``; no ONNX file for a rule), updated with ``keys``."""
+    return {"format": FORMAT, "version": VERSION, "feature_spec": FEATURE_SPEC_VERSION,
+            "onnx": onnx, "sha256": {onnx: sha256} if onnx else {}, "size_bytes": size_bytes,
+            "input": {"name": input_name, "shape": [None, int(n_features)], "dtype": "float32"},
+            **keys}
+
+
 def write_manifest(folder: Path | str, doc: dict, name: str = MANIFEST) -> Path:
     """Write ``doc`` as ``folder/name`` atomically; returns the path."""
     path = Path(folder) / name
@@ -60,14 +71,8 @@ def write_model(onnx_model, out_dir: Path | str, kind: str, n_features: int,
     out.mkdir(parents=True, exist_ok=True)
     data = onnx_model.SerializeToString()
     atomic_write(out / onnx_name, lambda fh: fh.write(data))
-    manifest = {"format": FORMAT, "version": VERSION, "kind": kind,
-                "feature_spec": FEATURE_SPEC_VERSION, "onnx": onnx_name,
-                "sha256": {onnx_name: sha256_file(out / onnx_name)},
-                "size_bytes": len(data),
-                "input": {"name": input_name, "shape": [None, int(n_features)],
-                          "dtype": "float32"}}
-    manifest.update(extra or {})
-    write_manifest(out, manifest)
+    write_manifest(out, new_manifest(n_features, {"kind": kind, **(extra or {})}, onnx_name,
+                                     sha256_file(out / onnx_name), len(data), input_name))
     return out
 
 
@@ -109,16 +114,10 @@ def model_bytes(m) -> bytes:
 
 
 def session(model, threads: int = 1):
-    """An ONNX Runtime CPU session (``threads`` intra-op threads, quiet logging) for a
+    """:func:`device.pi.models.artefact.ort_session` (the Pi's set-up) for a
     ModelProto, bytes or a path."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
     src = model_bytes(model) if not isinstance(model, (str, Path)) else str(model)
-    return ort.InferenceSession(src, sess_options=so, providers=["CPUExecutionProvider"])
+    return ort_session(src, threads)
 
 
 def is_classifier(sess) -> bool:

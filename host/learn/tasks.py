@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "LAYOUT", "TrainError", "QuantisationError",
-           "check_choice", "check_int", "label_ids"]
+from device.checks import whole_number
+
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "LAYOUT",
+           "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
 MODELS = ("rule", "ridge", "fnn", "grid-fnn")
@@ -63,12 +65,14 @@ class QuantisationError(TrainError):
         self.mae_change_of_range = mae_change_of_range
         self.path = path
 
+    def fields(self) -> dict:
+        """The verdict's fields (all but ``path``), as the manifest's ``int8`` records them."""
+        return {"kind": self.kind, "agreement": self.agreement, "required": self.required,
+                "mae_change": self.mae_change, "mae_change_of_range": self.mae_change_of_range}
+
     def with_message(self, message: str) -> "QuantisationError":
         """The same verdict with another message (e.g. naming another file)."""
-        return QuantisationError(message, kind=self.kind, agreement=self.agreement,
-                                 required=self.required, mae_change=self.mae_change,
-                                 mae_change_of_range=self.mae_change_of_range,
-                                 path=self.path)
+        return QuantisationError(message, **self.fields(), path=self.path)
 
 
 def check_choice(name: str, value, choices) -> str:
@@ -81,9 +85,7 @@ def check_choice(name: str, value, choices) -> str:
 def check_int(name: str, value, lo: int) -> int:
     """``value`` as an int, or a TrainError naming the field when it is not a whole
     number >= ``lo``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise TrainError(f"{name} must be a whole number >= {lo}, got {name}={value!r}")
-    return int(value)
+    return whole_number(name, value, lo, error=TrainError)
 
 
 def label_ids(labels, classes: list[str]) -> np.ndarray:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import FEATURE_SPEC_VERSION, FORMAT, MANIFEST, VERSION
+from device.pi.models.artefact import MANIFEST
 from host.data.dataset import atomic_write
 from host.data.splits import split_holdout
 from host.data.windows import DataError, WindowSet
@@ -45,8 +45,8 @@ from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hy
                                    pipeline_to_onnx, rule_probs)
 from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.metrics import class_report, regression_metrics
-from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, run_onnx, session, write_manifest,
-                                write_model, write_variants)
+from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
+                                write_manifest, write_model, write_variants)
 from host.learn.quantise import quantise_model
 from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_MODELS, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
@@ -224,12 +224,9 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         result["metrics"] = metrics
         result["int8"] = ({"skipped": "a rule has no weights to quantise"} if quantise
                           else None)
-        doc = {"format": FORMAT, "version": VERSION, "feature_spec": FEATURE_SPEC_VERSION,
-               "onnx": None, "sha256": {}, "size_bytes": 0,
-               "input": {"name": "x", "shape": [None, int(X.shape[1])], "dtype": "float32"},
-               **rc.to_manifest(), "metrics": metrics,
-               "training": _training_info(ws_train, ws_test, holdout, seed, {})}
-        write_manifest(out, doc)
+        write_manifest(out, new_manifest(X.shape[1], {
+            **rc.to_manifest(), "metrics": metrics,
+            "training": _training_info(ws_train, ws_test, holdout, seed, {})}))
         result["files"] = {MANIFEST: {"size_bytes": (out / MANIFEST).stat().st_size}}
         result["train_s"] = round(time.perf_counter() - t_start, 3)
         return result
@@ -272,9 +269,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 if quantise != "if-passes":
                     raise exc.with_message(msg) from None
                 # keep the float model, say why
-                int8 = {"failed": msg, "kind": exc.kind, "agreement": exc.agreement,
-                        "required": exc.required, "mae_change": exc.mae_change,
-                        "mae_change_of_range": exc.mae_change_of_range}
+                int8 = {"failed": msg, **exc.fields()}
         if qbytes is not None:
             int8.pop("path", None)
             q_out = run_onnx(session(qbytes), check_X)

@@ -8,9 +8,10 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
+
+from device.checks import finite_number
+from host.learn.onnx_io import session
 
 __all__ = ["DEFAULT_ALPHA", "MAX_FLOAT32_BYTES", "fit_ridge", "ridge_to_onnx", "onnx_vs_sklearn"]
 
@@ -22,9 +23,7 @@ def fit_ridge(X: np.ndarray, Y: np.ndarray, alpha: float = DEFAULT_ALPHA,
     """scikit-learn Ridge (float64 solve) fitted on X -> Y."""
     from sklearn.linear_model import Ridge
 
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not (
-            math.isfinite(alpha) and alpha >= 0):
-        raise ValueError(f"alpha must be a finite number >= 0, got alpha={alpha!r}")
+    alpha = finite_number("alpha", alpha, 0)
     model = Ridge(alpha=float(alpha), fit_intercept=True, solver="cholesky")
     model.fit(X.astype(np.float64), Y.astype(np.float64), sample_weight=sample_weight)
     return model
@@ -74,11 +73,6 @@ def ridge_to_onnx(model, n_features: int, weights: str = "auto", input_name: str
 
 def onnx_vs_sklearn(onx, model, X: np.ndarray) -> float:
     """Largest |ONNX - scikit-learn| output on rows X (normalised units)."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = 1
-    so.log_severity_level = 3
-    sess = ort.InferenceSession(onx.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    sess = session(onx)
     got = sess.run(None, {sess.get_inputs()[0].name: X.astype(np.float32)})[0]
     return float(np.abs(got - model.predict(X)).max())

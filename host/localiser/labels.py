@@ -18,7 +18,7 @@ import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
 from device.pi.vision.matching import mutual_match
-from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px
+from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, nearest_neighbour_px
 from device.pi.vision.tracking import Tracker
 from host.localiser.samples import Sample, progress_bar, sensor_geometry, vision_params_for
 
@@ -133,9 +133,7 @@ def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
         return f"duplicate assignment ({len(used) - len(np.unique(used))} detections used twice)"
     if not np.isfinite(lab).all():
         return "non-finite labels"
-    d2 = ((lab[:, None] - lab[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    dmin = float(np.sqrt(d2.min()))
+    dmin = float(nearest_neighbour_px(lab).min(initial=np.inf))
     if dmin < checks.min_spacing_pitch * pitch_px:
         return f"labels collapsed (two pins {dmin:.1f} px apart)"
     disp = lab - rest_px

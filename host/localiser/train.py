@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -46,9 +45,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from device.checks import finite_number, positive_number, whole_number
 from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
 from device.profile import has_sim_geometry
-from host.learn.onnx_io import write_model
+from host.learn.onnx_io import json_default, write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px
 from host.localiser.fit import DEFAULT_ALPHA, fit_ridge, onnx_vs_sklearn, ridge_to_onnx
 from host.localiser.labels import REAL_CLIPS, REAL_HOLDOUT_FRAC, LabelChecks, real_samples
@@ -73,16 +73,10 @@ TEST_MAX_DEPTH_MM = 3.0
 
 
 def _check_args(size, alpha, crop_factor, n_aug) -> None:
-    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or not 8 <= size <= 128:
-        raise ValueError(f"size must be an integer in [8, 128], got size={size!r}")
-    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not (
-            math.isfinite(alpha) and alpha >= 0):
-        raise ValueError(f"alpha must be a finite number >= 0, got alpha={alpha!r}")
-    if isinstance(crop_factor, bool) or not isinstance(crop_factor, (int, float)) or not (
-            0.3 <= crop_factor <= 2.0):
-        raise ValueError(f"crop_factor must be in [0.3, 2.0], got crop_factor={crop_factor!r}")
-    if isinstance(n_aug, bool) or not isinstance(n_aug, int) or n_aug < 1:
-        raise ValueError(f"n_aug must be an integer >= 1, got n_aug={n_aug!r}")
+    whole_number("size", size, 8, 128)
+    finite_number("alpha", alpha, 0)
+    finite_number("crop_factor", crop_factor, 0.3, 2.0)
+    whole_number("n_aug", n_aug, 1)
 
 
 def train_localiser(
@@ -130,10 +124,7 @@ def train_localiser(
         raise ValueError(f"profile {str(profile)!r} has no simulator geometry, so there are "
                          f"no simulated frames to train on: use n_sim_scenes=0 "
                          f"(--sim-scenes 0) with real clips of the sensor")
-    if isinstance(real_weight, bool) or not isinstance(real_weight, (int, float)) or not (
-            math.isfinite(real_weight) and real_weight > 0):
-        raise ValueError(f"real_weight must be a finite number > 0, "
-                         f"got real_weight={real_weight!r}")
+    positive_number("real_weight", real_weight)
     t0 = time.perf_counter()
     stage_s: dict = {}
     n_pins = len(sensor_geometry(profile)[0])
@@ -276,7 +267,7 @@ def run(args) -> int:
         return 2
     res.pop("estimator", None)
     if args.json:
-        print(json.dumps(res, default=lambda o: o.item() if isinstance(o, np.generic) else str(o)))
+        print(json.dumps(res, default=json_default))
     else:
         m = res["metrics"]
         print(f"wrote {res['out_dir']} ({res['size_bytes'] / 1e6:.2f} MB) in {res['train_s']} s")

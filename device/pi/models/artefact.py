@@ -16,11 +16,12 @@ manifest.json (keys the loader needs; writers add more, e.g. metrics)::
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from device.jsondoc import read_json_doc
 
 FORMAT = "tacfoot-model"
 VERSION = 1
@@ -47,20 +48,7 @@ def sha256_file(path: Path) -> str:
 
 def read_manifest(path: Path | str) -> tuple[dict, Path]:
     """(manifest, folder) from a model folder or a manifest path."""
-    path = Path(path)
-    mpath = path / MANIFEST if path.is_dir() else path
-    try:
-        doc = json.loads(mpath.read_text())
-    except FileNotFoundError:
-        raise ModelError(f"{mpath}: model manifest not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ModelError(f"{mpath}: corrupt manifest ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise ModelError(f"{mpath}: not a tacfoot model manifest (format "
-                         f"{doc.get('format') if isinstance(doc, dict) else doc!r})")
-    if int(doc.get("version", 0)) > VERSION:
-        raise ModelError(f"{mpath}: manifest version {doc.get('version')} is newer than "
-                         f"this runtime reads ({VERSION})")
+    doc, mpath = read_json_doc(path, MANIFEST, FORMAT, VERSION, "model", "manifest", ModelError)
     for key in ("onnx", "sha256", "feature_spec", "input"):
         if key not in doc:
             raise ModelError(f"{mpath}: manifest lacks {key!r}")
@@ -78,6 +66,18 @@ def manifest_for(folder: Path | str, variant: str) -> Path:
     if variant == "float" and (folder / FLOAT_MANIFEST).is_file():
         return folder / FLOAT_MANIFEST
     return folder / MANIFEST if (folder / MANIFEST).is_file() else folder
+
+
+def ort_session(model: str | bytes, threads: int = 1):
+    """The one ONNX Runtime set-up: a CPU session with ``threads`` intra-op threads,
+    one inter-op thread and quiet logging, for a model file path or its bytes."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(model, sess_options=so, providers=["CPUExecutionProvider"])
 
 
 @dataclass
@@ -98,8 +98,6 @@ class Model:
 
 def load_model(path: Path | str, expect_kind: str | None = None,
                feature_spec: int = FEATURE_SPEC_VERSION, threads: int = 1) -> Model:
-    import onnxruntime as ort
-
     doc, folder = read_manifest(path)
     if int(doc["feature_spec"]) != feature_spec:
         raise ModelError(f"{folder / MANIFEST}: feature-spec version {doc['feature_spec']} "
@@ -115,13 +113,8 @@ def load_model(path: Path | str, expect_kind: str | None = None,
     if want != got:
         raise ModelError(f"{onnx_path}: checksum {got[:12]}... does not match the manifest "
                          f"({str(want)[:12]}...); the file is corrupt, truncated or replaced")
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
     try:
-        sess = ort.InferenceSession(str(onnx_path), sess_options=so,
-                                    providers=["CPUExecutionProvider"])
+        sess = ort_session(str(onnx_path), threads)
     except Exception as exc:  # onnxruntime raises its own exception types
         raise ModelError(f"{onnx_path}: ONNX Runtime cannot load it ({exc})") from None
     return Model(doc, folder, sess, sess.get_inputs()[0].name)

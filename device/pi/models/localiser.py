@@ -37,6 +37,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from device.checks import finite_number
 from device.pi.models.artefact import Model, ModelError, load_model
 
 __all__ = [
@@ -78,13 +79,7 @@ def _dome3(dome) -> tuple[float, float, float]:
 
 
 def _check_factor(crop_factor) -> float:
-    if isinstance(crop_factor, bool) or not isinstance(
-            crop_factor, (int, float, np.integer, np.floating)):
-        raise ValueError(f"crop_factor must be a number, got crop_factor={crop_factor!r}")
-    f = float(crop_factor)
-    if not math.isfinite(f) or not 0.05 <= f <= 4.0:
-        raise ValueError(f"crop_factor must be in [0.05, 4], got crop_factor={crop_factor!r}")
-    return f
+    return finite_number("crop_factor", crop_factor, 0.05, 4.0)
 
 
 def crop_square(dome, crop_factor: float = DEFAULT_CROP_FACTOR) -> tuple[int, int, int]:

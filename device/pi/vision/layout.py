@@ -9,11 +9,10 @@ resized).
 """
 from __future__ import annotations
 
-import math
-
 import cv2
 import numpy as np
 
+from device.checks import positive_number
 from device.pi.vision.matching import match_pins
 from device.profile import load_layout
 
@@ -35,8 +34,7 @@ def layout_assignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_px: 
     """
     ref = np.asarray(reference_px, np.float64).reshape(-1, 2)
     lay = np.asarray(layout_px, np.float64).reshape(-1, 2)
-    if not (math.isfinite(gate_px) and gate_px > 0):
-        raise ValueError(f"gate_px must be a finite number > 0, got gate_px={gate_px!r}")
+    gate_px = positive_number("gate_px", gate_px)
     if len(ref) == 0:
         return np.full(len(lay), -1, np.int64)
     shift = np.zeros(2)

@@ -12,13 +12,14 @@ first matches, or ``-1``. No point is used twice.
 
 from __future__ import annotations
 
-import math
 import threading
 
 import numpy as np
 
-__all__ = ["match_pins", "mutual_match", "MAX_COORD_PX", "as_points", "positive_number",
-           "count_at_least", "usable_rows", "all_rows_usable"]
+from device.checks import positive_number
+
+__all__ = ["match_pins", "mutual_match", "MAX_COORD_PX", "as_points", "usable_rows",
+           "all_rows_usable"]
 
 
 # --------------------------------------------------------------------------
@@ -34,21 +35,6 @@ def as_points(name: str, value) -> np.ndarray:
     if a.ndim != 2 or a.shape[1] != 2:
         raise ValueError(f"{name} must be an (n, 2) array of x, y px, got {name}.shape={a.shape!r}")
     return a
-
-
-def positive_number(name: str, value) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number, got {name}={value!r}")
-    v = float(value)
-    if not math.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name} must be a finite number > 0, got {name}={value!r}")
-    return v
-
-
-def count_at_least(name: str, value, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}, got {name}={value!r}")
-    return int(value)
 
 
 #: Coordinates beyond this (px) are treated like NaN: no camera is that large,

@@ -15,11 +15,11 @@ import math
 
 import numpy as np
 
-from device.pi.vision.matching import (all_rows_usable, as_points, count_at_least,
-                                       match_pins, positive_number, usable_rows)
+from device.checks import finite_number, positive_number, whole_number
+from device.pi.vision.matching import all_rows_usable, as_points, match_pins, usable_rows
 
-__all__ = ["layout_pitch_px", "layout_neighbours", "track_with_neighbours", "match_and_grow",
-           "neighbour_median", "neighbour_consistency"]
+__all__ = ["layout_pitch_px", "nearest_neighbour_px", "layout_neighbours", "track_with_neighbours",
+           "match_and_grow", "neighbour_median", "neighbour_consistency"]
 
 
 # --------------------------------------------------------------------------
@@ -27,18 +27,30 @@ __all__ = ["layout_pitch_px", "layout_neighbours", "track_with_neighbours", "mat
 # --------------------------------------------------------------------------
 
 
+def _nearest_d2(name: str, points) -> np.ndarray:
+    """Squared distance from each usable point to its nearest other one (k,)."""
+    r = as_points(name, points)
+    r = r[usable_rows(r)]
+    if r.shape[0] < 2:
+        return np.zeros(0, np.float64)
+    d2 = ((r[:, None, :] - r[None, :, :]) ** 2).sum(axis=2)
+    np.fill_diagonal(d2, np.inf)
+    return d2.min(axis=1)
+
+
+def nearest_neighbour_px(points) -> np.ndarray:
+    """Distance from each point to its nearest other point, px (k,): rows with NaN,
+    inf or beyond ``MAX_COORD_PX`` are left out; empty for fewer than two."""
+    return np.sqrt(_nearest_d2("points", points))
+
+
 def layout_pitch_px(ref) -> float:
     """Typical pin spacing of a layout: the median nearest-neighbour distance, px.
 
     Returns 0.0 for fewer than two finite pins.
     """
-    r = as_points("ref", ref)
-    r = r[usable_rows(r)]
-    if r.shape[0] < 2:
-        return 0.0
-    d2 = ((r[:, None, :] - r[None, :, :]) ** 2).sum(axis=2)
-    np.fill_diagonal(d2, np.inf)
-    return float(np.sqrt(np.median(d2.min(axis=1))))
+    d2 = _nearest_d2("ref", ref)
+    return float(np.sqrt(np.median(d2))) if len(d2) else 0.0
 
 
 def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -52,7 +64,7 @@ def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tupl
     still have neighbours) or than ``max_dist_px`` when given. Computed once
     per reference.
     """
-    k = count_at_least("k", k, 1)
+    k = whole_number("k", k, 1)
     r = as_points("ref", ref)
     m = r.shape[0]
     nb = np.tile(np.arange(m)[:, None], (1, k))
@@ -246,14 +258,12 @@ def track_with_neighbours(
     """
     pitch = positive_number("pitch_px", pitch_px)
     gate_frac = positive_number("gate_frac", gate_frac)
-    anneal_steps = count_at_least("anneal_steps", anneal_steps, 1)
-    sinkhorn_iters = count_at_least("sinkhorn_iters", sinkhorn_iters, 1)
+    anneal_steps = whole_number("anneal_steps", anneal_steps, 1)
+    sinkhorn_iters = whole_number("sinkhorn_iters", sinkhorn_iters, 1)
     outlier_sigmas = positive_number("outlier_sigmas", outlier_sigmas)
-    if isinstance(smooth, bool) or not isinstance(smooth, (int, float, np.integer, np.floating)) or not (
-            math.isfinite(float(smooth)) and float(smooth) >= 0.0):
-        raise ValueError(f"smooth must be a finite number >= 0, got smooth={smooth!r}")
-    grow_rounds = count_at_least("grow_rounds", grow_rounds, 0)
-    min_support = count_at_least("min_support", min_support, 1)
+    smooth = finite_number("smooth", smooth, 0)
+    grow_rounds = whole_number("grow_rounds", grow_rounds, 0)
+    min_support = whole_number("min_support", min_support, 1)
     r = as_points("ref", ref)
     c = as_points("cur", cur)
     m = r.shape[0]

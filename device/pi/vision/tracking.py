@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from device.checks import finite_number, positive_number, whole_number
+
 # Tracker fault bits (Tracker.faults), from the one table: FAULT_NO_REFERENCE (update()
 # before set_reference(): empty outputs), FAULT_BAD_INPUT (current pins not an (n, 2)
 # array, or rows with NaN/inf/huge dropped), FAULT_TOO_FEW_PINS (fewer than
 # min_tracked_frac of the reference pins tracked)
 from device.pi.faults import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS
-from device.pi.vision.matching import (all_rows_usable, as_points, count_at_least,
-                                       positive_number, usable_rows)
+from device.pi.vision.matching import all_rows_usable, as_points, usable_rows
 from device.pi.vision.neighbours import (layout_neighbours, layout_pitch_px, match_and_grow,
                                          neighbour_consistency, track_with_neighbours)
 
@@ -122,17 +123,11 @@ class Tracker:
         if fill not in _FILL_MODES:
             raise ValueError(f"fill must be one of {_FILL_MODES}, got fill={fill!r}")
         self.fill = fill
-        for name, v in (("reacquire_frac", reacquire_frac), ("min_tracked_frac", min_tracked_frac)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= float(v) <= 1.0):
-                raise ValueError(f"{name} must be a number in [0, 1], got {name}={v!r}")
-        self.reacquire_frac = float(reacquire_frac)
-        self.min_tracked_frac = float(min_tracked_frac)
-        self.k = count_at_least("k", k, 1)
-        self.grow_rounds = count_at_least("grow_rounds", grow_rounds, 0)
-        if isinstance(velocity_gain, bool) or not isinstance(velocity_gain, (int, float)) or not (
-                0.0 <= float(velocity_gain) <= 2.0):
-            raise ValueError(f"velocity_gain must be a number in [0, 2], got velocity_gain={velocity_gain!r}")
-        self.velocity_gain = float(velocity_gain)
+        self.reacquire_frac = finite_number("reacquire_frac", reacquire_frac, 0, 1)
+        self.min_tracked_frac = finite_number("min_tracked_frac", min_tracked_frac, 0, 1)
+        self.k = whole_number("k", k, 1)
+        self.grow_rounds = whole_number("grow_rounds", grow_rounds, 0)
+        self.velocity_gain = finite_number("velocity_gain", velocity_gain, 0, 2)
         self.faults = FAULT_NO_REFERENCE
         self.n_tracked = 0
         self.idx = np.zeros(0, np.int64)

@@ -206,24 +206,16 @@ def row_of(bus):
     return round(burst(bus)[0] / 16384 * 100)
 
 
-def test_clock_selects_row_and_clamps():
-    clk = FakeClock(0.0)
+@pytest.mark.parametrize("start, rows", [
+    (0.0, {0.0: 0, 0.55: 5, 1.0: 10, 100.0: 49}),     # the clock selects the row; clamps at the end
+    (1000.0, {1000.0: 0, 1000.3: 3}),                  # relative to construction
+])
+def test_clock_selects_row_from_construction_and_clamps(start, rows):
+    clk = FakeClock(start)
     bus = awake(ramp(), fps=10.0, clock=clk)
-    assert row_of(bus) == 0
-    clk.t = 0.55
-    assert row_of(bus) == 5
-    clk.t = 1.0
-    assert row_of(bus) == 10
-    clk.t = 100.0
-    assert row_of(bus) == 49
-
-
-def test_clock_is_relative_to_construction():
-    clk = FakeClock(1000.0)
-    bus = awake(ramp(), fps=10.0, clock=clk)
-    assert row_of(bus) == 0
-    clk.t = 1000.3
-    assert row_of(bus) == 3
+    for t, row in rows.items():
+        clk.t = t
+        assert row_of(bus) == row
 
 
 def test_sample_rate_from_dlpf_and_divider():

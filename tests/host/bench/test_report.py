@@ -54,8 +54,18 @@ def test_a_failed_regressor_check_is_reported_by_its_message(monkeypatch, tmp_pa
     monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
     ws = synthetic(targets=True, imu=False)
     why = report.train_row("pressure", "ridge", ws, ws, tmp_path / "p", 0)
-    assert why.startswith("int8 check failed") and "raises the MAE by 0.5" in why
+    assert why == ("int8 check failed: raises the MAE by 0.5 (10.00% of the target range, "
+                   "> 1%); float kept")                  # the prefix once, from the fields
     assert not (tmp_path / "p" / "model.int8.onnx").exists()
+
+
+def test_a_verdict_without_numbers_says_int8_check_failed_once():
+    exc = QuantisationError("int8 check failed: /m/model.int8.onnx the int8 model gives NaN "
+                            "or inf; the int8 model was not kept")
+    why = report._int8_why(exc.fields(), str(exc))
+    assert why.count("int8 check failed") == 1
+    assert why == "int8 check failed: /m/model.int8.onnx the int8 model gives NaN or inf; " \
+                  "the int8 model was not kept"
 
 
 def test_table_marks_the_pareto_front_and_lists_failures():

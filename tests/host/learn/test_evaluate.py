@@ -28,3 +28,36 @@ def test_evaluate_reports_metrics_latency_size_and_kept_fraction(surface_model, 
 
     with pytest.raises(ValueError, match="the windows have T=5 frames, the model sees T=3"):
         evaluate_model(out, replace(ws_te.subset(np.arange(4)), window=5))
+
+
+def _manifest(folder, variant, name="manifest.json"):
+    from host.learn.onnx_io import write_manifest
+    onnx = "model.int8.onnx" if variant == "int8" else "model.onnx"
+    write_manifest(folder, {"format": "tacfoot-model", "version": 1, "kind": "surface",
+                            "feature_spec": 1, "onnx": onnx, "sha256": {}, "variant": variant,
+                            "input": {"name": "x", "shape": [None, 4], "dtype": "float32"}},
+                   name)
+
+
+def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkeypatch):
+    """evaluate picks the manifest with device.pi.models.artefact.manifest_for (one
+    picker), and refuses a variant the folder does not have."""
+    from device.pi.models import artefact
+    from host.learn import evaluate
+
+    picks = []
+    real = artefact.manifest_for
+    monkeypatch.setattr(evaluate, "manifest_for", lambda f, v: picks.append(v) or real(f, v))
+    q, f = tmp_path / "quantised", tmp_path / "float-only"
+    _manifest(q, "int8")
+    _manifest(q, "float", "manifest.float.json")
+    _manifest(f, "float")
+    assert evaluate._manifest_for(q, None) == q / "manifest.json"
+    assert evaluate._manifest_for(q, "int8") == q / "manifest.json"
+    assert evaluate._manifest_for(q, "float") == q / "manifest.float.json"
+    assert evaluate._manifest_for(f, "float") == f / "manifest.json"
+    assert picks == ["int8", "float", "float"]
+    with pytest.raises(artefact.ModelError, match="no int8 model .train with --quantise"):
+        evaluate._manifest_for(f, "int8")
+    with pytest.raises(ValueError, match="variant must be one of"):
+        evaluate._manifest_for(q, "int4")

@@ -41,3 +41,36 @@ def test_write_variants_records_both_files_and_makes_int8_the_default(tmp_path):
     doc = json.loads((tmp_path / MANIFEST).read_text())
     assert doc["onnx"] == FLOAT_NAME and doc["variant"] == "float"
     assert list(doc["sha256"]) == [FLOAT_NAME] and not (tmp_path / FLOAT_MANIFEST).exists()
+
+
+def test_every_onnx_runtime_session_is_set_up_by_the_pis_code(monkeypatch):
+    """host sessions (training, quantisation, the localiser's ONNX check) and the Pi's
+    load_model share device.pi.models.artefact.ort_session."""
+    from device.pi.models import artefact
+    from host.learn import onnx_io
+    from host.localiser import fit
+
+    made = []
+    monkeypatch.setattr(onnx_io, "ort_session",
+                        lambda src, threads=1: made.append(threads) or artefact.ort_session(
+                            src, threads))
+    X = np.random.default_rng(0).normal(size=(20, 3))
+    ridge = fit.fit_ridge(X, X @ np.ones((3, 2)), alpha=1.0)
+    assert fit.onnx_vs_sklearn(fit.ridge_to_onnx(ridge, 3), ridge, X) < 1e-4
+    opts = onnx_io.session(fit.ridge_to_onnx(ridge, 3), threads=2).get_session_options()
+    assert made == [1, 2]
+    assert (opts.intra_op_num_threads, opts.inter_op_num_threads, opts.log_severity_level) == (
+        2, 1, 3)
+
+
+def test_new_manifest_is_what_the_pi_reads_for_onnx_and_for_rule_models(tmp_path):
+    from device.pi.models.artefact import read_manifest
+    from host.learn.onnx_io import new_manifest
+
+    onnx = new_manifest(12, {"kind": "surface", "T": 3}, FLOAT_NAME, "ab" * 32, 99)
+    rule = new_manifest(12, {"model": "rule", "kind": "surface"})
+    assert onnx["sha256"] == {FLOAT_NAME: "ab" * 32} and onnx["size_bytes"] == 99
+    assert rule["onnx"] is None and rule["sha256"] == {} and rule["input"]["shape"] == [None, 12]
+    for name, doc in (("o", onnx), ("r", rule)):
+        read, _ = read_manifest(write_manifest(tmp_path / name, doc))
+        assert read == doc

@@ -101,3 +101,16 @@ def test_layout_neighbours_and_pitch():
     assert layout_pitch_px(np.zeros((1, 2))) == 0.0
     nb1, valid1 = layout_neighbours(np.zeros((1, 2)))
     assert nb1.shape == (1, 6) and not valid1.any()
+
+
+def test_nearest_neighbour_px_is_the_one_copy_and_skips_unusable_rows():
+    """The pitch, the host's realism and calibration spacing and the localiser's label
+    check all measure nearest-neighbour distances with this function."""
+    from device.pi.vision.neighbours import nearest_neighbour_px
+    from host.analysis import frames
+
+    xy = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 4.0], [np.nan, 1.0]])
+    np.testing.assert_allclose(nearest_neighbour_px(xy), [3.0, 3.0, 4.0])
+    assert nearest_neighbour_px(np.zeros((1, 2))).shape == (0,)
+    assert layout_pitch_px(xy) == 3.0
+    assert frames.nearest_neighbour_px is nearest_neighbour_px

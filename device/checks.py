@@ -1,0 +1,55 @@
+"""Argument checks shared by the Pi code, the simulator and the host.
+
+Each returns the value as a plain int or float, or raises ``error`` (ValueError,
+or a caller's subclass such as host.data's DataError) naming the argument and
+the value: ``k must be a whole number >= 1, got k=0``. A bool is not a number
+here, and numeric text is not either (source query strings are parsed by
+:mod:`device.pi.sources.options`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["whole_number", "finite_number", "positive_number"]
+
+
+def _bounds(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {lo}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {hi}"
+    return ""
+
+
+def whole_number(name: str, value, lo: int | None = None, hi: int | None = None,
+                 error: type[ValueError] = ValueError) -> int:
+    """``value`` as an int in ``[lo, hi]`` (either bound may be None)."""
+    if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+            or (lo is not None and value < lo) or (hi is not None and value > hi)):
+        raise error(f"{name} must be a whole number{_bounds(lo, hi)}, got {name}={value!r}")
+    return int(value)
+
+
+def finite_number(name: str, value, lo: float | None = None, hi: float | None = None, *,
+                  lo_open: bool = False, hi_open: bool = False,
+                  error: type[ValueError] = ValueError) -> float:
+    """``value`` as a finite float within the bounds (closed unless ``lo_open`` /
+    ``hi_open``; either may be None)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise error(f"{name} must be a number, got {name}={value!r}")
+    v = float(value)
+    if (not math.isfinite(v)
+            or (lo is not None and (v <= lo if lo_open else v < lo))
+            or (hi is not None and (v >= hi if hi_open else v > hi))):
+        raise error(f"{name} must be a finite number{_bounds(lo, hi, lo_open, hi_open)}, "
+                    f"got {name}={value!r}")
+    return v
+
+
+def positive_number(name: str, value, error: type[ValueError] = ValueError) -> float:
+    """``value`` as a finite float > 0."""
+    return finite_number(name, value, 0, lo_open=True, error=error)
