@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from device.config import ConfigError
-from device.profile import (PROFILE_DIR, ProfileError, builtin_profiles, builtin_toml, hex_layout,
-                            load_pipeline_profile, load_profile, radial_layout)
+from device.profile import (PROFILE_DIR, ProfileError, VisionParams, builtin_profiles,
+                            builtin_toml, hex_layout, load_pipeline_profile, load_profile,
+                            radial_layout)
 
 MINE = ('[profile]\nname="mine"\nwidth=200\nheight=200\ndome_centre_px=[100,100]\n'
         'dome_radius_px=90\npx_per_mm=5\ndome_radius_mm=15\npin_diameter_px=5\n'
@@ -70,3 +73,28 @@ def test_layouts_have_their_pin_counts_and_spacing():
     rad = radial_layout([1, 6], [0.0, 5.0], [0.0, 90.0], (0.0, 0.0))
     assert rad.shape == (7, 2)
     assert np.allclose(rad[1], [0.0, 5.0], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("block", 10), ("block", 1), ("block", 11.0), ("block", True),
+        ("offset", float("nan")), ("offset", 1e6),
+        ("blur_sigma_px", -1.0),
+        ("min_area_px", 0), ("max_area_px", 5),  # max < default min 10
+        ("roi_shrink", 0.0), ("roi_shrink", float("inf")),
+    ],
+)
+def test_params_reject_bad_value_and_name_it(field, value):
+    with pytest.raises(ValueError) as err:
+        VisionParams(**{field: value})
+    msg = str(err.value)
+    assert field in msg
+    assert repr(value) in msg or str(value) in msg
+
+
+
+def test_vision_params_are_frozen():
+    p = VisionParams()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.block = 13  # type: ignore[misc]
