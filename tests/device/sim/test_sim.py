@@ -150,12 +150,24 @@ def test_unnamed_effect_leaves_no_trace(effect, base_outputs):
 
 
 @pytest.mark.parametrize("effect,attr", [("camera_noise", "noise_pos"), ("glare", "glare"),
-                                         ("exposure_flicker", "gains"),
-                                         ("motion_blur", "_outside")])
-def test_unnamed_effect_builds_nothing(effect, attr):
+                                         ("exposure_flicker", "gains")])
+def test_unnamed_effect_builds_no_layer(effect, attr):
     r = Simulator(small("no-touch")).renderer
     assert not hasattr(r, attr)
     assert hasattr(Simulator(small("no-touch").with_effects(effect)).renderer, attr)
+
+
+def test_motion_blur_acts_inside_the_dome_only():
+    blurred, plain = Simulator(fx_scene("motion_blur"), seed=3), Simulator(fx_scene(), seed=3)
+    r = blurred.renderer
+    yy, xx = np.mgrid[0:r.height, 0:r.width]
+    outside = np.hypot(xx - r.centre[0], yy - r.centre[1]) > r.dome_r
+    changed = 0
+    for i in range(blurred.n_frames):
+        a = blurred.render(i)
+        assert np.array_equal(a[outside], r.background[outside])
+        changed += not np.array_equal(a, plain.render(i))
+    assert changed > 0
 
 
 # -- contact physics -----------------------------------------------------------------
