@@ -1,6 +1,6 @@
 """Synthetic TacTip-like frames with known answers, shared by the marker front-end
-tests (tests/device/pi/vision/test_extract.py) and the realism measures'
-(tests/host/analysis/...): a dark dome in a bright surround with Gaussian pins on
+tests (tests/device/pi/vision/test_extract.py) and the realism measures
+(tests/host/analysis/test_*.py): a dark dome in a bright surround with Gaussian pins on
 rings, and degenerate frames (black, white, saturated, noise) for property tests."""
 from __future__ import annotations
 

@@ -139,3 +139,15 @@ def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
     from PIL import Image
     im = Image.open(png)
     assert min(im.size) > 100 and np.asarray(im.convert("L")).std() > 1.0
+
+
+def test_cli_bad_scene_exit_2_no_traceback(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text('[surface]\nmu = -0.5\n[[timeline]]\naction = "hold"\nduration_s = 0.1\n')
+    rc = main(["simulate", str(p), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "surface.mu" in err and "-0.5" in err and "Traceback" not in err
+    rc = main(["simulate", "no-such-scene", "--out", str(tmp_path / "o")])
+    assert rc == 2 and "unknown scene" in capsys.readouterr().err
+

@@ -3,8 +3,8 @@
 The deploy tests start sshd (tests/host/deploy/sshd_fixture.py) and deploy into a temporary
 PREFIX with --service-manager none (tacfootctl + pid file), a venv seeded from
 this interpreter (--system-site-packages --no-deps), and the real runtime on
-simulated hardware (sim://walk, loop://). The systemd unit itself is checked with
-``systemd-analyze verify`` when that is available.
+simulated hardware (sim://walk, loop://). The systemd path runs against a stand-in
+systemctl; the rendered unit is checked in tests/host/deploy/test_scripts.py.
 
 The tests that share the module's ``pi`` fixture are one story, in file order:
 deploy r1, deploy r2, a broken r3 rolled back, a killed copy, a failing prepare,
