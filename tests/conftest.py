@@ -31,3 +31,12 @@ def small_model(tmp_path_factory):
     res = train_model("surface", "fnn", ws, quantise=True, out_dir=out, progress=False,
                       hidden=(8, 4), epochs=60, min_agreement=0.9)
     return res, out, ws
+
+
+@pytest.fixture(scope="session")
+def drag_frames():
+    """The first 40 frames of the simulated drag-0 scene (seed 3)."""
+    from device.sim import Simulator, load_scene
+
+    sim = Simulator(load_scene("drag-0"), seed=3)
+    return [sim.render(i) for i in range(0, min(sim.n_frames, 40))]
