@@ -384,14 +384,7 @@ def test_sim_source_path_and_kwargs(stub_sim):
 
 
 def test_sim_source_real_simulator():
-    sim_mod = pytest.importorskip("device.sim", reason="device.sim not importable yet")
-    if not hasattr(sim_mod, "Simulator") or not hasattr(sim_mod, "load_scene"):
-        pytest.skip("device.sim has no Simulator/load_scene yet")
-    scenes = sorted((Path(sim_mod.__file__).parent / "scenes").glob("*.toml"))
-    name = "walk" if any(p.stem == "walk" for p in scenes) else (scenes[0].stem if scenes else None)
-    if name is None:
-        pytest.skip("no built-in scenes in device/sim/scenes")
-    with open_camera(f"sim://{name}?seed=1", end_frame=3) as cam:
+    with open_camera("sim://walk?seed=1", end_frame=3) as cam:
         frames = list(cam)
         assert cam.n_frames == 3
         sim = cam.sim
