@@ -10,6 +10,7 @@ paths the docs write to (the argument of ``--out``, ``--work``, ``--json-log``,
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import re
 from pathlib import Path
@@ -72,9 +73,13 @@ def resolves(dotted: str) -> bool:
         except ImportError:
             continue
         for name in parts[i:]:
-            if not hasattr(obj, name):
+            if hasattr(obj, name):
+                obj = getattr(obj, name)
+            elif dataclasses.is_dataclass(obj) and name in {f.name for f in
+                                                             dataclasses.fields(obj)}:
+                obj = None                  # a field: exists on every instance
+            else:
                 return False
-            obj = getattr(obj, name)
         return True
     return False
 
@@ -139,5 +144,6 @@ def test_references_skip_urls_and_outputs_and_keep_the_rest():
 def test_resolves_modules_and_attributes_only():
     assert resolves("device.pi.models.regressor.Regressor.predict_window")
     assert resolves("host.bench.scenes.SURFACE_RANGES")
+    assert resolves("host.data.windows.WindowSet.frames")          # a dataclass field
     assert not resolves("host.learn.train.SURFACE_RANGES")
     assert not resolves("host.nowhere")
