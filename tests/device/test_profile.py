@@ -10,7 +10,7 @@ import pytest
 from device.config import ConfigError
 from device.profile import (PROFILE_DIR, ProfileError, VisionParams, builtin_profiles,
                             builtin_toml, hex_layout, load_pipeline_profile, load_profile,
-                            radial_layout)
+                            parse_pipeline_profile, radial_layout)
 
 MINE = ('[profile]\nname="mine"\nwidth=200\nheight=200\ndome_centre_px=[100,100]\n'
         'dome_radius_px=90\npx_per_mm=5\ndome_radius_mm=15\npin_diameter_px=5\n'
@@ -98,3 +98,16 @@ def test_vision_params_are_frozen():
     p = VisionParams()
     with pytest.raises(dataclasses.FrozenInstanceError):
         p.block = 13  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("vision,match", [
+    ({"block": 10, "pitch_px": 5, "n_pins": 5}, "vision.block must be odd"),
+    ({"block": 11, "pitch_px": -1, "n_pins": 5}, "vision.pitch_px must be >= 0.5"),
+    ({"pitch_px": 5}, "vision.n_pins is required"),
+    ({"pitch_px": 5, "n_pins": 5, "colour": 1}, "vision.colour is not a known key"),
+    ({"pitch_px": 5, "n_pins": 5, "dome_px": [1, 2]}, "vision.dome_px must be"),
+])
+def test_bad_profile_gets_one_clear_error(vision, match):
+    with pytest.raises(ProfileError, match=match):
+        parse_pipeline_profile({"vision": vision}, source="p.toml")
+

@@ -1,9 +1,10 @@
 """``python -m device.pi run`` (device/pi/__main__.py): it runs on simulated hardware,
 refuses bad artefacts, config and sources with exit status 2 and one line naming the
-problem, and a missing live camera is a fault, not an exit, until SIGTERM."""
+problem, and a missing live camera or IMU is a fault, not an exit (until SIGTERM)."""
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 import time
 
@@ -55,8 +56,6 @@ def test_bad_artefacts_refuse_to_start_with_exit_2(model_dir, tmp_path, capsys):
 
 
 def test_python_dash_m_device_pi_run_on_simulated_hardware(tmp_path):
-    import subprocess
-    import sys
     status = tmp_path / "st.json"
     r = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", "sim://press-hard",
                         "--imu", "sim://press-hard", "--serial", "loop://", "--frames", "25",
@@ -71,7 +70,6 @@ def test_python_dash_m_device_pi_run_on_simulated_hardware(tmp_path):
 
 def test_missing_live_camera_is_a_fault_not_an_exit_and_sigterm_stops_cleanly(tmp_path):
     import signal
-    import subprocess
     status = tmp_path / "st.json"
     p = subprocess.Popen([sys.executable, "-m", "device.pi", "run", "--camera",
                           f"v4l2://{tmp_path / 'video0'}", "--imu", "none", "--serial",
@@ -95,4 +93,16 @@ def test_missing_live_camera_is_a_fault_not_an_exit_and_sigterm_stops_cleanly(tm
     assert p.returncode == 0
     res = json.loads(out)
     assert res["camera_errors"] >= 1 and res["frames"] == 0
+
+
+def test_the_runtime_starts_without_its_imu_and_reports_the_fault(tmp_path):
+    status = tmp_path / "status.json"
+    res = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera",
+                          "sim://press-hard", "--imu", "i2c://97/0x68", "--serial", "loop://",
+                          "--frames", "20", "--status", str(status)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "retrying" in res.stderr
+    doc = json.loads(status.read_text())
+    assert "imu" in doc["fault_names"] and doc["frames"] == 20
 
