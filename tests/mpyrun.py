@@ -11,8 +11,11 @@ stand-ins in ``tests/mpy`` (``fake_mpu_regs``) are on the path beside ``machine`
 
 from __future__ import annotations
 
+import contextlib
+import io
 import subprocess
 import sys
+import types
 
 import pytest
 
@@ -20,8 +23,8 @@ from device.sim.mpy import runner
 from device.sim.mpy.runner import MPY_LIB, PACKAGE, ROOT, RUNNER, STANDIN, mpy_unavailable
 from tests import REPO_ROOT
 
-__all__ = ["run_mpy", "requires_mpy", "mpy_unavailable", "cpython_path", "MPY_LIB", "STANDIN",
-           "TEST_LIB", "RUNNER", "PACKAGE", "ROOT"]
+__all__ = ["run_mpy", "run_cpython", "run_both", "requires_mpy", "mpy_unavailable",
+           "cpython_path", "MPY_LIB", "STANDIN", "TEST_LIB", "RUNNER", "PACKAGE", "ROOT"]
 
 #: test-only MicroPython stand-ins (``fake_mpu_regs``)
 TEST_LIB = REPO_ROOT / "tests" / "mpy"
@@ -47,3 +50,28 @@ def cpython_path() -> None:
     runner.cpython_path()
     if str(TEST_LIB) not in sys.path:
         sys.path.insert(0, str(TEST_LIB))
+
+
+def run_cpython(src: str, args=()) -> str:
+    """stdout of the MicroPython script ``src`` run under CPython, in this process,
+    the way run.mjs runs it (its arguments in ``mpy_args.ARGV``)."""
+    cpython_path()
+    sys.modules["mpy_args"] = types.SimpleNamespace(ARGV=["script", *map(str, args)])
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            exec(compile(src, "<mpy-script>", "exec"), {"__name__": "__main__"})
+    finally:
+        del sys.modules["mpy_args"]
+    return out.getvalue()
+
+
+def run_both(src: str, args=(), puts=(), timeout=120) -> tuple[str, str]:
+    """(MicroPython stdout, CPython stdout) of ``src`` with ``MPY_LIB`` on the path
+    (paths in ``args`` are the MicroPython paths of ``puts``; CPython gets the host
+    paths)."""
+    host_args = [dict((m, h) for h, m in puts).get(a, a) for a in map(str, args)]
+    cp = run_cpython(src, host_args)
+    res = run_mpy(src, libs=[MPY_LIB], puts=puts, args=args, timeout=timeout)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return res.stdout, cp

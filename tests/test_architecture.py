@@ -2,10 +2,15 @@
 
 import-linter's contracts in pyproject.toml hold the layers (``make test`` runs
 ``lint-imports``); these tests hold what a layer contract cannot see: no import cycle
-between any two modules (imports inside functions included) and no module that has
-grown past what one can read in a sitting.
+between any two modules (imports inside functions included), no module longer than
+one can read in a sitting, and a test tree that mirrors the code: each
+``tests/<path>/test_<name>.py`` tests ``<path>/<name>.py`` (or the package
+``<path>/<name>/``; ``test_main.py`` tests ``__main__.py``), and no test module
+imports another (shared helpers live in non-test modules and conftest.py).
 """
 from __future__ import annotations
+
+import ast
 
 import grimp
 import pytest
@@ -13,7 +18,9 @@ import pytest
 from tests import REPO_ROOT
 
 MAX_MODULE_LINES = 600
-#: modules still being split; this list only shrinks
+TESTS = REPO_ROOT / "tests"
+
+
 @pytest.fixture(scope="module")
 def graph():
     return grimp.build_graph("host", "device", include_external_packages=False,
@@ -86,3 +93,45 @@ def test_no_module_over_the_size_limit():
             if n > MAX_MODULE_LINES:
                 too_long[str(f.relative_to(REPO_ROOT))] = n
     assert too_long == {}, f"modules over {MAX_MODULE_LINES} lines: {too_long}"
+
+
+def mirrored(test_file):
+    """The module (or package) a test file under tests/ tests, or None for the
+    repository-wide tests at the top of tests/."""
+    rel = test_file.relative_to(TESTS)
+    if rel.parent == rel.parent.parent:
+        return None
+    name = rel.stem[len("test_"):]
+    name = "__main__" if name == "main" else name
+    module = REPO_ROOT / rel.parent / f"{name}.py"
+    return module if module.exists() else REPO_ROOT / rel.parent / name
+
+
+def test_mirrored_names_the_module_under_test():
+    assert mirrored(TESTS / "device" / "pi" / "test_main.py") == (
+        REPO_ROOT / "device" / "pi" / "__main__.py")
+    assert mirrored(TESTS / "host" / "learn" / "test_train.py") == (
+        REPO_ROOT / "host" / "learn" / "train.py")
+    assert mirrored(TESTS / "test_docs.py") is None
+
+
+def test_each_test_file_mirrors_a_module():
+    missing = [str(f.relative_to(REPO_ROOT)) for f in sorted(TESTS.rglob("test_*.py"))
+               if mirrored(f) is not None and not mirrored(f).exists()]
+    assert missing == [], f"test files with no module at the mirrored path: {missing}"
+
+
+def test_no_test_module_imports_another():
+    found = []
+    for f in sorted(TESTS.rglob("*.py")):
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = ("." * node.level) + (node.module or "")
+                names = [base] + [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            if any(n.rsplit(".", 1)[-1].startswith("test_") for n in names):
+                found.append(f"{f.relative_to(REPO_ROOT)}:{node.lineno}")
+    assert found == [], f"test modules imported by: {found}"

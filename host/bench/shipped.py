@@ -1,6 +1,6 @@
 """Rebuild the shipped default models in ``models/`` (``make models``).
 
-    python -m host.bench.shipped --out models [--real-data ../shared/data] [--only surface,slip]
+    python -m host.bench.shipped --out models [--work out/models-data] [--only surface,slip]
 
 Each model is trained on simulated trials of the roboskin sensor (surface
 parameters drawn from the training ranges of :data:`host.bench.scenes.SURFACE_RANGES`,

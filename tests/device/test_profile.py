@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from device.config import ConfigError
-from device.profile import (PROFILE_DIR, ProfileError, builtin_profiles, builtin_toml, hex_layout,
-                            load_pipeline_profile, load_profile, radial_layout)
+from device.profile import (PROFILE_DIR, ProfileError, VisionParams, builtin_profiles,
+                            builtin_toml, hex_layout, load_pipeline_profile, load_profile,
+                            parse_pipeline_profile, radial_layout)
 
 MINE = ('[profile]\nname="mine"\nwidth=200\nheight=200\ndome_centre_px=[100,100]\n'
         'dome_radius_px=90\npx_per_mm=5\ndome_radius_mm=15\npin_diameter_px=5\n'
@@ -103,3 +106,40 @@ def test_a_vision_only_profile_names_the_missing_layout(tmp_path):
     p.write_text("[vision]\npitch_px = 10\nn_pins = 3\n")
     with pytest.raises(ConfigError, match="layout.*host calibrate"):
         load_layout(p)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("block", 10), ("block", 1), ("block", 11.0), ("block", True),
+        ("offset", float("nan")), ("offset", 1e6),
+        ("blur_sigma_px", -1.0),
+        ("min_area_px", 0), ("max_area_px", 5),  # max < default min 10
+        ("roi_shrink", 0.0), ("roi_shrink", float("inf")),
+    ],
+)
+def test_params_reject_bad_value_and_name_it(field, value):
+    with pytest.raises(ValueError) as err:
+        VisionParams(**{field: value})
+    msg = str(err.value)
+    assert field in msg
+    assert repr(value) in msg or str(value) in msg
+
+
+def test_vision_params_are_frozen():
+    p = VisionParams()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        p.block = 13  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("vision,match", [
+    ({"block": 10, "pitch_px": 5, "n_pins": 5}, "vision.block must be odd"),
+    ({"block": 11, "pitch_px": -1, "n_pins": 5}, "vision.pitch_px must be >= 0.5"),
+    ({"pitch_px": 5}, "vision.n_pins is required"),
+    ({"pitch_px": 5, "n_pins": 5, "colour": 1}, "vision.colour is not a known key"),
+    ({"pitch_px": 5, "n_pins": 5, "dome_px": [1, 2]}, "vision.dome_px must be"),
+])
+def test_bad_profile_gets_one_clear_error(vision, match):
+    with pytest.raises(ProfileError, match=match):
+        parse_pipeline_profile({"vision": vision}, source="p.toml")
+

@@ -1,8 +1,9 @@
 """The MPU6050 driver on smbus2, in the style of micropython-lib's IMU drivers.
 
 The bus is injected (anything with smbus2's ``read_byte_data`` / ``write_byte_data`` /
-``read_i2c_block_data``: a real ``smbus2.SMBus`` or ``device.sim.FakeMPU6050``),
-registers are named constants, and reads go into a scratch buffer::
+``read_i2c_block_data``: a real ``smbus2.SMBus`` or
+``device.sim.fake_mpu6050.FakeMPU6050``), registers are named constants, and reads go
+into a scratch buffer::
 
     imu = MPU6050(smbus2.SMBus(1), address=0x68, rate_hz=200, accel_g=4, gyro_dps=500, dlpf=3)
     values, faults = imu.read()      # float32 (6,): ax, ay, az [g], gx, gy, gz [deg/s]

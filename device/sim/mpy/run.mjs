@@ -1,7 +1,7 @@
 // Run a script on real MicroPython (the WebAssembly port, npm
 // @micropython/micropython-webassembly-pyscript) under Node.
 //
-//   node tests/mpy/run.mjs [--lib DIR]... [--put HOST=MP]... [--heap BYTES] SCRIPT.py [ARG]...
+//   node device/sim/mpy/run.mjs [--lib DIR]... [--put HOST=MP]... [--heap BYTES] SCRIPT.py [ARG]...
 //
 // --lib DIR   copy DIR's .py files (and sub-packages) into /lib, which is on sys.path
 // --put H=M   copy the host file H into MicroPython's filesystem at M (for input streams)

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import errno
-import math
-import os
 import struct
-from pathlib import Path
 
 import numpy as np
 import pytest

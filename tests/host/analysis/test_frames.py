@@ -39,3 +39,10 @@ def test_locate_dome_finds_a_dark_disc_and_none_on_black():
     assert d is not None
     assert abs(d[0] - 160) < 5 and abs(d[1] - 120) < 5 and abs(d[2] - 90) < 10
     assert locate_dome([np.zeros((240, 320), np.uint8)]) is None
+
+
+def test_nearest_neighbour_px_known_grid():
+    xy = np.array([[0, 0], [3, 0], [0, 4], [10, 10]], np.float32)
+    np.testing.assert_allclose(nearest_neighbour_px(xy), [3.0, 3.0, 4.0, math.hypot(10, 6)], rtol=1e-6)
+    assert nearest_neighbour_px(np.zeros((1, 2))).shape == (0,)
+

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import pytest
 
 from host.analysis.glare import glare_blobs, measure_glare, radial_profile
-
-DOME = (160.0, 120.0, 100.0)
+from tests.domes import DOME, render, ring_layout
 
 
 def _frame(with_blob: bool = True) -> np.ndarray:
@@ -44,3 +46,22 @@ def test_radial_profile_of_a_ring():
     prof = radial_profile(f, (25.0, 25.0), 30)
     assert prof.shape == (30,) and prof[10] == 200.0 and prof[5] == 0.0
     assert np.isfinite(prof).all()
+
+
+def test_measure_glare_finds_soft_blob():
+    truth = ring_layout(rings=((14.0, 12), (24.0, 12)))
+    g = render(truth).astype(np.float64)
+    yy, xx = np.mgrid[: g.shape[0], : g.shape[1]]
+    gx, gy, sig = DOME[0] + 55.0, DOME[1] - 20.0, 10.0
+    g += 120.0 * np.exp(-0.5 * ((xx - gx) ** 2 + (yy - gy) ** 2) / sig**2)
+    frame = np.clip(g, 0, 255).astype(np.uint8)
+    res = measure_glare([frame], dome=DOME, pin_diameter_px=4.0)
+    blobs = res["blobs_first_frame"]
+    assert len(blobs) == 1
+    b = blobs[0]
+    assert abs(b["x_px"] - gx) <= 2 and abs(b["y_px"] - gy) <= 2
+    assert b["amplitude_gray"] == pytest.approx(120, abs=20)
+    # half-amplitude area of a Gaussian: 2 pi ln2 sigma^2
+    assert b["half_amplitude_area_px2"] == pytest.approx(2 * math.pi * math.log(2) * sig**2, rel=0.25)
+    assert b["sigma_px"] == pytest.approx(sig, rel=0.3)
+

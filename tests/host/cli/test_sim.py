@@ -1,9 +1,7 @@
-"""host simulate / view / scenes / demo (host.cli.sim) and the dataset folder."""
+"""host simulate / view / scenes / demo (host/cli/sim.py)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -32,35 +30,6 @@ def test_simulate_writes_a_dataset_that_reads_back(tmp_path, capsys):
     assert idx["surface_labels"][0] == "no-touch"
 
 
-def test_a_crash_mid_trial_loses_only_that_trial(tmp_path, monkeypatch):
-    out = tmp_path / "ds"
-    simulate_to_dataset("no-touch", out, seed=0, progress=False)
-    real = np.savez_compressed
-
-    def dying(fh, **arrays):
-        real(fh, **{k: v for k, v in list(arrays.items())[:2]})
-        raise KeyboardInterrupt("power cut")
-
-    monkeypatch.setattr(np, "savez_compressed", dying)
-    with pytest.raises(KeyboardInterrupt):
-        simulate_to_dataset("no-touch", out, seed=1, progress=False)
-    monkeypatch.undo()
-    files = sorted(p.name for p in out.iterdir())
-    assert files == ["dataset.json", "trial_0000.npz"]          # no temp file left behind
-    assert len(dataset.read_index(out)["trials"]) == 1
-    assert dataset.load_trial(out, 0)["frames"].shape[0] > 0
-    simulate_to_dataset("no-touch", out, seed=1, progress=False)   # and it carries on
-    assert len(dataset.read_index(out)["trials"]) == 2
-
-
-def test_reading_a_non_dataset_is_a_clear_error(tmp_path):
-    with pytest.raises(dataset.DatasetError, match="not a tacfoot dataset"):
-        dataset.read_index(tmp_path)
-    (tmp_path / "dataset.json").write_text("{broken")
-    with pytest.raises(dataset.DatasetError, match="corrupt index"):
-        dataset.read_index(tmp_path)
-
-
 @pytest.mark.parametrize("suffix", ["gif", "png"])
 def test_view_draws_scene_and_dataset(tmp_path, suffix, capsys):
     out = tmp_path / f"p.{suffix}"
@@ -74,7 +43,8 @@ def test_view_draws_scene_and_dataset(tmp_path, suffix, capsys):
     simulate_to_dataset("drag-90", ds, progress=False)
     out2 = tmp_path / f"d.{suffix}"
     assert main(["view", str(ds), "--out", str(out2)]) == 0
-    assert out2.stat().st_size > 1000
+    im2 = Image.open(out2)
+    assert im2.size == im.size and np.asarray(im2.convert("L")).std() > 1.0   # not blank
 
 
 def test_view_bad_suffix_is_exit_2(tmp_path, capsys):
@@ -93,8 +63,11 @@ def test_scenes_json_lists_every_builtin(capsys):
 def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
-    assert (tmp_path / "preview.gif").stat().st_size > 10_000
-    assert (tmp_path / "ground_truth.png").stat().st_size > 10_000
+    from PIL import Image
+    gif = Image.open(tmp_path / "preview.gif")
+    assert gif.n_frames > 10 and min(gif.size) > 100
+    png = Image.open(tmp_path / "ground_truth.png")
+    assert min(png.size) > 100 and np.asarray(png.convert("L")).std() > 1.0
     assert res["contact_frames"] > 0 and res["slip_frames"] > 0
     # the real runtime ran on the simulated hardware; every packet it sent was decoded
     packets = [json.loads(x) for x in (tmp_path / "packets.jsonl").read_text().splitlines()]
@@ -116,12 +89,6 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert sum(p["slip"] for p in surf) > 0
 
 
-def test_python_dash_m_host_works():
-    r = subprocess.run([sys.executable, "-m", "host", "scenes"], capture_output=True, text=True,
-                       timeout=60)
-    assert r.returncode == 0 and "walk" in r.stdout
-
-
 def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
     out = tmp_path / "p.gif"
     assert main(["view", "sim://drag-45", "--out", str(out), "--max-frames", "6",
@@ -132,4 +99,17 @@ def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
     clip = real_data_dir("roboskin/north.avi") / "roboskin" / "north.avi"
     png = tmp_path / "north.png"
     assert main(["view", str(clip), "--out", str(png)]) == 0
-    assert png.stat().st_size > 50_000
+    from PIL import Image
+    im = Image.open(png)
+    assert min(im.size) > 100 and np.asarray(im.convert("L")).std() > 1.0
+
+
+def test_cli_bad_scene_exit_2_no_traceback(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text('[surface]\nmu = -0.5\n[[timeline]]\naction = "hold"\nduration_s = 0.1\n')
+    rc = main(["simulate", str(p), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "surface.mu" in err and "-0.5" in err and "Traceback" not in err
+    rc = main(["simulate", "no-such-scene", "--out", str(tmp_path / "o")])
+    assert rc == 2 and "unknown scene" in capsys.readouterr().err

@@ -1,14 +1,15 @@
-"""host/data/extract.py: per-frame features are the Pi pipeline's own, on the fixed pin layout."""
+"""host/data/extract.py: per-frame features are the Pi pipeline's own (its frame
+encoder's), on the fixed pin layout."""
 from __future__ import annotations
 
 import numpy as np
 
+from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutMapper
 from device.pi.vision.pipeline import MarkerStream
 from host.data.dataset import load_trial
-from host.data.extract import layout_for_profile
+from host.data.extract import extract_features, layout_for_profile
 from host.data.load import load_spec
-
 
 
 def test_dataset_features_are_the_pipelines_own(sim_ds, cache):
@@ -29,3 +30,21 @@ def test_dataset_features_are_the_pipelines_own(sim_ds, cache):
         v, lo, g, c = got[t]
         assert np.array_equal(ws.vectors[w, -1], v) and np.array_equal(ws.lost[w, -1], lo)
         assert np.array_equal(ws.grids[w, -1], g)
+
+
+def test_loader_features_equal_the_encoders(drag_frames):
+    enc = FrameEncoder("roboskin", crop_px=16)
+    vecs, losts, crops = [], [], []
+    for im in drag_frames:
+        ef = enc.encode(im)
+        vecs.append(ef.vectors.copy())
+        losts.append(ef.lost.copy())
+        crops.append(ef.crop)
+    clip = extract_features(drag_frames, "roboskin", frame_size=16, progress=False)
+    np.testing.assert_array_equal(clip.vectors, np.stack(vecs))
+    np.testing.assert_array_equal(clip.lost, np.stack(losts))
+    np.testing.assert_array_equal(clip.frames, np.stack(crops))
+    assert clip.vectors.shape == (len(drag_frames), enc.n_pins, 2)
+    # the drag moves the pins: the encoding is not all zeros once in contact
+    assert np.abs(clip.vectors[-1]).max() > 0.5
+

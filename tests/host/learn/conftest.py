@@ -1,5 +1,5 @@
-"""Fixtures of the host.learn tests: small simulated step scenes (surface) and
-models trained once per module on them or on synthetic windows."""
+"""Fixtures of the host.learn tests: small simulated step scenes (surface) and a
+model trained once per module on them."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,12 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.pi.models.classifier import Classifier
 from host.bench.scenes import bench_scene, scene_toml
 from host.data.simulate import simulate_to_dataset
 from host.data.load import load_spec
 from host.learn.train import train_model
-from tests.windows import synthetic
 
 T = 3
 SURFACE_KINDS = ("hard", "soft", "wet", "no-touch")
@@ -55,18 +53,3 @@ def surface_model(surface_sets, tmp_path_factory):
     res = train_model("surface", "fnn", ws_tr, ws_te, quantise=True, seed=0, out_dir=out,
                       progress=False, alpha=0.1, epochs=200)
     return res, out
-
-
-@pytest.fixture(scope="module")
-def small_model(tmp_path_factory):
-    """A quick FNN on synthetic windows (for numerics and refusal tests)."""
-    ws = synthetic()
-    out = tmp_path_factory.mktemp("small") / "m"
-    res = train_model("surface", "fnn", ws, quantise=True, out_dir=out, progress=False,
-                      hidden=(8, 4), epochs=60, min_agreement=0.9)
-    return res, out, ws
-
-
-@pytest.fixture(scope="module")
-def small_model_module(small_model):
-    return Classifier.load(small_model[1])

@@ -1,7 +1,5 @@
-"""host/learn/train.py (``host train``) with the Pi's loaders
-(device/pi/models/classifier.py, regressor.py, rules.py): training, ONNX export,
-int8 default, manifests, refusal of bad artefacts, hard cases, and the numerics
-the Pi relies on."""
+"""host/learn/train.py (``host train``): training, ONNX export, int8 default,
+manifests, the Pi's loaders reading what it writes, and hard cases."""
 from __future__ import annotations
 
 import json
@@ -9,13 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from hypothesis.extra.numpy import arrays
 
 import host.learn.train
-from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError, sha256_file
-from device.pi.models.classifier import Classifier, clean_probabilities, sigmoid, softmax
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, sha256_file
+from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import RuleClassifier
 from device.pi.models.window import RollingWindow, encode_vectors
@@ -135,55 +130,6 @@ def test_ridge_pressure_int8_and_the_pi_regressor(tmp_path):
     assert np.isfinite(reg.predict_one(bad))
 
 
-# -- refusing bad artefacts --------------------------------------------------------
-
-def test_corrupt_or_truncated_model_files_are_refused_naming_the_file(small_model, tmp_path):
-    import shutil
-
-    _, out, _ = small_model
-    d = tmp_path / "m"
-    shutil.copytree(out, d)
-    Classifier.load(d)                                    # fine as written
-    q = d / "model.int8.onnx"
-    data = q.read_bytes()
-    q.write_bytes(data[: len(data) // 2])                 # truncated
-    with pytest.raises(ModelError, match=r"model\.int8\.onnx.*checksum"):
-        Classifier.load(d)
-    q.write_bytes(data[:100] + bytes([data[100] ^ 0xFF]) + data[101:])   # one byte flipped
-    with pytest.raises(ModelError, match=r"model\.int8\.onnx"):
-        Classifier.load(d)
-    q.write_bytes(data)
-    Classifier.load(d / "manifest.float.json")
-    (d / "model.onnx").unlink()
-    with pytest.raises(ModelError, match=r"model\.onnx: model file missing"):
-        Classifier.load(d / "manifest.float.json")
-    doc = json.loads((d / "manifest.json").read_text())
-    (d / "manifest.json").write_text(json.dumps(dict(doc, feature_spec=FEATURE_SPEC_VERSION + 1)))
-    with pytest.raises(ModelError, match=r"manifest\.json: feature-spec version"):
-        Classifier.load(d)
-    (d / "manifest.json").write_text(json.dumps(doc)[:-40])
-    with pytest.raises(ModelError, match=r"manifest\.json: corrupt manifest"):
-        Classifier.load(d)
-    (d / "manifest.json").write_text(json.dumps(dict(doc, classes=["only"])))
-    with pytest.raises(ModelError, match=r"manifest\.json.*classes"):
-        Classifier.load(d)
-    (d / "manifest.json").write_text(json.dumps(doc))
-    clf = Classifier.load(d)
-    with pytest.raises(ModelError, match=r"model\.int8\.onnx: expects an input of"):
-        clf.predict(np.zeros(3))
-
-
-def test_an_edited_rule_is_refused(tmp_path):
-    ws = synthetic(classes=("hard", "soft"), imu=False)
-    train_model("surface", "rule", ws, out_dir=tmp_path / "r", progress=False)
-    RuleClassifier.load(tmp_path / "r")
-    doc = json.loads((tmp_path / "r" / "manifest.json").read_text())
-    doc["rule"]["contact_px"] += 1.0
-    (tmp_path / "r" / "manifest.json").write_text(json.dumps(doc))
-    with pytest.raises(ModelError, match=r"r/manifest\.json: the rule table does not match"):
-        Classifier.load(tmp_path / "r")
-
-
 # -- hard cases ----------------------------------------------------------------------
 
 def test_zero_variance_features_and_extreme_inputs_stay_finite(tmp_path):
@@ -233,56 +179,6 @@ def test_constant_windows_single_class_and_too_few_folds_are_clear_errors(tmp_pa
         assert not (tmp_path / p).exists()
 
 
-# -- numerics on the Pi ---------------------------------------------------------------
-
-finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
-
-
-@given(arrays(np.float64, st.integers(1, 12), elements=finite_or_not))
-@settings(max_examples=200, deadline=None)
-def test_softmax_is_finite_normalised_and_shift_invariant(z):
-    p = softmax(z)
-    assert np.isfinite(p).all() and (p >= 0).all() and (p <= 1).all()
-    assert p.sum() == pytest.approx(1.0)
-    zf = np.nan_to_num(z, nan=0.0, posinf=1e4, neginf=-1e4).clip(-1e4, 1e4)
-    if np.isfinite(z).all() and np.abs(z).max() < 1e3:
-        assert np.allclose(softmax(z + 123.0), p)
-        assert zf[np.argmax(p)] >= zf.max() - 1e-9     # the top class has the top logit
-        i, j = np.argmax(zf), np.argmin(zf)
-        assert p[i] >= p[j]
-
-
-@given(arrays(np.float64, st.integers(1, 12), elements=finite_or_not))
-@settings(max_examples=200, deadline=None)
-def test_sigmoid_is_finite_bounded_symmetric_and_monotone(z):
-    s = sigmoid(z)
-    assert np.isfinite(s).all() and (s >= 0).all() and (s <= 1).all()
-    ok = ~np.isnan(z)
-    assert np.allclose(sigmoid(-z[ok]), 1.0 - s[ok], atol=1e-12)
-    order = np.argsort(np.nan_to_num(z[ok], posinf=1e308, neginf=-1e308), kind="stable")
-    assert (np.diff(s[ok][order]) >= 0).all()
-
-
-@given(arrays(np.float64, st.integers(2, 6), elements=finite_or_not))
-@settings(max_examples=100, deadline=None)
-def test_probabilities_are_cleaned(p):
-    q, fault = clean_probabilities(p)
-    assert np.isfinite(q).all() and q.sum() == pytest.approx(1.0) and (q >= 0).all()
-    if fault:
-        assert np.allclose(q, 1.0 / len(p))
-
-
-@given(arrays(np.float32, st.integers(1, 400), elements=st.floats(width=32, allow_nan=True,
-                                                                   allow_infinity=True)))
-@settings(max_examples=60, deadline=None)
-def test_the_classifier_is_finite_for_any_window(small_model_module, values):
-    clf = small_model_module
-    x = np.resize(values, clf.n_features)
-    k, p = clf.predict(x)
-    assert np.isfinite(p).all() and p.sum() == pytest.approx(1.0) and 0 <= k < clf.n_classes
-    assert not clf.fault
-
-
 def test_fnn_regressor_and_slip_rule_and_fnn_on_synthetic_windows(tmp_path):
     ws = synthetic(targets=True, imu=False, n_groups=8)
     res = train_model("pressure", "fnn", ws, quantise=True, out_dir=tmp_path / "p",
@@ -306,29 +202,6 @@ def test_fnn_regressor_and_slip_rule_and_fnn_on_synthetic_windows(tmp_path):
 
 def res_n_inputs(model_dir) -> int:
     return json.loads((Path(model_dir) / "manifest.json").read_text())["input"]["shape"][1]
-
-
-def test_rolling_window_encodes_once_per_push_and_never_serves_a_stale_input():
-    """Models sharing a window read one encoding per frame; a push or clear drops it,
-    and the shared array is read-only so no model can alter another's input."""
-    from device.pi.models.window import RollingWindow, encode_vectors
-    w = RollingWindow(2, 3)
-    rng = np.random.default_rng(0)
-    for _ in range(2):
-        w.push(vectors=rng.normal(size=(3, 2)), imu=rng.normal(size=6))
-    a = w.encode("vectors", with_imu=True)
-    assert w.encode("vectors", with_imu=True) is a
-    assert not a.flags.writeable
-    with pytest.raises(ValueError):
-        a[0, 0] = 1.0
-    assert w.encode("vectors") is not a and w.encode("vectors").shape[1] == a.shape[1] - 12
-    v_new = rng.normal(size=(3, 2))
-    w.push(vectors=v_new, imu=np.zeros(6))
-    b = w.encode("vectors", with_imu=True)
-    assert b is not a
-    np.testing.assert_array_equal(b, encode_vectors(w.vectors, w.imu))
-    w.clear()
-    assert w.encode("vectors", with_imu=True) is not b
 
 
 def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch, tmp_path):

@@ -1,8 +1,11 @@
 """Decisions (device/pi/runtime/decisions.py): the gait context from GAIT, the
 expected load and motion it gives, learned-model probabilities as SURFACE class ids,
-and one decision from rule windows."""
+one decision from rule windows, and the runtime's decisions under a GAIT context
+(soft against hard, slippery, nominal values, the learned model blended with the
+rule)."""
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -15,6 +18,9 @@ from device.pi.runtime.decisions import (SLIP_THRESHOLD, GaitContext, decide, ex
                                          finite_float, gait_from_message, no_touch_probs,
                                          surface_probs_of_model)
 from device.pi.runtime.load import load_models
+from device.pi.runtime.loop import LegRuntime
+from tests.device.pi.runtime.standins import (FPS, NullImu, RecordingPort, SimCamera,
+                                              make_runtime, run_for)
 
 N_PINS = 133
 
@@ -92,3 +98,68 @@ def test_decide_with_the_rule_hard_soft_and_slippery(tmp_path):
     airborne = decide(m, ws, expected_mag_px=1.0, expected_motion_px=5.0,
                       **{**kw, "contact_seen": False})
     assert not airborne.contact and not airborne.slip
+
+
+def _decisions(tmp_path, gait, frames=70, scene="press-hard"):
+    log = tmp_path / f"log{id(gait)}.jsonl"
+    fh = open(log, "w")
+    rt, cam, port = make_runtime(tmp_path, cam=SimCamera(scene), json_log=fh)
+
+    def hook(rt):
+        if gait is not None:
+            port.send(gait)
+    run_for(rt, frames=frames, hook=hook)
+    fh.close()
+    return [json.loads(x) for x in log.read_text().splitlines()], rt
+
+
+def test_expected_load_from_gait_decides_soft_vs_hard(tmp_path):
+    light, _ = _decisions(tmp_path, P.Gait(P.PHASE_STANCE, 1.0, (0.0, 0.0, 0.0)))
+    heavy, rt = _decisions(tmp_path, P.Gait(P.PHASE_STANCE, 200.0, (0.0, 0.0, 0.0)))
+    assert rt.gait_packets > 0
+    k = rt.cfg.decision.mag_px_per_n
+    assert light[-1]["expected_mag_px"] == pytest.approx(1.0 * k, abs=1e-3)
+    assert heavy[-1]["expected_mag_px"] == pytest.approx(200.0 * k, abs=1e-3)
+    touch = [i for i, d in enumerate(light) if d["contact"]]
+    assert touch, "press-hard never touched"
+    # the same frames: what the robot believes it applies changes the call
+    assert light[touch[-1]]["class"] == "hard"
+    assert heavy[touch[-1]]["class"] == "soft"
+
+
+def test_expected_motion_not_seen_is_slippery(tmp_path):
+    still, _ = _decisions(tmp_path, P.Gait(P.PHASE_STANCE, 1.0, (0.0, 0.0, 0.0)))
+    moving, _ = _decisions(tmp_path, P.Gait(P.PHASE_STANCE, 1.0, (400.0, 0.0, 0.0)))
+    last = [d for d in moving if d["contact"]][-1]
+    assert last["expected_motion_px"] > 1.0 and last["class"] == "slippery" and last["slip"]
+    assert [d for d in still if d["contact"]][-1]["class"] != "slippery"
+
+
+def test_without_gait_nominal_values_are_used(tmp_path):
+    ds, rt = _decisions(tmp_path, None, frames=20)
+    assert all(d["gait"] is None and d["expected_mag_px"] is None for d in ds)
+
+
+def test_learned_surface_model_is_blended_with_the_gait_aware_rule(model_dir, tmp_path):
+    def decisions(gait, weight):
+        cfg = LegConfig()
+        cfg.decision.gait_rule_weight = weight
+        log = tmp_path / f"b{weight}{gait is None}.jsonl"
+        fh = open(log, "w")
+        models = load_models(model_dir, "int8", 133, cfg)
+        port = RecordingPort()
+        rt = LegRuntime(cfg, SimCamera().factory, NullImu(), port, models, fps=FPS,
+                        json_log=fh, notify=lambda s: None)
+        run_for(rt, frames=40, hook=(lambda rt: port.send(gait)) if gait else None)
+        fh.close()
+        return [json.loads(x) for x in log.read_text().splitlines() if '"model_probs"' in x]
+
+    g = P.Gait(P.PHASE_STANCE, 8.0, (2.5, 0.0, 0.0))
+    blended = decisions(g, 0.5)
+    assert blended
+    for d in blended:
+        want = 0.5 * np.array(d["model_probs"]) + 0.5 * np.array(d["rule_probs"])
+        assert np.allclose(d["probs"], want, atol=2e-4)
+    for d in decisions(None, 0.5) + decisions(g, 0.0):        # no GAIT, or weight 0
+        assert d["probs"] == d["model_probs"]
+

@@ -3,6 +3,7 @@ SURFACE class order, the localiser only when the config asks for it, and a runti
 that calls the localiser only then."""
 from __future__ import annotations
 
+import json
 import shutil
 import time
 
@@ -15,6 +16,7 @@ from device.pi.runtime.config import LegConfig, parse_leg_config
 from device.pi.runtime.load import default_models_dir, load_models, rule_from_config
 from device.pi.runtime.loop import LegRuntime
 from device.pi.sources.camera import open_camera
+from tests.device.pi.runtime.standins import NullImu, RecordingPort
 
 SHIPPED_LOCALISER = default_models_dir() / "localiser-roboskin"
 
@@ -29,25 +31,9 @@ def localiser_dir(tmp_path_factory):
     return d
 
 
-class NullPort:
-    in_waiting = 0
-
-    def write(self, data):
-        return len(data)
-
-    def read(self, n):
-        return b""
-
-
-class NullImu:
-    def read(self, out):
-        out[:] = 0
-        return out, 0
-
-
 def _runtime(models_dir, cfg, frames=12):
     models = load_models(models_dir, "int8", 133, cfg)
-    rt = LegRuntime(cfg, lambda: open_camera("sim://press-hard"), NullImu(), NullPort(), models,
+    rt = LegRuntime(cfg, lambda: open_camera("sim://press-hard"), NullImu(), RecordingPort(), models,
                     lossless=True, fps=120.0, notify=lambda s: None, max_frames=frames)
     return rt, models
 
@@ -109,3 +95,20 @@ def test_runtime_runs_the_localiser_on_every_frame_when_asked(localiser_dir):
     assert rt.stream.localiser is models.localiser
     assert rt.frames == 12 and len(calls) == 12
     assert np.isfinite(rt.latencies_ms).all()
+
+
+def test_learned_models_load_int8_by_default_and_float_on_request(model_dir, tmp_path):
+    from device.pi.__main__ import main
+    log = tmp_path / "d.jsonl"
+    rc = main(["run", "--camera", "sim://press-hard", "--imu", "sim://press-hard", "--serial",
+               "loop://", "--models", str(model_dir), "--frames", "30", "--json-log", str(log)])
+    assert rc == 0
+    ds = [json.loads(x) for x in log.read_text().splitlines()]
+    assert len(ds) == 30 and any(d["pressure"] is not None for d in ds)
+    cfg = LegConfig()
+    m8 = load_models(model_dir, "int8", 133, cfg)
+    mf = load_models(model_dir, "float", 133, cfg)
+    assert m8.surface.onnx_path.name == "model.int8.onnx"
+    assert mf.surface.onnx_path.name == "model.onnx"
+    assert set(m8.loaded) == {"surface", "pressure"} and m8.rule is not m8.surface
+

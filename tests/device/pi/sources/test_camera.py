@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import errno
-import os
 import sys
 import time
 import types
@@ -16,9 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi.sources import camera
-from device.pi.sources.camera import (CameraError, CameraSource, Frame, ImageFolderSource, SimSource,
-                              V4L2Source, VideoFileSource, natural_key, open_camera)
-
+from device.pi.sources.camera import (CameraError, Frame, ImageFolderSource, SimSource,
+                                      V4L2Source, VideoFileSource, natural_key, open_camera)
 from tests.realdata import real_data_dir
 
 
@@ -386,14 +384,7 @@ def test_sim_source_path_and_kwargs(stub_sim):
 
 
 def test_sim_source_real_simulator():
-    sim_mod = pytest.importorskip("device.sim", reason="device.sim not importable yet")
-    if not hasattr(sim_mod, "Simulator") or not hasattr(sim_mod, "load_scene"):
-        pytest.skip("device.sim has no Simulator/load_scene yet")
-    scenes = sorted((Path(sim_mod.__file__).parent / "scenes").glob("*.toml"))
-    name = "walk" if any(p.stem == "walk" for p in scenes) else (scenes[0].stem if scenes else None)
-    if name is None:
-        pytest.skip("no built-in scenes in device/sim/scenes")
-    with open_camera(f"sim://{name}?seed=1", end_frame=3) as cam:
+    with open_camera("sim://walk?seed=1", end_frame=3) as cam:
         frames = list(cam)
         assert cam.n_frames == 3
         sim = cam.sim
@@ -446,3 +437,36 @@ def test_real_tactip_shear_folder():
         assert set(np.unique(first.image).tolist()) <= {0, 255}         # binarised
         rest = sum(1 for _ in cam)
     assert rest == 399
+
+
+def test_v4l2_refuses_a_size_the_driver_did_not_take(tmp_path, monkeypatch):
+    import cv2
+
+    from device.pi.sources import camera
+
+    class Capture:
+        def __init__(self, device, api=None):
+            self.props = {}
+
+        def isOpened(self):
+            return True
+
+        def set(self, prop, value):
+            if prop not in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+                self.props[prop] = value            # the size request is ignored
+            return True
+
+        def get(self, prop):
+            return {cv2.CAP_PROP_FRAME_WIDTH: 320.0,
+                    cv2.CAP_PROP_FRAME_HEIGHT: 240.0}.get(prop, float(self.props.get(prop, 0)))
+
+        def release(self):
+            pass
+
+    dev = tmp_path / "video3"
+    dev.touch()
+    monkeypatch.setattr(camera.cv2, "VideoCapture", Capture)
+    with pytest.raises(CameraError, match="320x240, asked for 640x480"):
+        open_camera(f"v4l2://{dev}?width=640&height=480&fourcc=YUYV")
+    assert open_camera(f"v4l2://{dev}").width == 320          # no size asked: taken as is
+

@@ -286,18 +286,3 @@ def test_an_imu_absent_at_start_faults_then_recovers_by_itself():
     v, bits = src.read()
     good_v, _ = im.MPU6050Source(MPU6050(fake()), "x").read()
     np.testing.assert_allclose(v, good_v, atol=1e-3)
-
-
-def test_the_runtime_starts_without_its_imu_and_reports_the_fault(tmp_path):
-    import json
-    import subprocess
-    import sys
-    status = tmp_path / "status.json"
-    res = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera",
-                          "sim://press-hard", "--imu", "i2c://97/0x68", "--serial", "loop://",
-                          "--frames", "20", "--status", str(status)],
-                         capture_output=True, text=True, timeout=120)
-    assert res.returncode == 0, res.stderr
-    assert "retrying" in res.stderr
-    doc = json.loads(status.read_text())
-    assert "imu" in doc["fault_names"] and doc["frames"] == 20

@@ -219,8 +219,9 @@ def test_chip_swapped_for_wrong_device_while_running_stays_a_fault():
     d.read()
     bus.inject("eio")
     assert d.read()[1] & FAULT_OFFLINE
-    bus.who_am_i = 0x12
-    bus._regs[fm.WHO_AM_I] = 0x12
+    bus.who_am_i = 0x12                            # another chip on the bus, fresh from reset
+    bus.write_byte_data(bus.address, fm.PWR_MGMT_1, fm.DEVICE_RESET)
+    assert bus.register(fm.WHO_AM_I) == 0x12
     for i in range(1, 50):
         clk.t = i * 0.1
         v, f = d.read()                            # never raises

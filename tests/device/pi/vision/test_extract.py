@@ -1,10 +1,9 @@
-"""Tests of the marker front end (device/pi/vision/extract.py) and the realism measures
-(host/analysis/realism.py): synthetic frames with known answers, property tests on
-degenerate frames, and checks against the real recordings when present."""
+"""The marker front end (device/pi/vision/extract.py): synthetic frames with known
+answers, property tests on degenerate frames, and checks against the real recordings
+when present."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import cv2
@@ -25,90 +24,17 @@ from device.pi.vision.extract import (
     find_dome,
     to_gray,
 )
-from host.analysis.drag import measure_drag_displacement
-from host.analysis.frames import nearest_neighbour_px
-from host.analysis.glare import measure_glare
-from host.analysis.realism import measure_static
-from host.analysis.rings import fit_radial_layout
-
-try:  # tests/ may or may not become a package
-    from tests.realdata import read_video, real_data_dir
-except ImportError:  # pragma: no cover
-    from tests.realdata import read_video, real_data_dir
+from tests.domes import DOME, SYNTH_PARAMS, degenerate_frames, match, render, ring_layout
+from tests.realdata import read_video, real_data_dir
 
 
 # --------------------------------------------------------------------------
-# Synthetic TacTip-like frames
-# --------------------------------------------------------------------------
-
-DOME = (160.0, 120.0, 100.0)  # cx, cy, r in a 240x320 frame
-RINGS = ((14.0, 12), (24.0, 12), (36.0, 24), (48.0, 24), (60.0, 24))
-PHASE_DEG = 3.0
-SYNTH_PARAMS = VisionParams(block=11, offset=14.0, blur_sigma_px=1.0, min_area_px=6,
-                            max_area_px=100, roi_shrink=0.9)
-
-
-def ring_layout(centre=DOME[:2], rings=RINGS, phase_deg=PHASE_DEG, centre_pin=True) -> np.ndarray:
-    pts = [tuple(centre)] if centre_pin else []
-    for r, n in rings:
-        a = np.radians(phase_deg + np.arange(n) * 360.0 / n)
-        pts += list(zip(centre[0] + r * np.cos(a), centre[1] + r * np.sin(a)))
-    return np.asarray(pts, np.float64)
-
-
-def render(pins: np.ndarray, h=240, w=320, dome=DOME, pin_sigma=1.4, pin_amp=120.0,
-           inside=70.0, surround=250.0, glare=(), bgr=False) -> np.ndarray:
-    """Dark dome in a bright surround, Gaussian pins, optional flat glare discs (x, y, radius)."""
-    yy, xx = np.mgrid[:h, :w].astype(np.float64)
-    cx, cy, r = dome
-    img = np.where((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r, inside, surround)
-    for x, y in pins:
-        x0, x1 = int(max(0, x - 6)), int(min(w, x + 7))
-        y0, y1 = int(max(0, y - 6)), int(min(h, y + 7))
-        sub = (xx[y0:y1, x0:x1] - x) ** 2 + (yy[y0:y1, x0:x1] - y) ** 2
-        img[y0:y1, x0:x1] += pin_amp * np.exp(-0.5 * sub / pin_sigma**2)
-    for gx, gy, gr in glare:
-        img[(xx - gx) ** 2 + (yy - gy) ** 2 <= gr * gr] = 255.0
-    g = np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    return cv2.cvtColor(g, cv2.COLOR_GRAY2BGR) if bgr else g
-
-
-def match(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Distance from each true point to the nearest found point."""
-    if len(found) == 0:
-        return np.full(len(truth), np.inf)
-    d = np.sqrt(((truth[:, None, :] - found[None, :, :]) ** 2).sum(-1))
-    return d.min(axis=1)
-
-
-# --------------------------------------------------------------------------
-# Parameters and small helpers
+# Parameters and grey conversion
 # --------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(
-    "field, value",
-    [
-        ("block", 10), ("block", 1), ("block", 11.0), ("block", True),
-        ("offset", float("nan")), ("offset", 1e6),
-        ("blur_sigma_px", -1.0),
-        ("min_area_px", 0), ("max_area_px", 5),  # max < default min 10
-        ("roi_shrink", 0.0), ("roi_shrink", float("inf")),
-    ],
-)
-def test_params_reject_bad_value_and_name_it(field, value):
-    with pytest.raises(ValueError) as err:
-        VisionParams(**{field: value})
-    msg = str(err.value)
-    assert field in msg
-    assert repr(value) in msg or str(value) in msg
-
-
-def test_params_frozen_and_presets_valid():
-    p = VisionParams()
-    assert p == ROBOSKIN_PARAMS
-    with pytest.raises(dataclasses.FrozenInstanceError):
-        p.block = 13  # type: ignore[misc]
+def test_presets_are_valid_params():
+    assert VisionParams() == ROBOSKIN_PARAMS
     assert TACTIP_SHEAR_PARAMS.min_area_px > ROBOSKIN_PARAMS.min_area_px
 
 
@@ -125,12 +51,6 @@ def test_to_gray_accepts_gray_bgr_and_float():
     np.testing.assert_array_equal(to_gray(f), np.array([[0, 255], [0, 12]], np.uint8))
     with pytest.raises(ValueError, match="shape"):
         to_gray(np.zeros((4, 4, 2), np.uint8))
-
-
-def test_nearest_neighbour_px_known_grid():
-    xy = np.array([[0, 0], [3, 0], [0, 4], [10, 10]], np.float32)
-    np.testing.assert_allclose(nearest_neighbour_px(xy), [3.0, 3.0, 4.0, math.hypot(10, 6)], rtol=1e-6)
-    assert nearest_neighbour_px(np.zeros((1, 2))).shape == (0,)
 
 
 # --------------------------------------------------------------------------
@@ -229,107 +149,8 @@ def test_detector_crop_matches_full_frame_pipeline():
 
 
 # --------------------------------------------------------------------------
-# Realism measures on synthetic frames with known answers
-# --------------------------------------------------------------------------
-
-
-def test_measure_static_synthetic_counts_spacing_and_brightness():
-    truth = ring_layout()
-    frames = [render(truth) for _ in range(3)]
-    m = measure_static(frames, SYNTH_PARAMS)
-    assert m["faults"] == []
-    assert m["pin_count_median"] == len(truth) and m["pin_count_iqr"] == 0
-    expected_spacing = float(np.median(nearest_neighbour_px(truth)))
-    assert m["pin_spacing_px_median"] == pytest.approx(expected_spacing, abs=0.3)
-    assert m["pin_sigma_px"] == pytest.approx(1.4, abs=0.35)
-    assert m["pin_background_gray_median"] == pytest.approx(70, abs=6)
-    assert m["pin_peak_gray_median"] == pytest.approx(190, abs=10)
-    assert m["glare_count_median"] == 0 and m["glare_area_px2_median"] == 0
-    assert m["dome_r_px"] == pytest.approx(DOME[2], abs=3)
-
-
-def test_measure_static_no_dome_gives_finite_and_fault():
-    m = measure_static([np.zeros((40, 50), np.uint8)] * 2, SYNTH_PARAMS)
-    assert m["pin_count_median"] == 0
-    assert any("dome" in f for f in m["faults"]) and any("pins" in f for f in m["faults"])
-    assert all(math.isfinite(v) for v in m.values() if isinstance(v, float))
-
-
-def test_measure_drag_displacement_known_shift():
-    truth = ring_layout()
-    # pins slide 0..9 px along +x (1.5 px per frame), hold, then spring back at once
-    shifts = [0.0, 1.5, 3.0, 4.5, 6.0, 7.5, 9.0, 9.0, 9.0, 0.0, 0.0]
-    frames = [render(truth + [s, 0.0]) for s in shifts]
-    m = measure_drag_displacement(frames, SYNTH_PARAMS, dome=DOME)
-    per = np.asarray(m["displacement_px_per_frame"])
-    np.testing.assert_allclose(per, shifts, atol=0.3)
-    assert m["displacement_px_max"] == pytest.approx(9.0, abs=0.3)
-    assert m["displacement_vector_px_at_max"][0] == pytest.approx(9.0, abs=0.3)
-    assert abs(m["displacement_vector_px_at_max"][1]) < 0.3
-    assert m["tracked_fraction_median"] > 0.9
-
-
-def test_measure_glare_finds_soft_blob():
-    truth = ring_layout(rings=((14.0, 12), (24.0, 12)))
-    g = render(truth).astype(np.float64)
-    yy, xx = np.mgrid[: g.shape[0], : g.shape[1]]
-    gx, gy, sig = DOME[0] + 55.0, DOME[1] - 20.0, 10.0
-    g += 120.0 * np.exp(-0.5 * ((xx - gx) ** 2 + (yy - gy) ** 2) / sig**2)
-    frame = np.clip(g, 0, 255).astype(np.uint8)
-    res = measure_glare([frame], dome=DOME, pin_diameter_px=4.0)
-    blobs = res["blobs_first_frame"]
-    assert len(blobs) == 1
-    b = blobs[0]
-    assert abs(b["x_px"] - gx) <= 2 and abs(b["y_px"] - gy) <= 2
-    assert b["amplitude_gray"] == pytest.approx(120, abs=20)
-    # half-amplitude area of a Gaussian: 2 pi ln2 sigma^2
-    assert b["half_amplitude_area_px2"] == pytest.approx(2 * math.pi * math.log(2) * sig**2, rel=0.25)
-    assert b["sigma_px"] == pytest.approx(sig, rel=0.3)
-
-
-def test_fit_radial_layout_recovers_rings():
-    truth = ring_layout()
-    rng = np.random.default_rng(1)
-    noisy = truth + rng.normal(0, 0.3, truth.shape)
-    fit = fit_radial_layout(noisy, centre_guess=(DOME[0] + 4, DOME[1] - 3))
-    assert fit["centre_x_px"] == pytest.approx(DOME[0], abs=0.3)
-    assert fit["centre_y_px"] == pytest.approx(DOME[1], abs=0.3)
-    assert fit["centre_pin"] is True
-    assert [r["count"] for r in fit["rings"]] == [n for _, n in RINGS]
-    np.testing.assert_allclose([r["radius_px"] for r in fit["rings"]], [r for r, _ in RINGS], atol=0.3)
-    for ring in fit["rings"]:
-        assert ring["phase_deg"] == pytest.approx(PHASE_DEG, abs=1.0)
-    assert fit["total_pins"] == len(truth)
-
-
-# --------------------------------------------------------------------------
 # Property tests: degenerate frames never break the front end
 # --------------------------------------------------------------------------
-
-_KINDS = ("black", "white", "saturated", "noise")
-
-
-@st.composite
-def degenerate_frames(draw):
-    h = draw(st.integers(1, 96))
-    w = draw(st.integers(1, 128))
-    kind = draw(st.sampled_from(_KINDS))
-    colour = draw(st.booleans())
-    shape = (h, w, 3) if colour else (h, w)
-    if kind == "black":
-        f = np.zeros(shape, np.uint8)
-    elif kind == "white":
-        f = np.full(shape, 255, np.uint8)
-    elif kind == "saturated":
-        level = draw(st.integers(0, 255))
-        f = np.full(shape, level, np.uint8)
-        if colour:
-            f[:, :, draw(st.integers(0, 2))] = 255  # one clipped channel
-    else:
-        seed = draw(st.integers(0, 2**32 - 1))
-        f = np.random.default_rng(seed).integers(0, 256, shape, dtype=np.uint8)
-    return kind, f
-
 
 _SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -366,14 +187,12 @@ def test_binarise_and_extract_never_raise(case, block, offset):
 
 @_SETTINGS
 @given(degenerate_frames())
-def test_detector_and_measures_finite_on_degenerate_frames(case):
+def test_detector_finite_on_degenerate_frames(case):
     _, frame = case
     dome = find_dome(frame)
     det = PinDetector(ROBOSKIN_PARAMS, frame.shape[:2], dome)
     xy, areas = det.detect(frame)
     assert np.isfinite(xy).all() and xy.shape == (len(areas), 2)
-    m = measure_static([frame], ROBOSKIN_PARAMS, dome=dome)
-    assert all(math.isfinite(v) for v in m.values() if isinstance(v, float))
 
 
 # --------------------------------------------------------------------------
@@ -403,39 +222,6 @@ def test_real_flat_skin_has_no_dome():
 
 
 @pytest.mark.real
-def test_real_roboskin_rest_pins_and_layout():
-    root = real_data_dir("roboskin/smooth.avi")
-    frames = read_video(root / "roboskin" / "smooth.avi", count=12)  # at rest
-    m = measure_static(frames, ROBOSKIN_PARAMS)
-    assert m["faults"] == []
-    assert 120 <= m["pin_count_median"] <= 145
-    assert 10.5 <= m["pin_spacing_px_median"] <= 13.0
-    assert 5.5 <= m["pin_diameter_px_median"] <= 7.5
-    assert m["pin_contrast_gray_median"] > 40
-    gray = np.mean([to_gray(f).astype(np.float32) for f in frames], axis=0).astype(np.uint8)
-    dome = (m["dome_cx_px"], m["dome_cy_px"], m["dome_r_px"])
-    xy, _ = PinDetector(ROBOSKIN_PARAMS, gray.shape, dome).detect(gray)
-    fit = fit_radial_layout(xy, centre_guess=dome[:2])
-    assert fit["total_pins"] == 133  # the sensor's 133 pins
-    assert fit["centre_pin"] is True
-    assert [r["count"] for r in fit["rings"]] == [12, 12, 12, 24, 24, 24, 24]
-    np.testing.assert_allclose([r["radius_px"] for r in fit["rings"]],
-                               [20.9, 30.7, 44.1, 57.0, 70.0, 82.6, 93.8], atol=1.5)
-
-
-@pytest.mark.real
-def test_real_north_push_displacement():
-    root = real_data_dir("roboskin/north.avi")
-    frames = read_video(root / "roboskin" / "north.avi", count=150)
-    m = measure_drag_displacement(frames, ROBOSKIN_PARAMS)
-    per = np.asarray(m["displacement_px_per_frame"])
-    assert per[:30].max() < 1.0          # at rest before the push
-    assert m["displacement_px_p90"] > 6  # the push moves pins by about a pin spacing
-    assert m["displacement_px_max"] < 25
-    assert m["tracked_fraction_median"] > 0.6
-
-
-@pytest.mark.real
 def test_real_tactip_shear_image_1():
     root = real_data_dir("tactip_shear/images/image_1.png")
     g = cv2.imread(str(root / "tactip_shear" / "images" / "image_1.png"), cv2.IMREAD_GRAYSCALE)
@@ -443,7 +229,3 @@ def test_real_tactip_shear_image_1():
     assert d is not None
     assert 195 <= d[2] <= 225
     assert abs(d[0] - g.shape[1] / 2) < 15 and abs(d[1] - g.shape[0] / 2) < 15
-    m = measure_static([g], TACTIP_SHEAR_PARAMS, dome=d)
-    assert abs(m["pin_count_median"] - 331) <= 3
-    assert 11.0 <= m["pin_diameter_px_median"] <= 14.5
-    assert 17.0 <= m["pin_spacing_px_median"] <= 21.0

@@ -1,12 +1,10 @@
-"""Pin tracking (device/pi/vision/tracking.py) and the tactip_shear evaluation
-(host/analysis/shear.py): the per-frame tracker on hard inputs, identity switches
-on simulated drags, and pin assignment plus Ridge regressions on the real
-tactip_shear images."""
+"""Pin tracking (device/pi/vision/tracking.py): the per-frame tracker on hard inputs and
+identity switches on simulated drags. The tracker on the real tactip_shear images is
+in tests/host/analysis/test_shear.py."""
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import tracemalloc
 
 import numpy as np
@@ -21,7 +19,6 @@ from device.pi.vision.tracking import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT
 from device.profile import load_profile
 from device.sim import Simulator, load_scene
 from tests.pins import big_deformation, hex_pins
-from tests.realdata import real_data_dir
 
 DRAGS = [f"drag-{a}" for a in range(0, 360, 45)]
 MAX_SWITCH_FRAC = 0.005          # identity switches <= 0.5% of pins per frame
@@ -245,39 +242,3 @@ def test_drag_identity_switches_detected_pins(name, profile):
     print(f"{profile} {name} (detected): switches per frame mean {rate.mean():.4%} "
           f"max {rate.max():.4%}, lost mean {lost.mean():.2%}")
     assert rate.max() <= MAX_SWITCH_FRAC
-
-
-# -- real data: tactip_shear ----------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def shear_result():
-    from host.analysis.shear import evaluate_tactip_shear
-
-    data = real_data_dir("tactip_shear/targets_images.csv", "tactip_shear/images/image_1.png")
-    return evaluate_tactip_shear(data)
-
-
-@pytest.mark.real
-@pytest.mark.slow
-def test_tactip_shear_pins_found_and_assigned(shear_result):
-    r = shear_result
-    print(f"tactip_shear: {r['n_reference_pins']} layout pins, pitch {r['pitch_px']:.1f} px; "
-          f"{r['frac_images_95']:.1%} of {r['n_images']} images have >= 95% assigned "
-          f"(5th percentile {r['assigned_frac_p5']:.1%}); {r['track_ms_per_image']:.1f} ms/image")
-    assert r["n_images"] == 400
-    assert 320 <= r["n_reference_pins"] <= 335                     # the 331-pin layout, rim fragments dropped
-    assert r["frac_images_95"] >= 0.95
-
-
-@pytest.mark.real
-@pytest.mark.slow
-def test_tactip_shear_regression_beats_the_mean(shear_result):
-    ratios = {k: v["ratio"] for k, v in shear_result["ratios"].items()}
-    raw = {k: v["ratio"] for k, v in shear_result["ratios_raw_features"].items()}
-    print("MAE(mean) / MAE(ridge):", {k: round(v, 2) for k, v in ratios.items()},
-          "raw vectors + lost flags:", {k: round(v, 2) for k, v in raw.items()})
-    assert ratios["pose_z"] >= 3.0
-    assert ratios["shear_x"] >= 2.0
-    assert ratios["shear_y"] >= 2.0
-    for key in ("pose_Rx", "pose_Ry"):                             # reported; must at least beat the mean
-        assert math.isfinite(ratios[key]) and ratios[key] > 1.0

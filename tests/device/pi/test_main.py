@@ -1,0 +1,108 @@
+"""``python -m device.pi run`` (device/pi/__main__.py): it runs on simulated hardware,
+refuses bad artefacts, config and sources with exit status 2 and one line naming the
+problem, and a missing live camera or IMU is a fault, not an exit (until SIGTERM)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+from device.pi.__main__ import main
+
+
+def _run_main(args, capsys):
+    rc = main(["run", "--imu", "none", "--serial", "loop://", "--frames", "2"] + args)
+    return rc, capsys.readouterr().err
+
+
+def test_bad_artefacts_refuse_to_start_with_exit_2(model_dir, tmp_path, capsys):
+    import shutil
+    cam = ["--camera", "sim://press-hard"]
+    # malformed manifest
+    bad = tmp_path / "m1"
+    shutil.copytree(model_dir, bad)
+    (bad / "surface" / "manifest.json").write_text("{not json")
+    rc, err = _run_main(cam + ["--models", str(bad)], capsys)
+    assert rc == 2 and "surface/manifest.json" in err and "corrupt manifest" in err
+    # truncated model file (checksum)
+    bad = tmp_path / "m2"
+    shutil.copytree(model_dir, bad)
+    f = bad / "surface" / "model.int8.onnx"
+    f.write_bytes(f.read_bytes()[:100])
+    rc, err = _run_main(cam + ["--models", str(bad)], capsys)
+    assert rc == 2 and "model.int8.onnx" in err and "checksum" in err
+    # a model for another pin layout
+    from tests.windows import synthetic
+
+    from host.learn.train import train_model
+    bad = tmp_path / "m3"
+    train_model("surface", "fnn", synthetic(n_pins=5, classes=("hard", "soft")),
+                out_dir=bad / "surface", progress=False, hidden=(4, 2), epochs=5)
+    rc, err = _run_main(cam + ["--models", str(bad)], capsys)
+    assert rc == 2 and "manifest.json" in err and "133-pin layout" in err
+    # bad config value, bad sources, missing models folder
+    cfg = tmp_path / "leg.toml"
+    cfg.write_text("[camera]\nfps = -3\n")
+    rc, err = _run_main(cam + ["--config", str(cfg)], capsys)
+    assert rc == 2 and "camera.fps" in err and "-3" in err
+    rc, err = _run_main(["--camera", "bogus://x"], capsys)
+    assert rc == 2 and "bogus" in err
+    rc, err = _run_main(cam + ["--models", str(tmp_path / "nope")], capsys)
+    assert rc == 2 and "nope" in err
+    rc = main(["run", "--camera", "sim://press-hard", "--imu", "i2c://1/0x200", "--serial",
+               "loop://"])
+    assert rc == 2 and "0x200" in capsys.readouterr().err
+
+
+def test_python_dash_m_device_pi_run_on_simulated_hardware(tmp_path):
+    status = tmp_path / "st.json"
+    r = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", "sim://press-hard",
+                        "--imu", "sim://press-hard", "--serial", "loop://", "--frames", "25",
+                        "--status", str(status), "--json"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["frames"] == 25 and res["packets_sent"] >= 25
+    assert res["latency_ms_p50"] is not None and res["latency_ms_p50"] > 0
+    assert json.loads(status.read_text())["frames"] == 25
+
+
+def test_missing_live_camera_is_a_fault_not_an_exit_and_sigterm_stops_cleanly(tmp_path):
+    import signal
+    status = tmp_path / "st.json"
+    p = subprocess.Popen([sys.executable, "-m", "device.pi", "run", "--camera",
+                          f"v4l2://{tmp_path / 'video0'}", "--imu", "none", "--serial",
+                          "loop://", "--status", str(status), "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        doc = {}
+        while time.monotonic() < deadline and "camera" not in doc.get("fault_names", []):
+            time.sleep(0.1)
+            if status.exists():
+                doc = json.loads(status.read_text())
+        assert p.poll() is None, "the runtime exited without a camera"
+        assert "camera" in doc["fault_names"] and doc["frames"] == 0
+        assert doc["packets_sent"] > 0               # HEARTBEAT / FAULT with no frames
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=20)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0
+    res = json.loads(out)
+    assert res["camera_errors"] >= 1 and res["frames"] == 0
+
+
+def test_the_runtime_starts_without_its_imu_and_reports_the_fault(tmp_path):
+    status = tmp_path / "status.json"
+    res = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera",
+                          "sim://press-hard", "--imu", "i2c://97/0x68", "--serial", "loop://",
+                          "--frames", "20", "--status", str(status)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "retrying" in res.stderr
+    doc = json.loads(status.read_text())
+    assert "imu" in doc["fault_names"] and doc["frames"] == 20
+
