@@ -53,22 +53,21 @@ class QuantisationError(TrainError):
     ``mae_change_of_range`` (regressors); ``path`` the int8 file not written.
     """
 
-    def __init__(self, message: str, *, kind: str | None = None,
-                 agreement: float | None = None, required: float | None = None,
-                 mae_change: float | None = None, mae_change_of_range: float | None = None,
-                 path: str | None = None):
+    #: the verdict's fields, as the manifest's ``int8`` records them
+    FIELDS = ("kind", "agreement", "required", "mae_change", "mae_change_of_range")
+
+    def __init__(self, message: str, *, path: str | None = None, **verdict):
+        unknown = sorted(set(verdict) - set(self.FIELDS))
+        if unknown:
+            raise TypeError(f"QuantisationError: unknown field(s) {unknown}")
         super().__init__(message)
-        self.kind = kind
-        self.agreement = agreement
-        self.required = required
-        self.mae_change = mae_change
-        self.mae_change_of_range = mae_change_of_range
+        for k in self.FIELDS:
+            setattr(self, k, verdict.get(k))
         self.path = path
 
     def fields(self) -> dict:
-        """The verdict's fields (all but ``path``), as the manifest's ``int8`` records them."""
-        return {"kind": self.kind, "agreement": self.agreement, "required": self.required,
-                "mae_change": self.mae_change, "mae_change_of_range": self.mae_change_of_range}
+        """The verdict's fields (all but ``path``)."""
+        return {k: getattr(self, k) for k in self.FIELDS}
 
     def with_message(self, message: str) -> "QuantisationError":
         """The same verdict with another message (e.g. naming another file)."""
