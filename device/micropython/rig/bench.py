@@ -1,7 +1,7 @@
-"""Benchmark of Rig.poll() with the machine stand-in (tests/mpy/machine.py), not for
-the board:
+"""Benchmark of Rig.poll() with the machine stand-in (device/sim/mpy/lib/machine.py),
+not for the board:
 
-    node tests/mpy/run.mjs --lib tests/mpy --lib device/micropython device/micropython/rig/bench.py
+    node device/sim/mpy/run.mjs --lib device/sim/mpy/lib --lib device/micropython device/micropython/rig/bench.py
 
 Prints microseconds per poll idle, moving, and moving while streaming, and the
 bytes the link decoder allocates over 1020 bytes (docs/BENCHMARKS.md)."""
