@@ -31,6 +31,10 @@ def temporal_class():
         * the mean length of the per-pin changes, T-1 (how much the pins shook);
         * the mean pin displacement |v| of each frame, T (the pressure).
 
+        ``pin_mask`` (M zeros and ones, optional): pins with 0 are read as zero
+        everywhere, in the graph too, so a pin that a training recording always
+        loses (glare, a worn pin) cannot become a cue for that recording.
+
         Texture shake, slip and a wet floor show in these changes, which are small
         next to the vectors themselves; given explicitly, the MLP finds them from
         few trials. No weights: in ONNX it is Slice / Sub / ReduceMean /
@@ -38,10 +42,22 @@ def temporal_class():
         by the int8 quantiser.
         """
 
-        def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False):
+        def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False,
+                     pin_mask=None):
             self.T = T
             self.n_pins = n_pins
             self.uses_imu = uses_imu
+            self.pin_mask = pin_mask
+
+        def _mask(self):
+            """(M,) float32 of 1 (pin used) and 0 (pin ignored), or None."""
+            if self.pin_mask is None:
+                return None
+            m = np.asarray(self.pin_mask, np.float32).reshape(-1)
+            if m.shape != (self.n_pins,) or not np.isin(m, (0.0, 1.0)).all():
+                raise TrainError(f"pin_mask must hold {self.n_pins} zeros and ones, got "
+                                 f"shape {m.shape}")
+            return m
 
         def _n_in(self) -> int:
             return self.T * self.n_pins * 2 + (6 * self.T if self.uses_imu else 0)
@@ -53,6 +69,7 @@ def temporal_class():
                                  f"T={self.T}, {self.n_pins} pins, imu={self.uses_imu}, got "
                                  f"{X.shape}")
             T, M = self.T, self.n_pins
+            self._mask()
             self.n_features_in_ = X.shape[1]
             self.n_features_out_ = (X.shape[1] + (T - 1) * M * 2 + 2 * T + 2 * (T - 1)
                                     + 2 * (T - 1) + T)
@@ -62,6 +79,10 @@ def temporal_class():
             X = np.asarray(X, np.float32)
             T, M, N = self.T, self.n_pins, X.shape[0]
             v = X[:, :T * M * 2].reshape(N, T, M, 2)
+            mask = self._mask()
+            if mask is not None:      # ignored pins read as zero everywhere below
+                v = v * mask[None, None, :, None]
+                X = np.concatenate([v.reshape(N, -1), X[:, T * M * 2:]], axis=1)
             avg = v.mean(axis=2, dtype=np.float32)
             parts = [X]
             dv = v[:, 1:] - v[:, :-1]
@@ -186,6 +207,14 @@ def _temporal_to_onnx(scope, operator, container):
     x = operator.inputs[0].full_name
     v = node("Reshape", [node("Slice", [x, const([0]), const([T * M * 2]), const([1])]),
                          const([-1, T, M, 2])])
+    mask = op._mask()
+    if mask is not None:                 # ignored pins read as zero
+        mname = scope.get_unique_variable_name("pin_mask")
+        container.add_initializer(mname, TensorProto.FLOAT, [1, 1, M, 2],
+                                  np.repeat(mask, 2).astype(float).tolist())
+        v = node("Mul", [v, mname])
+        rest = node("Slice", [x, const([T * M * 2]), const([op.n_features_in_]), const([1])])
+        x = node("Concat", [flat(v, T * M * 2), rest], axis=1)
     avg = node("ReduceMean", [v], axes=[2], keepdims=0)                       # (N, T, 2)
     dv = node("Sub", [frames(v, 1, T), frames(v, 0, T - 1)])                  # (N, T-1, M, 2)
     davg = node("Sub", [frames(avg, 1, T), frames(avg, 0, T - 1)])            # (N, T-1, 2)

@@ -83,6 +83,28 @@ def _holdout(ws, seed: int):
     return ws.subset(tr), ws.subset(te), how
 
 
+#: a pin lost in more than this share of one training recording's windows is ignored
+MAX_LOST_SHARE = 0.2
+
+
+def regression_task(task: str) -> bool:
+    return task == "pressure"
+
+
+def recording_lost_pins(ws) -> list[int]:
+    """The layout pins that some training recording (trial) loses in more than
+    ``MAX_LOST_SHARE`` of its windows' frames. A pin that glare hides in one
+    recording and not in another is a fingerprint of the recording, not of the
+    surface; the fnn ignores these pins (``TemporalFeatures.pin_mask``)."""
+    if len(ws) == 0:
+        return []
+    lost = ws.lost.mean(axis=1)                        # (N, M): share of frames lost
+    out = np.zeros(ws.n_pins, bool)
+    for g in np.unique(ws.groups):
+        out |= lost[ws.groups == g].mean(axis=0) > MAX_LOST_SHARE
+    return [int(i) for i in np.flatnonzero(out)]
+
+
 def check_classes(ws_train, ws_test, classes_wanted) -> None:
     """A TrainError naming every class that the test windows or the data carry but
     the training windows do not."""
@@ -169,8 +191,11 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     if temporal and (model != "fnn" or T < 2):
         raise TrainError(f"temporal=True needs the fnn and T >= 2 frames, got model={model!r} "
                          f"T={T}")
-    tspec = ({"T": T, "n_pins": ws_train.n_pins, "uses_imu": bool(uses_imu)} if temporal
-             else None)
+    ignored = recording_lost_pins(ws_train) if temporal and not regression_task(task) else []
+    tspec = ({"T": T, "n_pins": ws_train.n_pins, "uses_imu": bool(uses_imu),
+              "pin_mask": (None if not ignored else
+                           [0 if m in set(ignored) else 1 for m in range(ws_train.n_pins)])}
+             if temporal else None)
     hp = hyperparameters(model, hidden, alpha, epochs, tspec) if model != "rule" else {}
     regression = task == "pressure"
 
@@ -202,6 +227,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         y = label_ids(ws_fit.labels, classes)
         yt = None if ws_test is None else label_ids(ws_test.labels, classes)
     result = {"task": task, "model": model, "T": T, "input_layout": layout,
+              "ignored_pins": ignored,
               "uses_imu": bool(uses_imu), "temporal_features": bool(temporal),
               "classes": classes, "seed": seed,
               "holdout": holdout, "out_dir": str(out_dir)}
@@ -285,7 +311,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     # -- write -----------------------------------------------------------------
     out.mkdir(parents=True, exist_ok=True)
     default = INT8_NAME if qbytes is not None else FLOAT_NAME
-    extra = {"model": model, "task": task, "classes": classes, "T": T,
+    extra = {"model": model, "task": task, "classes": classes, "T": T, "ignored_pins": ignored,
              "input_layout": layout, "uses_imu": bool(uses_imu),
              "output": "variable" if regression else "probabilities",
              "output_kind": "value" if regression else "probabilities",

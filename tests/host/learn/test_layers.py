@@ -74,3 +74,29 @@ def test_the_fnn_first_layer_in_onnx_equals_its_numpy_transform():
         v = X[:, :Tn * M * 2].reshape(50, Tn, M, 2)
         assert np.allclose(want[:, -1], np.hypot(v[:, -1, :, 0], v[:, -1, :, 1]).mean(1),
                            atol=1e-5)
+
+
+def test_masked_pins_are_ignored_by_the_temporal_layer_and_its_graph():
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.layers import temporal_class
+    from host.learn.onnx_io import session
+
+    T, M = 3, 6
+    rng = np.random.default_rng(0)
+    X = rng.normal(0, 1, (20, T * M * 2 + 6 * T)).astype(np.float32)
+    mask = [1, 0, 1, 1, 0, 1]
+    tf = temporal_class()(T=T, n_pins=M, uses_imu=True, pin_mask=mask).fit(X)
+    m = convert_sklearn(tf, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                        target_opset=17)
+    sess = session(m)
+    got = sess.run(None, {"x": X})[0]
+    assert np.allclose(got, tf.transform(X), atol=1e-5)
+    X2 = X.copy()
+    v = X2[:, :T * M * 2].reshape(20, T, M, 2)
+    v[:, :, [1, 4]] = rng.normal(0, 50, (20, T, 2, 2))        # only the masked pins change
+    assert np.allclose(sess.run(None, {"x": X2})[0], got, atol=1e-5)
+    assert not np.allclose(temporal_class()(T=T, n_pins=M, uses_imu=True).fit(X2)
+                           .transform(X2), temporal_class()(T=T, n_pins=M, uses_imu=True)
+                           .fit(X).transform(X))

@@ -223,3 +223,32 @@ def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch,
     assert not (tmp_path / "b" / "manifest.float.json").exists()
     with pytest.raises(TrainError, match="quantise must be"):
         train_model("surface", "fnn", ws, quantise="yes", **dict(kw, out_dir=tmp_path / "c"))
+
+
+def _same_surface_two_recordings(seed: int, n_groups: int = 8):
+    """Windows of one surface from two recordings, "a" and "b", whose only
+    difference is that "b" always loses pins 0-4 (glare on that recording)."""
+    ws = synthetic(n_groups=n_groups, per_group=40, n_pins=20, classes=("a", "b"), imu=False,
+                   seed=seed)
+    rng = np.random.default_rng(seed)
+    ws.vectors[:] = rng.normal(1.0, 0.3, ws.vectors.shape).astype(np.float32)
+    b = ws.labels == "b"
+    ws.vectors[b, :, :5] = 0.0
+    ws.lost[b, :, :5] = True
+    ws.task = "texture"
+    return ws
+
+
+def test_a_model_cannot_tell_two_recordings_of_one_surface_apart(tmp_path):
+    """Pins that a training recording keeps losing are ignored (in the ONNX graph too),
+    so a lost-pin pattern is no cue: two recordings of the same surface stay at chance,
+    while the same pins, seen, would separate them perfectly."""
+    from host.learn.train import recording_lost_pins
+    ws, wt = _same_surface_two_recordings(0), _same_surface_two_recordings(1)
+    assert recording_lost_pins(ws) == [0, 1, 2, 3, 4]
+    res = train_model("texture", "fnn", ws, wt, out_dir=tmp_path / "m", progress=False,
+                      hidden=(16, 8), epochs=60)
+    assert res["ignored_pins"] == [0, 1, 2, 3, 4]
+    assert res["metrics"]["test"]["accuracy"] < 0.7
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert man["ignored_pins"] == [0, 1, 2, 3, 4]
