@@ -50,11 +50,11 @@ bench: $(VENV)/.installed
 	$(VENV)/bin/host bench sim --json
 
 # Rebuild the shipped default models in models/: the localiser (needs the real
-# recordings for its real labels: REAL_DATA=path/to/data), then surface, texture,
-# slip and pressure from simulated trials (data cached in out/sim-data).
+# recordings for its real labels: REAL_DATA=path/to/data), texture from the real
+# recordings, then surface, slip and pressure from simulated trials (cached in out/sim-data).
 models: $(VENV)/.installed
 	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
-	$(PY) -m host.bench.shipped --out models --work out/sim-data --quiet
+	$(PY) -m host.bench.shipped --out models --work out/sim-data --real-data $(REAL_DATA) --quiet
 
 clean:
 	rm -rf $(VENV) out build *.egg-info .pytest_cache .hypothesis

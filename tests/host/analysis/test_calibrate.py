@@ -84,8 +84,8 @@ def test_train_takes_a_calibrated_profile(tmp_path, capsys):
     prof = tmp_path / "my-sensor.toml"
     assert main(["calibrate", str(clips / "smooth.avi"), "--out", str(prof)]) == 0
     spec = tmp_path / "tex.csv"
-    spec.write_text(f"path,label\n{clips / 'smooth.avi'},smooth\n"
-                    f"{clips / 'concrete.avi'},concrete\n")
+    spec.write_text(f"path,label,start_frame,end_frame\n{clips / 'smooth.avi'},smooth,0,200\n"
+                    f"{clips / 'concrete.avi'},concrete,0,200\n")
     capsys.readouterr()
     assert main(["train", "--task", "texture", "--model", "fnn", "--window", "2",
                  "--data", str(spec), "--contact-only", "--profile", str(prof),
