@@ -297,7 +297,7 @@ def components(binary: np.ndarray, labels: np.ndarray | None = None
     """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,).
 
     Labels come from ``cv2.connectedComponents``; areas and centroids from
-    ``np.bincount`` over the foreground pixels only, which is several times
+    ``np.bincount`` over the foreground pixels only (found by ``cv2.findNonZero``), which is several times
     cheaper than OpenCV's per-component statistics on a sparse pin image.
     Pass ``labels`` (int32, the binary's shape) to label without allocating.
     """
@@ -309,12 +309,12 @@ def components(binary: np.ndarray, labels: np.ndarray | None = None
     n, _ = cv2.connectedComponents(b, labels, 8, cv2.CV_32S)
     if n <= 1:
         return np.zeros((0, 2), np.float32), np.zeros((0,), np.int32)
-    flat = labels.reshape(-1)
-    idx = np.flatnonzero(flat)
-    lab = flat[idx]
-    w = b.shape[1]
+    # the foreground pixels' x, y: cv2.findNonZero is several times faster than
+    # np.flatnonzero on a uint8 image
+    pts = cv2.findNonZero(b).reshape(-1, 2)
+    xs, ys = pts[:, 0], pts[:, 1]
+    lab = labels.reshape(-1)[ys * b.shape[1] + xs]
     area = np.bincount(lab, minlength=n)[1:]
-    ys, xs = np.divmod(idx, w)
     cx = np.bincount(lab, weights=xs, minlength=n)[1:] / area
     cy = np.bincount(lab, weights=ys, minlength=n)[1:] / area
     return np.stack([cx, cy], axis=1).astype(np.float32), area.astype(np.int32)
