@@ -79,8 +79,8 @@ class Deployer:
     def _ssh_base(self) -> list[str]:
         o = self.o
         argv = ["ssh", "-o", "BatchMode=yes", "-o", "ConnectTimeout=15"]
-        if o.port is not None:
-            argv += ["-p", str(o.port)]
+        if o.ssh_port is not None:
+            argv += ["-p", str(o.ssh_port)]
         if o.identity:
             argv += ["-i", o.identity, "-o", "IdentitiesOnly=yes"]
         for opt in o.ssh_options:
@@ -96,7 +96,7 @@ class Deployer:
             return
         d = tempfile.mkdtemp(prefix="tfssh-")
         argv = self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-o", "ControlMaster=yes",
-                                   "-o", "ControlPersist=600", "-f", "-N", self.o.target]
+                                   "-o", "ControlPersist=600", "-f", "-N", self.o.ssh_target]
         try:
             r = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                stderr=subprocess.DEVNULL, timeout=60)
@@ -113,12 +113,12 @@ class Deployer:
             return
         d, self._cm_dir = self._cm_dir, None
         subprocess.run(self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-O", "exit",
-                                           self.o.target],
+                                           self.o.ssh_target],
                        stdin=subprocess.DEVNULL, capture_output=True, timeout=30)
         shutil.rmtree(d, ignore_errors=True)
 
     def ssh_argv(self, script: str) -> list[str]:
-        return self._ssh_base() + [self.o.target, "--", "sh -c " + q("set -eu\n" + script)]
+        return self._ssh_base() + [self.o.ssh_target, "--", "sh -c " + q("set -eu\n" + script)]
 
     def _record(self, name, where, command, **extra) -> dict:
         step = {"step": name, "where": where, "command": command, **extra}
