@@ -99,6 +99,8 @@ class DeployOptions:
     health_timeout_s: float = 60.0
     keep: int = 3
     release: str | None = None
+    signing_key: str | None = None               # default: host.deploy.signing's path
+    allow_unsigned: bool = False                 # the shipped config's signing.allow_unsigned
 
     def check(self):
         _, _, tport = parse_target(self.target)
@@ -194,10 +196,16 @@ def project_version() -> str:
 
 def add_arguments(s):
     """The ``host deploy`` options (shared with host/cli/__init__.py)."""
-    s.add_argument("target", help="USER@HOST of the Pi")
+    s.add_argument("target", nargs="*",
+                   help="[USER@]HOST[:PORT] of each leg's Pi (several: one release on "
+                        "every leg, or on none)")
+    s.add_argument("--robot", metavar="FILE",
+                   help="a robot file listing the legs ([[leg]] target, config, ...)")
+    s.add_argument("--status", action="store_true",
+                   help="show each leg's release and health, change nothing")
     s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
     s.add_argument("--rollback", action="store_true",
-                   help="switch current back to the previous release and restart")
+                   help="switch current back to the previous release and restart (one leg)")
     s.add_argument("--port", type=int, help="SSH port")
     s.add_argument("--identity", help="SSH private key file")
     s.add_argument("--ssh-option", action="append", default=[], metavar="OPT",
@@ -230,12 +238,21 @@ def add_arguments(s):
                    help="how long the health check waits for packets to flow")
     s.add_argument("--keep", type=int, default=3, help="releases kept on the Pi")
     s.add_argument("--release", help="release folder name (default: VERSION-UTCSTAMP-RAND)")
+    s.add_argument("--signing-key", metavar="PATH",
+                   help="the host's Ed25519 key that signs models and releases (default: "
+                        "$TACFOOT_SIGNING_KEY or ~/.config/tacfoot/signing-key.pem; made "
+                        "on first use)")
+    s.add_argument("--allow-unsigned", action="store_true",
+                   help="let the leg load unsigned models (signing.allow_unsigned = true)")
     s.add_argument("--json", action="store_true")
 
 
-def options_from_args(a) -> DeployOptions:
+def options_from_args(a, target: str | None = None) -> DeployOptions:
+    """The options of one leg: ``target``, or the only one given."""
+    if target is None:
+        target = a.target[0] if len(a.target) == 1 else ""
     return DeployOptions(
-        target=a.target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
+        target=target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
         prefix=a.prefix, models=a.models, config=a.config, python=a.python,
         service_manager=a.service_manager, service_name=a.service_name,
         service_user=a.service_user, unit_dir=a.unit_dir,
@@ -243,5 +260,5 @@ def options_from_args(a) -> DeployOptions:
         imu=a.imu, serial=a.serial,
         runtime_module=a.runtime_module, runtime_args=a.runtime_arg, env=a.env,
         watchdog_s=a.watchdog_s, health_timeout_s=a.health_timeout_s, keep=a.keep,
-        release=a.release)
+        release=a.release, signing_key=a.signing_key, allow_unsigned=a.allow_unsigned)
 

@@ -42,6 +42,7 @@ class Pi:
         self.root = root
         self.prefix = root / "opt" / "tacfoot"
         self.config = root / "leg.toml"
+        self.key_path = root / "signing-key.pem"
         src = REPO / "device" / "leg.toml"
         self.config.write_text(src.read_text() if src.is_file() else "# default\n")
 
@@ -52,7 +53,8 @@ class Pi:
                     system_site_packages=True, no_deps=True, config=str(self.config),
                     # an endless-enough source: 720 frames paced at 15 fps (48 s)
                     camera="sim://walk?realtime=1&fps=15", imu="sim://walk", serial="loop://",
-                    runtime_args=["--fps", "15"], health_timeout_s=20.0)
+                    runtime_args=["--fps", "15"], health_timeout_s=20.0,
+                    signing_key=str(self.key_path))
         base.update(kw)
         return DeployOptions(**base)
 
@@ -124,7 +126,8 @@ def test_dry_run_touches_nothing(pi, capsys):
     o = pi.opts()
     argv = ["deploy", o.target, "--dry-run", "--json", "--port", str(o.port), "--identity",
             o.identity, "--prefix", str(pi.prefix), "--python", o.python,
-            "--service-manager", "systemd", "--config", str(pi.config)]
+            "--service-manager", "systemd", "--config", str(pi.config),
+            "--signing-key", o.signing_key]
     assert main(argv) == 0
     res = json.loads(capsys.readouterr().out)
     names = [s["step"] for s in res["steps"]]
@@ -148,7 +151,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
             "--system-site-packages", "--no-deps", "--config", str(pi.config),
             "--camera", o.camera, "--imu", o.imu, "--serial", o.serial,
             "--health-timeout-s", "20", "--release", "r1", "--env", "TAG=r1",
-            "--runtime-arg=--fps", "--runtime-arg=15"]
+            "--runtime-arg=--fps", "--runtime-arg=15", "--signing-key", o.signing_key]
     for s in o.ssh_options:
         argv += ["--ssh-option", s]
     rc = main(argv)
