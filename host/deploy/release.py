@@ -251,7 +251,7 @@ class Deployer(SshSession):
                     "  [ -f \"$d/.complete\" ] || rm -rf \"$d\"; done\n"
                     f"[ ! -e {q(self.release)} ] || "
                     f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
-        self.copy(staged)
+        self.copy(staged, f"{o.prefix}/releases/{self.release}")
         self.remote("install", self._install_script(f"{o.prefix}/releases/{self.release}"))
 
     def switch(self, res: dict) -> bool:

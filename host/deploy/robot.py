@@ -60,9 +60,9 @@ def read_robot(path: Path | str, base: DeployOptions) -> list[DeployOptions]:
             raise DeployInputError(f"{where}: lacks target")
         kw = {}
         for k, v in leg.items():
-            want = int if k == "port" else str
+            want, what = (int, "a whole number") if k == "port" else (str, "a string")
             if not isinstance(v, want) or isinstance(v, bool):
-                raise DeployInputError(f"{where}: {k} must be a {want.__name__}, got {v!r}")
+                raise DeployInputError(f"{where}: {k} must be {what}, got {v!r}")
             if k == "name":
                 continue
             kw[k] = str(path.parent / v) if LEG_KEYS[k] else v

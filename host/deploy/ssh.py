@@ -103,9 +103,9 @@ class SshSession:
         return step
 
 
-    def copy(self, staged: Path):
-        """Stream the staged folder as a tar over one ssh into releases/R."""
-        rel = f"{self.o.prefix}/releases/{self.release}"
+    def copy(self, staged: Path, rel: str):
+        """Stream the local folder ``staged`` as a tar over one ssh into the remote
+        folder ``rel`` (made if missing)."""
         script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
         step = self.record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
                             + script.strip().replace("\n", "; "))
