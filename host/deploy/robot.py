@@ -19,14 +19,20 @@ switched goes back to the release it had, the healthy ones too.
 """
 from __future__ import annotations
 
+import base64
+import binascii
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 from device.config import ConfigError, read_toml
+from device.pi.models.artefact import ModelError
+from device.pi.models.signature import signature_path
 from host.deploy.options import DeployError, DeployInputError, DeployOptions
-from host.deploy.release import Deployer, load_key, new_release_name
+from host.deploy.scripts import q
+from host.deploy.release import Deployer, load_key, new_release_name, summary_text
+from host.deploy.signing import SigningKey, default_key_path
 
 #: keys a [[leg]] table may hold, and whether they name a file (relative to the robot file)
 LEG_KEYS = {"target": False, "name": False, "port": False, "prefix": False,
@@ -188,10 +194,34 @@ def _switch_all(res: dict, state: list[_Leg]) -> None:
                     f"went back to the release it had")
 
 
+def _signed_by(d: Deployer, key) -> bool | None:
+    """Whether the leg's current release.json carries a signature by ``key``
+    (None: no key on this host to check with)."""
+    if key is None:
+        return None
+    st = d.remote("signature", f"cd {q(d.o.prefix)}/current\n"
+                  "base64 < release.json | tr -d '\\n'; echo\n"
+                  "base64 < release.json.sig 2>/dev/null | tr -d '\\n'; echo\n",
+                  check=False, keep_chars=1 << 22)
+    parts = (st.get("stdout", "") + "\n\n").split("\n")
+    with tempfile.TemporaryDirectory(prefix="tacfoot-status-") as tmp:
+        f = Path(tmp) / "release.json"
+        try:
+            f.write_bytes(base64.b64decode(parts[0], validate=True))
+            signature_path(f).write_bytes(base64.b64decode(parts[1], validate=True))
+            key.verify_file(f)
+            return True
+        except (ValueError, binascii.Error, ModelError):
+            return False
+
+
 def status(legs: list[DeployOptions], wait_s: float = 5.0) -> dict:
-    """Each leg's current and previous release and health (packets flowing from
-    the service within ``wait_s``); ``same_release`` says whether all legs run one."""
+    """Each leg's current and previous release, whether this host's key signed it,
+    and its health (packets flowing from the service within ``wait_s``);
+    ``same_release`` says whether all legs run one."""
     check_legs(legs)
+    path = legs[0].signing_key or default_key_path()
+    key = SigningKey.load(path, create=False) if Path(path).exists() else None
 
     def one(o):
         d = Deployer(replace(o, health_timeout_s=wait_s))
@@ -204,6 +234,7 @@ def status(legs: list[DeployOptions], wait_s: float = 5.0) -> dict:
                        previous=info["previous"].rpartition("/")[2] or None)
             out["health"] = d.health("health") if info["current"] else {
                 "ok": False, "reason": "nothing deployed"}
+            out["signed"] = _signed_by(d, key) if info["current"] else None
         except DeployError as exc:
             out.update(release=None, health={"ok": False, "reason": str(exc)})
         finally:
@@ -217,13 +248,18 @@ def status(legs: list[DeployOptions], wait_s: float = 5.0) -> dict:
 
 
 def robot_text(res: dict) -> str:
-    """One line per leg, then the verdict."""
+    """One line per leg, then the verdict (a dry run: each leg's plan)."""
+    if res.get("dry_run"):
+        return "\n\n".join(f"# leg {l['target']}\n" + summary_text(dict(l, dry_run=True))
+                           for l in res.get("legs", []))
     lines = []
     for l in res.get("legs", []):
         h = l.get("health") or {}
         health = (f"healthy ({h.get('packets_per_s')} packets/s)" if h.get("ok") else
                   f"NOT healthy: {h.get('reason')}" if h else "")
-        lines.append(f"{l['target']}: release {l.get('release')} {health}".rstrip()
+        signed = {True: ", signed by this host", False: ", NOT signed by this host's key",
+                  None: ""}[l.get("signed")]
+        lines.append(f"{l['target']}: release {l.get('release')}{signed} {health}".rstrip()
                      + (f"; {l['error']}" if l.get("error") and not res.get("ok") else ""))
     if "same_release" in res:
         lines.append("every leg runs the same release" if res["same_release"] else

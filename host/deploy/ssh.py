@@ -82,7 +82,10 @@ class SshSession:
         self.log(f"[deploy] {name} ({where}): " + shown.strip().replace("\n", "; "))
         return step
 
-    def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600):
+    def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600,
+               keep_chars: int = 2000):
+        """Run ``script`` on the Pi; the step records the last ``keep_chars`` of its
+        output. DeployError naming the step when it fails and ``check``."""
         step = self.record(name, "remote", script)
         if self.dry_run:
             return step
@@ -93,7 +96,7 @@ class SshSession:
             rc, out, err = r.returncode, r.stdout, r.stderr
         except subprocess.TimeoutExpired:
             rc, out, err = -1, "", f"timed out after {timeout_s:.0f} s"
-        step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-2000:],
+        step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-keep_chars:],
                     stderr=err[-2000:])
         if rc != 0:
             self.log(f"[deploy] {name}: exit {rc}: {err.strip()[-500:]}")

@@ -95,12 +95,19 @@ def test_status_shows_each_legs_release_and_health(legs, capsys, tmp_path):
     assert rc == 0 and res["ok"] and res["same_release"], res
     assert [l["release"] for l in res["legs"]] == ["r1"] * N_LEGS
     assert all(l["health"]["ok"] and l["health"]["packets_per_s"] > 0 for l in res["legs"])
+    assert all(l["signed"] is True for l in res["legs"]), res
     # without --json: one line per leg
     from host.cli import main
     argv = [a for a in _argv(legs, robot, "--status") if a != "--json"]
     assert main(argv) == 0
     text = capsys.readouterr().out
-    assert text.count("release r1 healthy") == N_LEGS and "same release" in text
+    assert text.count("release r1, signed by this host healthy") == N_LEGS, text
+    assert "same release" in text
+    # a release.json altered on one leg no longer carries this host's signature
+    rj = legs[1].prefix / "current" / "release.json"
+    rj.write_text(rj.read_text().replace('"r1"', '"r1 "', 1))
+    rc, res, _ = _run(capsys, _argv(legs, robot, "--status"))
+    assert [l["signed"] for l in res["legs"]] == [True, False, True]
 
 
 @needs_sshd
@@ -162,6 +169,18 @@ def test_targets_on_the_command_line_are_legs_too(legs, capsys):
     assert [l["target"] for l in res["legs"]] == [argv[1], argv[2]]
     assert p.link("current") == "releases/r1" and p.pid() == pid
     assert not (p.prefix / "releases" / "r4").exists()
+
+
+def test_a_dry_run_plans_every_leg_and_touches_nothing(capsys, tmp_path):
+    from host.cli import main
+    key = tmp_path / "key.pem"
+    argv = ["deploy", "pi@leg1", "pi@leg2:2222", "--dry-run", "--prefix", str(tmp_path / "p"),
+            "--signing-key", str(key), "--service-manager", "none"]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "# leg pi@leg1" in text and "# leg pi@leg2:2222" in text
+    assert text.count("# switch (remote)") == 2 and text.count("# build (local)") == 1
+    assert not (tmp_path / "p").exists() and not key.exists()
 
 
 def test_robot_file_is_read_and_checked(tmp_path):
