@@ -180,7 +180,11 @@ def _switch_all(res: dict, state: list[_Leg]) -> None:
         except DeployError as exc:
             return exc
 
-    errs = _each(switch, state)
+    try:
+        errs = _each(switch, state)
+    except BaseException:           # Ctrl-C: never leave some legs switched
+        _each(lambda l: l.d.revert(l.res, None), state)
+        raise
     bad = [(l, e) for l, e in zip(state, errs) if e is not None]
     if not bad:
         _each(lambda l: l.d.commit(l.res), state)

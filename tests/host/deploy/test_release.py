@@ -15,17 +15,15 @@ from tests import REPO_ROOT
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from tests.host.deploy.sshd_fixture import Pi, SshServer, missing_reason  # noqa: E402
 
-from host.deploy.options import DeployError, DeployOptions  # noqa: E402
+from host.deploy.options import DeployError  # noqa: E402
 from host.deploy.release import Deployer, run  # noqa: E402
 
 REPO = REPO_ROOT
