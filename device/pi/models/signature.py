@@ -67,9 +67,12 @@ def signature_doc(signature: bytes, public_raw: bytes) -> dict:
 def verify(data: bytes, sig_file: Path, public_raw: bytes, what: Path | str) -> None:
     """Check that ``sig_file`` signs ``data`` with the key ``public_raw``;
     SignatureError naming ``what`` if not."""
-    from cryptography.exceptions import InvalidSignature
-    from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
-
+    try:
+        from cryptography.exceptions import InvalidSignature
+        from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PublicKey
+    except ImportError:
+        raise SignatureError(f"{what}: cannot check its signature: the cryptography package "
+                             f"is not installed (pip install cryptography)") from None
     try:
         doc = json.loads(Path(sig_file).read_text())
         if not isinstance(doc, dict) or doc.get("format") != FORMAT:
