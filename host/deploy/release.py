@@ -1,17 +1,21 @@
 """``host deploy``: install the Pi runtime on a Raspberry Pi over SSH.
 
 One deploy is a list of steps, each either local (build, stage) or one ``ssh``
-command running a small POSIX shell script on the Pi. Every step is logged with
-its command; ``--dry-run`` prints the same list and runs none of it.
+command running a small POSIX shell script on the Pi (:mod:`host.deploy.ssh`).
+Every step is logged with its command; ``--dry-run`` prints the same list and runs
+none of it. The staged models and ``release.json`` are signed with the host's key
+(:mod:`host.deploy.signing`).
 
 Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
 
     PREFIX/releases/<release>/        one folder per deploy, never changed after
         tacfoot-<ver>-py3-none-any.whl
         venv/                         the runtime's virtualenv, wheel installed
-        models/  config/              the models and the config it runs with
+        models/  config/              the models (manifests signed) and the config it
+                                      runs with (holding the public key)
         tacfoot.service  tacfootctl   the systemd unit and the no-systemd starter
-        release.json  .complete       metadata; .complete is written last
+        release.json(.sig)            every file's SHA-256, signed
+        .complete                     written last
     PREFIX/current  -> releases/<r>   what the service runs (switched atomically)
     PREFIX/previous -> releases/<r>   what ``--rollback`` goes back to
     PREFIX/run/status.json            the runtime's status file (health check)
@@ -22,6 +26,8 @@ service is active and ``packets_sent`` in the status file grows, from the
 service's own pid). A failed health check switches ``current`` back and
 restarts the old release. Everything before the switch writes only inside the
 new release's folder, so an interrupted deploy leaves the old release running.
+The phases (:meth:`Deployer.begin`, ``install``, ``switch``, ``commit``,
+``revert``) are what :mod:`host.deploy.robot` runs across legs.
 """
 from __future__ import annotations
 
