@@ -6,7 +6,8 @@ a robot file (``host deploy --robot robot.toml``)::
     [[leg]]
     target = "pi@leg1"        # [USER@]HOST[:PORT]
     config = "leg1.toml"      # this leg's config, relative to robot.toml
-    # optional: name, port, prefix, models, identity, camera, imu, serial
+    # optional: name, port, prefix, models, identity, camera, imu, serial (file
+    # names relative to robot.toml, or absolute, or ~/...)
 
 Options given on the command line apply to every leg; a leg's own keys win.
 
@@ -71,7 +72,7 @@ def read_robot(path: Path | str, base: DeployOptions) -> list[DeployOptions]:
                 raise DeployInputError(f"{where}: {k} must be {what}, got {v!r}")
             if k == "name":
                 continue
-            kw[k] = str(path.parent / v) if LEG_KEYS[k] else v
+            kw[k] = str(path.parent / Path(v).expanduser()) if LEG_KEYS[k] else v
         out.append(replace(base, **kw))
     return out
 
