@@ -66,9 +66,12 @@ class SigningKey:
     def load(cls, path: Path | str | None = None, create: bool = True) -> "SigningKey":
         """The key at ``path`` (default :func:`default_key_path`); a new one is
         written there (mode 0600, its folder 0700) when none exists and ``create``."""
-        from cryptography.hazmat.primitives import serialization
-        from cryptography.hazmat.primitives.asymmetric.ed25519 import (Ed25519PrivateKey)
-
+        try:
+            from cryptography.hazmat.primitives import serialization
+            from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
+        except ImportError:
+            raise DeployInputError("host deploy signs with the cryptography package, which "
+                                   "is not installed (pip install cryptography)") from None
         path = Path(path) if path is not None else default_key_path()
         if not path.exists():
             if not create:
