@@ -45,8 +45,8 @@ from device.config import ConfigError, read_toml
 from device.pi.models.artefact import sha256_file
 from host.deploy.options import (REPO, DeployError, DeployInputError, DeployOptions,
                                  project_version)
-from host.deploy.scripts import (HEALTH_PY, SUDO, q, render_ctl, render_unit, runtime_argv,
-                                 status_path)
+from host.deploy.scripts import (HEALTH_PY, SUDO, VERIFY_RELEASE_PY, q, render_ctl,
+                                 render_unit, runtime_argv, status_path)
 from host.deploy.signing import SigningKey, config_with_key, default_key_path, sign_models
 from host.deploy.ssh import SshSession
 
@@ -351,6 +351,9 @@ class Deployer(SshSession):
               "./tacfoot-*.whl\n"
               # the installed code must import before this release may become current
               "venv/bin/python -c 'import device.pi, device.pi.runtime.sdnotify'\n"
+              # every file as release.json lists it, and release.json signed with the
+              # key the release's config trusts
+              f"venv/bin/python -c {q(VERIFY_RELEASE_PY)}\n"
               "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
         return s
 

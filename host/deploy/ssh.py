@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from host.deploy.options import DeployError, DeployOptions
-from host.deploy.scripts import HEALTH_PY, q
+from host.deploy.scripts import HEALTH_PY, VERIFY_RELEASE_PY, q
 
 
 class SshSession:
@@ -78,7 +78,8 @@ class SshSession:
     def record(self, name, where, command, **extra) -> dict:
         step = {"step": name, "where": where, "command": command, **extra}
         self.steps.append(step)
-        shown = command.replace(q(HEALTH_PY), '"$HEALTH_CHECK_PY"')
+        shown = command.replace(q(HEALTH_PY), '"$HEALTH_CHECK_PY"').replace(
+            q(VERIFY_RELEASE_PY), '"$VERIFY_RELEASE_PY"')
         self.log(f"[deploy] {name} ({where}): " + shown.strip().replace("\n", "; "))
         return step
 

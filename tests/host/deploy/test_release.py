@@ -180,6 +180,43 @@ def test_killed_copy_leaves_the_old_release_running(pi):
     assert not (pi.prefix / "releases" / "r4" / ".complete").exists()
 
 
+class _ChangedInTransit(Deployer):
+    """Changes a file of the staged release after release.json was written."""
+
+    def stage(self, wheel, out_dir):
+        st = super().stage(wheel, out_dir)
+        (st / "tacfootctl").write_text((st / "tacfootctl").read_text() + "# changed\n")
+        return st
+
+
+class _SignedByAnother(Deployer):
+    """Signs release.json with another key than the one the config names."""
+
+    def stage(self, wheel, out_dir):
+        from host.deploy.signing import SigningKey
+        st = super().stage(wheel, out_dir)
+        SigningKey.load(out_dir / "other.pem").sign_file(st / "release.json")
+        return st
+
+
+@needs_sshd
+def test_the_pi_installs_only_a_release_that_matches_its_signed_list(pi):
+    from host.deploy.release import load_key
+    pid = pi.pid()
+    assert pi.link("current") == "releases/r2" and pid, "needs the second deploy"
+    for cls, name, why in ((_ChangedInTransit, "r5", "release files differ from release.json"
+                            ": tacfootctl"),
+                           (_SignedByAnother, "r6", "signature does not verify")):
+        opts = pi.opts(release=name)
+        d = cls(opts, log=_quiet, key=load_key(opts))
+        with pytest.raises(DeployError, match="step install failed") as exc:
+            d.deploy()
+        assert why in str(exc.value)
+        assert "switch" not in [s["step"] for s in d.steps]
+        assert not (pi.prefix / "releases" / name / ".complete").exists()
+        assert pi.link("current") == "releases/r2" and pi.pid() == pid
+
+
 @needs_sshd
 def test_failing_step_before_switch_changes_nothing(pi):
     pid = pi.pid()
