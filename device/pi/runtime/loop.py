@@ -23,6 +23,7 @@ import math
 import os
 import sys
 import time
+from collections import deque
 
 import cv2
 import numpy as np
@@ -42,6 +43,7 @@ from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
 from device.pi.runtime.load import Models, load_models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
+from device.pi.runtime.stats import BoundedStats
 from device.pi.runtime.status import write_status_file
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
@@ -54,6 +56,8 @@ REOPEN_AFTER_S = 1.0
 #: side of the binary crop the ``frames`` input layout reads, px
 CROP_PX = 32
 EXIT_BAD_INPUT = 2
+#: fault-state changes the runtime remembers (the newest)
+FAULT_LOG = 256
 
 
 class StartupError(Exception):
@@ -131,9 +135,10 @@ class LegRuntime:
         self._next_imu = self._t0
         self._next_status = self._t0
         self._next_fault_repeat = 1e18
-        self.latencies_ms: list[float] = []
-        self.cpu_ms: list[float] = []          # thread CPU time per frame
-        self.fault_log: list[tuple[float, int]] = []   # (clock, bits) at each change
+        # bounded, however long the run: see device/pi/runtime/stats.py
+        self.latency_ms = BoundedStats()
+        self.cpu_ms = BoundedStats()           # thread CPU time per frame
+        self.fault_log: deque[tuple[float, int]] = deque(maxlen=FAULT_LOG)  # (clock, bits)
         self.stopped = False
         self._ready = False
         self._reopen_asked = False
@@ -236,11 +241,11 @@ class LegRuntime:
         before = self.writer.packets_sent
         self.writer.pump()
         t_done = self.clock()
-        self.cpu_ms.append((time.thread_time() - c0) * 1e3)
+        self.cpu_ms.add((time.thread_time() - c0) * 1e3)
         lat = None
         if self.writer.packets_sent > before and self.writer.pending == 0:
             lat = (t_done - t_avail) * 1e3
-            self.latencies_ms.append(lat)
+            self.latency_ms.add(lat)
         if self.json_log is None:
             return
         # the decision log line, built after the packet went out
