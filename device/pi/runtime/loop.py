@@ -104,7 +104,7 @@ class LegRuntime:
         self._imu_n = 0
         self.port = port
         self.writer = LinkWriter(port, stall_ms=cfg.serial.stall_ms, clock=clock)
-        self.reader = LinkReader(port)
+        self.reader = LinkReader(port, clock=clock)
         self.feed = CameraFeed(camera_factory, lossless=lossless,
                                reopen_min_s=cfg.camera.reopen_min_s,
                                reopen_max_s=cfg.camera.reopen_max_s, first=first_camera,
@@ -327,8 +327,8 @@ class LegRuntime:
 
     def _housekeeping(self) -> None:
         now = self.clock()
-        for msg in self.reader.poll():
-            self._handle(msg)
+        for msg, t_sent in self.reader.poll_timed():
+            self._handle(msg, t_sent)
         if self._last_frame_t is None or \
                 now - self._last_frame_t > self.cfg.camera.stall_periods / self.fps:
             # no frames (camera stalled): keep the IMU read going at the summary rate;
@@ -379,10 +379,10 @@ class LegRuntime:
         self._imu_n = 0
         self._send("imu", msg)
 
-    def _handle(self, msg) -> None:
+    def _handle(self, msg, t_sent: float) -> None:
         if isinstance(msg, P.Gait):
             self.gait_packets += 1
-            self.gait = gait_from_message(msg, self.clock())
+            self.gait = gait_from_message(msg, t_sent)
         elif isinstance(msg, P.Command):
             self.commands += 1
             op = command_op(msg)
