@@ -29,8 +29,8 @@ import cv2
 import numpy as np
 
 from device.config import ConfigError
-from device.pi.faults import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL, FAULT_PINS_LOST,
-                              PIPELINE_FAULTS, fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL,
+                              FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
 from device.pi.models.artefact import ModelError
 from device.pi.models.window import RollingWindow
 from device.pi import protocol as P
@@ -126,6 +126,7 @@ class LegRuntime:
         self._last_rezero = -1e9
         self._still = 0
         self._pipe_faults = 0
+        self._skipped_seen = 0
         self._imu_faults = 0
         self._model_fault = False
         self._t0 = clock()
@@ -214,6 +215,9 @@ class LegRuntime:
         ef = self.encoder.encode(frame.image, frame.t_s)
         ff = ef.features
         self._pipe_faults = int(ff.faults) & PIPELINE_FAULTS
+        if self.feed.skipped != self._skipped_seen:   # a bad file frame was skipped before it
+            self._skipped_seen = self.feed.skipped
+            self._pipe_faults |= FAULT_BAD_FRAME
         if self.stream.reference is not None and len(ff.lost):
             self._pins_lost = int(ff.lost.sum())
             if self._pins_lost * 2 > len(ff.lost):
@@ -406,7 +410,8 @@ class LegRuntime:
                 "packets_sent": w.packets_sent, "packets_dropped": w.packets_dropped,
                 "faults": self.faults, "fault_names": fault_names(self.faults),
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
-                "camera_errors": self.feed.errors, "gait_packets": self.gait_packets,
+                "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
+                "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps}
 

@@ -361,3 +361,30 @@ def test_a_long_run_holds_its_memory_flat(tmp_path):
     assert min(grown) < 16_000, f"bytes retained per 800 frames: {grown}"
     assert rt.latency_ms.count >= 3 * 800
     assert rt.latency_ms.retained <= rt.latency_ms.capacity
+
+
+def test_an_image_folder_with_an_unreadable_image_ends_the_run(tmp_path):
+    """The folder is played once: the bad image is skipped with a counted fault, and
+    the end of the folder ends the run (it is not reopened and replayed)."""
+    import cv2
+    from device.pi.faults import FAULT_BAD_FRAME
+    from device.pi.sources.camera import open_camera
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(8):
+        cv2.imwrite(str(folder / f"f{i:02d}.png"), rng.integers(0, 255, (48, 64), np.uint8))
+    (folder / "f03.png").write_bytes(b"not a png")
+    models = tmp_path / "models"
+    models.mkdir()
+
+    class Folder:
+        def factory(self):
+            return open_camera(str(folder))
+
+    rt, _, port = make_runtime(models, cam=Folder())
+    run_for(rt, seconds=6)
+    assert rt.stopped and rt.feed.eof
+    assert rt.frames == 7 and rt.feed.opens == 1
+    assert rt.status()["frames_skipped"] == 1
+    assert any(m.faults & FAULT_BAD_FRAME for _, m in faults_written(port))
