@@ -142,6 +142,7 @@ class LegRuntime:
         self.fault_log: deque[tuple[float, int]] = deque(maxlen=FAULT_LOG)  # (clock, bits)
         self.stopped = False
         self._ready = False
+        self._status_warned = False
         self._reopen_asked = False
         self.watchdog = sdnotify.Watchdog()
 
@@ -418,7 +419,13 @@ class LegRuntime:
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:
             return
-        write_status_file(self.status_path, self.status())
+        ok = write_status_file(self.status_path, self.status())
+        if not ok and not self._status_warned:     # once: the file system refused
+            self._status_warned = True
+            print(f"device.pi run: warning: --status {self.status_path}: cannot write the "
+                  f"status file; retrying", file=sys.stderr)
+        elif ok:
+            self._status_warned = False
 
     def close(self) -> None:
         self._update_faults(self._fault_bits())   # before the feed stops on purpose
@@ -495,6 +502,14 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         raise StartupError(f"--camera: {exc}") from None
     if fps is None and first is not None and first.fps:
         cfg.camera.fps = float(first.fps)      # the rate the source actually runs at
+    if status:
+        folder = os.path.dirname(os.path.abspath(status))
+        if not os.path.isdir(folder):
+            fail(f"--status {status!r}: the folder {folder} does not exist")
+        if not os.access(folder, os.W_OK):
+            fail(f"--status {status!r}: the folder {folder} is not writable")
+    if models_dir is not None:
+        _check_models_folder(models_dir, fail)
     try:
         n_pins = _layout_pins(cfg.models.profile)
         models = load_models(models_dir, "float" if float_models else cfg.models.variant,
@@ -528,6 +543,24 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     return LegRuntime(cfg, factory, imu_src, port, models, lossless=not live, fps=cfg.camera.fps,
                       json_log=log, status_path=status, max_frames=frames, first_camera=first,
                       notify=notify, camera_opts=opts if live else None)
+
+
+def _check_models_folder(models_dir, fail) -> None:
+    """Refuse one model's folder given for the models folder (it would load nothing
+    and run the rules alone); warn when the folder holds no model."""
+    from pathlib import Path
+    d = Path(models_dir)
+    if not d.is_dir():
+        return                                # load_models names the missing folder
+    if (d / "manifest.json").is_file() or any(d.glob("*.onnx")):
+        fail(f"--models {str(models_dir)!r} is one model's folder (it holds "
+             f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
+             f"give the folder that holds surface/, texture/, slip/ and pressure/, "
+             f"e.g. {d.parent}")
+    tasks = ("surface", "texture", "slip", "pressure")
+    if not any((d / t).is_dir() for t in tasks):
+        print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
+              f"({', '.join(tasks)}); running the rules only", file=sys.stderr)
 
 
 def _layout_pins(profile: str) -> int:
