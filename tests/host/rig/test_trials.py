@@ -179,3 +179,13 @@ def test_resume_into_a_simulator_dataset_keeps_each_trials_source(tmp_path, caps
     idx = read_index(out)
     assert [t["source"] for t in idx["trials"]] == ["simulator", "rig"]
     assert idx["source"] == "mixed" and idx["sources"] == ["rig", "simulator"]
+
+
+def test_a_second_rig_run_into_a_folder_being_written_is_refused(tmp_path, capsys):
+    from host.data.dataset import DatasetWriter
+    out = tmp_path / "ds"
+    with DatasetWriter(out, source="simulator"):
+        rc = host_main(["rig", "run", str(TRIALS / "sim-smoke.toml"), "--rig", "sim://",
+                        "--camera", "sim://?fps=30", "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+    assert rc == 2 and "another writer" in err and len(err.splitlines()) == 1
