@@ -135,7 +135,7 @@ class DatasetWriter:
         self.source = source or meta.pop("source", None)
         old = self.index.get("source")
         if old not in (None, "mixed"):
-            for t in self.index["trials"]:   # written before sources were kept per trial
+            for t in self.index["trials"]:   # an index with one source for all its trials
                 if isinstance(t, dict):
                     t.setdefault("source", old)
         self.index.update(meta)
