@@ -108,7 +108,8 @@ def _check_keeps_up(got, sent, worst):
     # the loads count up: every packet, in order
     loads = [m.load_n for m, _ in got]
     assert loads[:50] == [float(k % 50) for k in range(min(50, len(loads)))]
-    # the context in force is never older than a few periods (a reader that trusts socket:// in_waiting lags by seconds)
+    # the context in force is never older than a few periods (a reader that trusts
+    # socket:// in_waiting lags by seconds)
     assert worst < 0.25, f"the newest GAIT context was {worst * 1e3:.0f} ms old"
 
 
