@@ -5,7 +5,7 @@ import sys
 
 from host.bench import sim as bench_sim
 from host.bench.runtime import bench_runtime, format_runtime
-from host.cli.common import UserError, emit, real_data_dir
+from host.cli.common import UserError, emit, real_data_dir, whole
 
 
 def cmd_bench(args):
@@ -31,7 +31,8 @@ def register(sub) -> None:
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
     s.add_argument("what", choices=["sim", "pipeline", "runtime"])
     s.add_argument("--data", help="real recordings folder (pipeline)")
-    s.add_argument("--frames", type=int, default=600, help="frames to run (runtime)")
-    s.add_argument("--repeats", type=int, default=20)
+    s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
+                   help="frames to run (runtime)")
+    s.add_argument("--repeats", type=whole(1, 10_000), default=20)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

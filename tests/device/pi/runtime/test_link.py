@@ -4,12 +4,20 @@ from __future__ import annotations
 
 import time
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi import protocol as P
-from device.pi.runtime.link import FAULT_QUEUE, LinkWriter
+from device.pi.runtime.link import FAULT_QUEUE, LinkError, LinkWriter, open_port
 from tests.device.pi.runtime.standins import RecordingPort
+
+
+def test_a_socket_url_without_a_port_is_named_as_such():
+    with pytest.raises(LinkError, match=r"--serial 'socket://notahost': cannot open: "
+                                        r"'socket://notahost': a socket:// URL needs a host "
+                                        r"and a port 1-65535"):
+        open_port("socket://notahost")
 
 
 def test_writer_keeps_newest_surface_and_never_drops_fault():
