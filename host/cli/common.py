@@ -21,6 +21,7 @@ from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
 from host.data.dataset import is_dataset
+from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 
 EXIT_BAD_INPUT = 2
@@ -103,6 +104,15 @@ def out_folder(path: str | Path, holds: Callable[[Path], bool] | None = None, wh
         raise UserError(f"{flag} {p}: the folder is not empty{why}; {fix} a new or empty folder")
     _mkparent(p, flag)
     return p
+
+
+def dataset_folder(path: Path) -> bool:
+    """A dataset folder, or one a dataset writer was stopped in before its first
+    trial was complete (it holds only the writer's temporary ``.*.tmp`` files and the
+    rig's run state): the folders that ``simulate``, ``record`` and ``rig run`` add to."""
+    return is_dataset(path) or all(
+        (f.name.startswith(".") and f.name.endswith(".tmp")) or f.name == RUN_STATE
+        for f in path.iterdir())
 
 
 def camera_text(exc: OSError) -> str:

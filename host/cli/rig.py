@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from device.pi.sources.camera import CameraError
 from device.pi.sources.imu import IMUError, open_imu
-from host.cli.common import SEED, UserError, emit, number, open_source, out_folder, progress_bar
-from host.data.dataset import is_dataset
+from host.cli.common import (SEED, UserError, dataset_folder, emit, number, open_source,
+                             out_folder, progress_bar)
 from host.rig.record import RecordError, record
 from host.rig.plan import load_plan, plan_summary
 from host.rig.trials import run, summary_text
@@ -20,7 +20,7 @@ def cmd_rig(args):
                       f"{s['repetitions']} repetitions x {len(s['variants'])} variants), "
                       f"about {s['estimated_s'] / 60:.1f} min")
         return 0
-    out = out_folder(args.out, holds=is_dataset, what="a tacfoot dataset")
+    out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
     try:
         s = run(plan, args.rig, args.camera, out, resume=args.resume,
                 profile=args.profile, progress=not args.json, yes=args.yes, seed=args.seed)
@@ -31,7 +31,7 @@ def cmd_rig(args):
 
 
 def cmd_record(args):
-    out_folder(args.out, holds=is_dataset, what="a tacfoot dataset")
+    out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
     camera = open_source(args.camera)
     imu = None
     if args.imu:

@@ -18,8 +18,9 @@ from device.pi.vision.pipeline import fault_names
 from device.sim import SURFACE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
                                 truth_plot)
-from host.cli.common import (SEED, UserError, emit, is_recording, number, open_source,
-                             open_stream, out_file, out_folder, progress_bar, read_frames, whole)
+from host.cli.common import (SEED, UserError, dataset_folder, emit, is_recording, number,
+                             open_source, open_stream, out_file, out_folder, progress_bar,
+                             read_frames, whole)
 from host.data.dataset import is_dataset, load_trial
 from host.data.simulate import simulate_to_dataset
 
@@ -37,7 +38,7 @@ def cmd_scenes(args):
 
 
 def cmd_simulate(args):
-    out = out_folder(args.out, holds=is_dataset, what="a tacfoot dataset")
+    out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
     res = simulate_to_dataset(args.scene, out, args.seed, args.trials, progress=not args.json)
     emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}")
 

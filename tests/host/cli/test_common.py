@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from host.cli import main
-from host.cli.common import EXIT_BAD_INPUT, UserError, emit, real_data_dir
+from host.cli.common import EXIT_BAD_INPUT, UserError, dataset_folder, emit, real_data_dir
 from tests import REPO_ROOT
 
 
@@ -203,6 +203,13 @@ def test_the_out_rule_creates_missing_parents_and_keeps_folders_it_adds_to(bad, 
     assert main(["simulate", "minimal", "--out", str(ds)]) == 0
     assert main(["simulate", "minimal", "--out", str(ds), "--seed", "1"]) == 0   # appends
     assert len(json.loads((ds / "dataset.json").read_text())["trials"]) == 2
+    stopped = tmp_path / "stopped"          # a writer killed in its first trial
+    stopped.mkdir()
+    (stopped / ".trial_0000.npz.k3j2.tmp").write_bytes(b"partial")
+    assert dataset_folder(stopped) and main(["simulate", "minimal", "--out", str(stopped)]) == 0
+    (ds / "notes.txt").write_text("mine\n")
+    assert dataset_folder(ds)                # a dataset may hold other files
+    assert not dataset_folder(bad / "full")
     m = tmp_path / "m"
     train = ["train", "--task", "surface", "--model", "rule", "--data", str(bad / "ds"),
              "--out", str(m)]
