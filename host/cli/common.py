@@ -66,6 +66,21 @@ def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = 
     return parse
 
 
+def whole_list(lo: int | None = None, hi: int | None = None) -> Callable[[str], tuple]:
+    """An argparse ``type``: comma-separated whole numbers in ``[lo, hi]`` (``1,2,5``)."""
+    one = whole(lo, hi)
+
+    def parse(text: str) -> tuple:
+        try:
+            return tuple(one(x.strip()) for x in text.split(","))
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(
+                f"must be whole numbers{bounds_text(lo, hi)} separated by commas, "
+                f"got {text!r}") from None
+    parse.__name__ = "list of whole numbers"
+    return parse
+
+
 #: ``--seed``: what numpy's generators take
 SEED = whole(0, 2**32 - 1)
 

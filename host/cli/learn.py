@@ -8,7 +8,7 @@ from pathlib import Path
 from device.pi.models.artefact import MAX_T, ModelError, read_manifest
 from host.bench.report import build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
-                             whole)
+                             whole, whole_list)
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
@@ -98,7 +98,7 @@ def cmd_report(args):
         data = real_data_dir(args.data)
     except UserError:
         print("host report: real recordings not found; simulated data only", file=sys.stderr)
-    windows = tuple(int(x) for x in args.windows.split(","))
+    windows = args.windows
     cmd = "host report --out " + args.out + (" --quick" if args.quick else "")
     out = build_report(args.out, args.work, data, windows=windows, quick=args.quick,
                        seed=args.seed, progress=not args.json, command=cmd)
@@ -145,7 +145,8 @@ def register(sub) -> None:
     s.add_argument("--out", default="docs/accuracy-vs-time.md")
     s.add_argument("--work", default="out/report", help="simulated data and scratch")
     s.add_argument("--data", help="real recordings folder")
-    s.add_argument("--windows", default="1,2,3,5,10", help="window lengths T")
+    s.add_argument("--windows", type=whole_list(1, MAX_T), default=(1, 2, 3, 5, 10),
+                   help="window lengths T, comma-separated (default 1,2,3,5,10)")
     s.add_argument("--quick", action="store_true", help="fewer simulated trials")
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--json", action="store_true")
