@@ -46,7 +46,10 @@ test: $(VENV)/.installed-test node_modules/.installed
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest
 
+# the real-frame tables of docs/BENCHMARKS.md (marker pipeline and runtime on
+# roboskin/smooth.avi and concrete.avi), then the simulator's own timing
 bench: $(VENV)/.installed
+	$(VENV)/bin/host bench tables --data $(REAL_DATA) --doc docs/BENCHMARKS.md
 	$(VENV)/bin/host bench sim --json
 
 # Rebuild the shipped default models in models/: the localiser (needs the real

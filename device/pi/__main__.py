@@ -11,7 +11,6 @@ import json
 import signal
 import sys
 
-import numpy as np
 
 from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
 
@@ -61,9 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, stop)
     rc = rt.run()
     st = rt.status()
-    st["latency_ms_p50"] = _pct(rt.latencies_ms, 50)
-    st["latency_ms_p99"] = _pct(rt.latencies_ms, 99)
-    st["latency_samples"] = len(rt.latencies_ms)
+    st["latency_ms_p50"] = _pct(rt.latency_ms, 50)
+    st["latency_ms_p99"] = _pct(rt.latency_ms, 99)
+    st["latency_samples"] = rt.latency_ms.count
     st["cpu_ms_per_frame_p50"] = _pct(rt.cpu_ms, 50)
     st["cpu_ms_per_frame_p99"] = _pct(rt.cpu_ms, 99)
     run_s = getattr(rt, "run_s", 0.0)
@@ -96,10 +95,9 @@ def _rss_mb() -> float | None:
         return None
 
 
-def _pct(xs, q):
-    if not xs:
-        return None
-    return round(float(np.percentile(xs, q)), 4)
+def _pct(stats, q):
+    v = stats.percentile(q)
+    return None if v is None else round(v, 4)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """Benchmarks (``host bench ...``). Single-threaded, medians with p99."""
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -139,7 +140,8 @@ class BaselineBlobTracker:
         return pins, vec
 
 
-def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin") -> dict:
+def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin",
+                   clips: tuple[str, ...] = ("smooth.avi",), limit: int = 300) -> dict:
     """Per-stage and total median / p99 ms per frame of the marker pipeline (video
     decoding excluded), on real roboskin frames and on simulated frames, against
     the SimpleBlobDetector + brute-force baseline, plus steady-state allocation."""
@@ -154,10 +156,12 @@ def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin") -
     single_thread()
     sets = {}
     if data_dir is not None:
-        sets["real smooth.avi"] = (_real_frames(data_dir), None)
+        for clip in clips:
+            sets[f"real {clip}"] = (_real_frames(data_dir, clip, limit), None)
     sim_frames, truth = _sim_frames_truth()
     sets["sim drag-45"] = (sim_frames, truth)
-    res = {"profile": profile, "threads": 1, "sets": {}}
+    res = {"profile": profile, "threads": 1, "sets": {},
+           "load_avg_1min_start": round(os.getloadavg()[0], 2)}
     for name, (frames, tr) in sets.items():
         stage_t = {k: [] for k in STAGES + ("total",)}
         for _ in range(repeats):
@@ -210,6 +214,7 @@ def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin") -
     gc.collect()
     last, _ = tracemalloc.get_traced_memory()
     tracemalloc.stop()
+    res["load_avg_1min_end"] = round(os.getloadavg()[0], 2)
     res["steady_state_growth_bytes"] = int(last - first)
     res["steady_state_frames"] = 4 * len(frames)
     res["goals"] = {

@@ -1,14 +1,30 @@
-"""``host bench``: timing of the simulator, the pipeline and the runtime."""
+"""``host bench``: timing of the simulator, the pipeline and the runtime, and the
+real-frame tables of docs/BENCHMARKS.md."""
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from host.bench import sim as bench_sim
 from host.bench.runtime import bench_runtime, format_runtime
+from host.bench.tables import write_tables
 from host.cli.common import UserError, emit, real_data_dir, whole
 
 
+def _camera_url(camera: str) -> str:
+    """A bare path is a file source; a missing file is refused before any run."""
+    if "://" not in camera:
+        camera = f"file://{camera}"
+    if camera.startswith("file://"):
+        path = Path(camera[len("file://"):].split("?")[0])
+        if not path.exists():
+            raise UserError(f"--camera: {path} does not exist")
+    return camera
+
+
 def cmd_bench(args):
+    if args.frames <= 0 or args.repeats <= 0:
+        raise UserError("--frames and --repeats must be positive")
     if args.what == "sim":
         res = bench_sim.bench_sim(repeats=args.repeats)
         emit(args, res, bench_sim.format_sim(res))
@@ -22,17 +38,41 @@ def cmd_bench(args):
         res = bench_sim.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
         emit(args, res, bench_sim.format_pipeline(res))
     elif args.what == "runtime":
-        res = bench_runtime(frames=args.frames)
+        camera = _camera_url(args.camera) if args.camera else None
+        if args.imu and camera is None:
+            raise UserError("--imu goes with --camera (sim://walk brings its own IMU)")
+        res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
+                            imu=args.imu)
         emit(args, res, format_runtime(res))
+    elif args.what == "tables":
+        data = real_data_dir(args.data)
+        doc = Path(args.doc)
+        if not doc.is_file():
+            raise UserError(f"--doc: {doc} is not a file")
+        try:
+            res = write_tables(doc, data, frames=args.frames,
+                               repeats=max(1, min(args.repeats, 5)), models=args.models,
+                               progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+        except ValueError as exc:
+            raise UserError(f"--doc {doc}: {exc}") from None
+        emit(args, res, f"wrote the real-frame tables into {doc}")
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline", "runtime"])
-    s.add_argument("--data", help="real recordings folder (pipeline)")
+    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables"],
+                   help="tables: measure on the real recordings and rewrite the "
+                        "real-frame tables of --doc")
+    s.add_argument("--data", help="real recordings folder (pipeline, tables)")
+    s.add_argument("--camera", help="runtime: a recording (path or file:// URL) "
+                                    "instead of sim://walk")
+    s.add_argument("--imu", help="runtime with --camera: IMU source (file://GYRO.npy "
+                                 "or none; default none)")
+    s.add_argument("--models", help="runtime: models folder (default: the shipped models/)")
+    s.add_argument("--doc", default="docs/BENCHMARKS.md", help="tables: the document to update")
     s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
-                   help="frames to run (runtime)")
+                   help="frames to run (runtime, tables)")
     s.add_argument("--repeats", type=whole(1, 10_000), default=20)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

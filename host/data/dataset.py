@@ -9,12 +9,27 @@
 
 Every file is written to a temporary name in the same folder and then renamed,
 so a crash loses at most the trial being written, and ``dataset.json`` always
-lists only complete trials.
+lists only complete trials. A temporary name carries its writer's process id
+(``.trial_0003.npz.pid1234.x8f2.tmp``), so the next writer removes the temporary
+files of writers that are no longer running.
+
+One writer at a time: :class:`DatasetWriter` holds an exclusive advisory lock
+(``fcntl.flock``) on the folder itself while it is open, and a second writer is
+refused with :class:`DatasetLocked`. The folder, not ``dataset.json``, is locked,
+because the index is replaced (a new inode) on every write. Readers take no lock:
+they see the last complete index.
+
+Each trial entry records its ``source`` (``simulator``, ``rig``, ``record``); the
+index's ``source`` is the one they share, or ``"mixed"`` with the list in
+``sources``.
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import json
 import os
+import re
 import tempfile
 import zipfile
 import zlib
@@ -33,10 +48,49 @@ class DatasetError(ValueError):
     pass
 
 
+class DatasetLocked(DatasetError):
+    """Another writer has the dataset folder open."""
+
+
+#: a temporary file's name: ``.NAME.pid<PID>.<random>.tmp``
+_TMP_RE = re.compile(r"^\..*\.pid(\d+)\.[^.]*\.tmp$")
+
+
+def temp_prefix(name: str) -> str:
+    """The start of a temporary file's name for ``name``, with this process's id."""
+    return f".{name}.pid{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:          # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_temp_files(folder: Path | str) -> int:
+    """Remove the temporary files in ``folder`` whose writer process is gone; the
+    count removed. Files of live processes, and names without a process id, stay."""
+    n = 0
+    for p in Path(folder).glob(".*.tmp"):
+        m = _TMP_RE.match(p.name)
+        if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
+            continue
+        try:
+            p.unlink()
+            n += 1
+        except FileNotFoundError:
+            pass
+    return n
+
+
 def atomic_write(path: Path, write) -> None:
     """Call ``write(fh)`` on a temp file beside ``path``, fsync, then rename."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             write(fh)
@@ -59,30 +113,93 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 
 class DatasetWriter:
-    """Append trials to a dataset folder, one atomic file each."""
+    """Append trials to a dataset folder, one atomic file each, holding the folder's
+    writer lock until :meth:`close` (or the end of a ``with`` block, or the
+    process). ``meta["source"]`` is the source of the trials this writer adds."""
 
-    def __init__(self, out_dir: Path | str, meta: dict | None = None):
+    def __init__(self, out_dir: Path | str, meta: dict | None = None,
+                 source: str | None = None):
         self.dir = Path(out_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
-        idx = self.dir / INDEX
-        if idx.exists():
-            self.index = read_index(self.dir)
-        else:
-            self.index = {"format": FORMAT, "version": VERSION, "trials": []}
-        self.index.update(meta or {})
+        self._lock_fd: int | None = None
+        self._lock()
+        try:
+            self.removed_temp_files = remove_stale_temp_files(self.dir)
+            idx = self.dir / INDEX
+            if idx.exists():
+                self.index = read_index(self.dir)
+            else:
+                self.index = {"format": FORMAT, "version": VERSION, "trials": []}
+        except BaseException:
+            self.close()
+            raise
+        meta = dict(meta or {})
+        self.source = source or meta.pop("source", None)
+        old = self.index.get("source")
+        if old not in (None, "mixed"):
+            for t in self.index["trials"]:   # an index with one source for all its trials
+                if isinstance(t, dict):
+                    t.setdefault("source", old)
+        self.index.update(meta)
+
+    def _lock(self) -> None:
+        fd = os.open(self.dir, os.O_RDONLY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise DatasetLocked(f"{self.dir}: another writer is adding trials to this "
+                                    f"dataset; wait for it to finish, or choose another "
+                                    f"folder") from None
+            raise
+        self._lock_fd = fd
+
+    def close(self) -> None:
+        """Release the folder's writer lock."""
+        fd, self._lock_fd = self._lock_fd, None
+        if fd is not None:
+            os.close(fd)              # closing the descriptor drops the flock
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
 
     @property
     def n_trials(self) -> int:
         return len(self.index["trials"])
 
+    def _update_sources(self) -> None:
+        sources = sorted({t["source"] for t in self.index["trials"]
+                          if isinstance(t, dict) and t.get("source")})
+        self.index.pop("sources", None)
+        if len(sources) == 1:
+            self.index["source"] = sources[0]
+        elif sources:
+            self.index["source"] = "mixed"
+            self.index["sources"] = sources
+
     def add_trial(self, frames: np.ndarray, truth: dict, info: dict) -> Path:
+        if self._lock_fd is None:
+            raise DatasetError(f"{self.dir}: the writer is closed")
         name = f"trial_{self.n_trials:04d}.npz"
         arrays = {"frames": np.ascontiguousarray(frames)}
         for k, v in truth.items():
             arrays[k] = np.asarray(v)
         atomic_write(self.dir / name, lambda fh: np.savez_compressed(fh, **arrays))
         entry = {"file": name, "frames": int(frames.shape[0]), **info}
+        if self.source and "source" not in entry:
+            entry["source"] = self.source
         self.index["trials"].append(entry)
+        self._update_sources()
         atomic_write_text(self.dir / INDEX, json.dumps(self.index, indent=1))
         return self.dir / name
 

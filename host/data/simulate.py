@@ -23,22 +23,22 @@ def simulate_to_dataset(scene_ref: str, out: Path, seed: int = 0, trials: int = 
     """Render ``trials`` runs of a scene (seeds ``seed``, ``seed + 1``, ...) into the
     dataset folder ``out``; returns the folder, the trial files and the frame count."""
     scene = load_scene(scene_ref)
-    writer = DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
-                                      "texture_labels": list(TEXTURE_LABELS),
-                                      "source": "simulator"})
     files = []
-    for k in range(trials):
-        sim = Simulator(scene, seed=seed + k)
-        frames = np.empty((sim.n_frames, sim.height, sim.width), np.uint8)
-        with _progress(sim.n_frames, f"{scene.name} seed {seed + k}", progress) as bar:
-            for i in range(sim.n_frames):
-                sim.render(i, frames[i])
-                bar.update(1)
-        truth = dict(sim.truth, rest_pins_px=sim.rest_pins_px)
-        info = {"scene": scene.name, "scene_file": scene.source, "seed": seed + k,
-                "fps": scene.fps, "width": sim.width, "height": sim.height,
-                "profile": scene.profile.name, "n_pins": scene.profile.n_pins,
-                "effects": list(scene.effect_names)}
-        files.append(str(writer.add_trial(frames, truth, info)))
+    with DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
+                                  "texture_labels": list(TEXTURE_LABELS),
+                                  "source": "simulator"}) as writer:
+        for k in range(trials):
+            sim = Simulator(scene, seed=seed + k)
+            frames = np.empty((sim.n_frames, sim.height, sim.width), np.uint8)
+            with _progress(sim.n_frames, f"{scene.name} seed {seed + k}", progress) as bar:
+                for i in range(sim.n_frames):
+                    sim.render(i, frames[i])
+                    bar.update(1)
+            truth = dict(sim.truth, rest_pins_px=sim.rest_pins_px)
+            info = {"scene": scene.name, "scene_file": scene.source, "seed": seed + k,
+                    "fps": scene.fps, "width": sim.width, "height": sim.height,
+                    "profile": scene.profile.name, "n_pins": scene.profile.n_pins,
+                    "effects": list(scene.effect_names)}
+            files.append(str(writer.add_trial(frames, truth, info)))
     return {"out": str(out), "trials": files, "frames": int(sum(
         e["frames"] for e in writer.index["trials"][-trials:]))}

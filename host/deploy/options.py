@@ -2,6 +2,7 @@
 the command-line arguments that fill them."""
 from __future__ import annotations
 
+import ipaddress
 import math
 import re
 from dataclasses import dataclass, field
@@ -21,9 +22,60 @@ class DeployInputError(ValueError):
     """Bad deploy options (a missing models folder, a bad --env ...)."""
 
 
+#: a user name as POSIX and useradd allow it (portable characters, no leading -)
+USER_RE = re.compile(r"[A-Za-z_][A-Za-z0-9._-]{0,31}")
+#: one label of a host name (RFC 1123)
+LABEL_RE = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def _host_ok(host: str) -> bool:
+    """A host name (dot-separated RFC 1123 labels, 253 characters at most) or an
+    IPv4/IPv6 address."""
+    try:
+        ipaddress.ip_address(host)
+        return True
+    except ValueError:
+        pass
+    return 0 < len(host) <= 253 and all(LABEL_RE.fullmatch(l) for l in host.split("."))
+
+
+def parse_target(target: str) -> tuple[str | None, str, int | None]:
+    """(user, host, port) from ``[USER@]HOST[:PORT]`` (an IPv6 address with a port
+    in brackets: ``pi@[fe80::1]:22``). DeployInputError unless the user is a POSIX
+    user name, the host a host name or an IP address and the port 1..65535."""
+    bad = DeployInputError(f"target must be [USER@]HOST[:PORT] with a user name and a "
+                           f"host name or IP address, got {target!r}")
+    if not isinstance(target, str):
+        raise bad
+    user, at, rest = target.rpartition("@")
+    if at and not USER_RE.fullmatch(user):
+        raise bad
+    port = None
+    if rest.startswith("["):
+        host, close, tail = rest[1:].partition("]")
+        if not close or (tail and not tail.startswith(":")):
+            raise bad
+        rest, port_s = host, tail[1:] if tail else None
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise bad from None
+    elif rest.count(":") == 1:
+        rest, _, port_s = rest.partition(":")
+    else:
+        port_s = None
+    if port_s is not None:
+        if not port_s.isdigit() or not 0 < int(port_s) < 65536:
+            raise bad
+        port = int(port_s)
+    if not _host_ok(rest):
+        raise bad
+    return (user if at else None), rest, port
+
+
 @dataclass
 class DeployOptions:
-    target: str                                  # [USER@]HOST
+    target: str                                  # [USER@]HOST[:PORT]
     port: int | None = None
     identity: str | None = None
     ssh_options: list[str] = field(default_factory=list)   # extra "-o" values
@@ -47,13 +99,19 @@ class DeployOptions:
     health_timeout_s: float = 60.0
     keep: int = 3
     release: str | None = None
+    signing_key: str | None = None               # default: host.deploy.signing's path
+    allow_unsigned: bool = False                 # the shipped config's signing.allow_unsigned
 
     def check(self):
-        if not self.target or self.target.startswith("-") or any(c.isspace()
-                                                                 for c in self.target):
-            raise DeployInputError(f"target must be [USER@]HOST, got {self.target!r}")
+        _, _, tport = parse_target(self.target)
         if self.port is not None and not 0 < self.port < 65536:
             raise DeployInputError(f"--port must be 1..65535, got {self.port!r}")
+        if tport is not None and self.port is not None and tport != self.port:
+            raise DeployInputError(f"target {self.target!r} names port {tport}, --port "
+                                   f"says {self.port}")
+        if self.service_user is not None and not USER_RE.fullmatch(self.service_user):
+            raise DeployInputError(f"--service-user must be a user name, got "
+                                   f"{self.service_user!r}")
         if self.service_manager not in MANAGERS:
             raise DeployInputError(f"--service-manager must be one of {MANAGERS}, "
                                    f"got {self.service_manager!r}")
@@ -102,7 +160,17 @@ class DeployOptions:
     # -- derived ---------------------------------------------------------------
     @property
     def ssh_user(self) -> str | None:
-        return self.target.split("@", 1)[0] if "@" in self.target else None
+        return parse_target(self.target)[0]
+
+    @property
+    def ssh_target(self) -> str:
+        """USER@HOST (or HOST) as ssh takes it: the target without its port."""
+        user, host, _ = parse_target(self.target)
+        return f"{user}@{host}" if user else host
+
+    @property
+    def ssh_port(self) -> int | None:
+        return self.port if self.port is not None else parse_target(self.target)[2]
 
     def models_dir(self) -> Path | None:
         if self.models:
@@ -128,10 +196,16 @@ def project_version() -> str:
 
 def add_arguments(s):
     """The ``host deploy`` options (shared with host/cli/__init__.py)."""
-    s.add_argument("target", help="USER@HOST of the Pi")
+    s.add_argument("target", nargs="*",
+                   help="[USER@]HOST[:PORT] of each leg's Pi (several: one release on "
+                        "every leg, or on none)")
+    s.add_argument("--robot", metavar="FILE",
+                   help="a robot file listing the legs ([[leg]] target, config, ...)")
+    s.add_argument("--status", action="store_true",
+                   help="show each leg's release and health, change nothing")
     s.add_argument("--dry-run", action="store_true", help="print the plan, touch nothing")
     s.add_argument("--rollback", action="store_true",
-                   help="switch current back to the previous release and restart")
+                   help="switch current back to the previous release and restart (one leg)")
     s.add_argument("--port", type=int, help="SSH port")
     s.add_argument("--identity", help="SSH private key file")
     s.add_argument("--ssh-option", action="append", default=[], metavar="OPT",
@@ -164,12 +238,21 @@ def add_arguments(s):
                    help="how long the health check waits for packets to flow")
     s.add_argument("--keep", type=int, default=3, help="releases kept on the Pi")
     s.add_argument("--release", help="release folder name (default: VERSION-UTCSTAMP-RAND)")
+    s.add_argument("--signing-key", metavar="PATH",
+                   help="the host's Ed25519 key that signs models and releases (default: "
+                        "$TACFOOT_SIGNING_KEY or ~/.config/tacfoot/signing-key.pem; made "
+                        "on first use)")
+    s.add_argument("--allow-unsigned", action="store_true",
+                   help="let the leg load unsigned models (signing.allow_unsigned = true)")
     s.add_argument("--json", action="store_true")
 
 
-def options_from_args(a) -> DeployOptions:
+def options_from_args(a, target: str | None = None) -> DeployOptions:
+    """The options of one leg: ``target``, or the only one given."""
+    if target is None:
+        target = a.target[0] if len(a.target) == 1 else ""
     return DeployOptions(
-        target=a.target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
+        target=target, port=a.port, identity=a.identity, ssh_options=a.ssh_option,
         prefix=a.prefix, models=a.models, config=a.config, python=a.python,
         service_manager=a.service_manager, service_name=a.service_name,
         service_user=a.service_user, unit_dir=a.unit_dir,
@@ -177,5 +260,5 @@ def options_from_args(a) -> DeployOptions:
         imu=a.imu, serial=a.serial,
         runtime_module=a.runtime_module, runtime_args=a.runtime_arg, env=a.env,
         watchdog_s=a.watchdog_s, health_timeout_s=a.health_timeout_s, keep=a.keep,
-        release=a.release)
+        release=a.release, signing_key=a.signing_key, allow_unsigned=a.allow_unsigned)
 

@@ -1,17 +1,21 @@
 """``host deploy``: install the Pi runtime on a Raspberry Pi over SSH.
 
 One deploy is a list of steps, each either local (build, stage) or one ``ssh``
-command running a small POSIX shell script on the Pi. Every step is logged with
-its command; ``--dry-run`` prints the same list and runs none of it.
+command running a small POSIX shell script on the Pi (:mod:`host.deploy.ssh`).
+Every step is logged with its command; ``--dry-run`` prints the same list and runs
+none of it. The staged models and ``release.json`` are signed with the host's key
+(:mod:`host.deploy.signing`).
 
 Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
 
     PREFIX/releases/<release>/        one folder per deploy, never changed after
         tacfoot-<ver>-py3-none-any.whl
         venv/                         the runtime's virtualenv, wheel installed
-        models/  config/              the models and the config it runs with
+        models/  config/              the models (manifests signed) and the config it
+                                      runs with (holding the public key)
         tacfoot.service  tacfootctl   the systemd unit and the no-systemd starter
-        release.json  .complete       metadata; .complete is written last
+        release.json(.sig)            every file's SHA-256, signed
+        .complete                     written last
     PREFIX/current  -> releases/<r>   what the service runs (switched atomically)
     PREFIX/previous -> releases/<r>   what ``--rollback`` goes back to
     PREFIX/run/status.json            the runtime's status file (health check)
@@ -22,27 +26,29 @@ service is active and ``packets_sent`` in the status file grows, from the
 service's own pid). A failed health check switches ``current`` back and
 restarts the old release. Everything before the switch writes only inside the
 new release's folder, so an interrupted deploy leaves the old release running.
+The phases (:meth:`Deployer.begin`, ``install``, ``switch``, ``commit``,
+``revert``) are what :mod:`host.deploy.robot` runs across legs.
 """
 from __future__ import annotations
 
-import hashlib
 import json
-import os
 import secrets
 import shlex
 import shutil
 import subprocess
 import sys
-import tarfile
 import tempfile
 import time
 from pathlib import Path
 
 from device.config import ConfigError, read_toml
-from host.deploy.options import REPO, DeployError, DeployOptions, project_version
-from host.deploy.scripts import (HEALTH_PY, SUDO, q, render_ctl, render_unit, runtime_argv,
-                                 status_path)
-
+from device.pi.models.artefact import sha256_file
+from host.deploy.options import (REPO, DeployError, DeployInputError, DeployOptions,
+                                 project_version)
+from host.deploy.scripts import (HEALTH_PY, SUDO, VERIFY_RELEASE_PY, q, render_ctl,
+                                 render_unit, runtime_argv, status_path)
+from host.deploy.signing import SigningKey, config_with_key, default_key_path, sign_models
+from host.deploy.ssh import SshSession
 
 
 def config_profile_file(cfg: Path) -> Path | None:
@@ -61,91 +67,23 @@ def config_profile_file(cfg: Path) -> Path | None:
         raise ConfigError(f"{cfg}: models.profile {prof!r}: no such file {path}")
     return path
 
-class Deployer:
-    """Runs (or, with dry_run, only lists) the steps of one deploy or rollback."""
+def new_release_name() -> str:
+    """VERSION-UTCSTAMP-RAND: a release folder name that sorts by time."""
+    return (f"{project_version()}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-"
+            f"{secrets.token_hex(2)}")
 
-    def __init__(self, opts: DeployOptions, dry_run: bool = False, log=None):
-        opts.check()
-        self.o = opts
-        self.dry_run = dry_run
-        self.log = log if log is not None else (lambda msg: print(msg, file=sys.stderr))
-        self.steps: list[dict] = []
-        self.copy_hook = None          # called (proc, bytes_sent) while copying
+
+class Deployer(SshSession):
+    """Runs (or, with dry_run, only lists) the steps of one deploy or rollback.
+    ``key`` (a :class:`host.deploy.signing.SigningKey`) signs what is staged."""
+
+    def __init__(self, opts: DeployOptions, dry_run: bool = False, log=None, key=None):
+        super().__init__(opts, dry_run=dry_run, log=log)
         self.manager = opts.service_manager
         self.release = opts.release or ""
-        self._cm_dir: str | None = None          # ssh ControlMaster socket folder
-
-    # -- plumbing --------------------------------------------------------------
-    def _ssh_base(self) -> list[str]:
-        o = self.o
-        argv = ["ssh", "-o", "BatchMode=yes", "-o", "ConnectTimeout=15"]
-        if o.port is not None:
-            argv += ["-p", str(o.port)]
-        if o.identity:
-            argv += ["-i", o.identity, "-o", "IdentitiesOnly=yes"]
-        for opt in o.ssh_options:
-            argv += ["-o", opt]
-        if self._cm_dir is not None:
-            argv += ["-o", f"ControlPath={self._cm_dir}/cm", "-o", "ControlMaster=no"]
-        return argv
-
-    def open_connection(self):
-        """One SSH connection that every step reuses (ControlMaster); without it
-        (it failed, or a dry run) each step connects on its own."""
-        if self.dry_run or self._cm_dir is not None:
-            return
-        d = tempfile.mkdtemp(prefix="tfssh-")
-        argv = self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-o", "ControlMaster=yes",
-                                   "-o", "ControlPersist=600", "-f", "-N", self.o.target]
-        try:
-            r = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, timeout=60)
-            ok = r.returncode == 0 and os.path.exists(f"{d}/cm")
-        except subprocess.TimeoutExpired:
-            ok = False
-        if ok:
-            self._cm_dir = d
-        else:
-            shutil.rmtree(d, ignore_errors=True)
-
-    def close_connection(self):
-        if self._cm_dir is None:
-            return
-        d, self._cm_dir = self._cm_dir, None
-        subprocess.run(self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-O", "exit",
-                                           self.o.target],
-                       stdin=subprocess.DEVNULL, capture_output=True, timeout=30)
-        shutil.rmtree(d, ignore_errors=True)
-
-    def ssh_argv(self, script: str) -> list[str]:
-        return self._ssh_base() + [self.o.target, "--", "sh -c " + q("set -eu\n" + script)]
-
-    def _record(self, name, where, command, **extra) -> dict:
-        step = {"step": name, "where": where, "command": command, **extra}
-        self.steps.append(step)
-        shown = command.replace(q(HEALTH_PY), '"$HEALTH_CHECK_PY"')
-        self.log(f"[deploy] {name} ({where}): " + shown.strip().replace("\n", "; "))
-        return step
-
-    def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600):
-        step = self._record(name, "remote", script)
-        if self.dry_run:
-            return step
-        t0 = time.monotonic()
-        try:
-            r = subprocess.run(self.ssh_argv(script), capture_output=True, text=True,
-                               timeout=timeout_s, stdin=subprocess.DEVNULL)
-            rc, out, err = r.returncode, r.stdout, r.stderr
-        except subprocess.TimeoutExpired:
-            rc, out, err = -1, "", f"timed out after {timeout_s:.0f} s"
-        step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-2000:],
-                    stderr=err[-2000:])
-        if rc != 0:
-            self.log(f"[deploy] {name}: exit {rc}: {err.strip()[-500:]}")
-            if check:
-                raise DeployError(f"step {name} failed (exit {rc}): "
-                                  f"{err.strip().splitlines()[-1] if err.strip() else ''}")
-        return step
+        self.key = key
+        self.old: str | None = None          # the release current pointed at before
+        self.switched = False
 
     # -- scripts ---------------------------------------------------------------
     def _pid_cmd(self) -> str:
@@ -198,7 +136,7 @@ class Deployer:
         """Build the tacfoot wheel from a clean copy of the source tree."""
         cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
                "-q", "-w", str(out_dir / "dist"), str(out_dir / "src")]
-        step = self._record("build", "local", shlex.join(cmd))
+        step = self.record("build", "local", shlex.join(cmd))
         if self.dry_run:
             return out_dir / "dist" / "tacfoot.whl"
         t0 = time.monotonic()
@@ -217,80 +155,50 @@ class Deployer:
         return wheels[0]
 
     def stage(self, wheel: Path, out_dir: Path) -> Path:
+        """The release folder, built locally: the wheel, the models (each manifest
+        signed), the config (with the public key), the unit, tacfootctl and
+        release.json (the SHA-256 of every file; signed)."""
         o = self.o
         st = out_dir / "stage"
         models, cfg = o.models_dir(), o.config_file()
         prof = config_profile_file(cfg) if cfg is not None else None
-        self._record("stage", "local", f"stage {wheel.name}"
-                     + (f", models {models}" if models else "")
-                     + (f", config {cfg}" if cfg else "")
-                     + (f", profile {prof.name}" if prof else "") + ", tacfoot.service, tacfootctl")
+        self.record("stage", "local", f"stage {wheel.name}"
+                    + (f", models {models}" if models else "")
+                    + (f", config {cfg}" if cfg else "")
+                    + (f", profile {prof.name}" if prof else "") + ", tacfoot.service, tacfootctl"
+                    + (f"; sign with key {self.key.key_id} ({self.key.path})" if self.key
+                       else "; sign with the host key"))
         if self.dry_run:
             return st
         st.mkdir()
         shutil.copy2(wheel, st / wheel.name)
         if models is not None:
             shutil.copytree(models, st / "models",
-                            ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+                            ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.sig"))
+            if self.key is not None:
+                sign_models(st / "models", self.key)
         if cfg is not None:
             (st / "config").mkdir()
-            shutil.copy2(cfg, st / "config" / cfg.name)
+            text = cfg.read_text()
+            if self.key is not None:
+                text = config_with_key(text, self.key, o.allow_unsigned, str(cfg))
+            (st / "config" / cfg.name).write_text(text)
             if prof is not None:       # a calibrated profile named beside the config
                 shutil.copy2(prof, st / "config" / prof.name)
         (st / "tacfoot.service").write_text(render_unit(o))
         (st / "tacfootctl").write_text(render_ctl(o))
         (st / "tacfootctl").chmod(0o755)
+        files = {p.relative_to(st).as_posix(): sha256_file(p)
+                 for p in sorted(st.rglob("*")) if p.is_file()}
         (st / "release.json").write_text(json.dumps({
             "release": self.release, "wheel": wheel.name,
-            "wheel_sha256": hashlib.sha256(wheel.read_bytes()).hexdigest(),
+            "wheel_sha256": files[wheel.name],
             "built_unix": round(time.time(), 3), "runtime_argv": runtime_argv(o),
-            "service_manager": self.manager}, indent=1) + "\n")
+            "service_manager": self.manager, "files": files,
+            "signed_by": self.key.key_id if self.key else None}, indent=1) + "\n")
+        if self.key is not None:
+            self.key.sign_file(st / "release.json")
         return st
-
-    def copy(self, staged: Path):
-        """Stream the staged folder as a tar over one ssh into releases/R."""
-        rel = f"{self.o.prefix}/releases/{self.release}"
-        script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
-        step = self._record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
-                            + script.strip().replace("\n", "; "))
-        if self.dry_run:
-            return
-        t0 = time.monotonic()
-        with tempfile.TemporaryFile() as err:
-            proc = subprocess.Popen(self.ssh_argv(script), stdin=subprocess.PIPE,
-                                    stdout=subprocess.DEVNULL, stderr=err)
-            sent = 0
-            hook = self.copy_hook
-            try:
-                class _Counting:
-                    def write(_self, b):
-                        nonlocal sent
-                        proc.stdin.write(b)
-                        sent += len(b)
-                        if hook is not None:
-                            hook(proc, sent)
-                        return len(b)
-
-                    def flush(_self):
-                        proc.stdin.flush()
-
-                with tarfile.open(fileobj=_Counting(), mode="w|gz") as tar:
-                    tar.add(staged, arcname=".")
-                proc.stdin.close()
-            except (BrokenPipeError, OSError, ValueError):
-                pass
-            finally:
-                try:
-                    rc = proc.wait(timeout=600)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    rc = proc.wait()
-            err.seek(0)
-            msg = err.read().decode(errors="replace").strip()
-        step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3), stderr=msg[-2000:])
-        if rc != 0:
-            raise DeployError(f"step copy failed (exit {rc}) after {sent} bytes"
-                              + (f": {msg.splitlines()[-1]}" if msg else ""))
 
     # -- the deploy ----------------------------------------------------------------
     def probe(self) -> dict:
@@ -315,78 +223,110 @@ class Deployer:
                               "(set --python)")
         return info
 
-    def _resolve_manager(self, info: dict):
+    def resolve_manager(self, info: dict):
         if self.manager == "auto":
             self.manager = info.get("manager") or "systemd"
+
+    # -- the phases of a deploy (host/deploy/robot.py runs them leg by leg) ---------
+    def begin(self, res: dict) -> None:
+        """Probe the Pi; the release name is made here unless one was given."""
+        info = self.probe()
+        if self.dry_run and self.manager == "auto":
+            res["note"] = "service manager auto: the probe decides; plan shown for systemd"
+        self.resolve_manager(info)
+        res["service_manager"] = self.manager
+        self.old = info["current"] or None
+        res["previous"] = self.old
+        if not self.release:
+            self.release = new_release_name()
+        res["release"] = self.release
+
+    def install(self, wheel: Path, tmp: Path) -> None:
+        """Stage, prepare, copy and install the new release: everything here writes
+        only inside its own folder, so the running release is untouched."""
+        o = self.o
+        staged = self.stage(wheel, tmp)
+        p = q(o.prefix)
+        self.remote("prepare", SUDO +
+                    f"if [ ! -d {p} ]; then $SUDO mkdir -p {p}; "
+                    f"$SUDO chown \"$(id -u):$(id -g)\" {p}; fi\n"
+                    f"mkdir -p {p}/releases {p}/run\n"
+                    f"cd {p}/releases\n"
+                    # drop what an interrupted deploy left (never current/previous)
+                    "for d in *; do [ -d \"$d\" ] || continue\n"
+                    "  [ -f \"$d/.complete\" ] || rm -rf \"$d\"; done\n"
+                    f"[ ! -e {q(self.release)} ] || "
+                    f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
+        self.copy(staged, f"{o.prefix}/releases/{self.release}")
+        self.remote("install", self._install_script(f"{o.prefix}/releases/{self.release}"))
+
+    def switch(self, res: dict) -> bool:
+        """Point current at the new release, restart the service and check its
+        health; True when it is healthy. From the first command on, a failure
+        must be undone (:meth:`revert`)."""
+        relname = f"releases/{self.release}"
+        self.switched = True        # undo from here, even if the switch itself broke off
+        self.remote("switch", f"cd {q(self.o.prefix)}\n"
+                    f"[ -f {q(relname + '/.complete')} ] || "
+                    f"{{ echo 'release {self.release} is incomplete' >&2; exit 3; }}\n"
+                    + self._link_script("current", relname))
+        self.remote("service", self._service_script())
+        h = self.health("health")
+        res["health"] = h
+        return bool(self.dry_run or h.get("ok"))
+
+    def commit(self, res: dict) -> None:
+        """The new release runs: set previous and prune (a failure is a warning)."""
+        relname = f"releases/{self.release}"
+        if self.old and self.old != relname:
+            st = self.remote("previous", self._link_script("previous", self.old), check=False)
+            if st.get("rc"):
+                res.setdefault("warnings", []).append("could not set previous")
+        st = self.remote("prune", self._prune_script(), check=False)
+        if st.get("rc"):
+            res.setdefault("warnings", []).append("could not prune old releases")
+        res["ok"] = True
+
+    def revert(self, res: dict, exc: BaseException | None) -> None:
+        """Put the old release back after a switch (the runtime's last words kept)."""
+        if exc is not None:
+            res.setdefault("error", str(exc) or type(exc).__name__)
+        if not self.switched:
+            return
+        try:        # what the new release's runtime said before it is replaced
+            res["log_tail"] = self.log_tail()
+        except BaseException:
+            res["log_tail"] = []
+        if res["log_tail"] and (exc is None or isinstance(exc, DeployError)):
+            res["error"] = res.get("error", "") + f"; the runtime said: {res['log_tail'][-1]}"
+        res["rolled_back"] = True
+        res["rollback"] = self._undo(self.old, f"releases/{self.release}")
+
+    def discard(self) -> None:
+        """Remove the new release's folder when it never became current."""
+        if self.release and not self.switched:
+            rel = f"releases/{self.release}"
+            self.remote("discard", f"cd {q(self.o.prefix)}\n"
+                        f"[ \"$(readlink current || true)\" = {q(rel)} ] || rm -rf {q(rel)}\n",
+                        check=False)
 
     def deploy(self) -> dict:
         o = self.o
         res = {"target": o.target, "prefix": o.prefix, "dry_run": self.dry_run,
                "ok": False, "rolled_back": False}
-        info = self.probe()
-        if self.dry_run and self.manager == "auto":
-            res["note"] = "service manager auto: the probe decides; plan shown for systemd"
-        self._resolve_manager(info)
-        res["service_manager"] = self.manager
-        old = info["current"] or None
-        res["previous"] = old
-        if not self.release:
-            self.release = (f"{project_version()}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-"
-                            f"{secrets.token_hex(2)}")
-        res["release"] = self.release
-        rel = f"{o.prefix}/releases/{self.release}"
-        relname = f"releases/{self.release}"
+        self.begin(res)
         with tempfile.TemporaryDirectory(prefix="tacfoot-deploy-") as tmp:
             wheel = self.build_wheel(Path(tmp))
-            staged = self.stage(wheel, Path(tmp))
             res["wheel"] = wheel.name
-            p = q(o.prefix)
-            self.remote("prepare", SUDO +
-                        f"if [ ! -d {p} ]; then $SUDO mkdir -p {p}; "
-                        f"$SUDO chown \"$(id -u):$(id -g)\" {p}; fi\n"
-                        f"mkdir -p {p}/releases {p}/run\n"
-                        f"cd {p}/releases\n"
-                        # drop what an interrupted deploy left (never current/previous)
-                        "for d in *; do [ -d \"$d\" ] || continue\n"
-                        "  [ -f \"$d/.complete\" ] || rm -rf \"$d\"; done\n"
-                        f"[ ! -e {q(self.release)} ] || "
-                        f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
-            self.copy(staged)
-        self.remote("install", self._install_script(rel))
-        # -- from here on the old release has been touched: undo on any failure
-        switched = False
+            self.install(wheel, Path(tmp))
         try:
-            switched = True         # from here undo, even if the switch itself broke off
-            self.remote("switch", f"cd {q(o.prefix)}\n"
-                        f"[ -f {q(relname + '/.complete')} ] || "
-                        f"{{ echo 'release {self.release} is incomplete' >&2; exit 3; }}\n"
-                        + self._link_script("current", relname))
-            self.remote("service", self._service_script())
-            h = self.health("health")
-            res["health"] = h
-            if self.dry_run or h.get("ok"):
-                # the new release runs: from here a failure is only a warning
-                if old and old != relname:
-                    st = self.remote("previous", self._link_script("previous", old), check=False)
-                    if st.get("rc"):
-                        res.setdefault("warnings", []).append("could not set previous")
-                st = self.remote("prune", self._prune_script(), check=False)
-                if st.get("rc"):
-                    res.setdefault("warnings", []).append("could not prune old releases")
-                res["ok"] = True
+            if self.switch(res):
+                self.commit(res)
                 return res
-            raise DeployError(f"health check failed: {h.get('reason', 'unknown')}")
+            raise DeployError(f"health check failed: "
+                              f"{res['health'].get('reason', 'unknown')}")
         except BaseException as exc:          # Ctrl-C too: never leave a half switch
-            res["error"] = str(exc) or type(exc).__name__
-            if switched:
-                try:        # what the new release's runtime said before it is replaced
-                    res["log_tail"] = self.log_tail()
-                except BaseException:
-                    res["log_tail"] = []
-                if res["log_tail"] and isinstance(exc, DeployError):
-                    res["error"] += f"; the runtime said: {res['log_tail'][-1]}"
-                res["rolled_back"] = True
-                res["rollback"] = self._undo(old, relname)
+            self.revert(res, exc)
             if not isinstance(exc, DeployError):
                 raise
             return res
@@ -411,6 +351,9 @@ class Deployer:
               "./tacfoot-*.whl\n"
               # the installed code must import before this release may become current
               "venv/bin/python -c 'import device.pi, device.pi.runtime.sdnotify'\n"
+              # every file as release.json lists it, and release.json signed with the
+              # key the release's config trusts
+              f"venv/bin/python -c {q(VERIFY_RELEASE_PY)}\n"
               "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
         return s
 
@@ -469,7 +412,7 @@ class Deployer:
         o = self.o
         res = {"target": o.target, "prefix": o.prefix, "dry_run": self.dry_run, "ok": False}
         info = self.probe()
-        self._resolve_manager(info)
+        self.resolve_manager(info)
         res["service_manager"] = self.manager
         cur, prev = info["current"] or None, info["previous"] or None
         if not self.dry_run and not prev:
@@ -490,9 +433,13 @@ class Deployer:
 
 
 def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
-        log=None) -> dict:
-    """Deploy (or roll back); the result dict has ok, release, steps, health."""
-    d = Deployer(opts, dry_run=dry_run, log=log)
+        log=None, key=None) -> dict:
+    """Deploy (or roll back); the result dict has ok, release, steps, health.
+    ``key`` signs the release (default: the host key of ``opts.signing_key``,
+    created on first use; a dry run creates none)."""
+    if key is None and not rollback:
+        key = load_key(opts, dry_run)
+    d = Deployer(opts, dry_run=dry_run, log=log, key=key)
     try:
         d.open_connection()
         res = d.rollback() if rollback else d.deploy()
@@ -502,6 +449,23 @@ def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
         d.close_connection()
     res["steps"] = d.steps
     return res
+
+
+def load_key(opts: DeployOptions, dry_run: bool = False):
+    """The host's signing key for ``opts`` (None in a dry run when there is none
+    yet), and a check that the config can carry its public key; DeployInputError
+    if not."""
+    path = opts.signing_key or default_key_path()
+    key = SigningKey.load(path, create=not dry_run) if (
+        not dry_run or Path(path).exists()) else None
+    cfg = opts.config_file()
+    if key is not None and cfg is not None:
+        try:
+            text = cfg.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise DeployInputError(f"--config {cfg}: cannot read it ({exc})") from None
+        config_with_key(text, key, opts.allow_unsigned, str(cfg))
+    return key
 
 
 def summary_text(res: dict) -> str:

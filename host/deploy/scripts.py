@@ -139,3 +139,45 @@ if not out["ok"]:
 print(json.dumps(out))
 sys.exit(0 if out["ok"] else 1)
 """
+
+
+VERIFY_RELEASE_PY = r"""
+import glob, hashlib, json, sys
+from pathlib import Path
+try:
+    import tomllib
+except ImportError:
+    import tomli as tomllib
+doc = json.loads(Path("release.json").read_text())
+bad = []
+for name, want in sorted(doc.get("files", {}).items()):
+    p = Path(name)
+    try:
+        ok = not p.is_absolute() and ".." not in p.parts and \
+            hashlib.sha256(p.read_bytes()).hexdigest() == want
+    except OSError:
+        ok = False
+    if not ok:
+        bad.append(name)
+if bad:
+    sys.exit("release files differ from release.json: " + ", ".join(bad[:5]))
+keys = set()
+for cfg in glob.glob("config/*.toml"):
+    try:
+        k = tomllib.loads(Path(cfg).read_text()).get("signing", {}).get("public_key", "")
+    except (OSError, ValueError, AttributeError):
+        continue
+    if isinstance(k, str) and k.strip():
+        keys.add(k.strip())
+if keys:
+    from device.pi.models.artefact import ModelError
+    from device.pi.models.signature import decode_public_key, verify
+    try:
+        for k in sorted(keys):
+            verify(Path("release.json").read_bytes(), Path("release.json.sig"),
+                   decode_public_key(k), "release.json")
+    except (ModelError, ValueError) as exc:
+        sys.exit(str(exc))
+print("release verified: %d files%s" % (len(doc.get("files", {})),
+                                         ", signature" if keys else ""))
+"""

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import MANIFEST, VARIANTS, ModelError, manifest_for, read_manifest
+from device.pi.models.artefact import (MANIFEST, VARIANTS, ModelError, manifest_for, model_file,
+                                      read_manifest)
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import encode
@@ -149,7 +150,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
             res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))
     folder = Path(model_dir) if Path(model_dir).is_dir() else Path(model_dir).parent
     onnx_name = doc.get("onnx")
-    res["model_bytes"] = int((folder / onnx_name).stat().st_size) if onnx_name else 0
+    res["model_bytes"] = int(model_file(folder, onnx_name).stat().st_size) if onnx_name else 0
     res["manifest_bytes"] = int((folder / MANIFEST).stat().st_size)
     res["latency_ms"] = _percentiles(lat)
     res["encode_ms"] = _percentiles(enc)

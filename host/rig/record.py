@@ -25,7 +25,7 @@ import numpy as np
 
 from device.pi.sources.camera import CameraSource
 from device.pi.sources.imu import ImuSource
-from host.data.dataset import DatasetError, DatasetWriter, is_dataset, read_index
+from host.data.dataset import DatasetError, DatasetWriter, is_dataset, read_index, temp_prefix
 
 __all__ = ["RecordError", "record", "LABEL_RE"]
 
@@ -73,12 +73,16 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
     try:
         if is_dataset(out):
             read_index(out)
-        writer = DatasetWriter(out)
+        writer = DatasetWriter(out, source="record")
     except DatasetError as exc:
         raise RecordError(str(exc)) from None
-    names = _labels(writer, label)
+    try:
+        names = _labels(writer, label)
+    except RecordError:
+        writer.close()
+        raise
 
-    fd, spool = tempfile.mkstemp(prefix=".record.", suffix=".tmp", dir=out)
+    fd, spool = tempfile.mkstemp(prefix=temp_prefix("record"), suffix=".tmp", dir=out)
     shape = None
     t_s, imu_rows, imu_faults = [], [], []
     t_wall = time.time()
@@ -128,6 +132,7 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
         del frames
         return dict(writer.index["trials"][-1], path=str(path))
     finally:
+        writer.close()
         try:
             os.unlink(spool)
         except FileNotFoundError:

@@ -307,6 +307,17 @@ def _read_state(out: Path) -> dict:
     return {}
 
 
+def _release(writer, out: Path, created: bool) -> None:
+    """Release the dataset folder's writer lock; a folder this run created and left
+    empty is removed."""
+    writer.close()
+    if created and writer.n_trials == 0:
+        try:
+            out.rmdir()
+        except OSError:
+            pass
+
+
 def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool = False,
         profile: str = "roboskin", progress: bool = True, keys: bool = True, yes: bool = False,
         seed: int = 0, reconnect_s: float = 20.0, log=None) -> dict:
@@ -336,9 +347,14 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
                "done_before": len(plan.trials) - len(todo), "done": 0, "failed": [],
                "stopped_early": False, "reconnects": 0, "clock": None}
     t_run = time.monotonic()
+    # the folder's writer lock first: a second run into it stops here (exit 2)
+    created = not out.exists()
+    writer = DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
+                                      "texture_labels": list(TEXTURE_LABELS)}, source="rig")
     try:
         conn = Connection(rig_url, seed=seed)
     except (OSError, ValueError) as exc:           # serial.SerialException is an OSError
+        _release(writer, out, created)
         raise RigSetupError(f"--rig {rig_url}: cannot open: {exc}") from None
     camera = None
     kc = Keys(keys and progress)
@@ -371,9 +387,6 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
                             "spread_ms": round(first_sync["spread_ms"], 3)}
         log(f"rig clock offset {first_sync['offset_ms']:+.2f} ms (rig - host), round trip "
             f"{first_sync['rtt_ms']:.2f} ms")
-        writer = DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
-                                          "texture_labels": list(TEXTURE_LABELS),
-                                          "source": "rig"})
         from tqdm import tqdm
         bar = tqdm(total=len(todo), desc=plan.name, unit="trial", file=sys.stderr,
                    disable=not progress, smoothing=0.1)
@@ -445,6 +458,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
         if camera is not None:
             camera.close()
         conn.close()
+        _release(writer, out, created)
     summary["failed"] = [{"trial": k, "reason": v} for k, v in failed.items()]
     summary["remaining"] = len(plan.trials) - summary["done_before"] - summary["done"]
     summary["elapsed_s"] = round(time.monotonic() - t_run, 2)

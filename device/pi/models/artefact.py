@@ -3,8 +3,9 @@
 A pickle is never loaded on the Pi. The manifest names the ONNX file, its SHA-256,
 the feature-spec version the model was trained against, and the input layout.
 :func:`load_model` refuses a model whose checksum or feature-spec version does not
-match, or whose files are missing, truncated or corrupt, with a message that names
-the file.
+match, whose files are missing, truncated or corrupt, or whose manifest names a file
+that resolves outside the model folder (an absolute path, ``..``, or a link leading
+out), with a message that names the file.
 
 manifest.json (keys the loader needs; writers add more, e.g. metrics)::
 
@@ -46,6 +47,27 @@ def sha256_file(path: Path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def model_file(folder: Path | str, name, where: Path | str | None = None) -> Path:
+    """The file ``name`` (as a manifest gives it) inside the model ``folder``.
+    ModelError (naming ``where``, default the folder) unless it is a relative path
+    that, links followed, resolves inside the folder."""
+    folder = Path(folder)
+    where = where if where is not None else folder
+    if not isinstance(name, str) or not name.strip():
+        raise ModelError(f"{where}: a model file name must be a non-empty string, got {name!r}")
+    path = folder / name
+    root = folder.resolve()
+    try:
+        inside = not Path(name).is_absolute() and path.resolve().is_relative_to(root) \
+            and path.resolve() != root
+    except (OSError, RuntimeError):         # a link loop
+        inside = False
+    if not inside:
+        raise ModelError(f"{where}: model file {name!r} resolves outside the model folder "
+                         f"{folder}; a manifest names files inside its own folder only")
+    return path
 
 
 def read_manifest(path: Path | str) -> tuple[dict, Path]:
@@ -145,7 +167,7 @@ def load_model(path: Path | str, expect_kind: str | None = None,
     if expect_kind is not None and doc.get("kind") != expect_kind:
         raise ModelError(f"{folder / MANIFEST}: kind is {doc.get('kind')!r}, "
                          f"expected {expect_kind!r}")
-    onnx_path = folder / doc["onnx"]
+    onnx_path = model_file(folder, doc["onnx"], folder / MANIFEST)
     if not onnx_path.is_file():
         raise ModelError(f"{onnx_path}: model file missing")
     want = doc["sha256"].get(doc["onnx"]) if isinstance(doc["sha256"], dict) else None

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, load_model, read_manifest
+from device.pi.models.artefact import ModelError, load_model, model_file, read_manifest
 from device.pi.models.rules import RuleClassifier
 from device.pi.numerics import finite, sigmoid, softmax
 
@@ -106,7 +106,7 @@ class Classifier:
         self.uses_imu = info["uses_imu"]
         self.output_kind = info["output_kind"]
         self.task = m.get("kind", "")
-        self.onnx_path = model.path / m["onnx"]
+        self.onnx_path = model_file(model.path, m["onnx"], where)
         sess = model.session
         shape = list(sess.get_inputs()[0].shape)
         dims = [d if isinstance(d, int) else None for d in shape[1:]]

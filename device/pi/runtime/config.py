@@ -24,6 +24,10 @@ Sections and keys (units in the names)::
                when a learned surface model is loaded and GAIT is fresh)
     [rezero]   auto (bool), still_px, still_frames, min_interval_s
     [status]   interval_s (how often --status FILE is rewritten)
+    [signing]  public_key (base64 Ed25519 public key that model manifests must be
+               signed with; ``host deploy`` fills it in), allow_unsigned (bool: load
+               models that carry no signature; true by default, for development,
+               and ``host deploy`` writes false unless the config sets it)
 """
 from __future__ import annotations
 
@@ -31,6 +35,7 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from device.config import ConfigError, Fields, read_toml
+from device.pi.models.signature import decode_public_key
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "leg.toml"
 
@@ -92,6 +97,12 @@ class StatusConfig:
 
 
 @dataclass
+class SigningConfig:
+    public_key: str = ""
+    allow_unsigned: bool = True
+
+
+@dataclass
 class LegConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     imu: ImuConfig = field(default_factory=ImuConfig)
@@ -101,6 +112,7 @@ class LegConfig:
     rezero: RezeroConfig = field(default_factory=RezeroConfig)
     status: StatusConfig = field(default_factory=StatusConfig)
     source: str = ""
+    signing: SigningConfig = field(default_factory=SigningConfig)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -181,8 +193,21 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
     stc = StatusConfig(interval_s=st.number("interval_s", d.status.interval_s, min=0.05,
                                             max=1.0))
     st.done()
+
+    k = top.sub("signing", {})
+    sig = SigningConfig(public_key=k.string("public_key", d.signing.public_key).strip(),
+                        allow_unsigned=k.boolean("allow_unsigned", d.signing.allow_unsigned))
+    k.done()
+    if sig.public_key:
+        try:
+            decode_public_key(sig.public_key)
+        except ValueError as exc:
+            k.fail("signing.public_key", sig.public_key, str(exc))
+    elif not sig.allow_unsigned:
+        k.fail("signing.allow_unsigned", False, "needs signing.public_key to check "
+               "signatures with")
     top.done()
-    return LegConfig(cam, imu, ser, mod, dec, rz, stc, source=source)
+    return LegConfig(cam, imu, ser, mod, dec, rz, stc, source=source, signing=sig)
 
 
 def load_leg_config(path: Path | str | None = None) -> LegConfig:

@@ -28,7 +28,8 @@ SLIP_THRESHOLD = 0.5
 
 @dataclass
 class GaitContext:
-    """The MCU's latest gait context (t = clock time it arrived)."""
+    """The MCU's latest gait context (t = clock time it was sent: the runtime
+    judges its age from when the MCU sent it, not from when it was decoded)."""
     stance: bool
     load_n: float
     vel_mm_s: float
@@ -58,13 +59,14 @@ def expected_context(gait: GaitContext | None, now: float, dc: DecisionConfig, f
     """(expected_mag_px, expected_motion_px, gait dict | None) from a gait context
     fresher than ``dc.gait_timeout_ms``, or (None, None, None): the rule's nominal
     values."""
-    if gait is None or (now - gait.t) * 1e3 > dc.gait_timeout_ms:
+    age_ms = (now - gait.t) * 1e3 if gait is not None else math.inf
+    if age_ms > dc.gait_timeout_ms:
         return None, None, None
     load = gait.load_n if gait.stance else 0.0
     mag = max(0.0, load) * dc.mag_px_per_n
     motion = abs(gait.vel_mm_s) * dc.motion_px_per_mm / fps if gait.stance else 0.0
     return mag, motion, {"stance": gait.stance, "load_n": round(gait.load_n, 3),
-                         "vel_mm_s": round(gait.vel_mm_s, 3)}
+                         "vel_mm_s": round(gait.vel_mm_s, 3), "age_ms": round(max(0.0, age_ms), 1)}
 
 
 def no_touch_probs() -> np.ndarray:

@@ -6,6 +6,8 @@ import queue
 import threading
 import time
 
+from device.pi.sources.camera import BadFrameError
+
 
 class CameraFeed:
     """Frames from a camera factory on a grab thread.
@@ -14,7 +16,9 @@ class CameraFeed:
     thread waits for the loop). Otherwise (live cameras) only the newest frame is
     kept. A source that raises is closed and reopened with a backoff doubling from
     ``reopen_min_s`` to ``reopen_max_s``; the thread never gives up. ``read()``
-    returning None ends a finite stream (``eof``)."""
+    returning None ends a finite stream (``eof``). A file source's unreadable frame
+    (``BadFrameError``: the source has moved past it) is counted in ``skipped`` and
+    reading goes on: reopening a file would replay it from the start."""
 
     def __init__(self, factory, *, lossless: bool, reopen_min_s: float = 0.1,
                  reopen_max_s: float = 2.0, first=None, clock=time.monotonic):
@@ -28,6 +32,7 @@ class CameraFeed:
         self._cam = first
         self.opens = 1 if first is not None else 0
         self.errors = 0
+        self.skipped = 0                  # unreadable frames of a file source, skipped
         self.last_error = ""
         self.eof = False
         self.opened_at = clock() if first is not None else None
@@ -75,6 +80,10 @@ class CameraFeed:
                     continue
             try:
                 fr = self._cam.read()
+            except BadFrameError as exc:        # one bad file frame: skip it, go on
+                self.skipped += 1
+                self.last_error = str(exc)
+                continue
             except Exception as exc:            # unplugged: close, reopen with backoff
                 self.errors += 1
                 self.last_error = str(exc)

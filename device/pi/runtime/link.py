@@ -24,8 +24,12 @@ A frame already partly written is always finished first, so the byte stream
 stays framed. When bytes are waiting and the port accepted none for
 ``stall_ms``, :attr:`LinkWriter.stalled` is true (the runtime's link fault).
 
-Reading: :class:`LinkReader` reads whatever bytes are waiting (never waits), feeds
-the frame decoder and returns the decoded GAIT / COMMAND messages.
+Reading: :class:`LinkReader` reads every byte that is waiting (never waits), at
+most :data:`READ_BUDGET` bytes per pass, feeds the frame decoder and returns the
+decoded GAIT / COMMAND messages. It reads until the port has nothing more, rather
+than the count ``in_waiting`` reports: pyserial's ``socket://`` reports 1 whenever
+anything is waiting. Each message comes with the time it was sent, on the runtime's
+clock (:class:`SenderClock`), so a context read late counts as old.
 """
 from __future__ import annotations
 
@@ -41,8 +45,10 @@ from device.pi import protocol
 FAULT_QUEUE = 64
 #: kinds in the order they are served
 KINDS = ("fault", "status", "surface", "imu", "heartbeat")
-#: bytes read from the port per poll at most
+#: bytes asked of the port per read
 READ_CHUNK = 512
+#: bytes read from the port per poll at most (a 100 Hz GAIT stream is ~2 kB/s)
+READ_BUDGET = 16384
 
 
 class LinkError(OSError):
@@ -177,28 +183,83 @@ class LinkWriter:
                 "write_errors": self.write_errors, "pending": self.pending}
 
 
+class SenderClock:
+    """The time a frame was sent, on the local clock, from its header's ``t_ms`` (the
+    sender's milliseconds).
+
+    The offset between the two clocks is the smallest (local arrival - sender time)
+    seen: the frame that came fastest. It may rise by at most ``drift`` s per s, so
+    the estimate follows two crystals drifting apart, while a frame read late by a
+    backlog keeps its age. A step of more than ``resync_s`` (the sender restarted,
+    or its tick counter wrapped) starts the estimate again. A sender that stamps 0
+    has no clock: its frames are taken as sent when they arrive."""
+
+    def __init__(self, drift: float = 1e-3, resync_s: float = 30.0):
+        self.drift = float(drift)
+        self.resync_s = float(resync_s)
+        self.offset: float | None = None
+        self._t_last = 0.0
+
+    def sent_at(self, t_ms: int, now: float) -> float:
+        if not t_ms:
+            return now
+        t = t_ms / 1000.0
+        sample = now - t
+        if self.offset is None or sample < self.offset or sample - self.offset > self.resync_s:
+            self.offset = sample
+        else:
+            self.offset = min(sample, self.offset + self.drift * max(0.0, now - self._t_last))
+        self._t_last = now
+        return min(now, t + self.offset)
+
+
 class LinkReader:
     """Reads what is waiting on the port and decodes GAIT / COMMAND messages."""
 
-    def __init__(self, port, max_frame: int = 64):
+    def __init__(self, port, max_frame: int = 64, clock=time.monotonic,
+                 budget: int = READ_BUDGET):
         self.port = port
         self.protocol = protocol
         self.decoder = protocol.FrameDecoder(max_frame=max_frame)
+        self.clock = clock
+        self.budget = int(budget)
+        self.sender_clock = SenderClock()
         self.read_errors = 0
+        self.bytes_read = 0
 
-    def poll(self) -> list:
-        """Decoded messages from the MCU (frames of other kinds are skipped)."""
-        try:
+    def _read_waiting(self) -> bytes:
+        """Every byte waiting now, up to the budget. ``in_waiting`` is only asked
+        whether anything waits; the reads go on until the port gives nothing."""
+        got = bytearray()
+        while len(got) < self.budget:
             n = self.port.in_waiting
-            data = self.port.read(min(n, READ_CHUNK)) if n else b""
+            if not n:
+                break
+            chunk = self.port.read(min(max(int(n), READ_CHUNK), self.budget - len(got)))
+            if not chunk:
+                break
+            got += chunk
+        return bytes(got)
+
+    def poll_timed(self) -> list:
+        """[(message, t_sent)]: the decoded messages from the MCU (frames of other
+        kinds are skipped), each with the local clock time it was sent."""
+        try:
+            data = self._read_waiting()
         except Exception:
             self.read_errors += 1
             return []
         if not data:
             return []
+        self.bytes_read += len(data)
+        now = self.clock()
         out = []
         for raw in self.decoder.feed(data):
             msg = self.protocol.decode_message(raw)
             if msg is not None:
-                out.append(msg)
+                out.append((msg, self.sender_clock.sent_at(raw.t_ms, now)))
         return out
+
+    def poll(self) -> list:
+        """The decoded messages from the MCU, without their times."""
+        return [m for m, _ in self.poll_timed()]

@@ -1,5 +1,7 @@
 """The leg runtime's model set: every model in the models folder, loaded once and
-checked against the pin layout before the loop starts."""
+checked against the pin layout before the loop starts. Each manifest's signature is
+checked against the config's ``[signing]`` key before its model is loaded
+(:func:`device.pi.models.signature.check_manifest`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -12,6 +14,7 @@ from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
 from device.pi.models.window import RollingWindow
 from device.pi.runtime.config import LegConfig
 from device.pi.models.localiser import Localiser
+from device.pi.models.signature import check_manifest
 
 #: the classifier tasks, each loaded from the folder of that name
 CLASSIFIER_TASKS = ("surface", "texture", "slip")
@@ -79,19 +82,27 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
     d = Path(models_dir) if models_dir is not None else default_models_dir()
     if models_dir is not None and not d.is_dir():
         raise ModelError(f"{d}: models folder not found")
+    sig = cfg.signing
+
+    def checked(manifest: Path) -> Path:
+        if manifest.is_file():
+            check_manifest(manifest, sig.public_key, sig.allow_unsigned)
+        return manifest
+
     if d.is_dir():
         for kind in CLASSIFIER_TASKS:
             f = d / kind
             if (f / "manifest.json").is_file() or (f.is_dir() and any(f.iterdir())):
-                setattr(m, kind, Classifier.load(manifest_for(f, variant), expect_kind=kind))
+                setattr(m, kind, Classifier.load(checked(manifest_for(f, variant)),
+                                                 expect_kind=kind))
                 loaded.append(kind)
         f = d / "pressure"
         if f.is_dir():
-            m.pressure = Regressor.load(manifest_for(f, variant))
+            m.pressure = Regressor.load(checked(manifest_for(f, variant)))
             loaded.append("pressure")
         pick = _pick_localiser(d, cfg.models.profile) if cfg.models.localiser else None
         if pick is not None:
-            m.localiser = Localiser.load(pick)
+            m.localiser = Localiser.load(checked(pick / "manifest.json"))
             loaded.append(pick.name)
     s = m.surface
     if isinstance(s, RuleClassifier) and list(s.classes) == list(SURFACE_CLASSES):

@@ -23,13 +23,14 @@ import math
 import os
 import sys
 import time
+from collections import deque
 
 import cv2
 import numpy as np
 
 from device.config import ConfigError
-from device.pi.faults import (FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL, FAULT_PINS_LOST,
-                              PIPELINE_FAULTS, fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL,
+                              FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
 from device.pi.models.artefact import ModelError
 from device.pi.models.window import RollingWindow
 from device.pi import protocol as P
@@ -42,6 +43,7 @@ from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
 from device.pi.runtime.load import Models, load_models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
+from device.pi.runtime.stats import BoundedStats
 from device.pi.runtime.status import write_status_file
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
@@ -54,6 +56,8 @@ REOPEN_AFTER_S = 1.0
 #: side of the binary crop the ``frames`` input layout reads, px
 CROP_PX = 32
 EXIT_BAD_INPUT = 2
+#: fault-state changes the runtime remembers (the newest)
+FAULT_LOG = 256
 
 
 class StartupError(Exception):
@@ -100,7 +104,7 @@ class LegRuntime:
         self._imu_n = 0
         self.port = port
         self.writer = LinkWriter(port, stall_ms=cfg.serial.stall_ms, clock=clock)
-        self.reader = LinkReader(port)
+        self.reader = LinkReader(port, clock=clock)
         self.feed = CameraFeed(camera_factory, lossless=lossless,
                                reopen_min_s=cfg.camera.reopen_min_s,
                                reopen_max_s=cfg.camera.reopen_max_s, first=first_camera,
@@ -122,6 +126,7 @@ class LegRuntime:
         self._last_rezero = -1e9
         self._still = 0
         self._pipe_faults = 0
+        self._skipped_seen = 0
         self._imu_faults = 0
         self._model_fault = False
         self._t0 = clock()
@@ -131,11 +136,13 @@ class LegRuntime:
         self._next_imu = self._t0
         self._next_status = self._t0
         self._next_fault_repeat = 1e18
-        self.latencies_ms: list[float] = []
-        self.cpu_ms: list[float] = []          # thread CPU time per frame
-        self.fault_log: list[tuple[float, int]] = []   # (clock, bits) at each change
+        # bounded, however long the run: see device/pi/runtime/stats.py
+        self.latency_ms = BoundedStats()
+        self.cpu_ms = BoundedStats()           # thread CPU time per frame
+        self.fault_log: deque[tuple[float, int]] = deque(maxlen=FAULT_LOG)  # (clock, bits)
         self.stopped = False
         self._ready = False
+        self._status_warned = False
         self._reopen_asked = False
         self.watchdog = sdnotify.Watchdog()
 
@@ -209,6 +216,9 @@ class LegRuntime:
         ef = self.encoder.encode(frame.image, frame.t_s)
         ff = ef.features
         self._pipe_faults = int(ff.faults) & PIPELINE_FAULTS
+        if self.feed.skipped != self._skipped_seen:   # a bad file frame was skipped before it
+            self._skipped_seen = self.feed.skipped
+            self._pipe_faults |= FAULT_BAD_FRAME
         if self.stream.reference is not None and len(ff.lost):
             self._pins_lost = int(ff.lost.sum())
             if self._pins_lost * 2 > len(ff.lost):
@@ -236,11 +246,11 @@ class LegRuntime:
         before = self.writer.packets_sent
         self.writer.pump()
         t_done = self.clock()
-        self.cpu_ms.append((time.thread_time() - c0) * 1e3)
+        self.cpu_ms.add((time.thread_time() - c0) * 1e3)
         lat = None
         if self.writer.packets_sent > before and self.writer.pending == 0:
             lat = (t_done - t_avail) * 1e3
-            self.latencies_ms.append(lat)
+            self.latency_ms.add(lat)
         if self.json_log is None:
             return
         # the decision log line, built after the packet went out
@@ -322,8 +332,8 @@ class LegRuntime:
 
     def _housekeeping(self) -> None:
         now = self.clock()
-        for msg in self.reader.poll():
-            self._handle(msg)
+        for msg, t_sent in self.reader.poll_timed():
+            self._handle(msg, t_sent)
         if self._last_frame_t is None or \
                 now - self._last_frame_t > self.cfg.camera.stall_periods / self.fps:
             # no frames (camera stalled): keep the IMU read going at the summary rate;
@@ -374,10 +384,10 @@ class LegRuntime:
         self._imu_n = 0
         self._send("imu", msg)
 
-    def _handle(self, msg) -> None:
+    def _handle(self, msg, t_sent: float) -> None:
         if isinstance(msg, P.Gait):
             self.gait_packets += 1
-            self.gait = gait_from_message(msg, self.clock())
+            self.gait = gait_from_message(msg, t_sent)
         elif isinstance(msg, P.Command):
             self.commands += 1
             op = command_op(msg)
@@ -401,14 +411,21 @@ class LegRuntime:
                 "packets_sent": w.packets_sent, "packets_dropped": w.packets_dropped,
                 "faults": self.faults, "fault_names": fault_names(self.faults),
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
-                "camera_errors": self.feed.errors, "gait_packets": self.gait_packets,
+                "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
+                "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps}
 
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:
             return
-        write_status_file(self.status_path, self.status())
+        ok = write_status_file(self.status_path, self.status())
+        if not ok and not self._status_warned:     # once: the file system refused
+            self._status_warned = True
+            print(f"device.pi run: warning: --status {self.status_path}: cannot write the "
+                  f"status file; retrying", file=sys.stderr)
+        elif ok:
+            self._status_warned = False
 
     def close(self) -> None:
         self._update_faults(self._fault_bits())   # before the feed stops on purpose
@@ -485,6 +502,14 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         raise StartupError(f"--camera: {exc}") from None
     if fps is None and first is not None and first.fps:
         cfg.camera.fps = float(first.fps)      # the rate the source actually runs at
+    if status:
+        folder = os.path.dirname(os.path.abspath(status))
+        if not os.path.isdir(folder):
+            fail(f"--status {status!r}: the folder {folder} does not exist")
+        if not os.access(folder, os.W_OK):
+            fail(f"--status {status!r}: the folder {folder} is not writable")
+    if models_dir is not None:
+        _check_models_folder(models_dir, fail)
     try:
         n_pins = _layout_pins(cfg.models.profile)
         models = load_models(models_dir, "float" if float_models else cfg.models.variant,
@@ -518,6 +543,24 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     return LegRuntime(cfg, factory, imu_src, port, models, lossless=not live, fps=cfg.camera.fps,
                       json_log=log, status_path=status, max_frames=frames, first_camera=first,
                       notify=notify, camera_opts=opts if live else None)
+
+
+def _check_models_folder(models_dir, fail) -> None:
+    """Refuse one model's folder given for the models folder (it would load nothing
+    and run the rules alone); warn when the folder holds no model."""
+    from pathlib import Path
+    d = Path(models_dir)
+    if not d.is_dir():
+        return                                # load_models names the missing folder
+    if (d / "manifest.json").is_file() or any(d.glob("*.onnx")):
+        fail(f"--models {str(models_dir)!r} is one model's folder (it holds "
+             f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
+             f"give the folder that holds surface/, texture/, slip/ and pressure/, "
+             f"e.g. {d.parent}")
+    tasks = ("surface", "texture", "slip", "pressure")
+    if not any((d / t).is_dir() for t in tasks):
+        print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
+              f"({', '.join(tasks)}); running the rules only", file=sys.stderr)
 
 
 def _layout_pins(profile: str) -> int:

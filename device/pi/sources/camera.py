@@ -52,6 +52,7 @@ import numpy as np
 from device.pi.sources.options import opt_bool, opt_float, opt_int, parse_options
 
 __all__ = [
+    "BadFrameError",
     "CameraError",
     "CameraSource",
     "Frame",
@@ -70,6 +71,11 @@ VIDEO_SUFFIXES = frozenset({".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".m
 
 class CameraError(OSError):
     """A camera or recording cannot be opened or read."""
+
+
+class BadFrameError(CameraError):
+    """One frame of a file source cannot be read (an unreadable or odd-sized image);
+    the source has moved past it, so the next ``read()`` gives the frame after."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -308,11 +314,16 @@ class ImageFolderSource(CameraSource):
         if i == 0 and self._first is not None:
             image, self._first = self._first, None
         else:
-            image = self._load(self.files[i])
+            try:
+                image = self._load(self.files[i])
+            except CameraError as exc:
+                self._index += 1                    # the next read() goes on past it
+                raise BadFrameError(exc.errno, exc.strerror, exc.filename) from None
         if image.shape[:2] != (self.height, self.width):
-            raise CameraError(errno.EINVAL,
-                              f"image is {image.shape[1]}x{image.shape[0]}, the folder's first is "
-                              f"{self.width}x{self.height}", str(self.files[i]))
+            self._index += 1
+            raise BadFrameError(errno.EINVAL,
+                                f"image is {image.shape[1]}x{image.shape[0]}, the folder's first "
+                                f"is {self.width}x{self.height}", str(self.files[i]))
         return image, None
 
 

@@ -61,6 +61,20 @@ TACTIP_SHEAR_PARAMS = VisionParams(
 # --------------------------------------------------------------------------
 
 
+def image_shape(frame: np.ndarray, min_side: int = 8) -> tuple[int, int] | None:
+    """(H, W) of a numeric gray (H,W), (H,W,1), BGR or BGRA frame whose sides are at
+    least ``min_side``; None for anything else (no pixel is read)."""
+    a = frame
+    if not isinstance(a, np.ndarray) or a.ndim not in (2, 3):
+        return None
+    if a.ndim == 3 and a.shape[2] not in (1, 3, 4):
+        return None
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+        return None
+    h, w = int(a.shape[0]), int(a.shape[1])
+    return (h, w) if min(h, w) >= min_side else None
+
+
 def to_gray(frame: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Return a 2-D uint8 gray image from a gray (H,W), (H,W,1), BGR or BGRA frame.
 
@@ -283,7 +297,7 @@ def components(binary: np.ndarray, labels: np.ndarray | None = None
     """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,).
 
     Labels come from ``cv2.connectedComponents``; areas and centroids from
-    ``np.bincount`` over the foreground pixels only, which is several times
+    ``np.bincount`` over the foreground pixels only (found by ``cv2.findNonZero``), which is several times
     cheaper than OpenCV's per-component statistics on a sparse pin image.
     Pass ``labels`` (int32, the binary's shape) to label without allocating.
     """
@@ -295,12 +309,12 @@ def components(binary: np.ndarray, labels: np.ndarray | None = None
     n, _ = cv2.connectedComponents(b, labels, 8, cv2.CV_32S)
     if n <= 1:
         return np.zeros((0, 2), np.float32), np.zeros((0,), np.int32)
-    flat = labels.reshape(-1)
-    idx = np.flatnonzero(flat)
-    lab = flat[idx]
-    w = b.shape[1]
+    # the foreground pixels' x, y: cv2.findNonZero is several times faster than
+    # np.flatnonzero on a uint8 image
+    pts = cv2.findNonZero(b).reshape(-1, 2)
+    xs, ys = pts[:, 0], pts[:, 1]
+    lab = labels.reshape(-1)[ys * b.shape[1] + xs]
     area = np.bincount(lab, minlength=n)[1:]
-    ys, xs = np.divmod(idx, w)
     cx = np.bincount(lab, weights=xs, minlength=n)[1:] / area
     cy = np.bincount(lab, weights=ys, minlength=n)[1:] / area
     return np.stack([cx, cy], axis=1).astype(np.float32), area.astype(np.int32)
@@ -349,7 +363,6 @@ class PinDetector:
             raise ValueError(f"frame_shape must be positive, got frame_shape={frame_shape!r}")
         self.params = params
         self.frame_shape = (h, w)
-        self._gray_full = np.empty((h, w), np.uint8)
         self.set_dome(dome)
 
     def set_dome(self, dome: tuple[float, float, float] | None) -> None:
@@ -371,6 +384,7 @@ class PinDetector:
         self.dome = dome
         self.box = (x0, y0, x1, y1)
         bh, bw = y1 - y0, x1 - x0
+        self._gray = np.empty((bh, bw), np.uint8)     # the crop in gray (colour frames)
         self._smooth = np.empty((bh, bw), np.uint8)
         self._binary = np.empty((bh, bw), np.uint8)
         self._labels = np.empty((bh, bw), np.int32)
@@ -392,12 +406,15 @@ class PinDetector:
         return self._binary
 
     def threshold(self, frame: np.ndarray) -> np.ndarray:
-        """Gray, blur and binarise the dome crop; returns the internal binary buffer."""
+        """Gray, blur and binarise the dome crop; returns the internal binary buffer.
+        Only the dome's box is converted to gray: a colour frame's pixels outside it
+        are never read."""
         if frame.shape[:2] != self.frame_shape:
             raise ValueError(f"frame shape must be {self.frame_shape!r}, got frame.shape={frame.shape!r}")
         x0, y0, x1, y1 = self.box
-        gray = to_gray(frame, out=self._gray_full) if frame.ndim == 3 or frame.dtype != np.uint8 else frame
-        crop = gray[y0:y1, x0:x1]
+        crop = frame[y0:y1, x0:x1]
+        if crop.ndim == 3 or crop.dtype != np.uint8:
+            crop = to_gray(crop, out=self._gray)
         p = self.params
         if p.blur_sigma_px > 0:
             cv2.GaussianBlur(crop, self._ksize, p.blur_sigma_px, dst=self._smooth)

@@ -136,7 +136,8 @@ _FINAL_ROUNDS = 4
 
 def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, disp: np.ndarray,
             nb: np.ndarray, valid: np.ndarray, steps: int, sinkhorn_iters: int,
-            outlier_sigmas: float, smooth: float, smooth_iters: int = 10) -> np.ndarray:
+            outlier_sigmas: float, smooth: float, smooth_iters: int = 10,
+            start: float = _ANNEAL_START) -> np.ndarray:
     """Coarse displacement field by annealed, smoothed soft one-to-one matching.
 
     Softassign with a smooth field (after Gold & Rangarajan's robust point
@@ -153,7 +154,7 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     far), with lam = smooth * sigma / pitch: strong at first, small at the
     end.
 
-    sigma falls geometrically from 3 pitches, where the whole cloud is matched
+    sigma falls geometrically from ``start`` pitches (default 3), where the whole cloud is matched
     to the whole cloud (a radial expansion or a shift by more than a pitch is
     found as such, which nearest-neighbour matching cannot do), to 0.1 pitch,
     where the weights are nearly hard. Without the smoothing the soft matching
@@ -182,7 +183,7 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     rows = np.repeat(np.arange(m), nb.shape[1])
     np.add.at(adj, (rows[valid.ravel()], nb.ravel()[valid.ravel()]), 1.0)
     deg = adj.sum(axis=1)
-    for sigma in np.geomspace(_ANNEAL_START, _ANNEAL_END, steps) * pitch:
+    for sigma in np.geomspace(start, _ANNEAL_END, steps) * pitch:
         pos = ref + v - origin
         hp[:, :2] = pos
         hp[:, 3] = (pos * pos).sum(axis=1)
@@ -219,6 +220,7 @@ def track_with_neighbours(
     coarse: bool = True,
     anneal_steps: int = 16,
     sinkhorn_iters: int = 10,
+    anneal_start: float = _ANNEAL_START,
     outlier_sigmas: float = 3.0,
     smooth: float = 1.0,
     grow_rounds: int = 12,
@@ -236,8 +238,12 @@ def track_with_neighbours(
        clouds, with a smooth displacement field over the layout-neighbour
        graph (weight ``smooth``; 0 turns the smoothing off), gives a
        predicted displacement for every pin, starting from ``init_disp_px``
-       (see ``_anneal``). Without it the prediction is ``init_disp_px`` (or
-       zero).
+       (see ``_anneal``): ``anneal_steps`` temperatures from ``anneal_start``
+       pitches down to 0.1, ``sinkhorn_iters`` normalisations each. From
+       scratch the search starts at 3 pitches; from a good prior (a tracker's
+       prediction) a start of 1.5 pitches and fewer steps find the same
+       answer at a third of the cost. Without it the prediction is
+       ``init_disp_px`` (or zero).
     2. Match the predicted positions with :func:`match_pins`, first with
        half the gate ``gate_frac * pitch_px`` (confident matches).
     3. Grow: each lost pin is predicted again from its tracked layout
@@ -260,6 +266,7 @@ def track_with_neighbours(
     gate_frac = positive_number("gate_frac", gate_frac)
     anneal_steps = whole_number("anneal_steps", anneal_steps, 1)
     sinkhorn_iters = whole_number("sinkhorn_iters", sinkhorn_iters, 1)
+    anneal_start = positive_number("anneal_start", anneal_start)
     outlier_sigmas = positive_number("outlier_sigmas", outlier_sigmas)
     smooth = finite_number("smooth", smooth, 0)
     grow_rounds = whole_number("grow_rounds", grow_rounds, 0)
@@ -295,7 +302,7 @@ def track_with_neighbours(
         return idx, pred
     if coarse:
         pred = _anneal(r, fin_r, c, pitch, pred, nb, valid, anneal_steps, sinkhorn_iters,
-                       outlier_sigmas, float(smooth))
+                       outlier_sigmas, float(smooth), start=max(anneal_start, 2 * _ANNEAL_END))
         pred[~fin_r] = 0.0
     idx[:] = match_and_grow(r, fin_r, c, pred, nb, valid, gate_frac * pitch, grow_rounds, min_support,
                              pred)[0]

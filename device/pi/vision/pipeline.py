@@ -24,7 +24,7 @@ from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
 from device.pi.vision.tracking import Tracker
-from device.pi.vision.extract import PinDetector, find_dome, to_gray
+from device.pi.vision.extract import PinDetector, find_dome, image_shape, to_gray
 
 STAGES = ("gray", "detect", "track", "localise", "grid", "features")
 
@@ -153,24 +153,36 @@ class MarkerStream:
         self.index += 1
         t_s = float(i) if t_s is None or not math.isfinite(t_s) else float(t_s)
         faults = 0
-        try:
-            gray = to_gray(np.asarray(frame))
-        except (ValueError, TypeError):
-            gray = None
-        if gray is None or gray.ndim != 2 or min(gray.shape) < 8:
+        a = np.asarray(frame)
+        shape = image_shape(a)
+        if shape is None:
             return self._empty(i, t_s, FAULT_BAD_FRAME | FAULT_NO_DOME, timings)
-        if gray.shape != self.shape:
+        if a.ndim == 3 and a.shape[2] == 1:
+            a = a[:, :, 0]
+        if shape != self.shape:
             if self.shape is not None:
                 faults |= FAULT_FRAME_SIZE_CHANGED
-            self._reset_geometry(gray.shape)
+            self._reset_geometry(shape)
         t1 = clock()
-        timings["gray"] = (t1 - t0) * 1e3
-        if not self._ensure_dome(gray):
-            return self._empty(i, t_s, faults | FAULT_NO_DOME | FAULT_NO_REFERENCE, timings)
-        pins, _ = self.detector.detect(gray)
+        if self.detector is None:
+            # the dome is looked for on the whole frame, once; after that only the
+            # dome's box is converted (in the detector)
+            try:
+                gray = to_gray(a)
+            except (ValueError, TypeError):
+                return self._empty(i, t_s, FAULT_BAD_FRAME | FAULT_NO_DOME, timings)
+            if not self._ensure_dome(gray):
+                timings["gray"] = (clock() - t1) * 1e3
+                return self._empty(i, t_s, faults | FAULT_NO_DOME | FAULT_NO_REFERENCE, timings)
+        t1b = clock()
+        timings["gray"] = (t1b - t1) * 1e3
+        try:
+            pins, _ = self.detector.detect(a)
+        except (ValueError, TypeError):
+            return self._empty(i, t_s, faults | FAULT_BAD_FRAME, timings)
         binary = self.detector.binary
         t2 = clock()
-        timings["detect"] = (t2 - t1) * 1e3
+        timings["detect"] = (t2 - t1b) * 1e3
         if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
             faults |= FAULT_TOO_FEW_PINS
         if self.reference is None:

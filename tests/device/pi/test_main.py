@@ -126,3 +126,18 @@ def test_the_runtime_starts_without_its_imu_and_reports_the_fault(tmp_path):
     doc = json.loads(status.read_text())
     assert "imu" in doc["fault_names"] and doc["frames"] == 20
 
+
+
+def test_status_in_a_missing_folder_and_one_models_folder_refuse_to_start(model_dir, tmp_path,
+                                                                           capsys):
+    cam = ["--camera", "sim://press-hard"]
+    rc, err = _run_main(cam + ["--status", str(tmp_path / "nope" / "st.json")], capsys)
+    assert rc == 2 and "--status" in err and "does not exist" in err
+    # one model's folder, not the folder of models: it would run the rules alone
+    rc, err = _run_main(cam + ["--models", str(model_dir / "surface")], capsys)
+    assert rc == 2 and "one model's folder" in err and str(model_dir) in err
+    # a folder with no model runs the rules, and says so
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rc, err = _run_main(cam + ["--models", str(empty)], capsys)
+    assert rc == 0 and "warning" in err and "rules only" in err

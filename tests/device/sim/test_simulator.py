@@ -56,3 +56,36 @@ def test_all_pins_lost_is_legal_and_finite():
     assert not sim.truth["visible"].any()
     f = sim.render(5)
     assert np.array_equal(f, sim.renderer.background)
+
+
+def test_a_long_scene_renders_without_holding_the_whole_scene():
+    """Two minutes at 120 fps (14,400 frames): building the simulator and rendering
+    stays within a few MB; the pins of every frame (F x M x 2) are not held."""
+    import tracemalloc
+    doc = scene_doc(timeline=[{"action": "lower", "depth_mm": 2.0, "duration_s": 1.0},
+                              {"action": "drag", "direction_deg": 0.0, "speed_mm_s": 5.0,
+                               "duration_s": 119.0}])
+    doc["sensor"].update(fps=120)
+    sc = parse_scene(doc)
+    tracemalloc.start()
+    try:
+        sim = Simulator(sc, seed=0)
+        frames = [sim.render(i).copy() for i in (0, 5000, 5001, 14_399)]
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert sim.n_frames == 14_400
+    pins_bytes = sim.n_frames * sc.profile.n_pins * 2 * 8
+    assert peak < 25e6 < pins_bytes, f"peak {peak / 1e6:.0f} MB"
+    # the frames rendered lazily are the frames of the whole-scene truth
+    for i, f in zip((0, 5000, 5001, 14_399), frames):
+        assert np.array_equal(f, sim.renderer.render(
+            i, sim.truth["pins_px"][i], sim.truth["visible"][i],
+            _motion(sim.truth["pins_px"], i, sim.fps)))
+
+
+def _motion(pins, i, fps):
+    if i == 0:
+        return np.zeros(3)
+    v = (pins[i].astype(np.float64) - pins[i - 1]) * fps
+    return np.array([*v.mean(axis=0), np.hypot(v[:, 0], v[:, 1]).mean()])

@@ -17,3 +17,24 @@ def test_host_bench_runtime_json(capsys):
     assert res["surface_packet_bytes"] <= 32 and res["meets"]["surface_packet_bytes"]
     assert res["meets"]["latency_ms_p99"] == (res["latency_ms_p99"] <= 2.0)
 
+
+
+def test_host_bench_runtime_on_a_real_recording(capsys):
+    from tests.realdata import real_data_dir
+    clip = real_data_dir("roboskin/concrete.avi") / "roboskin"
+    assert main(["bench", "runtime", "--camera", str(clip / "concrete.avi"), "--imu",
+                 f"file://{clip / 'concrete_gyro.npy'}", "--frames", "30", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["real"] and res["source"].endswith("concrete.avi")
+    assert res["frames_run"] == 30 and res["rss_mb_peak_with_simulator"] is None
+    assert 0 < res["latency_ms_p50"] <= res["latency_ms_p99"]
+    assert res["pi4"]["latency_ms_p99"] == res["latency_ms_p99"] * res["pi4_factor"]
+    assert res["pi4"]["throughput_fps"] == res["throughput_fps"] / res["pi4_factor"]
+    assert res["meets"]["throughput_fps"] == (res["throughput_fps"] >= 500)
+    before, after = res["load_avg_1min_per_run"]["paced"]
+    assert before >= 0 and after >= 0
+
+
+def test_host_bench_runtime_refuses_a_missing_recording(tmp_path, capsys):
+    assert main(["bench", "runtime", "--camera", str(tmp_path / "nope.avi")]) == 2
+    assert "does not exist" in capsys.readouterr().err

@@ -74,3 +74,96 @@ def test_a_truncated_or_missing_trial_file_is_a_dataset_error_naming_it(tmp_path
     f.unlink()
     with pytest.raises(dataset.DatasetError, match=r"trial_0000\.npz: trial file missing"):
         dataset.load_trial(out, 0)
+
+
+# -- one writer at a time, stale temporary files, sources per trial -----------------
+
+def _frames(n=3):
+    return np.zeros((n, 8, 8), np.uint8)
+
+
+def test_a_second_writer_to_one_folder_is_refused(tmp_path, capsys):
+    from host.cli import main
+    out = tmp_path / "ds"
+    first = dataset.DatasetWriter(out, meta={"source": "simulator"})
+    with pytest.raises(dataset.DatasetError, match="another writer"):
+        dataset.DatasetWriter(out)
+    # host simulate into the folder: exit 2, one line
+    rc = main(["simulate", "no-touch", "--out", str(out), "--json"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "another writer" in err and len(err.splitlines()) == 1
+    first.add_trial(_frames(), {}, {})
+    first.close()
+    # once the first writer is done, the next one appends
+    with dataset.DatasetWriter(out) as w:
+        w.add_trial(_frames(), {}, {})
+    assert len(dataset.read_index(out)["trials"]) == 2
+
+
+_KILLED_WRITER = """
+import os, sys
+from pathlib import Path
+from host.data.dataset import atomic_write
+def write(fh):
+    fh.write(b"x" * 100000)
+    fh.flush()
+    if sys.argv[2] == "die":
+        os._exit(9)                 # killed mid-write: no clean-up runs
+    sys.stdout.write("writing\\n")
+    sys.stdout.flush()
+    sys.stdin.readline()            # a live writer, still at work
+atomic_write(Path(sys.argv[1]) / "trial_0000.npz", write)
+"""
+
+
+def test_the_next_writer_removes_temp_files_of_dead_writers_only(tmp_path):
+    import os
+    import subprocess
+    import sys
+    out = tmp_path / "ds"
+    out.mkdir()
+    env = dict(os.environ, PYTHONPATH=os.getcwd())
+    subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(out), "die"], env=env,
+                   timeout=60)
+    live = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(out), "live"], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert live.stdout.readline().strip() == "writing"
+        assert len(list(out.glob(".*.tmp"))) == 2
+        with dataset.DatasetWriter(out) as w:
+            # the dead writer's file is gone; the live one's is kept
+            left = list(out.glob(".*.tmp"))
+            assert len(left) == 1 and str(live.pid) in left[0].name
+            assert w.removed_temp_files == 1
+    finally:
+        live.kill()
+        live.wait()
+    with dataset.DatasetWriter(out):
+        assert list(out.glob(".*.tmp")) == []
+
+
+def test_sources_are_kept_per_trial_and_a_mixed_folder_says_so(tmp_path):
+    out = tmp_path / "ds"
+    with dataset.DatasetWriter(out, meta={"source": "simulator"}) as w:
+        w.add_trial(_frames(), {}, {})
+    assert dataset.read_index(out)["source"] == "simulator"
+    # a resumed rig run into the simulator's folder
+    with dataset.DatasetWriter(out, meta={"source": "rig"}) as w:
+        w.add_trial(_frames(), {}, {})
+    idx = dataset.read_index(out)
+    assert [t["source"] for t in idx["trials"]] == ["simulator", "rig"]
+    assert idx["source"] == "mixed" and idx["sources"] == ["rig", "simulator"]
+
+
+def test_a_folder_written_before_per_trial_sources_keeps_its_trials_source(tmp_path):
+    import json
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "dataset.json").write_text(json.dumps(
+        {"format": "tacfoot-dataset", "version": 1, "source": "simulator",
+         "trials": [{"file": "trial_0000.npz", "frames": 3}]}))
+    with dataset.DatasetWriter(out, meta={"source": "rig"}) as w:
+        w.add_trial(_frames(), {}, {})
+    idx = dataset.read_index(out)
+    assert [t["source"] for t in idx["trials"]] == ["simulator", "rig"]
+    assert idx["source"] == "mixed"

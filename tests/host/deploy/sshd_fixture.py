@@ -4,6 +4,9 @@
         subprocess.run(srv.ssh_argv("true"))
         srv.target, srv.port, srv.identity, srv.ssh_options
 
+``Pi`` is a deploy target made of such a server and a PREFIX under a temporary
+folder, with what the tests ask of it (links, the service's pid, packets flowing).
+
 It generates its own host key and client key, an authorized_keys file and an
 sshd config (high port, StrictModes no, no PAM, keys only) and runs
 ``sshd -D -e -f CONFIG``. Logging in works as the user running the tests: as
@@ -12,12 +15,18 @@ root sshd may log in anyone; as another user, only that user.
 from __future__ import annotations
 
 import getpass
+import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
+
+from host.deploy.options import DeployOptions
+from tests import REPO_ROOT as REPO
 
 SSHD_CANDIDATES = ("/usr/sbin/sshd", "/usr/local/sbin/sshd", "/sbin/sshd")
 
@@ -129,3 +138,72 @@ class SshServer:
 
     def __exit__(self, *exc):
         self.stop()
+
+
+class Pi:
+    """The deploy target: sshd on loopback plus a PREFIX under tmp."""
+
+    def __init__(self, srv: SshServer, root: Path):
+        self.srv = srv
+        self.root = root
+        self.prefix = root / "opt" / "tacfoot"
+        self.config = root / "leg.toml"
+        self.key_path = root / "signing-key.pem"
+        src = REPO / "device" / "leg.toml"
+        self.config.write_text(src.read_text() if src.is_file() else "# default\n")
+
+    def opts(self, **kw) -> DeployOptions:
+        base = dict(target=self.srv.target, port=self.srv.port, identity=self.srv.identity,
+                    ssh_options=list(self.srv.ssh_options), prefix=str(self.prefix),
+                    python=sys.executable, service_manager="none",
+                    system_site_packages=True, no_deps=True, config=str(self.config),
+                    # an endless-enough source: 720 frames paced at 15 fps (48 s)
+                    camera="sim://walk?realtime=1&fps=15", imu="sim://walk", serial="loop://",
+                    runtime_args=["--fps", "15"], health_timeout_s=20.0,
+                    signing_key=str(self.key_path))
+        base.update(kw)
+        return DeployOptions(**base)
+
+    def link(self, name) -> str | None:
+        p = self.prefix / name
+        return os.readlink(p) if p.is_symlink() else None
+
+    def pid(self) -> int | None:
+        try:
+            pid = int((self.prefix / "run" / "tacfoot.pid").read_text())
+            os.kill(pid, 0)
+            return pid
+        except (OSError, ValueError):
+            return None
+
+    def tag(self, pid: int) -> str | None:
+        env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
+        for kv in env:
+            if kv.startswith(b"TAG="):
+                return kv[4:].decode()
+        return None
+
+    def packets_flow(self, pid: int, within_s: float = 15.0) -> bool:
+        """The status file is from pid and its packets_sent grows."""
+        first = None
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < within_s:
+            try:
+                st = json.loads((self.prefix / "run" / "status.json").read_text())
+            except (OSError, ValueError):
+                st = {}
+            if st.get("pid") == pid:
+                if first is None:
+                    first = st["packets_sent"]
+                elif st["packets_sent"] > first:
+                    return True
+            time.sleep(0.1)
+        return False
+
+    def stop_all(self):
+        ctl = self.prefix / "current" / "tacfootctl"
+        if ctl.exists():
+            subprocess.run([str(ctl), "stop"], capture_output=True, timeout=30)
+        pid = self.pid()
+        if pid:
+            os.kill(pid, signal.SIGKILL)

@@ -35,3 +35,22 @@ def test_cli_bad_input_exits_2(capsys):
     from host.cli import main
     assert main(["deploy", "pi@leg1", "--port", "70000", "--dry-run"]) == 2
     assert "--port must be 1..65535, got 70000" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("target", ["pi;x@host", "p i@leg1", "pi@leg1;reboot", "pi@-leg1",
+                                    "pi@leg_1", "pi@leg1.", "pi@", "@leg1", "$(id)@leg1",
+                                    "pi@leg1..local", "pi@" + "a" * 64, "pi@[::1", "x@y@z"])
+def test_target_user_and_host_must_be_names(target):
+    with pytest.raises(DeployInputError, match="target"):
+        _opts(target=target).check()
+
+
+@pytest.mark.parametrize("target", ["pi@leg1", "leg1", "pi@leg-1.local", "pi@192.168.0.7",
+                                    "ubuntu@::1", "pi@[fe80::1]", "_tacfoot@leg1", "pi.x@leg1"])
+def test_good_targets_pass(target):
+    _opts(target=target).check()
+
+
+def test_service_user_must_be_a_user_name():
+    with pytest.raises(DeployInputError, match="--service-user"):
+        _opts(service_user="pi;x").check()

@@ -15,17 +15,15 @@ from tests import REPO_ROOT
 
 import json
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-from tests.host.deploy.sshd_fixture import SshServer, missing_reason  # noqa: E402
+from tests.host.deploy.sshd_fixture import Pi, SshServer, missing_reason  # noqa: E402
 
-from host.deploy.options import DeployError, DeployOptions  # noqa: E402
+from host.deploy.options import DeployError  # noqa: E402
 from host.deploy.release import Deployer, run  # noqa: E402
 
 REPO = REPO_ROOT
@@ -33,73 +31,6 @@ REPO = REPO_ROOT
 # -- against a real sshd --------------------------------------------------------------
 
 needs_sshd = pytest.mark.skipif(missing_reason() is not None, reason=str(missing_reason()))
-
-class Pi:
-    """The deploy target: sshd on loopback plus a PREFIX under tmp."""
-
-    def __init__(self, srv: SshServer, root: Path):
-        self.srv = srv
-        self.root = root
-        self.prefix = root / "opt" / "tacfoot"
-        self.config = root / "leg.toml"
-        src = REPO / "device" / "leg.toml"
-        self.config.write_text(src.read_text() if src.is_file() else "# default\n")
-
-    def opts(self, **kw) -> DeployOptions:
-        base = dict(target=self.srv.target, port=self.srv.port, identity=self.srv.identity,
-                    ssh_options=list(self.srv.ssh_options), prefix=str(self.prefix),
-                    python=sys.executable, service_manager="none",
-                    system_site_packages=True, no_deps=True, config=str(self.config),
-                    # an endless-enough source: 720 frames paced at 15 fps (48 s)
-                    camera="sim://walk?realtime=1&fps=15", imu="sim://walk", serial="loop://",
-                    runtime_args=["--fps", "15"], health_timeout_s=20.0)
-        base.update(kw)
-        return DeployOptions(**base)
-
-    def link(self, name) -> str | None:
-        p = self.prefix / name
-        return os.readlink(p) if p.is_symlink() else None
-
-    def pid(self) -> int | None:
-        try:
-            pid = int((self.prefix / "run" / "tacfoot.pid").read_text())
-            os.kill(pid, 0)
-            return pid
-        except (OSError, ValueError):
-            return None
-
-    def tag(self, pid: int) -> str | None:
-        env = Path(f"/proc/{pid}/environ").read_bytes().split(b"\0")
-        for kv in env:
-            if kv.startswith(b"TAG="):
-                return kv[4:].decode()
-        return None
-
-    def packets_flow(self, pid: int, within_s: float = 15.0) -> bool:
-        """The status file is from pid and its packets_sent grows."""
-        first = None
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < within_s:
-            try:
-                st = json.loads((self.prefix / "run" / "status.json").read_text())
-            except (OSError, ValueError):
-                st = {}
-            if st.get("pid") == pid:
-                if first is None:
-                    first = st["packets_sent"]
-                elif st["packets_sent"] > first:
-                    return True
-            time.sleep(0.1)
-        return False
-
-    def stop_all(self):
-        ctl = self.prefix / "current" / "tacfootctl"
-        if ctl.exists():
-            subprocess.run([str(ctl), "stop"], capture_output=True, timeout=30)
-        pid = self.pid()
-        if pid:
-            os.kill(pid, signal.SIGKILL)
-
 
 @pytest.fixture(scope="module")
 def pi(tmp_path_factory):
@@ -124,7 +55,8 @@ def test_dry_run_touches_nothing(pi, capsys):
     o = pi.opts()
     argv = ["deploy", o.target, "--dry-run", "--json", "--port", str(o.port), "--identity",
             o.identity, "--prefix", str(pi.prefix), "--python", o.python,
-            "--service-manager", "systemd", "--config", str(pi.config)]
+            "--service-manager", "systemd", "--config", str(pi.config),
+            "--signing-key", o.signing_key]
     assert main(argv) == 0
     res = json.loads(capsys.readouterr().out)
     names = [s["step"] for s in res["steps"]]
@@ -148,7 +80,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
             "--system-site-packages", "--no-deps", "--config", str(pi.config),
             "--camera", o.camera, "--imu", o.imu, "--serial", o.serial,
             "--health-timeout-s", "20", "--release", "r1", "--env", "TAG=r1",
-            "--runtime-arg=--fps", "--runtime-arg=15"]
+            "--runtime-arg=--fps", "--runtime-arg=15", "--signing-key", o.signing_key]
     for s in o.ssh_options:
         argv += ["--ssh-option", s]
     rc = main(argv)
@@ -170,6 +102,29 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
                        capture_output=True, text=True, cwd=pi.root)
     assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
     assert str(REPO) not in r.stdout
+
+
+@needs_sshd
+def test_the_release_is_signed_and_the_leg_checks_it(pi):
+    from device.config import tomllib
+    from device.pi.models.signature import check_manifest
+    from device.pi.runtime.config import load_leg_config
+    from device.pi.runtime.load import load_models
+    from host.deploy.signing import SigningKey
+    rel = pi.prefix / "releases" / "r1"
+    assert (rel / "release.json").is_file(), "needs the first deploy"
+    assert os.stat(pi.key_path).st_mode & 0o777 == 0o600      # made on first use
+    key = SigningKey.load(pi.key_path, create=False)
+    key.verify_file(rel / "release.json")
+    doc = json.loads((rel / "release.json").read_text())
+    assert doc["signed_by"] == key.key_id and doc["files"]["config/leg.toml"]
+    cfg = tomllib.loads((rel / "config" / "leg.toml").read_text())
+    assert cfg["signing"] == {"public_key": key.public_key, "allow_unsigned": False}
+    manifests = sorted((rel / "models").glob("*/manifest*.json"))
+    assert manifests and all(check_manifest(m, key.public_key, False) for m in manifests)
+    # the shipped config loads the shipped models only because they are signed
+    leg = load_leg_config(rel / "config" / "leg.toml")
+    assert "surface" in load_models(rel / "models", "int8", 133, leg).loaded
 
 
 @needs_sshd
@@ -223,6 +178,43 @@ def test_killed_copy_leaves_the_old_release_running(pi):
     assert steps[-1] == "copy" and "switch" not in steps, steps
     assert pi.link("current") == "releases/r2" and pi.pid() == pid and pi.packets_flow(pid)
     assert not (pi.prefix / "releases" / "r4" / ".complete").exists()
+
+
+class _ChangedInTransit(Deployer):
+    """Changes a file of the staged release after release.json was written."""
+
+    def stage(self, wheel, out_dir):
+        st = super().stage(wheel, out_dir)
+        (st / "tacfootctl").write_text((st / "tacfootctl").read_text() + "# changed\n")
+        return st
+
+
+class _SignedByAnother(Deployer):
+    """Signs release.json with another key than the one the config names."""
+
+    def stage(self, wheel, out_dir):
+        from host.deploy.signing import SigningKey
+        st = super().stage(wheel, out_dir)
+        SigningKey.load(out_dir / "other.pem").sign_file(st / "release.json")
+        return st
+
+
+@needs_sshd
+def test_the_pi_installs_only_a_release_that_matches_its_signed_list(pi):
+    from host.deploy.release import load_key
+    pid = pi.pid()
+    assert pi.link("current") == "releases/r2" and pid, "needs the second deploy"
+    for cls, name, why in ((_ChangedInTransit, "r5", "release files differ from release.json"
+                            ": tacfootctl"),
+                           (_SignedByAnother, "r6", "signature does not verify")):
+        opts = pi.opts(release=name)
+        d = cls(opts, log=_quiet, key=load_key(opts))
+        with pytest.raises(DeployError, match="step install failed") as exc:
+            d.deploy()
+        assert why in str(exc.value)
+        assert "switch" not in [s["step"] for s in d.steps]
+        assert not (pi.prefix / "releases" / name / ".complete").exists()
+        assert pi.link("current") == "releases/r2" and pi.pid() == pid
 
 
 @needs_sshd

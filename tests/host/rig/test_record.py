@@ -32,6 +32,17 @@ def test_record_from_the_simulator_appends_labelled_trials(tmp_path, capsys):
     assert not list(out.glob("*.tmp")) and not list(out.glob(".*tmp"))
 
 
+def test_record_into_a_folder_another_writer_holds_is_refused(tmp_path, capsys):
+    from host.data.dataset import DatasetWriter
+    out = tmp_path / "ds"
+    with DatasetWriter(out, source="record"):
+        rc = main(["record", "--camera", "sim://press-soft", "--label", "soft",
+                   "--seconds", "0.1", "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+    assert rc == 2 and "another writer" in err and len(err.splitlines()) == 1
+    assert not (out / "dataset.json").exists() and not list(out.glob(".*tmp"))
+
+
 def test_a_recorded_real_clip_trains_like_the_clip_itself(tmp_path):
     """The real clips as file sources: the recorded trials load as windows with
     contact from the pipeline, the same windows as a CSV manifest of the clips."""

@@ -162,3 +162,30 @@ def test_a_failed_command_fails_only_its_trial_with_the_reason(tmp_path, capsys)
     assert [f["trial"] for f in s["failed"]] == ["lim/foam/drag-centre-10N/r000"]
     assert "limit" in s["failed"][0]["reason"]
     assert _dataset_ids(out) == ["lim/foam/drag-centre-0.3N/r000"]
+
+
+def test_resume_into_a_simulator_dataset_keeps_each_trials_source(tmp_path, capsys):
+    from host.data.dataset import read_index
+    from host.data.simulate import simulate_to_dataset
+    plan = tmp_path / "one.toml"
+    plan.write_text('name = "one"\nrepetitions = 1\n[[plates]]\nname = "hard"\n'
+                    'surface = "hard"\n[[actions]]\naction = "press"\ndepths_mm = [1.0]\n'
+                    'press_speed_mm_s = 10\nhold_s = 0.1\n')
+    out = tmp_path / "ds"
+    simulate_to_dataset("no-touch", out, progress=False)
+    rc = host_main(["rig", "run", str(plan), "--rig", "sim://", "--camera", "sim://?fps=30",
+                    "--out", str(out), "--resume", "--json"])
+    assert rc == 0, capsys.readouterr().err
+    idx = read_index(out)
+    assert [t["source"] for t in idx["trials"]] == ["simulator", "rig"]
+    assert idx["source"] == "mixed" and idx["sources"] == ["rig", "simulator"]
+
+
+def test_a_second_rig_run_into_a_folder_being_written_is_refused(tmp_path, capsys):
+    from host.data.dataset import DatasetWriter
+    out = tmp_path / "ds"
+    with DatasetWriter(out, source="simulator"):
+        rc = host_main(["rig", "run", str(TRIALS / "sim-smoke.toml"), "--rig", "sim://",
+                        "--camera", "sim://?fps=30", "--out", str(out)])
+        err = capsys.readouterr().err.strip()
+    assert rc == 2 and "another writer" in err and len(err.splitlines()) == 1

@@ -105,3 +105,35 @@ def test_manifest_for_picks_int8_by_default_and_float_when_there_is_one(tmp_path
     assert manifest_for(empty, "int8") == empty                         # the loader names it
     with pytest.raises(ValueError, match="variant"):
         manifest_for(tmp_path, "int4")
+
+
+def _point_manifest_at(out, name, target):
+    from device.pi.models.artefact import sha256_file
+    doc = json.loads((out / "manifest.json").read_text())
+    doc["onnx"] = name
+    doc["sha256"] = {name: sha256_file(target)}
+    (out / "manifest.json").write_text(json.dumps(doc))
+
+
+def test_a_manifest_naming_a_file_outside_its_folder_is_refused(ridge_dir, tmp_path):
+    out, _, _ = ridge_dir
+    outside = tmp_path / "elsewhere.onnx"
+    outside.write_bytes((out / "model.onnx").read_bytes())
+    for name in (str(outside), "../elsewhere.onnx"):
+        _point_manifest_at(out, name, outside)
+        with pytest.raises(ModelError, match="outside the model folder"):
+            load_model(out)
+    # a link inside the folder that resolves outside it
+    (out / "link.onnx").symlink_to(outside)
+    _point_manifest_at(out, "link.onnx", outside)
+    with pytest.raises(ModelError, match="outside the model folder"):
+        load_model(out)
+
+
+def test_model_file_keeps_names_inside_the_folder(tmp_path):
+    from device.pi.models.artefact import model_file
+    (tmp_path / "sub").mkdir()
+    assert model_file(tmp_path, "sub/model.onnx") == tmp_path / "sub" / "model.onnx"
+    for bad in ("/etc/hostname", "../x.onnx", "sub/../../x.onnx", "", 5):
+        with pytest.raises(ModelError):
+            model_file(tmp_path, bad)

@@ -46,7 +46,7 @@ def test_expected_context_from_fresh_gait_and_none_when_stale():
     mag, motion, info = expected_context(g, 1.1, dc, fps=100.0)
     assert mag == pytest.approx(10.0 * dc.mag_px_per_n)
     assert motion == pytest.approx(20.0 * dc.motion_px_per_mm / 100.0)
-    assert info == {"stance": True, "load_n": 10.0, "vel_mm_s": 20.0}
+    assert info == {"stance": True, "load_n": 10.0, "vel_mm_s": 20.0, "age_ms": 100.0}
     assert expected_context(g, 1.0 + dc.gait_timeout_ms / 1e3 + 0.01, dc, 100.0) == \
         (None, None, None)
     assert expected_context(None, 0.0, dc, 100.0) == (None, None, None)

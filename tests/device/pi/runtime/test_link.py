@@ -1,7 +1,12 @@
 """The serial side (device/pi/runtime/link.py): the writer keeps the newest SURFACE,
-never drops a FAULT, and keeps the byte stream framed whatever the port takes."""
+never drops a FAULT, and keeps the byte stream framed whatever the port takes; the
+reader keeps up with a 100 Hz GAIT stream over socket:// and a pty, and dates each
+message by when it was sent."""
 from __future__ import annotations
 
+import os
+import socket
+import threading
 import time
 
 import pytest
@@ -9,7 +14,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi import protocol as P
-from device.pi.runtime.link import FAULT_QUEUE, LinkError, LinkWriter, open_port
+from device.pi.runtime.config import DecisionConfig
+from device.pi.runtime.decisions import expected_context, gait_from_message
+from device.pi.runtime.link import (FAULT_QUEUE, LinkError, LinkReader, LinkWriter, SenderClock,
+                                    open_port)
 from tests.device.pi.runtime.standins import RecordingPort
 
 
@@ -65,3 +73,133 @@ def test_writer_stream_stays_framed_under_any_port_capacity(ops):
     assert w.packets_sent == len(msgs) and w.pending == 0
     assert w.packets_sent + w.packets_dropped == len(ops)
 
+
+
+# -- reading --------------------------------------------------------------------
+
+GAIT_HZ = 100.0
+
+
+def _gait_stream(write, seconds: float, stop: threading.Event) -> list[float]:
+    """Send GAIT at 100 Hz through ``write``, stamped with the sender's clock in ms;
+    returns the send times (time.monotonic)."""
+    sent = []
+    t0 = time.monotonic()
+    k = 0
+    while not stop.is_set() and time.monotonic() - t0 < seconds:
+        now = time.monotonic()
+        write(P.Gait(phase=0, load_n=float(k % 50), vel_mm_s=(1.0, 0.0, 0.0))
+              .encode(k & 0xFFFF, int(now * 1000) & 0xFFFFFFFF))
+        sent.append(now)
+        k += 1
+        time.sleep(max(0.0, t0 + k / GAIT_HZ - time.monotonic()))
+    return sent
+
+
+def _read_like_the_runtime(reader: LinkReader, seconds: float) -> tuple[list, float]:
+    """Poll once per 120 fps frame period; (every GAIT with its send time, the
+    largest age of the newest context seen from 1 s to 2 s, while the stream runs)."""
+    got = []
+    worst = 0.0
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        got += [(m, t) for m, t in reader.poll_timed() if isinstance(m, P.Gait)]
+        now = time.monotonic()
+        if got and 1.0 < now - t0 < 2.0:
+            worst = max(worst, now - got[-1][1])
+        time.sleep(1 / 120)
+    return got, worst
+
+
+def _check_keeps_up(got, sent, worst):
+    assert len(got) >= len(sent) - 2, f"decoded {len(got)} of {len(sent)} GAIT packets"
+    # the loads count up: every packet, in order
+    loads = [m.load_n for m, _ in got]
+    assert loads[:50] == [float(k % 50) for k in range(min(50, len(loads)))]
+    # the context in force is never older than a few periods (a reader that trusts
+    # socket:// in_waiting lags by seconds)
+    assert worst < 0.25, f"the newest GAIT context was {worst * 1e3:.0f} ms old"
+
+
+def test_reader_keeps_up_with_100hz_gait_over_socket():
+    srv = socket.create_server(("127.0.0.1", 0))
+    stop = threading.Event()
+    sent: list[float] = []
+
+    def serve():
+        conn, _ = srv.accept()
+        with conn:
+            stop.wait(0.2)            # pyserial empties its input once it has connected
+            sent.extend(_gait_stream(conn.sendall, 2.5, stop))
+            stop.wait(0.5)
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    port = open_port(f"socket://127.0.0.1:{srv.getsockname()[1]}")
+    try:
+        got, worst = _read_like_the_runtime(LinkReader(port), 3.2)
+    finally:
+        stop.set()
+        th.join(2.0)
+        port.close()
+        srv.close()
+    _check_keeps_up(got, sent, worst)
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
+def test_reader_keeps_up_with_100hz_gait_over_a_pty():
+    master, slave = os.openpty()
+    import tty
+    tty.setraw(slave)
+    port = open_port(os.ttyname(slave))
+    stop = threading.Event()
+    sent: list[float] = []
+    th = threading.Thread(target=lambda: sent.extend(
+        _gait_stream(lambda b: os.write(master, b), 2.5, stop)), daemon=True)
+    th.start()
+    try:
+        got, worst = _read_like_the_runtime(LinkReader(port), 3.2)
+    finally:
+        stop.set()
+        th.join(2.0)
+        port.close()
+        os.close(master)
+        os.close(slave)
+    _check_keeps_up(got, sent, worst)
+
+
+def test_a_context_read_late_counts_as_old():
+    """A GAIT sent 2 s before it is read is stale, although it was just decoded."""
+    t = [100.0]
+    port = RecordingPort()
+    reader = LinkReader(port, clock=lambda: t[0])
+    dc = DecisionConfig()
+    # the MCU's clock reads 5000 ms; packets arrive as sent for a while
+    for k in range(20):
+        port.inbox.extend(P.Gait(load_n=8.0).encode(k, 5000 + 10 * k))
+        msgs = reader.poll_timed()
+        assert len(msgs) == 1 and msgs[0][1] == pytest.approx(t[0])
+        t[0] += 0.01
+    # then the reader falls 2 s behind: a packet sent at MCU 5200 ms is read 2 s late
+    t[0] += 2.0
+    port.inbox.extend(P.Gait(load_n=8.0).encode(20, 5200))
+    (msg, t_sent), = reader.poll_timed()
+    assert t[0] - t_sent == pytest.approx(2.0, abs=0.01)
+    assert expected_context(gait_from_message(msg, t_sent), t[0], dc, 120.0) == (None, None, None)
+    # a fresh one right after is in force, and its age is in the log's gait dict
+    port.inbox.extend(P.Gait(load_n=8.0).encode(21, 7210))
+    (msg, t_sent), = reader.poll_timed()
+    mag, _, gait = expected_context(gait_from_message(msg, t_sent), t[0], dc, 120.0)
+    assert gait is not None and gait["age_ms"] < 20 and mag > 0
+
+
+def test_sender_clock_follows_drift_and_restarts():
+    c = SenderClock(drift=1e-3, resync_s=30.0)
+    assert c.sent_at(0, 7.0) == 7.0                      # no stamp: sent on arrival
+    assert c.sent_at(1000, 10.0) == pytest.approx(10.0)
+    # the sender's clock runs 500 ppm slow: packets still read as fresh
+    for k in range(1, 600):
+        now = 10.0 + k
+        assert now - c.sent_at(1000 + int(k * 999.5), now) < 0.01
+    # the sender restarts (its clock goes back to 1 s): fresh again at once
+    assert c.sent_at(1000, 700.0) == pytest.approx(700.0)

@@ -94,7 +94,7 @@ def test_runtime_runs_the_localiser_on_every_frame_when_asked(localiser_dir):
     calls = _count_locate_calls(rt)
     assert rt.stream.localiser is models.localiser
     assert rt.frames == 12 and len(calls) == 12
-    assert np.isfinite(rt.latencies_ms).all()
+    assert rt.latency_ms.count > 0 and np.isfinite(rt.latency_ms.recent()).all()
 
 
 def test_learned_models_load_int8_by_default_and_float_on_request(model_dir, tmp_path):
@@ -112,3 +112,50 @@ def test_learned_models_load_int8_by_default_and_float_on_request(model_dir, tmp
     assert mf.surface.onnx_path.name == "model.onnx"
     assert set(m8.loaded) == {"surface", "pressure"} and m8.rule is not m8.surface
 
+
+
+def _signing_cfg(key, allow_unsigned):
+    return parse_leg_config({"signing": {"public_key": key.public_key,
+                                         "allow_unsigned": allow_unsigned}})
+
+
+def test_signed_models_load_and_altered_or_unsigned_ones_do_not(model_dir, tmp_path):
+    from device.pi.models.signature import SignatureError, signature_path
+    from device.pi.models.artefact import sha256_file
+    from host.deploy.signing import SigningKey, sign_models
+
+    d = tmp_path / "models"
+    shutil.copytree(model_dir, d)
+    key = SigningKey.load(tmp_path / "key.pem")
+    signed = {p.relative_to(d).as_posix() for p in sign_models(d, key)}
+    assert signed == {"surface/manifest.json", "surface/manifest.float.json",
+                      "pressure/manifest.json"}
+    strict = _signing_cfg(key, allow_unsigned=False)
+    assert set(load_models(d, "int8", 133, strict).loaded) == {"surface", "pressure"}
+    # signed by another host's key
+    other = _signing_cfg(SigningKey.load(tmp_path / "other.pem"), allow_unsigned=True)
+    with pytest.raises(SignatureError, match="surface/manifest.json: signature does not"):
+        load_models(d, "int8", 133, other)
+    # the onnx replaced and the manifest re-hashed to match it
+    onnx = d / "pressure" / "model.onnx"
+    onnx.write_bytes((model_dir / "surface" / "model.onnx").read_bytes())
+    doc = json.loads((d / "pressure" / "manifest.json").read_text())
+    doc["sha256"]["model.onnx"] = sha256_file(onnx)
+    (d / "pressure" / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(SignatureError, match="pressure/manifest.json: .*changed after"):
+        load_models(d, "int8", 133, _signing_cfg(key, allow_unsigned=True))
+    # unsigned: refused when the config says so, loaded in development
+    shutil.rmtree(d / "pressure")
+    signature_path(d / "surface" / "manifest.json").unlink()
+    with pytest.raises(SignatureError, match="unsigned model"):
+        load_models(d, "int8", 133, strict)
+    assert load_models(d, "int8", 133, LegConfig()).loaded == ("surface",)
+
+
+def test_signing_config_is_checked():
+    from device.config import ConfigError
+    with pytest.raises(ConfigError, match="signing.public_key"):
+        parse_leg_config({"signing": {"public_key": "not a key"}})
+    with pytest.raises(ConfigError, match="signing.allow_unsigned"):
+        parse_leg_config({"signing": {"allow_unsigned": False}})
+    assert LegConfig().signing.allow_unsigned is True

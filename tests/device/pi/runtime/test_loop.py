@@ -298,3 +298,93 @@ def test_live_camera_silent_for_a_second_is_reopened(tmp_path):
     run_for(rt, frames=40, seconds=20)
     assert cam.opens >= 2 and rt.feed.opens == cam.opens   # closed and reopened
     assert rt.frames == 40 and not rt.faults & FAULT_CAMERA
+
+
+# -- long runs -------------------------------------------------------------------
+
+class _EndlessCamera:
+    """One small dark frame, served without end (a long run without a simulator)."""
+
+    def __init__(self):
+        self.image = np.full((48, 64), 20, np.uint8)
+        self.i = 0
+
+    def factory(self):
+        return self
+
+    def read(self):
+        from device.pi.sources.camera import Frame
+        self.i += 1
+        return Frame(self.i - 1, (self.i - 1) / FPS, self.image)
+
+    def close(self):
+        pass
+
+
+class _NullPort:
+    """A port that takes every byte and keeps none."""
+    in_waiting = 0
+
+    def write(self, data):
+        return len(data)
+
+    def read(self, n):
+        return b""
+
+
+def test_a_long_run_holds_its_memory_flat(tmp_path):
+    """Soak: after a warm-up, thousands more frames allocate no lasting memory (the
+    per-frame latency and CPU statistics are bounded). Three windows of 800 frames:
+    a leak grows in each one, another thread's passing allocation in one at most."""
+    import gc
+    import tracemalloc
+    rt, _, _ = make_runtime(tmp_path, cam=_EndlessCamera(), port=_NullPort())
+    rt.start()
+    grown = []
+    try:
+        for _ in range(300):
+            rt.step()
+        tracemalloc.start()
+        for _ in range(3):
+            gc.collect()
+            before = tracemalloc.take_snapshot()
+            n0 = rt.frames
+            while rt.frames < n0 + 800:
+                rt.step()
+            gc.collect()
+            after = tracemalloc.take_snapshot()
+            grown.append(sum(s.size_diff for s in after.compare_to(before, "filename")))
+        tracemalloc.stop()
+    finally:
+        rt.close()
+    # a float kept per frame for latency and one for CPU time: 800 * 2 * 32 B = 51 kB
+    assert min(grown) < 16_000, f"bytes retained per 800 frames: {grown}"
+    assert rt.latency_ms.count >= 3 * 800
+    assert rt.latency_ms.retained <= rt.latency_ms.capacity
+
+
+def test_an_image_folder_with_an_unreadable_image_ends_the_run(tmp_path):
+    """The folder is played once: the bad image is skipped with a counted fault, and
+    the end of the folder ends the run (it is not reopened and replayed)."""
+    import cv2
+    from device.pi.faults import FAULT_BAD_FRAME
+    from device.pi.sources.camera import open_camera
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(8):
+        cv2.imwrite(str(folder / f"f{i:02d}.png"), rng.integers(0, 255, (48, 64), np.uint8))
+    (folder / "f03.png").write_bytes(b"not a png")
+    models = tmp_path / "models"
+    models.mkdir()
+
+    class Folder:
+        def factory(self):
+            return open_camera(str(folder))
+
+    rt, _, port = make_runtime(models, cam=Folder())
+    run_for(rt, seconds=6)
+    assert rt.stopped and rt.feed.eof
+    assert rt.frames == 7 and rt.feed.opens == 1
+    assert rt.status()["frames_skipped"] == 1
+    assert any(m.faults & FAULT_BAD_FRAME for _, m in faults_written(port))

@@ -470,3 +470,23 @@ def test_v4l2_refuses_a_size_the_driver_did_not_take(tmp_path, monkeypatch):
         open_camera(f"v4l2://{dev}?width=640&height=480&fourcc=YUYV")
     assert open_camera(f"v4l2://{dev}").width == 320          # no size asked: taken as is
 
+
+
+def test_a_folder_skips_past_an_unreadable_or_odd_sized_image(tmp_path):
+    from device.pi.sources.camera import BadFrameError
+    for i in range(5):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), np.full((10, 12), 40 * i, np.uint8))
+    (tmp_path / "1.png").write_bytes(b"\x89PNG broken")
+    cv2.imwrite(str(tmp_path / "3.png"), np.zeros((11, 12), np.uint8))
+    cam = open_camera(str(tmp_path))
+    got, bad = [], []
+    for _ in range(20):                      # bounded: a source that never moves on fails
+        try:
+            fr = cam.read()
+        except BadFrameError as exc:
+            bad.append(Path(exc.filename).name)
+            continue
+        if fr is None:
+            break
+        got.append((fr.index, int(fr.image[0, 0])))
+    assert got == [(0, 0), (2, 80), (4, 160)] and bad == ["1.png", "3.png"]

@@ -52,8 +52,11 @@ def test_tracker_reacquires_after_a_jump():
     ref = hex_pins(8, 16.0)
     tr = Tracker()
     tr.set_reference(ref)
+    tr.update(ref + [0.5, 0.0])                                     # a small step: no search
+    assert tr.reacquired == 0
     moved = big_deformation(ref, 16.0, rng)                         # in one frame
     vec, lost = tr.update(moved)
+    assert tr.reacquired == 1
     correct = ~lost & (tr.idx == np.arange(len(ref)))
     assert correct.mean() >= 0.97
     assert (~lost & ~correct).sum() == 0
@@ -85,7 +88,10 @@ def test_tracker_fill_modes_for_lost_pins(fill):
 @pytest.mark.parametrize("kw,field", [({"max_dist_px": 0}, "max_dist_px"), ({"pitch_px": -2.0}, "pitch_px"),
                                       ({"fill": "last"}, "fill"), ({"reacquire_frac": 2.0}, "reacquire_frac"),
                                       ({"min_tracked_frac": "x"}, "min_tracked_frac"), ({"k": 0}, "k"),
-                                      ({"velocity_gain": -1.0}, "velocity_gain")])
+                                      ({"velocity_gain": -1.0}, "velocity_gain"),
+                                      ({"reacquire_schedule": (1.5, 6)}, "reacquire_schedule"),
+                                      ({"reacquire_schedule": (0.0, 6, 5)}, r"reacquire_schedule\[0\]"),
+                                      ({"reacquire_schedule": (1.5, 0, 5)}, r"reacquire_schedule\[1\]")])
 def test_tracker_bad_arguments_name_the_field(kw, field):
     with pytest.raises(ValueError, match=field):
         Tracker(**kw)

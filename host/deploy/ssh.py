@@ -1,0 +1,153 @@
+"""One SSH session to a Pi for ``host deploy``: every step is one ``ssh`` command
+running a small POSIX shell script (``sh -c``, ``set -eu``), over one shared
+connection (ControlMaster), logged with its command; a dry run only records them.
+:meth:`SshSession.copy` streams a local folder as a tar over the same connection."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from pathlib import Path
+
+from host.deploy.options import DeployError, DeployOptions
+from host.deploy.scripts import HEALTH_PY, VERIFY_RELEASE_PY, q
+
+
+class SshSession:
+    """Runs (or, with dry_run, only records) remote steps on ``opts``' target."""
+
+
+    def __init__(self, opts: DeployOptions, dry_run: bool = False, log=None):
+        opts.check()
+        self.o = opts
+        self.dry_run = dry_run
+        self.log = log if log is not None else (lambda msg: print(msg, file=sys.stderr))
+        self.steps: list[dict] = []
+        self.copy_hook = None          # called (proc, bytes_sent) while copying
+        self._cm_dir: str | None = None          # ssh ControlMaster socket folder
+
+    # -- plumbing --------------------------------------------------------------
+    def _ssh_base(self) -> list[str]:
+        o = self.o
+        argv = ["ssh", "-o", "BatchMode=yes", "-o", "ConnectTimeout=15"]
+        if o.ssh_port is not None:
+            argv += ["-p", str(o.ssh_port)]
+        if o.identity:
+            argv += ["-i", o.identity, "-o", "IdentitiesOnly=yes"]
+        for opt in o.ssh_options:
+            argv += ["-o", opt]
+        if self._cm_dir is not None:
+            argv += ["-o", f"ControlPath={self._cm_dir}/cm", "-o", "ControlMaster=no"]
+        return argv
+
+    def open_connection(self):
+        """One SSH connection that every step reuses (ControlMaster); without it
+        (it failed, or a dry run) each step connects on its own."""
+        if self.dry_run or self._cm_dir is not None:
+            return
+        d = tempfile.mkdtemp(prefix="tfssh-")
+        argv = self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-o", "ControlMaster=yes",
+                                   "-o", "ControlPersist=600", "-f", "-N", self.o.ssh_target]
+        try:
+            r = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL, timeout=60)
+            ok = r.returncode == 0 and os.path.exists(f"{d}/cm")
+        except subprocess.TimeoutExpired:
+            ok = False
+        if ok:
+            self._cm_dir = d
+        else:
+            shutil.rmtree(d, ignore_errors=True)
+
+    def close_connection(self):
+        if self._cm_dir is None:
+            return
+        d, self._cm_dir = self._cm_dir, None
+        subprocess.run(self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-O", "exit",
+                                           self.o.ssh_target],
+                       stdin=subprocess.DEVNULL, capture_output=True, timeout=30)
+        shutil.rmtree(d, ignore_errors=True)
+
+    def ssh_argv(self, script: str) -> list[str]:
+        return self._ssh_base() + [self.o.ssh_target, "--", "sh -c " + q("set -eu\n" + script)]
+
+    def record(self, name, where, command, **extra) -> dict:
+        step = {"step": name, "where": where, "command": command, **extra}
+        self.steps.append(step)
+        shown = command.replace(q(HEALTH_PY), '"$HEALTH_CHECK_PY"').replace(
+            q(VERIFY_RELEASE_PY), '"$VERIFY_RELEASE_PY"')
+        self.log(f"[deploy] {name} ({where}): " + shown.strip().replace("\n", "; "))
+        return step
+
+    def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600,
+               keep_chars: int = 2000):
+        """Run ``script`` on the Pi; the step records the last ``keep_chars`` of its
+        output. DeployError naming the step when it fails and ``check``."""
+        step = self.record(name, "remote", script)
+        if self.dry_run:
+            return step
+        t0 = time.monotonic()
+        try:
+            r = subprocess.run(self.ssh_argv(script), capture_output=True, text=True,
+                               timeout=timeout_s, stdin=subprocess.DEVNULL)
+            rc, out, err = r.returncode, r.stdout, r.stderr
+        except subprocess.TimeoutExpired:
+            rc, out, err = -1, "", f"timed out after {timeout_s:.0f} s"
+        step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-keep_chars:],
+                    stderr=err[-2000:])
+        if rc != 0:
+            self.log(f"[deploy] {name}: exit {rc}: {err.strip()[-500:]}")
+            if check:
+                raise DeployError(f"step {name} failed (exit {rc}): "
+                                  f"{err.strip().splitlines()[-1] if err.strip() else ''}")
+        return step
+
+
+    def copy(self, staged: Path, rel: str):
+        """Stream the local folder ``staged`` as a tar over one ssh into the remote
+        folder ``rel`` (made if missing)."""
+        script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
+        step = self.record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
+                            + script.strip().replace("\n", "; "))
+        if self.dry_run:
+            return
+        t0 = time.monotonic()
+        with tempfile.TemporaryFile() as err:
+            proc = subprocess.Popen(self.ssh_argv(script), stdin=subprocess.PIPE,
+                                    stdout=subprocess.DEVNULL, stderr=err)
+            sent = 0
+            hook = self.copy_hook
+            try:
+                class _Counting:
+                    def write(_self, b):
+                        nonlocal sent
+                        proc.stdin.write(b)
+                        sent += len(b)
+                        if hook is not None:
+                            hook(proc, sent)
+                        return len(b)
+
+                    def flush(_self):
+                        proc.stdin.flush()
+
+                with tarfile.open(fileobj=_Counting(), mode="w|gz") as tar:
+                    tar.add(staged, arcname=".")
+                proc.stdin.close()
+            except (BrokenPipeError, OSError, ValueError):
+                pass
+            finally:
+                try:
+                    rc = proc.wait(timeout=600)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    rc = proc.wait()
+            err.seek(0)
+            msg = err.read().decode(errors="replace").strip()
+        step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3), stderr=msg[-2000:])
+        if rc != 0:
+            raise DeployError(f"step copy failed (exit {rc}) after {sent} bytes"
+                              + (f": {msg.splitlines()[-1]}" if msg else ""))

@@ -1,0 +1,90 @@
+"""host/deploy/signing.py: the host's key (created once, mode 0600), signing the
+manifests a deploy ships, and the public key written into the leg's config."""
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from device.config import tomllib
+from device.pi.models.artefact import sha256_file
+from device.pi.models.signature import check_manifest
+from host.deploy.options import DeployInputError
+from host.deploy.signing import SigningKey, config_with_key, default_key_path, sign_models
+
+
+def test_key_is_created_once_private_and_reused(tmp_path):
+    p = tmp_path / "cfg" / "tacfoot" / "signing-key.pem"
+    a = SigningKey.load(p)
+    assert p.is_file() and os.stat(p).st_mode & 0o777 == 0o600
+    assert os.stat(p.parent).st_mode & 0o777 == 0o700
+    b = SigningKey.load(p)
+    assert a.public_key == b.public_key and len(a.key_id) == 16
+    os.chmod(p, 0o644)
+    with pytest.raises(DeployInputError, match="may be read by others"):
+        SigningKey.load(p)
+    q = tmp_path / "garbage.pem"
+    q.write_text("not a key")
+    q.chmod(0o600)
+    with pytest.raises(DeployInputError, match="not a PEM private key"):
+        SigningKey.load(q)
+    with pytest.raises(DeployInputError, match="not found"):
+        SigningKey.load(tmp_path / "none.pem", create=False)
+
+
+def test_default_key_path_follows_the_environment(monkeypatch, tmp_path):
+    monkeypatch.delenv("TACFOOT_SIGNING_KEY", raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    assert default_key_path() == tmp_path / "tacfoot" / "signing-key.pem"
+    monkeypatch.setenv("TACFOOT_SIGNING_KEY", str(tmp_path / "k.pem"))
+    assert default_key_path() == tmp_path / "k.pem"
+
+
+def _model(folder, onnx="model.onnx", data=b"x"):
+    folder.mkdir(parents=True)
+    (folder / "model.onnx").write_bytes(data)
+    (folder / "manifest.json").write_text(json.dumps({
+        "format": "tacfoot-model", "version": 1, "onnx": onnx, "feature_spec": 1,
+        "input": {}, "sha256": {onnx: sha256_file(folder / "model.onnx")}}))
+
+
+def test_sign_models_signs_checked_manifests_only(tmp_path):
+    key = SigningKey.load(tmp_path / "k.pem")
+    _model(tmp_path / "models" / "surface")
+    done = sign_models(tmp_path / "models", key)
+    assert [p.parent.name for p in done] == ["surface"]
+    assert check_manifest(done[0], key.public_key, allow_unsigned=False)
+    # a manifest naming a file outside its folder is never signed
+    (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps({
+        "format": "tacfoot-model", "version": 1, "onnx": "/etc/hostname", "feature_spec": 1,
+        "input": {}, "sha256": {"/etc/hostname": "0"}}))
+    with pytest.raises(DeployInputError, match="outside the model folder"):
+        sign_models(tmp_path / "models", key)
+    # nor one whose file does not match its hash
+    _model(tmp_path / "m2" / "slip")
+    (tmp_path / "m2" / "slip" / "model.onnx").write_bytes(b"changed")
+    with pytest.raises(DeployInputError, match="checksum does not match"):
+        sign_models(tmp_path / "m2", key)
+
+
+@pytest.mark.parametrize("text", [
+    "[camera]\nfps = 90\n",
+    '[signing]\npublic_key = ""\nallow_unsigned = true\n[status]\ninterval_s = 0.5\n',
+    "[signing] # trust\n\n[camera]\nfps = 90\n",
+])
+def test_config_gets_the_public_key(tmp_path, text):
+    key = SigningKey.load(tmp_path / "k.pem")
+    out = tomllib.loads(config_with_key(text, key, allow_unsigned=False, where="leg.toml"))
+    assert out["signing"] == {"public_key": key.public_key, "allow_unsigned": False}
+    assert out.get("camera", {}).get("fps", 90) == 90
+
+
+def test_config_naming_another_key_is_refused(tmp_path):
+    key = SigningKey.load(tmp_path / "k.pem")
+    other = SigningKey.load(tmp_path / "o.pem")
+    text = f'[signing]\npublic_key = "{other.public_key}"\n'
+    with pytest.raises(DeployInputError, match=f"key {other.key_id}, not this host's"):
+        config_with_key(text, key, allow_unsigned=False, where="leg.toml")
+    same = config_with_key(f'[signing]\npublic_key = "{key.public_key}"\n', key, True, "x")
+    assert tomllib.loads(same)["signing"]["allow_unsigned"] is True
