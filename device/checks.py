@@ -9,13 +9,15 @@ here, and numeric text is not either (source query strings are parsed by
 from __future__ import annotations
 
 import math
+from urllib.parse import urlsplit
 
 import numpy as np
 
-__all__ = ["whole_number", "finite_number", "positive_number"]
+__all__ = ["whole_number", "finite_number", "positive_number", "bounds_text", "serial_url"]
 
 
-def _bounds(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
+def bounds_text(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
+    """The bounds as the messages word them: ' >= 1', ' in [0, 255]', '' (none)."""
     if lo is not None and hi is not None:
         return f" in {'(' if lo_open else '['}{lo}, {hi}{')' if hi_open else ']'}"
     if lo is not None:
@@ -30,7 +32,7 @@ def whole_number(name: str, value, lo: int | None = None, hi: int | None = None,
     """``value`` as an int in ``[lo, hi]`` (either bound may be None)."""
     if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
             or (lo is not None and value < lo) or (hi is not None and value > hi)):
-        raise error(f"{name} must be a whole number{_bounds(lo, hi)}, got {name}={value!r}")
+        raise error(f"{name} must be a whole number{bounds_text(lo, hi)}, got {name}={value!r}")
     return int(value)
 
 
@@ -45,7 +47,7 @@ def finite_number(name: str, value, lo: float | None = None, hi: float | None = 
     if (not math.isfinite(v)
             or (lo is not None and (v <= lo if lo_open else v < lo))
             or (hi is not None and (v >= hi if hi_open else v > hi))):
-        raise error(f"{name} must be a finite number{_bounds(lo, hi, lo_open, hi_open)}, "
+        raise error(f"{name} must be a finite number{bounds_text(lo, hi, lo_open, hi_open)}, "
                     f"got {name}={value!r}")
     return v
 
@@ -53,3 +55,27 @@ def finite_number(name: str, value, lo: float | None = None, hi: float | None = 
 def positive_number(name: str, value, error: type[ValueError] = ValueError) -> float:
     """``value`` as a finite float > 0."""
     return finite_number(name, value, 0, lo_open=True, error=error)
+
+
+#: pyserial URL schemes that reach a port over the network and need host:port
+_NETWORK_SCHEMES = ("socket", "rfc2217")
+
+
+def serial_url(url, error: type[ValueError] = ValueError) -> str:
+    """``url`` when it can name a serial port: a device path or a pyserial URL
+    (``loop://``, ``socket://host:port``). A ``socket://`` or ``rfc2217://`` URL
+    must carry a host and a port in 1..65535: pyserial's own message for a
+    missing port does not say what is wrong."""
+    if not isinstance(url, str) or not url.strip():
+        raise error(f"serial port must be a device path or a pyserial URL, got {url!r}")
+    scheme, sep, _ = url.partition("://")
+    if sep and scheme.lower() in _NETWORK_SCHEMES:
+        parts = urlsplit(url)
+        try:
+            port = parts.port
+        except ValueError:          # not a number, or beyond 65535
+            port = None
+        if not parts.hostname or not port:
+            raise error(f"{url!r}: a {scheme.lower()}:// URL needs a host and a port "
+                        f"1-65535, e.g. {scheme.lower()}://localhost:7777")
+    return url

@@ -23,14 +23,24 @@ class ConfigError(ValueError):
 
 
 def read_toml(path: Path | str) -> dict:
+    """The TOML document in ``path``. A missing file, a folder, a file that cannot be
+    read, text that is not UTF-8 and bad TOML are each one :class:`ConfigError`
+    naming the file."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a TOML file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML files are "
+                          f"UTF-8") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
 
 
 class Fields:

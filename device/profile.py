@@ -30,11 +30,11 @@ roi_shrink = 0.75          # pins are searched within roi_shrink * dome radius
 pitch_px = 11.7            # pin spacing at rest
 n_pins = 133               # the fixed pin count the localiser returns
 dome_px = [325.8, 218.8, 145.0]   # optional: fix the region instead of finding it
-match_gate_px = 4.7        # tracking distance gate (default 0.4 * pitch)
+match_gate_px = 4.7        # tracking distance gate, at most pitch_px (default 0.4 * pitch)
 grid_n = 8                 # contact grid size
 grid_gamma = 0.01          # temporal dampener per frame
 grid_contact = 0.03        # grid cell level that counts as contact
-contact_px = 1.0           # or: mean pin displacement that counts as contact
+contact_px = 1.0           # or: mean pin displacement that counts as contact (<= pitch_px)
 min_pin_fraction = 0.5     # fewer pins than this share of n_pins is a fault
 ```
 """
@@ -365,11 +365,12 @@ def parse_pipeline_profile(doc: dict, source: str = "") -> PipelineProfile:
         prof = PipelineProfile(
             name=str(name), vision=vision, pitch_px=pitch,
             n_pins=f.integer("n_pins", min=1, max=10000), dome_px=dome,
-            match_gate_px=f.number("match_gate_px", 0.4 * pitch, min=0, min_exclusive=True),
+            match_gate_px=f.number("match_gate_px", 0.4 * pitch, min=0, min_exclusive=True,
+                                   max=pitch),
             grid_n=f.integer("grid_n", 8, min=1, max=256),
             grid_gamma=f.number("grid_gamma", 0.01, min=0, max=1),
             grid_contact=f.number("grid_contact", 0.03, min=0, max=1),
-            contact_px=f.number("contact_px", 1.0, min=0),
+            contact_px=f.number("contact_px", 1.0, min=0, max=pitch),
             min_pin_fraction=f.number("min_pin_fraction", 0.5, min=0, max=1),
             source=source)
         f.done()

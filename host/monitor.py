@@ -14,6 +14,7 @@ import time
 from collections import deque
 from pathlib import Path
 
+from device.checks import serial_url
 from device.pi import protocol as P
 from device.sim.mpy.runner import MPY_LIB, cpython_path, mpy_unavailable, run_mpy
 
@@ -137,6 +138,7 @@ def open_source(spec: str, baudrate: int = 921600):
     if p.is_file():
         return _FileSource(p)
     import serial
+    serial_url(spec, error=MonitorError)
     try:
         port = serial.serial_for_url(spec, baudrate=baudrate, timeout=0.05)
     except (serial.SerialException, ValueError, OSError) as exc:

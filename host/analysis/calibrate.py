@@ -126,7 +126,9 @@ def rest_contact(grays, vision: dict) -> dict:
     """``grid_contact`` and ``contact_px`` for the fitted ``vision``: the defaults,
     raised to ``CONTACT_MARGIN`` times the largest contact-grid cell change and
     mean pin displacement that the rest frames show, so that none of them reads as
-    contact (a low threshold offset gives a busier binary image than the default)."""
+    contact (a low threshold offset gives a busier binary image than the default). A
+    ValueError when the displacement threshold would pass the pin pitch (the frames
+    are not at rest, and the profile could not be loaded)."""
     prof = parse_pipeline_profile({"vision": dict(vision)}, source="<calibrate>")
     stream = MarkerStream(prof)
     grid_max, mag_max = 0.0, 0.0
@@ -135,9 +137,15 @@ def rest_contact(grays, vision: dict) -> dict:
         if stream.reference is not None:
             grid_max = max(grid_max, float(ff.grid.max()))
             mag_max = max(mag_max, float(ff.magnitude_sum) / max(1, len(ff.vectors)))
+    contact_px = round(max(prof.contact_px, CONTACT_MARGIN * mag_max), 3)
+    if contact_px > prof.pitch_px:
+        raise ValueError(f"the contact threshold these frames need ({contact_px} px of mean "
+                         f"pin travel) is beyond the pin pitch ({prof.pitch_px} px): the "
+                         f"leading frames are not at rest; calibrate from a clip that starts "
+                         f"without contact")
     return {"grid_contact": round(min(1.0, max(prof.grid_contact,
                                                CONTACT_MARGIN * grid_max)), 4),
-            "contact_px": round(max(prof.contact_px, CONTACT_MARGIN * mag_max), 3)}
+            "contact_px": contact_px}
 
 
 def profile_toml(res: dict) -> str:

@@ -1,7 +1,8 @@
 """The ``host`` command: the tacfoot host toolkit.
 
 Every command that computes a result accepts ``--json``. Bad input (a bad
-scene file, a missing source) gives one clear line on stderr and exit status 2.
+argument, scene file or source) gives one clear line on stderr and exit status 2,
+never a traceback; ``--out`` follows one rule (:mod:`host.cli.common`).
 Each command group lives in its own module, which registers its sub-commands.
 """
 from __future__ import annotations
@@ -11,14 +12,14 @@ import sys
 
 from device.config import ConfigError
 from host.cli import analyse, bench, deploy, learn, localiser, monitor, rig, sim
-from host.cli.common import EXIT_BAD_INPUT, UserError
+from host.cli.common import EXIT_BAD_INPUT, Parser, UserError
 from host.data.dataset import DatasetError
 
 GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="host", description="tacfoot host toolkit")
+    p = Parser(prog="host", description="tacfoot host toolkit")
     sub = p.add_subparsers(dest="command", required=True)
     for group in GROUPS:
         group.register(sub)
@@ -26,7 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:           # -h (0) or a bad argument (2, one line)
+        return exc.code if isinstance(exc.code, int) else 0
     try:
         rc = args.func(args)
     except (ConfigError, DatasetError, UserError) as exc:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -15,8 +14,9 @@ from device.pi.vision.pipeline import STAGES, fault_names
 from host.analysis.calibrate import calibrate, write_profile
 from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
-from host.cli.common import (UserError, emit, load_localiser, load_regressor, open_source,
-                             open_stream, progress_bar, real_data_dir)
+from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
+                             open_stream, out_file, progress_bar, read_frames, real_data_dir,
+                             whole)
 
 
 def _open_pipeline(args):
@@ -62,7 +62,7 @@ def frame_line(f, pressure: float | None, localised: bool) -> dict:
 def cmd_analyse(args):
     stream, encoder, window, reg = _open_pipeline(args)
     cam = open_source(args.source)
-    out = open(args.out, "w") if args.out else sys.stdout
+    out = open(out_file(args.out), "w") if args.out else sys.stdout
     n = contact = 0
     faults: dict[str, int] = {}
     times = {k: [] for k in STAGES + ("total",)}
@@ -70,7 +70,7 @@ def cmd_analyse(args):
     try:
         with cam, progress_bar(total or 0, "analyse",
                                not args.json and args.out is not None) as bar:
-            for fr in cam:
+            for fr in read_frames(cam):
                 f, pressure = _process(stream, encoder, window, reg, fr)
                 out.write(json.dumps(frame_line(f, pressure, bool(args.localiser))) + "\n")
                 n += 1
@@ -106,7 +106,7 @@ def cmd_plot(args):
             inputs = [load_directions(p) for p in args.inputs]
     except (OSError, ValueError) as exc:
         raise UserError(str(exc)) from None
-    out = plot_directions(inputs, args.out, title=args.title or "")
+    out = plot_directions(inputs, out_file(args.out), title=args.title or "")
     res = {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]}
     text = f"wrote {out}"
     if args.compare:
@@ -119,20 +119,21 @@ def cmd_plot(args):
 
 
 def cmd_calibrate(args):
+    out = out_file(args.out)
     cam = open_source(args.source)
     frames = []
     with cam:
-        for fr in cam:
+        for fr in read_frames(cam):
             frames.append(fr.image.copy())
             if len(frames) >= args.frames:
                 break
     if not frames:
         raise UserError(f"{args.source}: no frames to calibrate from")
     try:
-        res = calibrate(frames, name=args.name or Path(args.out).stem)
+        res = calibrate(frames, name=args.name or out.stem)
     except ValueError as exc:
         raise UserError(f"{args.source}: {exc}") from None
-    res["out"] = str(write_profile(res, args.out))
+    res["out"] = str(write_profile(res, out))
     v = res["vision"]
     emit(args, res, f"wrote {args.out}: dome {v['dome_px']}, block {v['block']}, offset "
                     f"{v['offset']}, pin area {v['min_area_px']}..{v['max_area_px']} px, "
@@ -164,7 +165,8 @@ def register(sub) -> None:
     s = sub.add_parser("calibrate", help="fit a pipeline profile from a no-contact clip")
     s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
     s.add_argument("--out", required=True, help="profile .toml to write")
-    s.add_argument("--frames", type=int, default=16, help="leading frames to use (at rest)")
+    s.add_argument("--frames", type=whole(1, 100_000), default=16,
+                   help="leading frames to use (at rest); default 16")
     s.add_argument("--name", help="profile name (default: the file name)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_calibrate)
@@ -185,6 +187,6 @@ def register(sub) -> None:
     s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
                                   "../shared/data)")
     s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_realism)

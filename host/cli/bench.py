@@ -8,7 +8,7 @@ from pathlib import Path
 from host.bench import sim as bench_sim
 from host.bench.runtime import bench_runtime, format_runtime
 from host.bench.tables import write_tables
-from host.cli.common import UserError, emit, real_data_dir
+from host.cli.common import UserError, emit, real_data_dir, whole
 
 
 def _camera_url(camera: str) -> str:
@@ -71,7 +71,8 @@ def register(sub) -> None:
                                  "or none; default none)")
     s.add_argument("--models", help="runtime: models folder (default: the shipped models/)")
     s.add_argument("--doc", default="docs/BENCHMARKS.md", help="tables: the document to update")
-    s.add_argument("--frames", type=int, default=600, help="frames to run (runtime, tables)")
-    s.add_argument("--repeats", type=int, default=20)
+    s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
+                   help="frames to run (runtime, tables)")
+    s.add_argument("--repeats", type=whole(1, 10_000), default=20)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

@@ -1,12 +1,19 @@
-"""What every ``host`` command shares: the bad-input error and its exit status,
-JSON output, progress bars, and opening sources, streams and models."""
+"""What every ``host`` command shares: the bad-input error and its exit status, the
+argument parser and its checked number types, ``--out`` handling, JSON output,
+progress bars, and opening sources, streams and models.
+
+Bad input is one line on stderr and exit status 2, never a traceback
+(docs/architecture.md, "Bad input and --out")."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
 from pathlib import Path
+from typing import Callable, Iterator
 
+from device.checks import bounds_text, finite_number, whole_number
 from device.pi.models.artefact import ModelError
 from device.pi.models.regressor import Regressor
 from device.pi.sources.camera import CameraError, open_camera
@@ -14,6 +21,7 @@ from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
 from host.data.dataset import is_dataset
+from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 
 EXIT_BAD_INPUT = 2
@@ -21,6 +29,121 @@ EXIT_BAD_INPUT = 2
 
 class UserError(Exception):
     """Bad input from the user: printed as one line, exit status 2."""
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with a bad argument as one line (``host view: error: argument
+    --gain: ...``) and exit status 2; its sub-command parsers are Parsers too."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} -h)\n")
+
+
+def whole(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse ``type``: a whole number in ``[lo, hi]`` (either bound may be None)."""
+    def parse(text: str) -> int:
+        try:
+            return whole_number("", int(text, 10), lo, hi)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be a whole number{bounds_text(lo, hi)}, got {text!r}") from None
+    parse.__name__ = "whole number"
+    return parse
+
+
+def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+           hi_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type``: a finite number within the bounds (closed unless
+    ``lo_open`` / ``hi_open``); ``nan`` and ``inf`` are refused."""
+    def parse(text: str) -> float:
+        try:
+            return finite_number("", float(text), lo, hi, lo_open=lo_open, hi_open=hi_open)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"must be a finite number{bounds_text(lo, hi, lo_open, hi_open)}, "
+                f"got {text!r}") from None
+    parse.__name__ = "number"
+    return parse
+
+
+def whole_list(lo: int | None = None, hi: int | None = None) -> Callable[[str], tuple]:
+    """An argparse ``type``: comma-separated whole numbers in ``[lo, hi]`` (``1,2,5``)."""
+    one = whole(lo, hi)
+
+    def parse(text: str) -> tuple:
+        try:
+            return tuple(one(x.strip()) for x in text.split(","))
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(
+                f"must be whole numbers{bounds_text(lo, hi)} separated by commas, "
+                f"got {text!r}") from None
+    parse.__name__ = "list of whole numbers"
+    return parse
+
+
+#: ``--seed``: what numpy's generators take
+SEED = whole(0, 2**32 - 1)
+
+
+def _mkparent(path: Path, flag: str) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{flag} {path}: cannot create the folder {path.parent} "
+                        f"({exc.strerror or exc})") from None
+
+
+def out_file(path: str | Path, flag: str = "--out") -> Path:
+    """``--out FILE``: missing parent folders are created, an existing file is
+    replaced, an existing folder is refused."""
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{flag} {p}: is a folder; give the name of a file to write")
+    _mkparent(p, flag)
+    return p
+
+
+def out_folder(path: str | Path, holds: Callable[[Path], bool] | None = None, what: str = "",
+               force: bool | None = None, flag: str = "--out") -> Path:
+    """``--out DIR``: missing parent folders are created and a file is refused. An
+    existing folder must be empty, or one the command adds to (``holds(folder)``,
+    e.g. a dataset folder for the commands that append trials; ``what`` names that
+    kind), or ``force`` (the command's ``--force``; None when it has none) says to
+    replace what it holds."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"{flag} {p}: is a file, not a folder")
+    if p.is_dir() and any(p.iterdir()) and not force and not (holds and holds(p)):
+        why = f" and is not {what}" if what else ""
+        fix = "add --force to replace what it holds, or choose" if force is not None else "choose"
+        raise UserError(f"{flag} {p}: the folder is not empty{why}; {fix} a new or empty folder")
+    _mkparent(p, flag)
+    return p
+
+
+def dataset_folder(path: Path) -> bool:
+    """A dataset folder, or one a dataset writer was stopped in before its first
+    trial was complete (it holds only the writer's temporary ``.*.tmp`` files and the
+    rig's run state): the folders that ``simulate``, ``record`` and ``rig run`` add to."""
+    return is_dataset(path) or all(
+        (f.name.startswith(".") and f.name.endswith(".tmp")) or f.name == RUN_STATE
+        for f in path.iterdir())
+
+
+def camera_text(exc: OSError) -> str:
+    """A camera error as one line: ``FILE: what is wrong``."""
+    if getattr(exc, "filename", None) and getattr(exc, "strerror", None):
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
+def read_frames(cam) -> Iterator:
+    """The frames of an open camera; a frame it cannot read (an unreadable image, or
+    one of another size in a folder) is a :class:`UserError` naming it."""
+    try:
+        yield from cam
+    except CameraError as exc:
+        raise UserError(camera_text(exc)) from None
 
 
 def emit(args, data, text: str | None = None) -> None:
@@ -59,7 +182,9 @@ def open_source(source: str):
     """The camera for a source string; a bad one is a :class:`UserError`."""
     try:
         return open_camera(source)
-    except (CameraError, ValueError) as exc:
+    except CameraError as exc:
+        raise UserError(camera_text(exc)) from None
+    except ValueError as exc:
         raise UserError(str(exc)) from None
 
 

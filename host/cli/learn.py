@@ -5,9 +5,10 @@ import json
 import sys
 from pathlib import Path
 
-from device.pi.models.artefact import ModelError, read_manifest
+from device.pi.models.artefact import MAX_T, ModelError, read_manifest
 from host.bench.report import build_report
-from host.cli.common import UserError, emit, json_default, real_data_dir
+from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
+                             whole, whole_list)
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
@@ -35,8 +36,7 @@ def cmd_train(args):
     args.model = args.model or DEFAULT_MODEL[args.task]
     if args.window is None:
         args.window = DEFAULT_WINDOW[args.task]
-    if args.window < 1:
-        raise UserError(f"--window must be >= 1 frame, got {args.window}")
+    out_folder(args.out, force=args.force)
     ws = _load_windows(args, args.task, args.window, min_classes=1)
     ws_test = (_load_windows(args, args.task, args.window, min_classes=1, specs=args.test)
                if args.test else None)
@@ -98,7 +98,7 @@ def cmd_report(args):
         data = real_data_dir(args.data)
     except UserError:
         print("host report: real recordings not found; simulated data only", file=sys.stderr)
-    windows = tuple(int(x) for x in args.windows.split(","))
+    windows = args.windows
     cmd = "host report --out " + args.out + (" --quick" if args.quick else "")
     out = build_report(args.out, args.work, data, windows=windows, quick=args.quick,
                        seed=args.seed, progress=not args.json, command=cmd)
@@ -112,7 +112,7 @@ def register(sub) -> None:
     s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"],
                    help="model kind (default per task: " +
                    ", ".join(f"{t} {m}" for t, m in DEFAULT_MODEL.items()) + ")")
-    s.add_argument("--window", type=int,
+    s.add_argument("--window", type=whole(1, MAX_T),
                    help="T, frames per window (default per task: " +
                    ", ".join(f"{t} {w}" for t, w in DEFAULT_WINDOW.items()) + ")")
     s.add_argument("--data", action="append", required=True,
@@ -120,13 +120,15 @@ def register(sub) -> None:
     s.add_argument("--test", action="append",
                    help="held-out data spec (repeatable); default: a split of --data that "
                         "keeps every class (whole trials, else the end of each trial)")
-    s.add_argument("--cv", type=int, help="also report grouped K-fold CV metrics")
+    s.add_argument("--cv", type=whole(2, 100), help="also report grouped K-fold CV metrics")
     s.add_argument("--quantise", action="store_true", help="also write an int8 model")
     s.add_argument("--contact-only", action="store_true",
                    help="drop windows without contact instead of labelling them no-touch")
     s.add_argument("--profile", default="roboskin")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--out", required=True, help="model folder to write")
+    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--out", required=True, help="model folder to write (new or empty)")
+    s.add_argument("--force", action="store_true",
+                   help="write into a folder that is not empty, replacing the model in it")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_train)
 
@@ -143,8 +145,9 @@ def register(sub) -> None:
     s.add_argument("--out", default="docs/accuracy-vs-time.md")
     s.add_argument("--work", default="out/report", help="simulated data and scratch")
     s.add_argument("--data", help="real recordings folder")
-    s.add_argument("--windows", default="1,2,3,5,10", help="window lengths T")
+    s.add_argument("--windows", type=whole_list(1, MAX_T), default=(1, 2, 3, 5, 10),
+                   help="window lengths T, comma-separated (default 1,2,3,5,10)")
     s.add_argument("--quick", action="store_true", help="fewer simulated trials")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_report)

@@ -1,7 +1,7 @@
 """``host monitor``: decode the surface link."""
 from __future__ import annotations
 
-from host.cli.common import UserError, emit
+from host.cli.common import UserError, emit, number, whole
 from host.monitor import MonitorError, bench_link, format_bench, run_monitor
 
 
@@ -12,10 +12,6 @@ def cmd_monitor(args):
         return
     if not args.source:
         raise UserError("give a SERIAL_URL_OR_FILE to monitor (or --bench)")
-    if args.count is not None and args.count < 1:
-        raise UserError(f"--count must be at least 1, got {args.count}")
-    if args.seconds is not None and not args.seconds > 0:
-        raise UserError(f"--seconds must be positive, got {args.seconds}")
     try:
         run_monitor(args.source, as_json=args.json, count=args.count, seconds=args.seconds)
     except MonitorError as exc:
@@ -31,8 +27,9 @@ def register(sub) -> None:
                                              "captured bytes")
     s.add_argument("--bench", action="store_true",
                    help="time the link instead: packet size, encode/decode, MicroPython")
-    s.add_argument("--count", type=int, help="stop after this many messages")
-    s.add_argument("--seconds", type=float, help="stop after this many seconds")
+    s.add_argument("--count", type=whole(1), help="stop after this many messages")
+    s.add_argument("--seconds", type=number(0, lo_open=True),
+                   help="stop after this many seconds")
     s.add_argument("--json", action="store_true",
                    help="one JSON line per message and a summary line")
     s.set_defaults(func=cmd_monitor)

@@ -2,11 +2,11 @@
 (a labelled trial from any camera, without the rig)."""
 from __future__ import annotations
 
-from pathlib import Path
 
 from device.pi.sources.camera import CameraError
 from device.pi.sources.imu import IMUError, open_imu
-from host.cli.common import UserError, emit, open_source, progress_bar
+from host.cli.common import (SEED, UserError, dataset_folder, emit, number, open_source,
+                             out_folder, progress_bar)
 from host.rig.record import RecordError, record
 from host.rig.plan import load_plan, plan_summary
 from host.rig.trials import run, summary_text
@@ -20,8 +20,9 @@ def cmd_rig(args):
                       f"{s['repetitions']} repetitions x {len(s['variants'])} variants), "
                       f"about {s['estimated_s'] / 60:.1f} min")
         return 0
+    out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
     try:
-        s = run(plan, args.rig, args.camera, Path(args.out), resume=args.resume,
+        s = run(plan, args.rig, args.camera, out, resume=args.resume,
                 profile=args.profile, progress=not args.json, yes=args.yes, seed=args.seed)
     except ValueError as exc:
         raise UserError(str(exc)) from None
@@ -30,6 +31,7 @@ def cmd_rig(args):
 
 
 def cmd_record(args):
+    out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
     camera = open_source(args.camera)
     imu = None
     if args.imu:
@@ -63,7 +65,7 @@ def register(sub) -> None:
                    help="v4l2:///dev/video0, a video file, a folder of images or sim://SCENE")
     s.add_argument("--imu", help="i2c://1/0x68, file://imu.npy or sim://SCENE (optional)")
     s.add_argument("--label", required=True, help="the surface or texture name, e.g. lego")
-    s.add_argument("--seconds", type=float, default=30.0,
+    s.add_argument("--seconds", type=number(0, 86_400, lo_open=True), default=30.0,
                    help="how long to record (a file source may end sooner); default 30")
     s.add_argument("--out", required=True, help="dataset folder to append the trial to")
     s.add_argument("--json", action="store_true")
@@ -84,6 +86,6 @@ def register(sub) -> None:
     r.add_argument("--resume", action="store_true", help="run only the trials not yet recorded")
     r.add_argument("--profile", default="roboskin", help="sensor profile of the recordings")
     r.add_argument("--yes", action="store_true", help="do not prompt for plate swaps")
-    r.add_argument("--seed", type=int, default=0, help="sim:// noise seed")
+    r.add_argument("--seed", type=SEED, default=0, help="sim:// noise seed")
     r.add_argument("--json", action="store_true")
     r.set_defaults(func=cmd_rig)

@@ -18,8 +18,9 @@ from device.pi.vision.pipeline import fault_names
 from device.sim import SURFACE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
                                 truth_plot)
-from host.cli.common import (UserError, emit, is_recording, open_source, open_stream,
-                             progress_bar)
+from host.cli.common import (SEED, UserError, dataset_folder, emit, is_recording, number,
+                             open_source, open_stream, out_file, out_folder, progress_bar,
+                             read_frames, whole)
 from host.data.dataset import is_dataset, load_trial
 from host.data.simulate import simulate_to_dataset
 
@@ -37,8 +38,8 @@ def cmd_scenes(args):
 
 
 def cmd_simulate(args):
-    res = simulate_to_dataset(args.scene, Path(args.out), args.seed, args.trials,
-                              progress=not args.json)
+    out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
+    res = simulate_to_dataset(args.scene, out, args.seed, args.trials, progress=not args.json)
     emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}")
 
 
@@ -56,10 +57,10 @@ def _frames_and_truth(src: str, seed: int):
 def cmd_view(args):
     if Path(args.out).suffix.lower() not in (".gif", ".png"):
         raise UserError(f"--out must end in .gif or .png, got {args.out!r}")
+    out = out_file(args.out)
     if is_recording(args.source):
         return _view_pipeline(args)
     frames, truth, rest, fps = _frames_and_truth(args.source, args.seed)
-    out = Path(args.out)
     most = args.max_frames or (120 if out.suffix.lower() == ".gif" else 6)
     contact = np.flatnonzero(truth["contact"]) if out.suffix.lower() == ".png" else []
     if len(contact) and not args.max_frames:
@@ -84,7 +85,7 @@ def _view_pipeline(args):
     keep = set(pick_frames(total, most).tolist()) if total else None
     images, picked = [], []
     with cam:
-        for fr in cam:
+        for fr in read_frames(cam):
             f = stream.process(fr.image, fr.t_s)
             if stream.reference is None or (keep is not None and f.index not in keep):
                 continue
@@ -206,8 +207,8 @@ def _demo_segments(scene, sim, out: Path) -> list:
 
 
 def cmd_demo(args):
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = out_folder(args.out, holds=lambda p: True)      # a demo replaces its own files
+    out.mkdir(exist_ok=True)
     scene = load_scene(args.scene)
     sim = Simulator(scene, seed=args.seed)
     picks = pick_frames(sim.n_frames, 180)
@@ -255,8 +256,9 @@ def register(sub) -> None:
     s = sub.add_parser("simulate", help="render a scene to a dataset folder")
     s.add_argument("scene", help="built-in scene name or a scene .toml file")
     s.add_argument("--out", required=True, help="dataset folder to write")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--trials", type=int, default=1, help="trials with seeds seed, seed+1, ...")
+    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--trials", type=whole(1, 10_000), default=1,
+                   help="trials with seeds seed, seed+1, ...")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_simulate)
 
@@ -265,16 +267,18 @@ def register(sub) -> None:
                                   "a video, image folder or sim://SCENE (the pipeline's)")
     s.add_argument("--profile", default="roboskin", help="pipeline profile (recordings)")
     s.add_argument("--out", required=True, help="preview.gif or preview.png")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--max-frames", type=int, default=0)
-    s.add_argument("--gain", type=float, default=2.0, help="arrow length per px of travel")
+    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--max-frames", type=whole(0, 100_000), default=0,
+                   help="frames to draw (default 0: 120 in a GIF, 6 in a PNG)")
+    s.add_argument("--gain", type=number(0, 1000, lo_open=True), default=2.0,
+                   help="arrow length per px of travel")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("demo", help="the main job on the simulated sensor")
     s.add_argument("--out", default="out/demo")
     s.add_argument("--scene", default="walk")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--fast", action="store_true",
                    help="do not pace the simulated camera at its frame rate (the gait "
                         "context then lags the frames)")

@@ -31,6 +31,8 @@ import json
 import os
 import re
 import tempfile
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -203,17 +205,42 @@ class DatasetWriter:
 
 
 def read_index(path: Path | str) -> dict:
-    return read_json_doc(path, INDEX, FORMAT, VERSION, "dataset", "index", DatasetError)[0]
+    """A dataset folder's index; a DatasetError names the file when it is not one,
+    or when ``trials`` is not a list of entries that each name a trial file and
+    its frame count."""
+    doc, file = read_json_doc(path, INDEX, FORMAT, VERSION, "dataset", "index", DatasetError)
+    trials = doc.get("trials", [])
+    if not isinstance(trials, list):
+        raise DatasetError(f"{file}: trials must be a list of trial entries, got {trials!r:.60}")
+    for i, e in enumerate(trials):
+        if (not isinstance(e, dict) or not isinstance(e.get("file"), str)
+                or Path(e["file"]).name != e["file"] or not e["file"].endswith(".npz")):
+            raise DatasetError(f"{file}: trials[{i}] must be an entry naming its .npz file in "
+                               f"the folder, got {e!r:.60}")
+        n = e.get("frames", 0)
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise DatasetError(f"{file}: trials[{i}].frames must be a whole number >= 0, "
+                               f"got {n!r}")
+    doc["trials"] = trials
+    return doc
 
 
 def load_trial(dataset_dir: Path | str, i: int) -> dict:
+    """Trial ``i``'s arrays and its index entry (``info``); a missing, truncated or
+    corrupt trial file is a DatasetError naming it."""
     doc = read_index(dataset_dir)
     try:
         entry = doc["trials"][i]
     except IndexError:
         raise DatasetError(f"{dataset_dir}: no trial {i} (has {len(doc['trials'])})") from None
-    with np.load(Path(dataset_dir) / entry["file"]) as z:
-        return {k: z[k] for k in z.files} | {"info": entry}
+    file = Path(dataset_dir) / entry["file"]
+    try:
+        with np.load(file, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files} | {"info": entry}
+    except FileNotFoundError:
+        raise DatasetError(f"{file}: trial file missing") from None
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:
+        raise DatasetError(f"{file}: corrupt or truncated trial file ({exc})") from None
 
 
 def is_dataset(path: Path | str) -> bool:

@@ -17,7 +17,7 @@ import numpy as np
 from device.pi.sources.camera import CameraError, open_camera
 from host.data.extract import ClipFeatures, extract_features
 from host.data.spec_npz import load_npz
-from host.data.windows import (IMU_CHANNELS, DataError, TrialPart, WindowSet,
+from host.data.windows import (IMU_CHANNELS, DataError, TrialPart, WindowSet, check_labels,
                                finalise, keep_contact, stack_parts, window_ends, window_labels)
 
 MANIFEST_COLUMNS = ("path", "label", "start_frame", "end_frame", "imu")
@@ -109,6 +109,8 @@ def _parse_manifest(path: Path, task: str) -> list[_Row]:
                                     f"row; an .npz holds whole windows (put imu inside it)")
         elif not label:
             raise DataError(f"{where}, column label: empty")
+        if label:
+            check_labels(task, label, f"{where}, column label")
         if label and task == "pressure":
             try:
                 if not math.isfinite(float(label)):
@@ -176,8 +178,14 @@ def _extract_clip(key: str, end: int | None, profile: str, frame_size, progress:
         raise DataError(f"{key}: cannot open: {exc}") from None
     with cam:
         n = cam.n_frames
-        clip = extract_features(cam, profile, frame_size, n_frames=n, progress=progress,
-                                desc=Path(key).name if "://" not in key else key, fps=cam.fps)
+        try:
+            clip = extract_features(cam, profile, frame_size, n_frames=n, progress=progress,
+                                    desc=Path(key).name if "://" not in key else key,
+                                    fps=cam.fps)
+        except CameraError as exc:      # a frame that cannot be read, e.g. a broken image
+            where = (f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror
+                     else str(exc))
+            raise DataError(f"{key}: cannot read a frame: {where}") from None
         if key.startswith("sim://"):
             imu = np.asarray(cam.truth["imu"], np.float64)
             clip.imu = imu[:clip.n_frames]

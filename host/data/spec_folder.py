@@ -10,7 +10,8 @@ import numpy as np
 from host.data.dataset import DatasetError, load_trial, read_index
 from host.data.extract import extract_features
 from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
-                               finalise, keep_contact, stack_parts, window_ends, window_labels)
+                               check_labels, finalise, keep_contact, stack_parts, window_ends,
+                               window_labels)
 
 
 def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
@@ -43,6 +44,8 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
         else:
             try:
                 tr = load_trial(path, i)
+            except DatasetError as exc:             # it names the file
+                raise DataError(str(exc)) from None
             except (OSError, ValueError, KeyError) as exc:
                 raise DataError(f"{path / fname}: cannot read the trial: {exc}") from None
             frames = tr["frames"]
@@ -76,6 +79,9 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
             if codes.size and (codes.min() < 0 or codes.max() >= len(nm)):
                 raise DataError(f"{path / fname}: {task} code {int(codes.max())} has no name in "
                                 f"{task}_labels {nm}")
+            for c in np.unique(codes):
+                check_labels(task, nm[c], f"{path / fname}: {task} code {int(c)} "
+                                          f"({task}_labels in {path / 'dataset.json'})")
             labels = window_labels(task, np.array(nm, object)[codes], contact)
         elif task == "slip":
             labels = np.array(SLIP_LABELS, object)[np.asarray(truth["slip"], bool)[ends]

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from device.profile import load_pipeline_profile
-from host.data.windows import IMU_CHANNELS, DataError, WindowSet, finalise
+from host.data.windows import IMU_CHANNELS, DataError, WindowSet, check_labels, finalise
 
 
 def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
@@ -82,6 +82,7 @@ def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
             if lab.dtype.kind not in "US":
                 raise DataError(f"{path}: labels must be strings, got dtype {lab.dtype}")
             labels = lab.astype(str).astype(object)
+            check_labels(task, labels, f"{where or path}: labels", indexed=True)
     c = per_window("contact", (), None)
     if c is not None:
         contact, contact_from = c.astype(bool), "npz"

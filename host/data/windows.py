@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 
 from device.checks import whole_number
+from device.pi.protocol import SURFACE_CLASSES
 
 if TYPE_CHECKING:
     from host.data.extract import ClipFeatures
@@ -24,6 +25,9 @@ TASKS = ("surface", "texture", "slip", "pressure")
 CLASS_TASKS = ("surface", "texture", "slip")
 NO_TOUCH = "no-touch"
 SLIP_LABELS = ("no-slip", "slip")          # slip task labels from a dataset folder
+#: the tasks whose classes are fixed (the surface link's classes; slip or not); texture
+#: labels are the user's own names
+FIXED_CLASSES = {"surface": SURFACE_CLASSES, "slip": SLIP_LABELS}
 IMU_CHANNELS = 6                            # ax, ay, az [g], gx, gy, gz [deg/s]
 DEFAULT_FRAME_SIZE = 32
 
@@ -269,6 +273,25 @@ def finalise(ws: WindowSet, min_classes: int, spec: str) -> WindowSet:
     if ws.targets is not None and not np.isfinite(ws.targets).all():
         raise DataError(f"{spec}: {int((~np.isfinite(ws.targets)).sum())} targets are not finite")
     return ws
+
+
+def check_labels(task: str, labels, where: str, indexed: bool = False) -> None:
+    """A DataError naming ``where`` (the row, trial or file) when a fixed-class task
+    (:data:`FIXED_CLASSES`) gets a label that is not one of its classes: a typo such as
+    ``lava`` must not become a class of its own. ``labels`` is one label, or an array
+    when ``indexed`` (the message then names the first bad entry)."""
+    known = FIXED_CLASSES.get(task)
+    if known is None or labels is None:
+        return
+    if not indexed:
+        labels, where_i = [labels], (lambda i: where)
+    else:
+        def where_i(i):
+            return f"{where}[{i}]"
+    for i, x in enumerate(labels):
+        if x not in known:
+            raise DataError(f"{where_i(i)}: {x!r} is not a {task} class; the {task} classes "
+                            f"are {', '.join(known)}")
 
 
 def window_labels(task: str, label_frames: np.ndarray | None, contact: np.ndarray,

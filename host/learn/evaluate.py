@@ -74,7 +74,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
 
     ``variant``: None (the manifest's default: int8 when the model was quantised),
     ``"float"`` or ``"int8"``. Raises :class:`device.pi.models.artefact.ModelError` for a
-    bad model folder and ValueError for windows that do not fit the model.
+    bad model folder and ValueError for windows that do not fit the model, or whose
+    labels are not all classes of the model.
     """
     pred_obj, doc, kind = load_variant(model_dir, variant)
     task = doc.get("kind")
@@ -90,6 +91,12 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     uses_imu = bool(doc.get("uses_imu", False))
     if uses_imu and ws.imu is None:
         raise ValueError("the model uses the IMU but the windows carry none")
+    if kind != "regressor" and ws.labels is not None:
+        unknown = sorted({str(x) for x in ws.labels} - {str(c) for c in pred_obj.classes})
+        if unknown:
+            raise ValueError(f"the data hold label(s) {unknown} that the model does not know "
+                             f"(its classes: {list(pred_obj.classes)}); a score over them would "
+                             f"mean nothing: fix the labels or evaluate a model trained on them")
     X = model_inputs(ws, layout, uses_imu)
     shape = [int(d) for d in doc["input"]["shape"][1:]]
     if int(np.prod(X.shape[1:])) != int(np.prod(shape)):

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from device.checks import serial_url
 from device.config import ConfigError
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
 from host.rig.plan import DIRECTIONS, Plan, RigLimits, Trial, Variant
@@ -116,7 +117,7 @@ class Connection:
         if self.sim is not None:
             port = serial.Serial(self.sim.port, 115200, timeout=0.02)
         else:
-            port = serial.serial_for_url(self.url, 115200, timeout=0.02)
+            port = serial.serial_for_url(serial_url(self.url), 115200, timeout=0.02)
         self.client = RigClient(port)
         return self.client
 

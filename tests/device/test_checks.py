@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from device.checks import finite_number, positive_number, whole_number
+from device.checks import bounds_text, finite_number, positive_number, serial_url, whole_number
 
 
 def test_whole_numbers_in_range_come_back_as_int():
@@ -47,3 +47,29 @@ def test_a_callers_error_class_is_raised():
         whole_number("window", 0, 1, error=DataError)
     with pytest.raises(DataError, match="alpha must be a finite number >= 0"):
         finite_number("alpha", -1.0, 0, error=DataError)
+
+
+@pytest.mark.parametrize("url", ["/dev/serial0", "loop://", "socket://localhost:7777",
+                                 "rfc2217://10.0.0.2:2217", "spy:///dev/ttyUSB0", "COM3"])
+def test_serial_urls_that_name_a_port_pass(url):
+    assert serial_url(url) == url
+
+
+@pytest.mark.parametrize("url, why", [
+    ("socket://notahost", r"'socket://notahost': a socket:// URL needs a host and a port "
+                          r"1-65535, e.g. socket://localhost:7777"),
+    ("socket://notahost:99999", r"needs a host and a port 1-65535"),
+    ("socket://:7777", r"needs a host and a port"),
+    ("SOCKET://h:x", r"a socket:// URL needs"),
+    ("rfc2217://host", r"a rfc2217:// URL needs"),
+    ("", r"serial port must be a device path or a pyserial URL, got ''"),
+    (None, r"got None"),
+])
+def test_a_serial_url_without_what_it_needs_is_refused(url, why):
+    with pytest.raises(ValueError, match=why):
+        serial_url(url)
+
+
+def test_bounds_are_worded_as_the_messages_word_them():
+    assert bounds_text(1, None) == " >= 1" and bounds_text(None, 9) == " <= 9"
+    assert bounds_text(0, 1, lo_open=True) == " in (0, 1]" and bounds_text(None, None) == ""

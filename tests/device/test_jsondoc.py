@@ -31,9 +31,17 @@ def test_a_folder_or_the_file_itself(tmp_path):
     ('{"format": "other"}', r"not a tacfoot thing index \(format 'other', expected"),
     ('{"format": "tacfoot-thing", "version": 3}', r"index version 3 is newer than this "
                                                   r"tacfoot reads \(2\)"),
+    ('{"format": "tacfoot-thing", "version": "x"}', r"index version must be a whole number "
+                                                    r">= 0, got 'x'"),
+    ('{"format": "tacfoot-thing", "version": 1.5}', r"version must be a whole number"),
+    ('{"format": "tacfoot-thing", "version": true}', r"version must be a whole number"),
+    ("DIR", r"doc\.json: cannot read the index"),
 ])
 def test_every_bad_document_is_the_callers_error_naming_the_file(tmp_path, text, why):
-    if isinstance(text, bytes):
+    if text == "DIR":
+        (tmp_path / "doc.json").mkdir()
+        (tmp_path / "doc.json" / "doc.json").mkdir()
+    elif isinstance(text, bytes):
         (tmp_path / "doc.json").write_bytes(text)
     elif text is not None:
         (tmp_path / "doc.json").write_text(text)

@@ -138,6 +138,12 @@ def test_vision_params_are_frozen():
     ({"pitch_px": 5}, "vision.n_pins is required"),
     ({"pitch_px": 5, "n_pins": 5, "colour": 1}, "vision.colour is not a known key"),
     ({"pitch_px": 5, "n_pins": 5, "dome_px": [1, 2]}, "vision.dome_px must be"),
+    # a gate or contact threshold beyond the pin pitch makes rest read as contact, or
+    # contact never read at all
+    ({"pitch_px": 11.7, "n_pins": 5, "match_gate_px": 1e308},
+     r"p\.toml: vision\.match_gate_px must be <= 11\.7, got 1e\+308"),
+    ({"pitch_px": 11.7, "n_pins": 5, "match_gate_px": 0}, r"match_gate_px must be > 0"),
+    ({"pitch_px": 11.7, "n_pins": 5, "contact_px": 1e9}, r"contact_px must be <= 11\.7"),
 ])
 def test_bad_profile_gets_one_clear_error(vision, match):
     with pytest.raises(ProfileError, match=match):

@@ -33,6 +33,8 @@ MANIFEST = "manifest.json"
 FLOAT_MANIFEST = "manifest.float.json"
 #: which ONNX file of a model folder to load
 VARIANTS = ("int8", "float")
+#: the longest window a model may read, frames (8 s at 120 fps)
+MAX_T = 1000
 
 
 class ModelError(ValueError):
@@ -74,7 +76,45 @@ def read_manifest(path: Path | str) -> tuple[dict, Path]:
     for key in ("onnx", "sha256", "feature_spec", "input"):
         if key not in doc:
             raise ModelError(f"{mpath}: manifest lacks {key!r}")
+    check_manifest_types(doc, mpath)
     return doc, mpath.parent
+
+
+def _whole(v, lo: int, hi: int) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int) and lo <= v <= hi
+
+
+def check_manifest_types(doc: dict, where) -> None:
+    """Each field the loaders read has its type and a sane range, or a ModelError
+    names the file, the field and the value: ``onnx`` a file name (null for a rule
+    model, which has no ONNX file), ``sha256`` a table
+    of names to hex digests, ``feature_spec`` a whole number, ``input.shape`` a batch
+    dimension then whole-number sizes, ``T`` (when there) 1..:data:`MAX_T` frames,
+    ``kind`` and ``model`` (when there) names."""
+    def bad(field, why):
+        raise ModelError(f"{where}: {field} {why}, got {doc.get(field)!r}"
+                         if "." not in field else f"{where}: {field} {why}")
+    onnx = doc["onnx"]
+    if not (isinstance(onnx, str) and onnx.strip()) and not (onnx is None
+                                                             and doc.get("model") == "rule"):
+        bad("onnx", "must be the model file's name (null only for a rule model)")
+    sha = doc["sha256"]
+    if not isinstance(sha, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                            for k, v in sha.items()):
+        bad("sha256", "must map file names to SHA-256 hex digests")
+    if not _whole(doc["feature_spec"], 0, 1 << 30):
+        bad("feature_spec", "must be a whole number")
+    inp = doc["input"]
+    shape = inp.get("shape") if isinstance(inp, dict) else None
+    if (not isinstance(shape, list) or len(shape) < 2
+            or not all(_whole(d, 1, 1 << 30) for d in shape[1:])):
+        bad("input.shape", f"must be [batch, size, ...] with whole-number sizes, got "
+                           f"{shape if isinstance(inp, dict) else inp!r}")
+    if "T" in doc and not _whole(doc["T"], 1, MAX_T):
+        bad("T", f"must be a whole number of frames in [1, {MAX_T}]")
+    for key in ("kind", "model"):
+        if key in doc and not isinstance(doc[key], str):
+            bad(key, "must be a name")
 
 
 def manifest_for(folder: Path | str, variant: str) -> Path:

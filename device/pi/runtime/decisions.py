@@ -88,6 +88,14 @@ def surface_probs_of_model(classes, p) -> np.ndarray:
     return out / s if s > 0 else np.full(len(SURFACE_CLASSES), 1.0 / len(SURFACE_CLASSES))
 
 
+def unknown_class_wins(classes, p) -> bool:
+    """True when a surface model's most likely class is not a SURFACE class (a label
+    the link has no id for): the decision then carries a model fault instead of
+    quietly taking the best of the classes left."""
+    p = np.asarray(p, np.float64)
+    return bool(p.size) and str(classes[int(np.argmax(p))]) not in SURFACE_CLASSES
+
+
 @dataclass
 class Decision:
     class_id: int
@@ -123,7 +131,7 @@ def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
         if w.full:
             _, p = m.surface.predict_window(w)
             surface = model_probs = surface_probs_of_model(m.surface.classes, p)
-            model_fault |= bool(m.surface.fault)
+            model_fault |= bool(m.surface.fault) or unknown_class_wins(m.surface.classes, p)
             wr = gait_rule_weight
             if gait is not None and probs_rule is not None and wr > 0:
                 surface = (1.0 - wr) * model_probs + wr * rule_probs

@@ -38,6 +38,7 @@ from collections import deque
 
 import serial
 
+from device.checks import serial_url
 from device.pi import protocol
 
 #: FAULT packets that may wait before newer ones replace the newest waiting one
@@ -59,8 +60,8 @@ def open_port(url: str, baudrate: int = 921600):
     ``socket://host:port``), opened non-blocking: reads return what is waiting,
     writes take what fits."""
     try:
-        port = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=0,
-                                     do_not_open=True)
+        port = serial.serial_for_url(serial_url(url), baudrate=baudrate, timeout=0,
+                                     write_timeout=0, do_not_open=True)
         if url.startswith("loop://"):
             # loop:// refuses every write when write_timeout is 0; its queue is
             # bounded instead and try_write only offers what fits

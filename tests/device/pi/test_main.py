@@ -55,6 +55,26 @@ def test_bad_artefacts_refuse_to_start_with_exit_2(model_dir, tmp_path, capsys):
     assert rc == 2 and "0x200" in capsys.readouterr().err
 
 
+def test_a_config_that_is_not_toml_a_manifest_of_wrong_types_and_a_portless_socket(
+        model_dir, tmp_path, capsys):
+    import shutil
+    cam = ["--camera", "sim://press-hard"]
+    (tmp_path / "folder.toml").mkdir()
+    rc, err = _run_main(cam + ["--config", str(tmp_path / "folder.toml")], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "folder.toml: is a folder, not a TOML file" in err
+    (tmp_path / "latin1.toml").write_bytes(b'[camera]\nname = "caf\xe9"\n')
+    rc, err = _run_main(cam + ["--config", str(tmp_path / "latin1.toml")], capsys)
+    assert rc == 2 and "latin1.toml: not UTF-8 text" in err
+    bad = tmp_path / "m"
+    shutil.copytree(model_dir, bad)
+    for m in (bad / "surface").glob("manifest*.json"):
+        m.write_text(json.dumps(dict(json.loads(m.read_text()), T=1e9)))
+    rc, err = _run_main(cam + ["--models", str(bad)], capsys)
+    assert rc == 2 and "T must be a whole number of frames in [1, 1000]" in err
+    rc = main(["run", "--imu", "none", "--serial", "socket://notahost", "--frames", "2"] + cam)
+    assert rc == 2 and "a socket:// URL needs a host and a port" in capsys.readouterr().err
+
+
 def test_python_dash_m_device_pi_run_on_simulated_hardware(tmp_path):
     status = tmp_path / "st.json"
     r = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", "sim://press-hard",

@@ -95,3 +95,18 @@ def test_train_takes_a_calibrated_profile(tmp_path, capsys):
     n = len(load_layout(prof))
     assert man["input"]["shape"][1] >= n * 2 * 2           # T=2 frames of M (x, y) vectors
     assert res["metrics"]["test"]["accuracy"] > 0.6
+
+
+def test_a_contact_threshold_beyond_the_pin_pitch_is_refused():
+    """A profile's contact_px may not pass its pin pitch (device.profile refuses it), so
+    calibrate says its frames are not at rest rather than write such a profile."""
+    from device.sim import Simulator, load_scene
+    from host.analysis.calibrate import rest_contact
+    sim = Simulator(load_scene("no-touch"), seed=0)
+    grays = [sim.render(i) for i in range(6)]
+    vision = {"block": 11, "offset": 14.0, "pitch_px": 11.7, "n_pins": 133}
+    assert rest_contact(grays, vision)["contact_px"] <= 11.7
+    with pytest.raises(ValueError, match=r"contact threshold these frames need \(1\.0 px of mean "
+                                         r"pin travel\) is beyond the pin pitch \(0\.6 px\): "
+                                         r"the leading frames are not at rest"):
+        rest_contact(grays, dict(vision, pitch_px=0.6))

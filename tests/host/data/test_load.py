@@ -7,10 +7,10 @@ from host.data.load import load_spec
 from host.data.windows import DataError
 
 def test_missing_files_are_named(tmp_path, write_csv):
-    m = write_csv(tmp_path / "m.csv", ["path,label", "nowhere/clip.avi,a"])
+    m = write_csv(tmp_path / "m.csv", ["path,label", "nowhere/clip.avi,hard"])
     with pytest.raises(DataError, match=r"row 1.*column path: no such file.*nowhere/clip\.avi"):
         load_spec(str(m), "surface", 2)
-    m = write_csv(tmp_path / "m2.csv", ["path,label,imu", "sim://no-touch,a,gone.npy"])
+    m = write_csv(tmp_path / "m2.csv", ["path,label,imu", "sim://no-touch,hard,gone.npy"])
     with pytest.raises(DataError, match=r"column imu: no such file.*gone\.npy"):
         load_spec(str(m), "surface", 2)
     with pytest.raises(DataError, match=r"no such data spec.*absent_dir"):

@@ -23,7 +23,7 @@ def test_manifest_with_sim_path_frame_range_and_imu(tmp_path, write_csv):
         "path,label,start_frame,end_frame,imu",
         "sim://press-hard?seed=1,hard,20,60,imu.npy",
         "sim://press-hard?seed=1,hard,60,90,imu.npy",
-        "sim://no-touch,air,,,",
+        "sim://no-touch,no-touch,,,",
     ])
     ws = load_spec(str(m), "surface", T, progress=False, frame_size=16)
     assert ws.frames.shape[2:] == (16, 16)
@@ -46,7 +46,7 @@ def test_manifest_with_sim_path_frame_range_and_imu(tmp_path, write_csv):
     # labels: the row's label under contact, no-touch without
     assert set(ws.labels[hard & ws.contact]) == {"hard"}
     assert set(ws.labels[~ws.contact]) <= {NO_TOUCH}
-    assert "air" not in ws.classes          # no-touch scene never has contact
+    assert ws.classes == ["hard", "no-touch"]
     assert ws.source["contact_from"] == "pipeline"
 
 
@@ -69,7 +69,7 @@ def test_manifest_pressure_targets_and_npz_rows(tmp_path, write_csv):
 
 def test_window_longer_than_the_clip(tmp_path, sim_ds, write_csv):
     m = write_csv(tmp_path / "m.csv", ["path,label,start_frame,end_frame",
-                                       "sim://no-touch,a,10,14"])
+                                       "sim://no-touch,hard,10,14"])
     with pytest.raises(DataError, match=r"row 1 \(line 2\).*T=5.*longer than.*4 frames"):
         load_spec(str(m), "surface", 5, progress=False)
     with pytest.raises(DataError, match="longer than the trial"):
@@ -77,14 +77,14 @@ def test_window_longer_than_the_clip(tmp_path, sim_ds, write_csv):
 
 
 @pytest.mark.parametrize("rows, match", [
-    (["path,label,start_frame", "sim://no-touch,a,abc"],
+    (["path,label,start_frame", "sim://no-touch,hard,abc"],
      r"row 1 \(line 2\), column start_frame: 'abc' is not a whole number"),
-    (["path,label,start_frame,end_frame", "sim://no-touch,a,0,1", "sim://no-touch,a,9,3"],
+    (["path,label,start_frame,end_frame", "sim://no-touch,hard,0,1", "sim://no-touch,hard,9,3"],
      r"row 2 \(line 3\), column end_frame: 3 is not after start_frame 9"),
     (["path,label", "sim://no-touch,"], r"row 1 \(line 2\), column label: empty"),
-    (["path,label,colour", "x.avi,a,red"], "unknown column 'colour'"),
+    (["path,label,colour", "x.avi,hard,red"], "unknown column 'colour'"),
     (["path,start_frame", "x.avi,3"], "no 'label' column"),
-    (["path,label", ",a"], r"row 1 \(line 2\), column path: empty"),
+    (["path,label", ",hard"], r"row 1 \(line 2\), column path: empty"),
     (["path,label"], "no rows"),
 ])
 def test_bad_manifest_rows_name_the_row_and_column(tmp_path, rows, match, write_csv):
@@ -99,13 +99,13 @@ def test_bad_pressure_labels_and_imu_files(tmp_path, write_csv):
         load_spec(str(m), "pressure", 2)
     np.save(tmp_path / "imu5.npy", np.zeros((60, 5)))
     np.save(tmp_path / "short.npy", np.zeros((10, 6)))
-    m = write_csv(tmp_path / "m3.csv", ["path,label,imu", "sim://no-touch,a,imu5.npy"])
+    m = write_csv(tmp_path / "m3.csv", ["path,label,imu", "sim://no-touch,hard,imu5.npy"])
     with pytest.raises(DataError, match=r"imu5\.npy has shape \(60, 5\), expected \(frames, 6\)"):
         load_spec(str(m), "surface", 2, progress=False, min_classes=1)
-    m = write_csv(tmp_path / "m4.csv", ["path,label,imu", "sim://no-touch,a,short.npy"])
+    m = write_csv(tmp_path / "m4.csv", ["path,label,imu", "sim://no-touch,hard,short.npy"])
     with pytest.raises(DataError, match=r"short\.npy has 10 rows, the clip part needs 60"):
         load_spec(str(m), "surface", 2, progress=False, min_classes=1)
-    m = write_csv(tmp_path / "m5.csv", ["path,label,end_frame", "sim://no-touch,a,999"])
+    m = write_csv(tmp_path / "m5.csv", ["path,label,end_frame", "sim://no-touch,hard,999"])
     with pytest.raises(DataError, match=r"column end_frame: 999 is past the end.*60 frames"):
         load_spec(str(m), "surface", 2, progress=False, min_classes=1)
 
@@ -155,3 +155,18 @@ def test_real_roboskin_smooth_vs_concrete_manifest(tmp_path, write_csv,
                           progress=False, cache=cache)
     assert len(both) == len(ws) + int(c.contact.sum()) and len(np.unique(both.groups)) == 3
 
+
+
+def test_a_mistyped_surface_or_slip_label_is_refused_naming_the_row(tmp_path, write_csv):
+    m = write_csv(tmp_path / "m.csv", ["path,label", "sim://press-hard,hard",
+                                       "sim://press-soft,lava"])
+    for task in ("surface", "slip"):
+        with pytest.raises(DataError, match=rf"m\.csv row \d \(line \d\), column label: '\w+' "
+                                            rf"is not a {task} class"):
+            load_spec(str(m), task, 2, progress=False)
+    with pytest.raises(DataError, match=r"row 2 \(line 3\), column label: 'lava' is not a "
+                                        r"surface class; the surface classes are no-touch, "
+                                        r"hard, soft, slippery"):
+        load_spec(str(m), "surface", 2, progress=False)
+    tex = load_spec(str(m), "texture", 2, progress=False)       # texture names are the user's
+    assert "lava" in tex.classes

@@ -6,7 +6,7 @@ import pytest
 
 from host.data.dataset import load_trial
 from host.data.load import load_spec
-from host.data.windows import NO_TOUCH, SLIP_LABELS
+from host.data.windows import NO_TOUCH, SLIP_LABELS, DataError
 
 
 
@@ -63,3 +63,17 @@ def test_dataset_texture_slip_and_pressure_tasks(sim_ds, cache):
     sel = np.flatnonzero(pr.groups == 0)
     assert np.allclose(pr.targets[sel], load[pr.t_index[sel]])
     assert pr.targets.max() > 1.0 and pr.targets.min() == 0.0
+
+
+def test_a_dataset_whose_surface_labels_hold_a_typo_is_refused_naming_the_trial(sim_ds,
+                                                                                tmp_path):
+    import json
+    import shutil
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_ds, ds)
+    doc = json.loads((ds / "dataset.json").read_text())
+    doc["surface_labels"] = [("lava" if x == "hard" else x) for x in doc["surface_labels"]]
+    (ds / "dataset.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError, match=r"ds/trial_0000\.npz: surface code 1 \(surface_labels in "
+                                        r".*dataset\.json\): 'lava' is not a surface class"):
+        load_spec(str(ds), "surface", 2, progress=False)

@@ -38,3 +38,11 @@ def test_a_single_class_is_refused_unless_asked_for(tmp_path):
     with pytest.raises(DataError, match="at least 2 classes.*'hard'"):
         load_spec(str(p), "surface", 2)
     assert load_spec(str(p), "surface", 2, min_classes=1).classes == ["hard"]
+
+
+def test_a_mistyped_surface_label_is_refused_naming_the_window(tmp_path):
+    p = tmp_path / "v.npz"
+    np.savez(p, vectors=np.ones((3, 2, 5, 2)), labels=np.array(["hard", "soft", "lava"]))
+    with pytest.raises(DataError, match=r"v\.npz: labels\[2\]: 'lava' is not a surface class"):
+        load_spec(str(p), "surface", 2)
+    assert "lava" in load_spec(str(p), "texture", 2).classes

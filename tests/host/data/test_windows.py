@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.data.windows import DataError, WindowSet, window_ends, window_labels
+from host.data.windows import DataError, WindowSet, check_labels, window_ends, window_labels
 from tests.windows import synthetic
 
 
@@ -63,3 +63,16 @@ def test_window_labels_mark_no_touch_only_for_surface_and_texture():
     assert window_labels("surface", lab, contact).tolist() == ["hard", "no-touch", "soft"]
     assert window_labels("slip", lab, contact).tolist() == ["hard", "hard", "soft"]
     assert window_labels("surface", None, contact) is None
+
+
+def test_fixed_class_tasks_refuse_a_label_that_is_not_a_class_naming_where():
+    check_labels("surface", "hard", "m.csv row 1")
+    check_labels("slip", np.array(["slip", "no-slip"], object), "v.npz: labels", indexed=True)
+    check_labels("texture", "lava", "m.csv row 1")          # texture names are the user's
+    check_labels("pressure", None, "m.csv row 1")
+    with pytest.raises(DataError, match=r"^m\.csv row 2: 'lava' is not a surface class; the "
+                                        r"surface classes are no-touch, hard, soft, slippery$"):
+        check_labels("surface", "lava", "m.csv row 2")
+    with pytest.raises(DataError, match=r"^v\.npz: labels\[1\]: 'slipping' is not a slip class"):
+        check_labels("slip", np.array(["slip", "slipping"], object), "v.npz: labels",
+                     indexed=True)

@@ -61,3 +61,13 @@ def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkey
         evaluate._manifest_for(f, "int8")
     with pytest.raises(ValueError, match="variant must be one of"):
         evaluate._manifest_for(q, "int4")
+
+
+def test_labels_the_model_does_not_know_are_refused(small_model, synthetic_windows):
+    _, out, _ = small_model
+    ws = synthetic_windows()
+    assert evaluate_model(out, ws)["n_windows"] == len(ws)
+    ws.labels[::7] = "lava"
+    with pytest.raises(ValueError, match=r"the data hold label\(s\) \['lava'\] that the model "
+                                         r"does not know \(its classes: \['a', 'b'\]\)"):
+        evaluate_model(out, ws)

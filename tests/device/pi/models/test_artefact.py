@@ -57,6 +57,23 @@ def test_corrupt_model_with_matching_checksum_is_refused(ridge_dir):
     (lambda d: d.update(format="other"), "not a tacfoot model"),
     (lambda d: d.pop("sha256"), "lacks 'sha256'"),
     (lambda d: d.update(kind="surface"), "expected 'pressure'"),
+    # every field the loaders read has its type and a sane range
+    (lambda d: d.update(onnx=5), r"onnx must be the model file's name \(null only for a rule "
+                                 r"model\), got 5"),
+    (lambda d: d.update(onnx=None), r"onnx must be the model file's name"),
+    (lambda d: d.update(version="abc"), r"manifest version must be a whole number >= 0, "
+                                        r"got 'abc'"),
+    (lambda d: d.update(T=1e9), r"T must be a whole number of frames in \[1, 1000\], "
+                                r"got 1000000000\.0"),
+    (lambda d: d.update(T=10**9), r"T must be a whole number of frames in \[1, 1000\]"),
+    (lambda d: d.update(T=0), r"T must be a whole number of frames"),
+    (lambda d: d.update(feature_spec="1"), r"feature_spec must be a whole number, got '1'"),
+    (lambda d: d.update(sha256=["x"]), r"sha256 must map file names to SHA-256 hex digests"),
+    (lambda d: d.update(input={"shape": "x"}), r"input\.shape must be \[batch, size, \.\.\.\] "
+                                               r"with whole-number sizes, got 'x'"),
+    (lambda d: d.update(input={"shape": [None, -4]}), r"input\.shape must be"),
+    (lambda d: d.update(input=7), r"input\.shape must be .*got 7"),
+    (lambda d: d.update(kind=3), r"kind must be a name, got 3"),
 ])
 def test_bad_manifest_is_refused(ridge_dir, edit, match):
     out, _, _ = ridge_dir

@@ -16,7 +16,7 @@ from device.pi import protocol as P
 from device.pi.runtime.config import DecisionConfig, LegConfig
 from device.pi.runtime.decisions import (SLIP_THRESHOLD, GaitContext, decide, expected_context,
                                          finite_float, gait_from_message, no_touch_probs,
-                                         surface_probs_of_model)
+                                         surface_probs_of_model, unknown_class_wins)
 from device.pi.runtime.load import load_models
 from device.pi.runtime.loop import LegRuntime
 from tests.device.pi.runtime.standins import (FPS, NullImu, RecordingPort, SimCamera,
@@ -163,3 +163,30 @@ def test_learned_surface_model_is_blended_with_the_gait_aware_rule(model_dir, tm
     for d in decisions(None, 0.5) + decisions(g, 0.0):        # no GAIT, or weight 0
         assert d["probs"] == d["model_probs"]
 
+
+
+def test_a_surface_class_the_link_has_no_id_for_is_a_model_fault(tmp_path, synthetic_windows):
+    """A surface model trained with a class outside SURFACE_CLASSES (a typo such as
+    ``lava``): when that class wins, the decision says model_fault rather than
+    quietly taking the best of the other classes."""
+    from host.learn.train import train_model
+    ws = synthetic_windows(n_pins=N_PINS, classes=("hard", "lava"))
+    train_model("surface", "fnn", ws, out_dir=tmp_path / "models" / "surface", progress=False,
+                hidden=(8, 4), epochs=60)
+    m = load_models(tmp_path / "models", "float", N_PINS, LegConfig())
+    assert list(m.surface.classes) == ["hard", "lava"]
+
+    def decision(level_px):
+        w = {T: RollingWindow(T, N_PINS) for T in {m.rule.T, m.surface.T}}
+        for _ in range(max(w)):
+            for x in w.values():
+                x.push(vectors=np.full((N_PINS, 2), level_px, np.float32),
+                       imu=np.zeros(6, np.float32))
+        return decide(m, w, contact_seen=True, referenced=True, expected_mag_px=None,
+                      expected_motion_px=None, gait=None, gait_rule_weight=0.0)
+
+    hard, lava = decision(0.0), decision(2.0)         # synthetic: class k sits at 2k px
+    assert not hard.model_fault and P.SURFACE_CLASSES[hard.class_id] == "hard"
+    assert lava.model_fault
+    assert unknown_class_wins(["hard", "lava"], [0.2, 0.8])
+    assert not unknown_class_wins(["hard", "lava"], [0.8, 0.2])

@@ -16,8 +16,16 @@ from hypothesis import strategies as st
 from device.pi import protocol as P
 from device.pi.runtime.config import DecisionConfig
 from device.pi.runtime.decisions import expected_context, gait_from_message
-from device.pi.runtime.link import FAULT_QUEUE, LinkReader, LinkWriter, SenderClock, open_port
+from device.pi.runtime.link import (FAULT_QUEUE, LinkError, LinkReader, LinkWriter, SenderClock,
+                                    open_port)
 from tests.device.pi.runtime.standins import RecordingPort
+
+
+def test_a_socket_url_without_a_port_is_named_as_such():
+    with pytest.raises(LinkError, match=r"--serial 'socket://notahost': cannot open: "
+                                        r"'socket://notahost': a socket:// URL needs a host "
+                                        r"and a port 1-65535"):
+        open_port("socket://notahost")
 
 
 def test_writer_keeps_newest_surface_and_never_drops_fault():
