@@ -46,7 +46,7 @@ def _model(folder, onnx="model.onnx", data=b"x"):
     (folder / "model.onnx").write_bytes(data)
     (folder / "manifest.json").write_text(json.dumps({
         "format": "tacfoot-model", "version": 1, "onnx": onnx, "feature_spec": 1,
-        "input": {}, "sha256": {onnx: sha256_file(folder / "model.onnx")}}))
+        "input": {"shape": [None, 4]}, "sha256": {onnx: sha256_file(folder / "model.onnx")}}))
 
 
 def test_sign_models_signs_checked_manifests_only(tmp_path):
@@ -58,7 +58,7 @@ def test_sign_models_signs_checked_manifests_only(tmp_path):
     # a manifest naming a file outside its folder is never signed
     (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps({
         "format": "tacfoot-model", "version": 1, "onnx": "/etc/hostname", "feature_spec": 1,
-        "input": {}, "sha256": {"/etc/hostname": "0"}}))
+        "input": {"shape": [None, 4]}, "sha256": {"/etc/hostname": "0"}}))
     with pytest.raises(DeployInputError, match="outside the model folder"):
         sign_models(tmp_path / "models", key)
     # nor one whose file does not match its hash
