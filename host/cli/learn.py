@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from device.pi.models.artefact import ModelError, read_manifest
-from host.bench.report import build_report
+from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import UserError, emit, json_default, real_data_dir
 from host.data.load import load_specs
 from host.data.splits import split_holdout
@@ -124,10 +124,15 @@ def cmd_report(args):
            + (f" --data {args.data}" if args.data else "")
            + f" --windows {args.windows} --seeds {args.seeds} --sim-windows "
            f"{args.sim_windows} --sim-seeds {args.sim_seeds} --jobs {args.jobs}"
-           + (" --quick" if args.quick else "") + (" --cnn" if args.cnn else ""))
+           + (" --quick" if args.quick else "") + (" --cnn" if args.cnn else "")
+           + (" --real-only" if args.real_only else ""))
+    if args.real_only and data is None:
+        raise UserError("--real-only needs the real recordings: pass --data DIR or set "
+                        "TACFOOT_REAL_DATA")
     out = build_report(args.out, args.work, data, quick=args.quick, progress=not args.json,
                        command=cmd, jobs=args.jobs, real_windows=windows, seeds=seeds,
-                       sim_windows=sim_windows, sim_seeds=sim_seeds, cnn=args.cnn)
+                       sim_windows=sim_windows, sim_seeds=sim_seeds, cnn=args.cnn,
+                       tasks=() if args.real_only else TASK_KINDS)
     emit(args, {"out": str(out)}, f"wrote {out}")
 
 
@@ -179,5 +184,7 @@ def register(sub) -> None:
                         "taken afterwards, one at a time")
     s.add_argument("--quick", action="store_true", help="fewer simulated trials")
     s.add_argument("--cnn", action="store_true", help="also sweep the CNN (PyTorch; slow)")
+    s.add_argument("--real-only", action="store_true",
+                   help="only the real sections and the fnn's regulariser comparison")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_report)
