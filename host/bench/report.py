@@ -28,7 +28,8 @@ from host.learn.tasks import TASK_MODELS
 
 __all__ = ["REAL_SETS", "REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
            "REPORT_TRIALS", "REGULARISER_T", "models_for", "real_manifest", "Section",
-           "real_sections", "sim_sections", "prepare", "sweep_cells", "build_report"]
+           "real_sections", "sim_sections", "split_text", "prepare", "sweep_cells", "build_report",
+           "write_report"]
 
 #: the real texture tasks: key -> (clip under roboskin/ -> label, title)
 REAL_SETS = {
@@ -120,13 +121,18 @@ def sim_sections(work: Path, quick: bool, tasks, windows=SIM_WINDOWS, seeds=SIM_
         n_tr, n_te = counts[task]
         tr = simulate_scenes(work / f"{task}-train", TASK_KINDS[task], n_tr, 1, False, progress)
         te = simulate_scenes(work / f"{task}-test", TASK_KINDS[task], n_te, 2, True, progress)
-        trained = (f"Simulated. Trained on {n_tr} simulated trials per kind "
-                   f"({', '.join(TASK_KINDS[task])}), tested on {n_te} trials per kind with "
+        trained = (f"Simulated. Trained on {n_tr} simulated trial(s) per kind "
+                   f"({', '.join(TASK_KINDS[task])}), tested on {n_te} trial(s) per kind with "
                    f"unseen simulator seeds and surface parameters beyond the training "
                    f"ranges; default settings per kind.")
         out.append(Section(f"sim-{task}", f"{task} (simulated)", task, models_for(task, cnn),
                            windows, seeds, trained, False, [str(tr)], [str(te)]))
     return out
+
+
+def split_text(how: str, T: int) -> str:
+    """``split_holdout``'s account of a split, for every T of a section."""
+    return how.replace(f"a gap of {T} frames", "a gap of T frames")
 
 
 def prepare(sections: list[Section], regularise: bool = True) -> dict:
@@ -144,8 +150,8 @@ def prepare(sections: list[Section], regularise: bool = True) -> dict:
                 continue
             tr_idx, te_idx, how = split_holdout(ws, 0.3, 0)
             windows[(s.key, T)] = (ws.subset(tr_idx), ws.subset(te_idx))
-            if T == max(s.windows):
-                s.how = how
+            if T == min(s.windows):
+                s.how = split_text(how, T)
     return windows
 
 
@@ -223,6 +229,10 @@ def write_report(doc: dict, out) -> Path:
     under ``img/`` beside it."""
     out = Path(out)
     img = out.parent / "img"
+    kinds = {s["key"]: s["kinds"] for s in doc["sections"]}
+    doc["aggregate"] = sorted(doc["aggregate"], key=lambda a: (
+        a["data"], kinds.get(a["data"], []).index(a["kind"])
+        if a["kind"] in kinds.get(a["data"], []) else len(kinds.get(a["data"], [])), a["T"]))
     for s in doc["sections"]:
         rows = [a for a in doc["aggregate"] if a["data"] == s["key"]
                 and a["kind"] not in REGULARISERS and a["T"] in s["windows"]]

@@ -60,7 +60,8 @@ def section_table(rows: list[dict], timing: dict) -> str:
         c = timing.get((r["kind"], r["T"]))
         int8 = pm(r["int8_mean"], r["int8_sd"], r["int8_n"])
         if r["int8_errors"]:
-            int8 += f"; failed its check in {r['int8_errors']}, float kept"
+            failed = f"failed its check for {r['int8_errors']} of {r['n']} seeds, float kept"
+            int8 = failed if not r["int8_n"] else f"{int8}; {failed}"
         lines.append(f"| {r['kind']} | {r['T']} | {pm(r['mean'], r['sd'], r['n'], 4)} | {int8} | "
                      f"{_ms(c and c['vision']['cpu'])} | {_ms(c and c['model']['cpu'])} | "
                      f"{_ms(c and c['cpu'])} | {_ms(c and c['wall'])} | {_ms(c and c['pi4'])} | "
