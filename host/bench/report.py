@@ -104,7 +104,8 @@ def real_sections(data_dir, work: Path, windows=REAL_WINDOWS, seeds=SEEDS,
                    f"30 % of each after a gap of at least T frames (the time split of "
                    f"`host.data.splits.split_holdout`), contact windows only; the fnn "
                    f"ignores pins that a training clip keeps losing (T >= 2, as `host "
-                   f"train` does).")
+                   f"train` does); the grid-fnn, which reads the contact grid, has no such "
+                   f"mask.")
         if key == "concrete-vs-smooth":
             trained += (" `concrete.avi`'s last 30 % stands in for a recording that was "
                         "not trained on.")
