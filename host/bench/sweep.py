@@ -13,7 +13,10 @@ or Ray cluster::
         build_report("docs/accuracy-vs-time.md", "out/report", data_dir, jobs=-1)
 
 (Ray: ``from ray.util.joblib import register_ray; register_ray()`` and
-``backend="ray"``.) A cell trains and scores; it measures no time. The times come
+``backend="ray"``.) A cell trains and scores; it measures no time. Its row is
+written under the sweep's folder and reused by a later run whose windows hash the
+same (:func:`fingerprint`); the hash does not cover the training code, so a changed
+model needs a fresh folder. The times come
 from :func:`time_models`, one model after another in the calling process, so no
 cell runs beside a measurement.
 """

@@ -172,7 +172,9 @@ def register(sub) -> None:
 
     s = sub.add_parser("report", help="what accuracy costs in time: tables + figures")
     s.add_argument("--out", default="docs/accuracy-vs-time.md")
-    s.add_argument("--work", default="out/report", help="simulated data and scratch")
+    s.add_argument("--work", default="out/report",
+                   help="simulated data, models and finished cells, reused by a later run "
+                        "on the same windows (remove it after changing the training code)")
     s.add_argument("--data", help="real recordings folder (holding roboskin/)")
     s.add_argument("--windows", default="1-10", help="window lengths T of the real sections")
     s.add_argument("--seeds", default="0,1,2", help="seeds of the real sections")
