@@ -1,229 +1,50 @@
 """``host report``: what accuracy costs in time.
 
-For each task it crosses model kind x float/int8 x window T, trains on the same
-training windows and measures on the same held-out windows: accuracy (or MAE),
-per-decision compute latency (p50, p99, one thread), model size, and the decision
-delay T/fps at 30 and 120 fps. It writes one markdown table and one Pareto plot
-(PNG) per task.
+Sections: the real texture tasks on the roboskin clips (Lego vs smooth, concrete vs
+smooth; trained on the first 70 % of each clip, tested on its last 30 % after a gap
+of T frames, contact windows only), the fnn's regulariser on those tasks (L2
+against the paper's dropout 0.2, :mod:`host.bench.regularise`) and the simulated
+tasks. Every (data, kind, T, seed) is one cell of a joblib sweep
+(:mod:`host.bench.sweep`); the tables give the held-out score's mean and sd over
+the seeds, and the whole per-decision cost: the vision pipeline per frame on real
+frames (:mod:`host.bench.costs`), the window encoding and the model, timed one
+after another on one thread, with the estimated Raspberry Pi 4 figure beside it.
+Each section has an accuracy-vs-T figure with error bars.
 """
 from __future__ import annotations
 
 import json
-import tempfile
-import time
 from pathlib import Path
 
-from host.analysis.figures import pyplot, save_figure
+from host.bench import costs
+from host.bench.regularise import REGULARISERS
+from host.bench.report_doc import plot_accuracy_vs_t, render
 from host.bench.scenes import simulate_scenes
+from host.bench.sweep import Cell, aggregate, run_cells, time_models
 from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
-from host.data.splits import split_grouped, split_time
-from host.learn.evaluate import evaluate_model
-from host.learn.onnx_io import INT8_NAME
-from host.learn.tasks import MAX_REGRESSION_CHANGE, TASK_MODELS, QuantisationError, TrainError
-from host.learn.train import train_model
+from host.data.splits import split_holdout
+from host.learn.tasks import TASK_MODELS
 
-WINDOWS = (1, 2, 3, 5, 10)
-FPS = (30, 120)
+__all__ = ["REAL_SETS", "REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
+           "REPORT_TRIALS", "REGULARISER_T", "models_for", "real_manifest", "Section",
+           "real_sections", "sim_sections", "split_text", "prepare", "sweep_cells", "build_report",
+           "write_report"]
 
-
-def _have_torch() -> bool:
-    try:
-        import torch  # noqa: F401
-        return True
-    except ImportError:
-        return False
-
-
-def models_for(task: str) -> list[str]:
-    models = list(TASK_MODELS[task])
-    if task != "pressure" and _have_torch():
-        models.append("cnn")
-    return models
-
-
-INT8_FAILED = "int8 check failed: "
-
-
-def _int8_why(fields: dict, message: str) -> str:
-    """The int8 check's verdict in a few words, formatted once from its fields
-    (:meth:`QuantisationError.fields`, or the manifest's ``int8``): the agreement
-    reached and the bar (a classifier), or the MAE change (a regressor). Only a
-    verdict with neither falls back to the start of the check's ``message``."""
-    agreement, required = fields.get("agreement"), fields.get("required")
-    mae_change, share = fields.get("mae_change"), fields.get("mae_change_of_range")
-    if agreement is not None and required is not None:
-        why = f"{agreement:.2%} argmax agreement with float (< {required * 100:g} %)"
-    elif mae_change is not None:
-        why = f"raises the MAE by {mae_change:.4g}" + (
-            "" if share is None else
-            f" ({share:.2%} of the target range, > {MAX_REGRESSION_CHANGE:.0%})")
-    else:
-        return INT8_FAILED + message.removeprefix(INT8_FAILED)[:120]
-    return f"{INT8_FAILED}{why}; float kept"
-
-
-def train_row(task, model, tr, te, out, seed) -> str | None:
-    """Train one row's model into ``out`` (float, and int8 when it passes its
-    check). Returns why there is no int8 model, or None."""
-    if model == "cnn":
-        from host.learn.cnn import quantise_cnn, train_cnn
-        res = train_cnn(tr, te, seed=seed, out_dir=out, progress=False, epochs=15)
-        try:
-            quantise_cnn(res["onnx_path"], tr, Path(out) / INT8_NAME, seed=seed)
-        except QuantisationError as exc:
-            return _int8_why(exc.fields(), str(exc))
-        return None
-    res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
-                      seed=seed, out_dir=out, progress=False)
-    failed = (res.get("int8") or {}).get("failed")
-    if not failed:
-        return None
-    return _int8_why(res["int8"], failed)
-
-
-def run_task(task: str, train_specs, test_specs=None, windows=WINDOWS, seed: int = 0,
-             split: str = "grouped", contact_only: bool = False, label: str = "",
-             progress: bool = True) -> list[dict]:
-    """Rows of the report for one task and data source."""
-    rows = []
-    cache: dict = {}
-    for T in windows:
-        ws = load_specs(train_specs, task=task, window=T, contact_only=contact_only,
-                        progress=False, cache=cache)
-        if test_specs:
-            tr, te = ws, load_specs(test_specs, task=task, window=T, contact_only=contact_only,
-                                    progress=False, cache=cache, min_classes=1)
-        else:
-            idx = (split_time(ws, 0.7, gap=T) if split == "time"
-                   else split_grouped(ws, 0.3, seed))
-            tr, te = ws.subset(idx[0]), ws.subset(idx[1])
-        for model in models_for(task):
-            with tempfile.TemporaryDirectory() as d:
-                t0 = time.perf_counter()
-                try:
-                    int8_failed = train_row(task, model, tr, te, d, seed)
-                except (TrainError, ValueError) as exc:
-                    rows.append({"task": task, "data": label, "model": model, "T": T,
-                                 "error": str(exc)[:200]})
-                    continue
-                train_s = time.perf_counter() - t0
-                for variant in ("float", "int8"):
-                    if variant == "int8" and int8_failed:
-                        rows.append({"task": task, "data": label, "model": model,
-                                     "variant": "int8", "T": T, "error": int8_failed})
-                        continue
-                    if variant == "int8" and not (Path(d) / INT8_NAME).exists():
-                        continue
-                    r = evaluate_model(d, te, variant=variant)
-                    m = r["metrics"]
-                    rows.append({
-                        "task": task, "data": label, "model": model, "variant": variant,
-                        "T": T, "accuracy": m.get("accuracy"), "macro_f1": m.get("macro_f1"),
-                        "mae": m.get("mae"), "latency_p50_ms": r["latency_ms"]["p50"],
-                        "latency_p99_ms": r["latency_ms"]["p99"],
-                        "size_bytes": r["model_bytes"], "train_s": round(train_s, 2),
-                        "n_train": len(tr), "n_test": len(te),
-                        **{f"delay_{f}fps_ms": 1000.0 * T / f for f in FPS}})
-                if progress:
-                    print(f"  {label} {task} T={T} {model}: done", flush=True)
-    return rows
-
-
-def _score(r):
-    return r["mae"] if r.get("mae") is not None else r.get("accuracy")
-
-
-def pareto(rows: list[dict], lower_better: bool) -> set[int]:
-    """Indices of rows no other row beats on both score and total delay."""
-    pts = [(r["delay_120fps_ms"] + r["latency_p50_ms"], _score(r)) for r in rows]
-    keep = set()
-    for i, (t, s) in enumerate(pts):
-        dominated = any((t2 <= t and (s2 < s if lower_better else s2 > s)) or
-                        (t2 < t and s2 == s) for j, (t2, s2) in enumerate(pts) if j != i)
-        if not dominated:
-            keep.add(i)
-    return keep
-
-
-def plot_pareto(rows: list[dict], out: Path, title: str) -> Path:
-    plt = pyplot()
-
-    ok = [r for r in rows if "error" not in r]
-    lower = ok and ok[0].get("mae") is not None
-    front = pareto(ok, lower)
-    fig, ax = plt.subplots(figsize=(7.5, 4.8))
-    markers = {"rule": "s", "ridge": "D", "fnn": "o", "grid-fnn": "^", "cnn": "P"}
-    for i, r in enumerate(ok):
-        x = r["delay_120fps_ms"] + r["latency_p50_ms"]
-        ax.scatter(x, _score(r), marker=markers.get(r["model"], "o"), s=50,
-                   c=[plt.cm.viridis(min(r["T"], 10) / 10)],
-                   edgecolors="r" if i in front else "none",
-                   alpha=0.55 if r["variant"] == "float" else 0.95)
-    fr = sorted((ok[i] for i in front), key=lambda r: r["delay_120fps_ms"] + r["latency_p50_ms"])
-    ax.plot([r["delay_120fps_ms"] + r["latency_p50_ms"] for r in fr], [_score(r) for r in fr],
-            "r--", lw=1, label="Pareto front")
-    for m, mk in markers.items():
-        if any(r["model"] == m for r in ok):
-            ax.scatter([], [], marker=mk, c="gray", label=m)
-    ax.set_xlabel("time to a decision at 120 fps: T/fps + compute p50 [ms]")
-    ax.set_ylabel("MAE (lower is better)" if lower else "held-out accuracy")
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    sm = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, 10))
-    fig.colorbar(sm, ax=ax, label="window T [frames]")
-    return save_figure(fig, out)
-
-
-def table(rows: list[dict]) -> str:
-    ok = [r for r in rows if "error" not in r]
-    lower = ok and ok[0].get("mae") is not None
-    front = pareto(ok, lower)
-    head = ("| model | variant | T | " + ("MAE" if lower else "accuracy") +
-            " | compute p50 ms | p99 ms | size KB | delay @30 fps ms | delay @120 fps ms | "
-            "Pareto |")
-    lines = [head, "|---|---|--:|--:|--:|--:|--:|--:|--:|:-:|"]
-    for i, r in enumerate(ok):
-        lines.append(f"| {r['model']} | {r['variant']} | {r['T']} | {_score(r):.4f} | "
-                     f"{r['latency_p50_ms']:.3f} | {r['latency_p99_ms']:.3f} | "
-                     f"{r['size_bytes'] / 1024:.1f} | {r['delay_30fps_ms']:.1f} | "
-                     f"{r['delay_120fps_ms']:.1f} | {'*' if i in front else ''} |")
-    for r in rows:
-        if "error" in r:
-            why = r["error"] if r.get("variant") else f"not trained: {r['error']}"
-            lines.append(f"| {r['model']} | {r.get('variant', '-')} | {r['T']} | {why} "
-                         f"| | | | | | |")
-    return "\n".join(lines)
-
-
-def write_report(sections: list[tuple[str, str, list[dict]]], out: Path | str,
-                 command: str) -> Path:
-    """sections: (title, png name, rows). Writes the markdown and the PNGs beside it."""
-    out = Path(out)
-    img_dir = out.parent / "img"
-    parts = ["# What accuracy costs in time", "",
-             f"Generated by `{command}`. Every row is trained on the same training windows "
-             "and measured on the same held-out windows; compute latency is ONNX Runtime, "
-             "one thread, per decision; the decision delay is the window's length T/fps. "
-             "`*` marks the Pareto front (no other row is both faster to a decision at "
-             "120 fps and more accurate).", "",
-             "The simulated sections train every kind with its default settings on a few "
-             "trials per surface (`host.bench.report.REPORT_TRIALS`), so that the whole cross "
-             "runs in one go; they compare kinds, variants and window lengths with each "
-             "other. The shipped models and the accuracy targets use more trials and "
-             "tuned settings: see the simulated accuracy table in "
-             "[BENCHMARKS.md](BENCHMARKS.md). A row whose int8 copy fails the >= 99 % "
-             "argmax agreement check keeps its float model and lists the agreement "
-             "reached.", ""]
-    for title, png, rows in sections:
-        p = plot_pareto(rows, img_dir / png, title)
-        parts += [f"## {title}", "", table(rows), "", f"![{title}](img/{p.name})", ""]
-    atomic_write_text(out, "\n".join(parts))
-    atomic_write_text(out.with_suffix(".json"), json.dumps(
-        [{"title": t, "rows": r} for t, _, r in sections], indent=1, default=float))
-    return out
-
-
+#: the real texture tasks: key -> (clip under roboskin/ -> label, title)
+REAL_SETS = {
+    "lego-vs-smooth": ({"lego_train.avi": "lego", "smooth.avi": "smooth"},
+                       "Lego vs smooth (real roboskin clips)"),
+    "concrete-vs-smooth": ({"concrete.avi": "concrete", "smooth.avi": "smooth"},
+                           "concrete vs smooth (real roboskin clips, held-out recording)"),
+}
+REAL_WINDOWS = tuple(range(1, 11))
+SEEDS = (0, 1, 2)
+#: the simulated sections' reduced grid
+SIM_WINDOWS = (1, 3, 10)
+SIM_SEEDS = (0, 1)
+#: T of the regulariser comparison (the texture default, host.learn.tasks.DEFAULT_WINDOW)
+REGULARISER_T = 10
 #: the simulated scene kinds behind each task (host.bench.scenes.simulate_scenes)
 TASK_KINDS = {"surface": ("hard", "soft", "wet", "no-touch"),
               "texture": ("lego", "concrete", "smooth"),
@@ -235,37 +56,189 @@ REPORT_TRIALS = {"full": {"surface": (8, 3), "texture": (6, 2), "slip": (10, 3),
                            "pressure": (3, 1)}}
 
 
-def real_manifest(data_dir, work: Path) -> Path:
-    """Concrete vs smooth from the real roboskin clips, as a CSV manifest."""
+def _have_torch() -> bool:
+    try:
+        import torch  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+def models_for(task: str, cnn: bool = True) -> list[str]:
+    models = list(TASK_MODELS[task])
+    if cnn and task != "pressure" and _have_torch():
+        models.append("cnn")
+    return models
+
+
+class Section:
+    """One section of the report: its data, kinds, window lengths and seeds, and a
+    sentence saying what was trained and tested on."""
+
+    def __init__(self, key, title, task, kinds, windows, seeds, trained_on, real,
+                 train_specs, test_specs=None):
+        self.key, self.title, self.task = key, title, task
+        self.kinds, self.windows, self.seeds = list(kinds), tuple(windows), tuple(seeds)
+        self.trained_on, self.real = trained_on, real
+        self.train_specs, self.test_specs = list(train_specs), test_specs
+        self.how = ""
+
+
+def real_manifest(data_dir, work: Path, clips: dict, name: str) -> Path:
+    """A CSV manifest of real roboskin clips (clip -> label)."""
     root = Path(data_dir) / "roboskin"
     work.mkdir(parents=True, exist_ok=True)
-    path = work / "concrete-vs-smooth.csv"
-    path.write_text("path,label\n"
-                    f"{(root / 'smooth.avi').resolve()},smooth\n"
-                    f"{(root / 'concrete.avi').resolve()},concrete\n")
+    path = work / f"{name}.csv"
+    lines = ["path,label"] + [f"{(root / c).resolve()},{lab}" for c, lab in clips.items()]
+    path.write_text("\n".join(lines) + "\n")
     return path
 
 
-def build_report(out, work, data_dir=None, windows=WINDOWS, quick: bool = False,
-                 tasks=tuple(TASK_KINDS), seed: int = 0, progress: bool = True,
-                 command: str = "host report") -> Path:
-    work = Path(work)
+def real_sections(data_dir, work: Path, windows=REAL_WINDOWS, seeds=SEEDS,
+                  cnn: bool = False, kinds=None) -> list[Section]:
+    out = []
+    for key, (clips, title) in REAL_SETS.items():
+        man = real_manifest(data_dir, work, clips, key)
+        names = " and ".join(f"`{c}`" for c in clips)
+        trained = (f"Real frames. Trained on the first 70 % of {names}, tested on the last "
+                   f"30 % of each after a gap of at least T frames (the time split of "
+                   f"`host.data.splits.split_holdout`), contact windows only; the fnn "
+                   f"ignores pins that a training clip keeps losing (T >= 2, as `host "
+                   f"train` does); the grid-fnn, which reads the contact grid, has no such "
+                   f"mask.")
+        if key == "concrete-vs-smooth":
+            trained += (" `concrete.avi`'s last 30 % stands in for a recording that was "
+                        "not trained on.")
+        out.append(Section(key, title, "texture", kinds or models_for("texture", cnn),
+                           windows, seeds, trained, True, [str(man)]))
+    return out
+
+
+def sim_sections(work: Path, quick: bool, tasks, windows=SIM_WINDOWS, seeds=SIM_SEEDS,
+                 progress: bool = True, cnn: bool = True) -> list[Section]:
     counts = REPORT_TRIALS["quick" if quick else "full"]
-    sections = []
+    out = []
     for task in tasks:
         n_tr, n_te = counts[task]
-        tr = simulate_scenes(work / f"{task}-train", TASK_KINDS[task], n_tr, 10 * seed + 1,
-                             False, progress)
-        te = simulate_scenes(work / f"{task}-test", TASK_KINDS[task], n_te, 10 * seed + 2,
-                             True, progress)
-        rows = run_task(task, [str(tr)], [str(te)], windows, seed, label="sim",
-                        progress=progress)
-        sections.append((f"{task} (simulated, unseen seeds and surfaces)", f"pareto-{task}.png",
-                         rows))
+        tr = simulate_scenes(work / f"{task}-train", TASK_KINDS[task], n_tr, 1, False, progress)
+        te = simulate_scenes(work / f"{task}-test", TASK_KINDS[task], n_te, 2, True, progress)
+        trained = (f"Simulated. Trained on {n_tr} simulated trial(s) per kind "
+                   f"({', '.join(TASK_KINDS[task])}), tested on {n_te} trial(s) per kind with "
+                   f"unseen simulator seeds and surface parameters beyond the training "
+                   f"ranges; default settings per kind.")
+        out.append(Section(f"sim-{task}", f"{task} (simulated)", task, models_for(task, cnn),
+                           windows, seeds, trained, False, [str(tr)], [str(te)]))
+    return out
+
+
+def split_text(how: str, T: int) -> str:
+    """``split_holdout``'s account of a split, for every T of a section."""
+    return how.replace(f"a gap of {T} frames", "a gap of T frames")
+
+
+def prepare(sections: list[Section], regularise: bool = True) -> dict:
+    """{(section key, T): (train, test) WindowSets}, each clip's frames encoded once."""
+    windows = {}
+    for s in sections:
+        cache: dict = {}
+        for T in sorted(set(s.windows) | ({REGULARISER_T} if s.real and regularise else set())):
+            ws = load_specs(s.train_specs, task=s.task, window=T, contact_only=s.real,
+                            progress=False, cache=cache)
+            if s.test_specs:
+                te = load_specs(s.test_specs, task=s.task, window=T, progress=False,
+                                cache=cache, min_classes=1)
+                windows[(s.key, T)] = (ws, te)
+                continue
+            tr_idx, te_idx, how = split_holdout(ws, 0.3, 0)
+            windows[(s.key, T)] = (ws.subset(tr_idx), ws.subset(te_idx))
+            if T == min(s.windows):
+                s.how = split_text(how, T)
+    return windows
+
+
+#: the order the sweep takes window lengths in, so that a coarse grid finishes first
+T_ORDER = (1, 10, 5, 3, 2, 7, 4, 8, 6, 9)
+
+
+def sweep_cells(sections: list[Section], regularise: bool = True) -> list[Cell]:
+    """Every (section, kind, T, seed), coarse T first (:data:`T_ORDER`), and with
+    ``regularise`` the fnn's dropout variant at :data:`REGULARISER_T` on the real
+    sections."""
+    def rank(T):
+        return T_ORDER.index(T) if T in T_ORDER else len(T_ORDER) + T
+
+    cells = [Cell(s.key, s.task, k, T, seed) for s in sections
+             for T in sorted(s.windows, key=rank) for k in s.kinds for seed in s.seeds]
+    if regularise:
+        for s in sections:
+            if s.real:
+                kinds = (["fnn"] if REGULARISER_T not in s.windows else []) + list(REGULARISERS)
+                cells += [Cell(s.key, s.task, k, REGULARISER_T, seed) for k in kinds
+                          for seed in s.seeds]
+    cells.sort(key=lambda c: rank(c.T))
+    return cells
+
+
+def vision_costs(data_dir) -> dict | None:
+    """The vision pipeline per frame on every real texture clip (a fresh encoder per
+    clip), without and with the CNN's dome crop."""
+    if data_dir is None:
+        return None
+    clips = sorted({c for clips, _ in REAL_SETS.values() for c in clips})
+    frames = [costs.read_frames(Path(data_dir) / "roboskin" / c) for c in clips]
+    return {"plain": costs.vision_cost(frames), "crop": costs.vision_cost(frames, crop_px=32),
+            "frames": sum(len(f) for f in frames), "clips": clips}
+
+
+def build_report(out, work, data_dir=None, quick: bool = False, tasks=tuple(TASK_KINDS),
+                 progress: bool = True, command: str = "host report", jobs: int = 1,
+                 real_windows=REAL_WINDOWS, seeds=SEEDS, sim_windows=SIM_WINDOWS,
+                 sim_seeds=SIM_SEEDS, cnn: bool = False, regularise: bool = True,
+                 real_kinds=None) -> Path:
+    """Run the sweep (``jobs`` joblib workers) and write the report ``out`` (markdown,
+    a JSON twin and the figures under ``img/`` beside it)."""
+    work = Path(work)
+    sections = []
     if data_dir is not None:
-        man = real_manifest(data_dir, work)
-        rows = run_task("texture", [str(man)], None, windows, seed, split="time",
-                        contact_only=True, label="real", progress=progress)
-        sections.append(("concrete vs smooth (real roboskin clips, first 70% / last 30%, "
-                         "contact windows)", "pareto-real-texture.png", rows))
-    return write_report(sections, out, command)
+        sections += real_sections(data_dir, work, real_windows, seeds, cnn, real_kinds)
+    sections += sim_sections(work, quick, tasks, sim_windows, sim_seeds, progress, cnn)
+    regularise = regularise and _have_torch()
+    windows = prepare(sections, regularise)
+    cells = sweep_cells(sections, regularise)
+    if progress:
+        print(f"host report: {len(cells)} cells, {jobs} job(s)", flush=True)
+    rows = run_cells(cells, windows, work / "models", jobs,
+                     keep_seed=min(min(s.seeds) for s in sections) if sections else None,
+                     verbose=10 if progress else 0)
+    # the times: one measurement after another, after every cell has finished
+    machine = costs.machine()
+    vision = vision_costs(data_dir)
+    timing = time_models(rows, windows, vision) if vision else {}
+    doc = {"command": command, "machine": machine, "vision": vision, "jobs": jobs, "cnn": cnn,
+           "regulariser_T": REGULARISER_T,
+           "sections": [{"key": s.key, "title": s.title, "task": s.task, "kinds": s.kinds,
+                         "trained_on":
+                         s.trained_on, "split": s.how, "windows": list(s.windows),
+                         "seeds": list(s.seeds), "real": s.real} for s in sections],
+           "cells": rows, "aggregate": aggregate(rows),
+           "timing": [{"data": k[0], "kind": k[1], "T": k[2], **v} for k, v in timing.items()]}
+    return write_report(doc, out)
+
+
+def write_report(doc: dict, out) -> Path:
+    """The markdown ``out``, its JSON twin and one accuracy-vs-T figure per section
+    under ``img/`` beside it."""
+    out = Path(out)
+    img = out.parent / "img"
+    kinds = {s["key"]: s["kinds"] for s in doc["sections"]}
+    doc["aggregate"] = sorted(doc["aggregate"], key=lambda a: (
+        a["data"], kinds.get(a["data"], []).index(a["kind"])
+        if a["kind"] in kinds.get(a["data"], []) else len(kinds.get(a["data"], [])), a["T"]))
+    for s in doc["sections"]:
+        rows = [a for a in doc["aggregate"] if a["data"] == s["key"]
+                and a["kind"] not in REGULARISERS and a["T"] in s["windows"]]
+        s["figure"] = plot_accuracy_vs_t(rows, img / f"accuracy-vs-T-{s['key']}.png",
+                                         s["title"]).name
+    atomic_write_text(out, render(doc))
+    atomic_write_text(out.with_suffix(".json"), json.dumps(doc, indent=1, default=float))
+    return out

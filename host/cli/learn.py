@@ -6,9 +6,9 @@ import sys
 from pathlib import Path
 
 from device.pi.models.artefact import MAX_T, ModelError, read_manifest
-from host.bench.report import build_report
+from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
-                             whole, whole_list)
+                             whole)
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
@@ -92,16 +92,47 @@ def cmd_eval(args):
     emit(args, res, json.dumps(res, indent=1, default=json_default))
 
 
+def _int_list(flag: str, text: str, low: int) -> tuple[int, ...]:
+    """``1,2,5`` or ``1-10`` (or both, comma-separated) as whole numbers >= ``low``."""
+    out = []
+    try:
+        for part in text.split(","):
+            a, _, b = part.strip().partition("-")
+            out += list(range(int(a), int(b) + 1)) if b else [int(a)]
+    except ValueError:
+        raise UserError(f"{flag}: expected whole numbers like 1,3,10 or 1-10, got {text!r}") \
+            from None
+    if not out or min(out) < low:
+        raise UserError(f"{flag}: every value must be >= {low}, got {text!r}")
+    return tuple(sorted(set(out)))
+
+
 def cmd_report(args):
     data = None
     try:
         data = real_data_dir(args.data)
     except UserError:
         print("host report: real recordings not found; simulated data only", file=sys.stderr)
-    windows = args.windows
-    cmd = "host report --out " + args.out + (" --quick" if args.quick else "")
-    out = build_report(args.out, args.work, data, windows=windows, quick=args.quick,
-                       seed=args.seed, progress=not args.json, command=cmd)
+    if args.jobs == 0 or args.jobs < -1:
+        raise UserError(f"--jobs: a number of workers >= 1 (or -1 for all cores), got "
+                        f"{args.jobs}")
+    windows = _int_list("--windows", args.windows, 1)
+    seeds = _int_list("--seeds", args.seeds, 0)
+    sim_windows = _int_list("--sim-windows", args.sim_windows, 1)
+    sim_seeds = _int_list("--sim-seeds", args.sim_seeds, 0)
+    cmd = (f"host report --out {args.out} --work {args.work}"
+           + (f" --data {args.data}" if args.data else "")
+           + f" --windows {args.windows} --seeds {args.seeds} --sim-windows "
+           f"{args.sim_windows} --sim-seeds {args.sim_seeds} --jobs {args.jobs}"
+           + (" --quick" if args.quick else "") + (" --cnn" if args.cnn else "")
+           + (" --real-only" if args.real_only else ""))
+    if args.real_only and data is None:
+        raise UserError("--real-only needs the real recordings: pass --data DIR or set "
+                        "TACFOOT_REAL_DATA")
+    out = build_report(args.out, args.work, data, quick=args.quick, progress=not args.json,
+                       command=cmd, jobs=args.jobs, real_windows=windows, seeds=seeds,
+                       sim_windows=sim_windows, sim_seeds=sim_seeds, cnn=args.cnn,
+                       tasks=() if args.real_only else TASK_KINDS)
     emit(args, {"out": str(out)}, f"wrote {out}")
 
 
@@ -141,13 +172,23 @@ def register(sub) -> None:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_eval)
 
-    s = sub.add_parser("report", help="what accuracy costs in time: tables + Pareto plots")
+    s = sub.add_parser("report", help="what accuracy costs in time: tables + figures")
     s.add_argument("--out", default="docs/accuracy-vs-time.md")
-    s.add_argument("--work", default="out/report", help="simulated data and scratch")
-    s.add_argument("--data", help="real recordings folder")
-    s.add_argument("--windows", type=whole_list(1, MAX_T), default=(1, 2, 3, 5, 10),
-                   help="window lengths T, comma-separated (default 1,2,3,5,10)")
+    s.add_argument("--work", default="out/report",
+                   help="simulated data, models and finished cells, reused by a later run "
+                        "on the same windows (remove it after changing the training code)")
+    s.add_argument("--data", help="real recordings folder (holding roboskin/)")
+    s.add_argument("--windows", default="1-10", help="window lengths T of the real sections")
+    s.add_argument("--seeds", default="0,1,2", help="seeds of the real sections")
+    s.add_argument("--sim-windows", default="1,3,10",
+                   help="window lengths T of the simulated sections")
+    s.add_argument("--sim-seeds", default="0,1", help="seeds of the simulated sections")
+    s.add_argument("--jobs", type=int, default=1,
+                   help="parallel cells (joblib workers; -1: all cores); the times are "
+                        "taken afterwards, one at a time")
     s.add_argument("--quick", action="store_true", help="fewer simulated trials")
-    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--cnn", action="store_true", help="also sweep the CNN (PyTorch; slow)")
+    s.add_argument("--real-only", action="store_true",
+                   help="only the real sections and the fnn's regulariser comparison")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_report)

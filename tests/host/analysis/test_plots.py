@@ -70,11 +70,11 @@ def test_compare_without_localised_pins_is_exit_2(tmp_path, capsys):
 
 
 def test_plots_are_written_by_the_one_figure_saver(tmp_path, monkeypatch):
-    """host plot directions and host report's Pareto plot both save through
+    """host plot directions and host report's accuracy-vs-T plot both save through
     host.analysis.figures.save_figure (title, layout, folder, close)."""
     import host.analysis.plots as plots
     from host.analysis import figures
-    from host.bench import report
+    from host.bench import report_doc
 
     saved = []
 
@@ -83,12 +83,11 @@ def test_plots_are_written_by_the_one_figure_saver(tmp_path, monkeypatch):
         return figures.save_figure(fig, out, title, dpi)
 
     monkeypatch.setattr(plots, "save_figure", recording)
-    monkeypatch.setattr(report, "save_figure", recording)
+    monkeypatch.setattr(report_doc, "save_figure", recording)
     xy = np.array([[1.0, 2.0], [-1.0, 0.5]])
     d = {"xy": xy, "sensation": np.zeros(2, int), "pressure": np.zeros(2, int), "label": "a"}
     plots.plot_directions([d], tmp_path / "d.png", title="t")
-    row = {"model": "fnn", "variant": "float", "T": 3, "accuracy": 0.9, "mae": None,
-           "latency_p50_ms": 0.1, "delay_120fps_ms": 25.0}
-    report.plot_pareto([row], tmp_path / "sub" / "p.png", "surface")
+    row = {"kind": "fnn", "T": 3, "mean": 0.9, "sd": 0.01, "n": 3, "metric": "accuracy"}
+    report_doc.plot_accuracy_vs_t([row], tmp_path / "sub" / "p.png", "surface")
     assert saved == [(tmp_path / "d.png", "t"), (tmp_path / "sub" / "p.png", "")]
     assert (tmp_path / "sub" / "p.png").stat().st_size > 1000

@@ -1,86 +1,80 @@
-"""host/bench/report.py: rows, the int8 fallback, the Pareto front and the table."""
+"""host/bench/report.py: the real sections on short slices of the real clips, end to
+end: what was trained and tested on, mean ± sd over seeds, the whole per-decision
+cost and the machine line."""
 from __future__ import annotations
 
-import numpy as np
+import json
+
+import pytest
 
 from host.bench import report
-from host.learn.tasks import QuantisationError
+from tests.realdata import read_video, real_data_dir
+
+SLICE = 120          # frames of each clip
 
 
-def row(model, variant, T, acc, p50):
-    return {"task": "surface", "data": "sim", "model": model, "variant": variant, "T": T,
-            "accuracy": acc, "mae": None, "latency_p50_ms": p50, "latency_p99_ms": 2 * p50,
-            "size_bytes": 1024, **{f"delay_{f}fps_ms": 1000.0 * T / f for f in report.FPS}}
+@pytest.fixture(scope="module")
+def short_clips(tmp_path_factory):
+    """The first SLICE frames of each real texture clip, as a data folder."""
+    import cv2
+
+    src = real_data_dir(*(f"roboskin/{c}" for c in report.REAL_SETS["lego-vs-smooth"][0]),
+                        "roboskin/concrete.avi") / "roboskin"
+    root = tmp_path_factory.mktemp("real")
+    (root / "roboskin").mkdir()
+    for clip in ("concrete.avi", "smooth.avi", "lego_train.avi"):
+        frames = read_video(src / clip, 0, SLICE)
+        h, w = frames[0].shape[:2]
+        out = cv2.VideoWriter(str(root / "roboskin" / clip), cv2.VideoWriter_fourcc(*"MJPG"),
+                              30, (w, h))
+        for f in frames:
+            out.write(f)
+        out.release()
+    return root
 
 
-def test_a_failed_int8_check_keeps_the_float_row_and_says_why(monkeypatch, tmp_path):
-    """When the int8 copy fails its check the float model is still written (trained
-    once) and measured; the int8 row carries the agreement it reached, taken from
-    the check's fields."""
-    import json
-
-    import host.learn.train
-    from tests.windows import synthetic
-
-    def failing_quantise(*a, **k):
-        raise QuantisationError("int8 check failed: the agreement is too low",
-                                kind="classifier", agreement=0.9718, required=0.99)
-
-    fits = []
-    real_fit = host.learn.train.fit_estimator
-    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
-    monkeypatch.setattr(host.learn.train, "fit_estimator",
-                        lambda *a, **k: fits.append(1) or real_fit(*a, **k))
-    ws = synthetic()
-    why = report.train_row("surface", "fnn", ws, ws, tmp_path / "m", 0)
-    assert len(fits) == 1                                  # trained once, not twice
-    assert why == ("int8 check failed: 97.18% argmax agreement with float (< 99 %); "
-                   "float kept")
-    assert (tmp_path / "m" / "model.onnx").is_file()
-    assert not (tmp_path / "m" / "model.int8.onnx").exists()
-    doc = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert doc["variant"] == "float" and doc["int8"]["agreement"] == 0.9718
-    assert "the agreement is too low" in doc["int8"]["failed"]
+def test_the_real_sections_say_what_was_trained_and_tested_on(short_clips, tmp_path):
+    sections = report.real_sections(short_clips, tmp_path, windows=(2,), seeds=(0,))
+    assert [s.key for s in sections] == ["lego-vs-smooth", "concrete-vs-smooth"]
+    assert all(s.real and s.kinds == ["fnn", "grid-fnn"] for s in sections)
+    assert "first 70 % of `lego_train.avi` and `smooth.avi`" in sections[0].trained_on
+    assert "stands in for a recording that was not trained on" in sections[1].trained_on
+    windows = report.prepare(sections[:1], regularise=False)
+    tr, te = windows[("lego-vs-smooth", 2)]
+    assert sections[0].how.startswith("time split within each trial")
+    for ws in (tr, te):
+        assert set(ws.labels) == {"lego", "smooth"} and ws.contact.all()
+    # the test windows start at least T frames after the last training frame
+    for g in set(tr.groups):
+        assert te.t_index[te.groups == g].min() - 1 >= tr.t_index[tr.groups == g].max() + 2
+    cells = report.sweep_cells(sections, regularise=True)
+    assert {(c.kind, c.T) for c in cells if c.data == "lego-vs-smooth"} == {
+        ("fnn", 2), ("grid-fnn", 2), ("fnn", 10), ("fnn-dropout", 10)}
 
 
-def test_a_failed_regressor_check_is_reported_by_its_message(monkeypatch, tmp_path):
-    import host.learn.train
-    from tests.windows import synthetic
-
-    def failing_quantise(*a, **k):
-        raise QuantisationError("int8 check failed: raises the MAE by 0.5", kind="regressor",
-                                mae_change=0.5, mae_change_of_range=0.1)
-
-    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
-    ws = synthetic(targets=True, imu=False)
-    why = report.train_row("pressure", "ridge", ws, ws, tmp_path / "p", 0)
-    assert why == ("int8 check failed: raises the MAE by 0.5 (10.00% of the target range, "
-                   "> 1%); float kept")                  # the prefix once, from the fields
-    assert not (tmp_path / "p" / "model.int8.onnx").exists()
-
-
-def test_a_verdict_without_numbers_says_int8_check_failed_once():
-    exc = QuantisationError("int8 check failed: /m/model.int8.onnx the int8 model gives NaN "
-                            "or inf; the int8 model was not kept")
-    why = report._int8_why(exc.fields(), str(exc))
-    assert why.count("int8 check failed") == 1
-    assert why == "int8 check failed: /m/model.int8.onnx the int8 model gives NaN or inf; " \
-                  "the int8 model was not kept"
+def test_the_report_on_short_real_clips_has_seeds_costs_and_the_machine(short_clips,
+                                                                      tmp_path):
+    out = report.build_report(tmp_path / "doc" / "acc.md", tmp_path / "work", short_clips,
+                              tasks=(), real_windows=(2,), seeds=(0, 1), jobs=1,
+                              regularise=False, progress=False, command="host report -x",
+                              real_kinds=("grid-fnn",))
+    text = out.read_text()
+    doc = json.loads(out.with_suffix(".json").read_text())
+    assert "Generated by `host report -x`." in text
+    assert "cores, load average" in text and "about 4x slower" in text
+    assert len(doc["cells"]) == 2 * 2                     # data x seed
+    for s in ("lego-vs-smooth", "concrete-vs-smooth"):
+        assert (out.parent / "img" / f"accuracy-vs-T-{s}.png").is_file()
+    rows = [a for a in doc["aggregate"] if a["n"]]
+    assert rows and all(a["n"] == 2 and a["seeds"] == 2 for a in rows)
+    assert f"{rows[0]['mean']:.4f} ± {rows[0]['sd']:.4f} (2)" in text
+    timed = {(t["data"], t["kind"]) for t in doc["timing"]}
+    assert timed == {(a["data"], a["kind"]) for a in rows}
+    t = doc["timing"][0]
+    assert t["cpu"]["p50"] > t["vision"]["cpu"]["p50"] > 0   # vision + model
+    assert doc["vision"]["frames"] == 3 * SLICE
 
 
-def test_table_marks_the_pareto_front_and_lists_failures():
-    rows = [row("fnn", "float", 3, 0.95, 0.1), row("fnn", "float", 1, 0.90, 0.1),
-            row("rule", "float", 3, 0.80, 0.05),
-            {"task": "surface", "model": "fnn", "variant": "int8", "T": 3,
-             "error": "int8 check failed: 97% argmax agreement with float (< 99 %); float kept"},
-            {"task": "surface", "model": "cnn", "T": 5, "error": "too few windows"}]
-    text = report.table(rows)
-    lines = text.splitlines()
-    best, fast, dominated = lines[2], lines[3], lines[4]
-    assert best.endswith("* |") and fast.endswith("* |")      # most accurate / fastest
-    assert dominated.endswith("|  |")                          # slower and worse than T=1
-    assert "| fnn | int8 | 3 | int8 check failed: 97%" in text
-    assert "| cnn | - | 5 | not trained: too few windows" in text
-    front = report.pareto([r for r in rows if "error" not in r], lower_better=False)
-    assert front == {0, 1}
-    assert np.isclose(rows[0]["delay_120fps_ms"], 25.0)
+def test_models_for_adds_the_cnn_only_when_asked():
+    assert report.models_for("texture", cnn=False) == ["fnn", "grid-fnn"]
+    assert "cnn" not in report.models_for("pressure", cnn=True)

@@ -66,3 +66,17 @@ def test_an_explicit_test_set_is_used_as_given(tmp_path, clips, capsys):
     res = json.loads(capsys.readouterr().out)
     assert res["holdout"] == "given"
     assert res["metrics"]["test"]["n"] == res["metrics"]["train"]["n"]
+
+
+@pytest.mark.parametrize("argv,msg", [
+    (["--jobs", "0"], "--jobs"),
+    (["--windows", "1,x"], "--windows: expected whole numbers"),
+    (["--seeds", "-3"], "--seeds"),
+    (["--sim-windows", "0"], "--sim-windows: every value must be >= 1"),
+])
+def test_report_refuses_bad_grids_with_exit_2(tmp_path, argv, msg, capsys):
+    rc = main(["report", "--out", str(tmp_path / "a.md"), "--work", str(tmp_path / "w"),
+               "--data", str(tmp_path)] + argv)
+    assert rc == 2
+    assert msg in capsys.readouterr().err
+    assert not (tmp_path / "a.md").exists()
