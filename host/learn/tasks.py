@@ -6,7 +6,9 @@ rule        the paper's rules, no weights (:mod:`device.pi.models.rules`): surfa
 ridge       Ridge (alpha 150) over all pin vectors of the window: pressure
 fnn         MLP over T frames of ``encode_vectors`` (+ IMU when present), two
             hidden layers, logistic (sigmoid) units, standard scaling: surface,
-            texture, slip; an MLP regressor for pressure
+            texture, slip; an MLP regressor for pressure. For texture its first
+            layer also reads the roughness of the displacement field
+            (:class:`host.learn.layers.TemporalFeatures` ``neighbours``)
 grid-fnn    the same MLP over ``encode_grids`` (contact-grid maps and their
             frame-to-frame changes): texture, surface, slip
 ==========  =====================================================================
@@ -28,9 +30,9 @@ TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn"), "texture": ("fnn", "grid-
 #: ``host train`` without ``--model``: the kind that does best on real recordings where
 #: they exist (texture: roboskin clips; pressure: the soft-plate vectors), else on
 #: simulated data (surface, slip); see docs/accuracy-vs-time.md
-DEFAULT_MODEL = {"surface": "fnn", "texture": "grid-fnn", "slip": "fnn", "pressure": "ridge"}
+DEFAULT_MODEL = {"surface": "fnn", "texture": "fnn", "slip": "fnn", "pressure": "ridge"}
 #: ``host train`` without ``--window``: frames per window T
-DEFAULT_WINDOW = {"surface": 3, "texture": 10, "slip": 3, "pressure": 1}
+DEFAULT_WINDOW = {"surface": 3, "texture": 15, "slip": 3, "pressure": 1}
 LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids"}
 DEFAULT_HIDDEN = (64, 32)
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
