@@ -19,8 +19,8 @@ import numpy as np
 
 from device.checks import whole_number
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "LAYOUT",
-           "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "TASK_HIDDEN",
+           "LAYOUT", "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
 MODELS = ("rule", "ridge", "fnn", "grid-fnn")
@@ -35,6 +35,9 @@ DEFAULT_MODEL = {"surface": "fnn", "texture": "fnn", "slip": "fnn", "pressure": 
 DEFAULT_WINDOW = {"surface": 3, "texture": 15, "slip": 3, "pressure": 1}
 LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids"}
 DEFAULT_HIDDEN = (64, 32)
+#: tasks whose MLP has other hidden layers by default: texture reads T = 15 frames
+#: (about 8000 inputs with its temporal layer); (16, 16) keeps it under 1 MB and fast
+TASK_HIDDEN = {"texture": (16, 16)}
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
 DEFAULT_EPOCHS = 300
 MIN_AGREEMENT = 0.99

@@ -50,7 +50,7 @@ from host.learn.metrics import class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
                                 write_manifest, write_model, write_variants)
 from host.learn.quantise import quantise_model
-from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_MODELS, TASKS,
+from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
                               label_ids)
 
@@ -146,7 +146,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     the manifest's core.
 
     ``uses_imu``: None = the fnn uses the IMU when the windows carry it.
-    ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32)), L2
+    ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32); texture
+    (16, 16), :data:`host.learn.tasks.TASK_HIDDEN`), L2
     penalty (MLP 1e-3, ridge 150) and most epochs (300, with early stopping on the
     training loss). ``temporal``: the fnn's fixed first layer of frame-to-frame
     changes (:class:`TemporalFeatures`); None = on for the fnn when T >= 2.
@@ -211,6 +212,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
               "neighbours": (texture_neighbours(profile, ws_train.n_pins)
                              if task == "texture" else None)}
              if temporal else None)
+    if hidden is None:
+        hidden = TASK_HIDDEN.get(task)
     hp = hyperparameters(model, hidden, alpha, epochs, tspec) if model != "rule" else {}
     regression = task == "pressure"
 
