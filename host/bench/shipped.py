@@ -106,8 +106,8 @@ REAL_TEXTURE = {"concrete.avi": "concrete", "smooth.avi": "smooth", "lego_train.
 #: a gap of T frames, is its held-out test
 REAL_TRAIN_FRAC = 0.7
 #: the texture model on real frames: kind, window (host train's defaults) and hidden
-#: layers (32, 16), which keep the T = 10 model under MAX_BYTES
-REAL_TEXTURE_MODEL = ("fnn", 10, (32, 16))
+#: layers (16, 16), which keep the T = 15 model (float + int8) under MAX_BYTES
+REAL_TEXTURE_MODEL = ("fnn", 15, (16, 16))
 
 
 def real_texture_specs(real_data, work, T: int) -> tuple[Path, Path]:

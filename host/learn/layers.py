@@ -11,7 +11,23 @@ import numpy as np
 
 from host.learn.tasks import TrainError
 
-__all__ = ["SCALED_CLIP", "temporal_class", "scaler_class"]
+__all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "layout_neighbours", "temporal_class", "scaler_class"]
+
+
+#: added to the mean |v| (px) that the roughness is divided by, so a frame
+#: without a press does not divide by about zero
+ROUGH_FLOOR_PX = 0.5
+
+
+def layout_neighbours(layout_px, k: int = 6) -> list[list[int]]:
+    """For each pin of a layout (M, 2) px, the indices of its ``k`` nearest other
+    pins (ties broken by index): the ``neighbours`` of :class:`TemporalFeatures`."""
+    p = np.asarray(layout_px, np.float64).reshape(-1, 2)
+    if len(p) <= k:
+        raise TrainError(f"layout_neighbours: {len(p)} pins, need more than k={k}")
+    d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
+    np.fill_diagonal(d, np.inf)
+    return np.argsort(d, axis=1, kind="stable")[:, :k].tolist()
 
 
 def temporal_class():
@@ -35,6 +51,17 @@ def temporal_class():
         everywhere, in the graph too, so a pin that a training recording always
         loses (glare, a worn pin) cannot become a cue for that recording.
 
+        ``neighbours`` (M lists of K layout pin indices, optional, from
+        :func:`layout_neighbours`) adds the spatial roughness of the displacement
+        field: for each pin, its vector minus the mean vector of its K neighbours
+        (a smooth shear or press leaves this near zero, studs that push single
+        pins do not). Over the pins whose neighbours are all used it appends
+
+        * the mean roughness of each frame, T, and the same over
+          (mean |v| + ``ROUGH_FLOOR_PX``), T (roughness for the press depth);
+        * the mean length of each frame-to-frame change of the roughness, T-1,
+          and the same over the later frame's (mean |v| + ``ROUGH_FLOOR_PX``), T-1.
+
         Texture shake, slip and a wet floor show in these changes, which are small
         next to the vectors themselves; given explicitly, the MLP finds them from
         few trials. No weights: in ONNX it is Slice / Sub / ReduceMean /
@@ -43,11 +70,34 @@ def temporal_class():
         """
 
         def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False,
-                     pin_mask=None):
+                     pin_mask=None, neighbours=None):
             self.T = T
             self.n_pins = n_pins
             self.uses_imu = uses_imu
             self.pin_mask = pin_mask
+            self.neighbours = neighbours
+
+        def _rough(self):
+            """(W, use): W (M, M) float32 averages each pin's neighbours; use (M,)
+            float32 is 1 / (pins counted) for each pin whose neighbours are all
+            used, else 0. None without ``neighbours``."""
+            if self.neighbours is None:
+                return None
+            nb = np.asarray(self.neighbours, np.int64)
+            M = self.n_pins
+            if nb.ndim != 2 or nb.shape[0] != M or nb.shape[1] < 1 or nb.min() < 0 \
+                    or nb.max() >= M:
+                raise TrainError(f"neighbours must be {M} rows of pin indices in 0..{M - 1}, "
+                                 f"got shape {nb.shape}")
+            W = np.zeros((M, M), np.float32)
+            np.add.at(W, (np.repeat(np.arange(M), nb.shape[1]), nb.ravel()),
+                      np.float32(1.0 / nb.shape[1]))
+            m = self._mask()
+            ok = np.ones(M, bool) if m is None else m > 0
+            ok = ok & ok[nb].all(axis=1)
+            if not ok.any():
+                raise TrainError("neighbours: no pin has all its neighbours in use")
+            return W, (ok / ok.sum()).astype(np.float32)
 
         def _mask(self):
             """(M,) float32 of 1 (pin used) and 0 (pin ignored), or None."""
@@ -70,9 +120,10 @@ def temporal_class():
                                  f"{X.shape}")
             T, M = self.T, self.n_pins
             self._mask()
+            rough = self._rough() is not None
             self.n_features_in_ = X.shape[1]
             self.n_features_out_ = (X.shape[1] + (T - 1) * M * 2 + 2 * T + 2 * (T - 1)
-                                    + 2 * (T - 1) + T)
+                                    + 2 * (T - 1) + T + (4 * T - 2 if rough else 0))
             return self
 
         def transform(self, X):
@@ -87,10 +138,20 @@ def temporal_class():
             parts = [X]
             dv = v[:, 1:] - v[:, :-1]
             davg = avg[:, 1:] - avg[:, :-1]
+            mag = np.sqrt((v * v).sum(axis=3)).mean(axis=2)
             parts += [dv.reshape(N, -1), avg.reshape(N, -1), davg.reshape(N, -1),
                       np.sqrt((davg * davg).sum(axis=2)),
-                      np.sqrt((dv * dv).sum(axis=3)).mean(axis=2),
-                      np.sqrt((v * v).sum(axis=3)).mean(axis=2)]
+                      np.sqrt((dv * dv).sum(axis=3)).mean(axis=2), mag]
+            rough = self._rough()
+            if rough is not None:
+                W, use = rough
+                vt = v.transpose(0, 1, 3, 2)                     # (N, T, 2, M)
+                r = vt - vt @ W.T
+                dr = r[:, 1:] - r[:, :-1]
+                rm = (np.sqrt((r * r).sum(axis=2)) * use).sum(axis=2)
+                drm = (np.sqrt((dr * dr).sum(axis=2)) * use).sum(axis=2)
+                den = mag + np.float32(ROUGH_FLOOR_PX)
+                parts += [rm, rm / den, drm, drm / den[:, 1:]]
             return np.concatenate(parts, axis=1).astype(np.float32)
 
     globals()["TemporalFeatures"] = TemporalFeatures
@@ -218,12 +279,40 @@ def _temporal_to_onnx(scope, operator, container):
     avg = node("ReduceMean", [v], axes=[2], keepdims=0)                       # (N, T, 2)
     dv = node("Sub", [frames(v, 1, T), frames(v, 0, T - 1)])                  # (N, T-1, M, 2)
     davg = node("Sub", [frames(avg, 1, T), frames(avg, 0, T - 1)])            # (N, T-1, 2)
+    mag = node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [v], axes=[3],
+                                                 keepdims=0)])], axes=[2], keepdims=0)
     parts = [x, flat(dv, (T - 1) * M * 2), flat(avg, 2 * T), flat(davg, 2 * (T - 1)),
              node("Sqrt", [node("ReduceSumSquare", [davg], axes=[2], keepdims=0)]),
              node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [dv], axes=[3],
                                                     keepdims=0)])], axes=[2], keepdims=0),
-             node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [v], axes=[3],
-                                                   keepdims=0)])], axes=[2], keepdims=0)]
+             mag]
+    rough = op._rough()
+    if rough is not None:
+        _, use = rough
+
+        def fconst(values, dims):
+            name = scope.get_unique_variable_name("c")
+            container.add_initializer(name, TensorProto.FLOAT, dims,
+                                      np.asarray(values, np.float32).ravel().tolist())
+            return name
+
+        nb = np.asarray(op.neighbours, np.int64)
+        nbn = scope.get_unique_variable_name("neighbours")
+        container.add_initializer(nbn, TensorProto.INT64, list(nb.shape), nb.ravel().tolist())
+        # a Gather and a mean, not a MatMul: the int8 quantiser leaves it in float
+        vt = node("Transpose", [v], perm=[0, 1, 3, 2])                         # (N, T, 2, M)
+        nbmean = node("ReduceMean", [node("Gather", [vt, nbn], axis=3)], axes=[4], keepdims=0)
+        r = node("Sub", [vt, nbmean])
+        dr = node("Sub", [frames(r, 1, T), frames(r, 0, T - 1)])
+        u = fconst(use, [M])
+
+        def pooled(a):              # sum over pins of use * |a|, (N, frames)
+            n = node("Sqrt", [node("ReduceSumSquare", [a], axes=[2], keepdims=0)])
+            return node("ReduceSum", [node("Mul", [n, u]), const([2])], keepdims=0)
+
+        rm, drm = pooled(r), pooled(dr)
+        den = node("Add", [mag, fconst([ROUGH_FLOOR_PX], [])])
+        parts += [rm, node("Div", [rm, den]), drm, node("Div", [drm, frames(den, 1, T)])]
     container.add_node("Concat", parts, operator.outputs[0].full_name, axis=1,
                        name=scope.get_unique_operator_name("Concat"))
 

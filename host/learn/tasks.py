@@ -6,7 +6,9 @@ rule        the paper's rules, no weights (:mod:`device.pi.models.rules`): surfa
 ridge       Ridge (alpha 150) over all pin vectors of the window: pressure
 fnn         MLP over T frames of ``encode_vectors`` (+ IMU when present), two
             hidden layers, logistic (sigmoid) units, standard scaling: surface,
-            texture, slip; an MLP regressor for pressure
+            texture, slip; an MLP regressor for pressure. For texture its first
+            layer also reads the roughness of the displacement field
+            (:class:`host.learn.layers.TemporalFeatures` ``neighbours``)
 grid-fnn    the same MLP over ``encode_grids`` (contact-grid maps and their
             frame-to-frame changes): texture, surface, slip
 ==========  =====================================================================
@@ -17,8 +19,8 @@ import numpy as np
 
 from device.checks import whole_number
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "LAYOUT",
-           "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "TASK_HIDDEN",
+           "LAYOUT", "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
 MODELS = ("rule", "ridge", "fnn", "grid-fnn")
@@ -28,11 +30,14 @@ TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn"), "texture": ("fnn", "grid-
 #: ``host train`` without ``--model``: the kind that does best on real recordings where
 #: they exist (texture: roboskin clips; pressure: the soft-plate vectors), else on
 #: simulated data (surface, slip); see docs/accuracy-vs-time.md
-DEFAULT_MODEL = {"surface": "fnn", "texture": "grid-fnn", "slip": "fnn", "pressure": "ridge"}
+DEFAULT_MODEL = {"surface": "fnn", "texture": "fnn", "slip": "fnn", "pressure": "ridge"}
 #: ``host train`` without ``--window``: frames per window T
-DEFAULT_WINDOW = {"surface": 3, "texture": 10, "slip": 3, "pressure": 1}
+DEFAULT_WINDOW = {"surface": 3, "texture": 15, "slip": 3, "pressure": 1}
 LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids"}
 DEFAULT_HIDDEN = (64, 32)
+#: tasks whose MLP has other hidden layers by default: texture reads T = 15 frames
+#: (about 8000 inputs with its temporal layer); (16, 16) keeps it under 1 MB and fast
+TASK_HIDDEN = {"texture": (16, 16)}
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
 DEFAULT_EPOCHS = 300
 MIN_AGREEMENT = 0.99

@@ -38,17 +38,19 @@ import numpy as np
 
 from device.pi.models.artefact import MANIFEST
 from host.data.dataset import atomic_write
+from host.data.extract import layout_for_profile
 from host.data.splits import split_holdout
 from host.data.windows import DataError, WindowSet
 from host.learn.cv import cross_validate_model
 from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hyperparameters,
                                    pipeline_to_onnx, rule_probs)
 from host.learn.inputs import augment_rotations, model_inputs
+from host.learn.layers import layout_neighbours
 from host.learn.metrics import class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
                                 write_manifest, write_model, write_variants)
 from host.learn.quantise import quantise_model
-from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_MODELS, TASKS,
+from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
                               label_ids)
 
@@ -85,6 +87,17 @@ def _holdout(ws, seed: int):
 
 #: a pin lost in more than this share of one training recording's windows is ignored
 MAX_LOST_SHARE = 0.2
+
+
+def texture_neighbours(profile: str, n_pins: int) -> list[list[int]] | None:
+    """The layout neighbours (:func:`host.learn.layers.layout_neighbours`) of the
+    ``profile``'s pins, from which the texture fnn reads the roughness of the
+    displacement field; None when the profile's layout is not the windows' M pins."""
+    try:
+        lay = layout_for_profile(profile)
+    except DataError:
+        return None
+    return layout_neighbours(lay) if len(lay) == n_pins else None
 
 
 def regression_task(task: str) -> bool:
@@ -133,7 +146,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     the manifest's core.
 
     ``uses_imu``: None = the fnn uses the IMU when the windows carry it.
-    ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32)), L2
+    ``hidden``, ``alpha``, ``epochs``: MLP layer sizes (default (64, 32); texture
+    (16, 16), :data:`host.learn.tasks.TASK_HIDDEN`), L2
     penalty (MLP 1e-3, ridge 150) and most epochs (300, with early stopping on the
     training loss). ``temporal``: the fnn's fixed first layer of frame-to-frame
     changes (:class:`TemporalFeatures`); None = on for the fnn when T >= 2.
@@ -194,8 +208,12 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     ignored = recording_lost_pins(ws_train) if temporal and not regression_task(task) else []
     tspec = ({"T": T, "n_pins": ws_train.n_pins, "uses_imu": bool(uses_imu),
               "pin_mask": (None if not ignored else
-                           [0 if m in set(ignored) else 1 for m in range(ws_train.n_pins)])}
+                           [0 if m in set(ignored) else 1 for m in range(ws_train.n_pins)]),
+              "neighbours": (texture_neighbours(profile, ws_train.n_pins)
+                             if task == "texture" else None)}
              if temporal else None)
+    if hidden is None:
+        hidden = TASK_HIDDEN.get(task)
     hp = hyperparameters(model, hidden, alpha, epochs, tspec) if model != "rule" else {}
     regression = task == "pressure"
 
@@ -229,6 +247,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     result = {"task": task, "model": model, "T": T, "input_layout": layout,
               "ignored_pins": ignored,
               "uses_imu": bool(uses_imu), "temporal_features": bool(temporal),
+              "roughness": bool(tspec and tspec["neighbours"]),
               "classes": classes, "seed": seed,
               "holdout": holdout, "out_dir": str(out_dir)}
     metrics: dict = {}
@@ -312,6 +331,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     out.mkdir(parents=True, exist_ok=True)
     default = INT8_NAME if qbytes is not None else FLOAT_NAME
     extra = {"model": model, "task": task, "classes": classes, "T": T, "ignored_pins": ignored,
+             "roughness": result["roughness"],
              "input_layout": layout, "uses_imu": bool(uses_imu),
              "output": "variable" if regression else "probabilities",
              "output_kind": "value" if regression else "probabilities",

@@ -104,7 +104,7 @@ def test_the_texture_default_is_trained_on_real_recordings_and_says_so():
 @pytest.mark.parametrize("clip,label,imu,floor", [
     ("concrete.avi", "concrete", "concrete_gyro.npy", 0.9),
     ("smooth.avi", "smooth", None, 0.9),
-    ("lego_train.avi", "lego", "lego_gyro_train.npy", 0.5),   # short of 0.9: see README
+    ("lego_train.avi", "lego", "lego_gyro_train.npy", 0.65),   # short of 0.9: see README
 ])
 def test_the_runtime_names_the_texture_on_held_out_real_frames(tmp_path, clip, label, imu,
                                                                floor):

@@ -100,3 +100,37 @@ def test_masked_pins_are_ignored_by_the_temporal_layer_and_its_graph():
     assert not np.allclose(temporal_class()(T=T, n_pins=M, uses_imu=True).fit(X2)
                            .transform(X2), temporal_class()(T=T, n_pins=M, uses_imu=True)
                            .fit(X).transform(X))
+
+
+def test_the_roughness_features_see_single_pins_pushed_not_a_uniform_shear_and_match_onnx():
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.layers import layout_neighbours, temporal_class
+    from host.learn.onnx_io import session
+
+    T, M = 3, 12
+    ang = np.linspace(0, 2 * np.pi, M, endpoint=False)
+    lay = np.stack([np.cos(ang), np.sin(ang)], 1) * 50
+    nb = layout_neighbours(lay, 2)
+    assert sorted(nb[0]) == [1, M - 1]               # the two pins beside pin 0
+    mask = [1] * M
+    mask[5] = 0
+    tf = temporal_class()(T=T, n_pins=M, pin_mask=mask, neighbours=nb)
+    shear = np.tile(np.array([3.0, -2.0], np.float32), (4, T, M, 1))
+    poked = shear.copy()
+    poked[:, -1, 0] += 2.0                           # one pin pushed in the last frame
+    X = np.concatenate([shear, poked]).reshape(8, -1)
+    tf.fit(X)
+    out = tf.transform(X)
+    rough = out[:, -(4 * T - 2):]                    # the roughness columns come last
+    assert out.shape[1] == tf.n_features_out_
+    assert np.allclose(rough[:4], 0, atol=1e-6)      # a uniform shear is smooth
+    assert (rough[4:, T - 1] > 0).all() and np.allclose(rough[4:, :T - 1], 0, atol=1e-6)
+    m = convert_sklearn(tf, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                        target_opset=17)
+    assert np.allclose(session(m).run(None, {"x": X})[0], out, atol=1e-5)
+    # a masked pin (5) and pins beside it (4, 6) do not count
+    X2 = X.reshape(8, T, M, 2).copy()
+    X2[:, :, 5] += 9.0
+    assert np.allclose(tf.transform(X2.reshape(8, -1))[:, -(4 * T - 2):], rough, atol=1e-5)
