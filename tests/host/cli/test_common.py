@@ -156,8 +156,8 @@ BAD_INPUTS = [
     ("train --task surface --data {d}/ds --out {d}/m3 --window 0",
      "argument --window: must be a whole number in [1, 1000], got '0'"),
     ("simulate minimal --out {d}/s1 --seed -1", "argument --seed: must be a whole number"),
-    ("report --windows 1,x --out {d}/r.md", "argument --windows: must be whole numbers in "
-                                           "[1, 1000] separated by commas, got '1,x'"),
+    ("report --windows 1,x --out {d}/r.md", "--windows: expected whole numbers like 1,3,10 "
+                                           "or 1-10, got '1,x'"),
     ("bench runtime --frames 0", "argument --frames: must be a whole number in [1, 1000000]"),
     # --out: a folder where a file goes, a file where a folder goes, a folder in use
     ("analyse sim://minimal --out {d}/full", "--out {d}/full: is a folder; give the name of a "
