@@ -39,6 +39,10 @@ class Simulator:
         sx, sy = self.width / prof.width, self.height / prof.height
         ppm = prof.px_per_mm * r.scale
         rest = prof.pins_px * (sx, sy)
+        if "pitch" in effects:
+            # the pin pattern as a whole is larger or smaller (another skin print)
+            c = rest.mean(axis=0)
+            rest = c + (rest - c) * effects["pitch"]["scale"]
         centre = r.centre + phys["contact_offset_mm"] * ppm                     # (F, 2)
         a = phys["patch_radius_mm"] * ppm                                        # (F,)
         contact = phys["contact"]
@@ -57,6 +61,11 @@ class Simulator:
         carry = np.where(inside, 1.0, 1.0 / (1.0 + ((dist - safe_a) / safe_a) ** 2))
         pins = (rest[None] + (u_n[:, None] * spread / safe_d)[..., None] * rel
                 + carry[..., None] * move[:, None, :])
+        if phys["shake_mm"].any():
+            # each pin in the sliding patch shakes on its own (falls off as the shear)
+            amp = prof.shear_gain * phys["shake_mm"] * ppm                       # (F,)
+            noise = stream(self.seed, "pin_shake").standard_normal(pins.shape)
+            pins = pins + (carry * amp[:, None])[..., None] * noise
         self.rest_pins_px = rest.astype(np.float32)
         if "lens_distortion" in effects:
             self.rest_pins_px = distort_points(rest, self.width, self.height,
