@@ -48,7 +48,7 @@ PRESETS: dict[str, Surface] = {
     # grips a smooth surface and lets go in stick-slip jumps; on concrete it grips
     # less and the grit shakes the pins a little
     "roboskin-smooth": Surface("roboskin-smooth", "hard", 200.0, 1.1, mu_kinetic_ratio=0.6,
-                               stick_slip=True, texture="smooth", pin_shake_mm=0.15),
+                               stick_slip=True, texture="smooth", pin_shake_mm=0.08),
     "roboskin-concrete": Surface("roboskin-concrete", "hard", 200.0, 0.45, texture="concrete",
                                  texture_amplitude_mm=0.02, pin_shake_mm=0.02),
 }
