@@ -17,7 +17,8 @@ Per frame, from the timeline:
   ``d_eff`` and to ``r / a``; outside they fall off as ``(a / r)^2``. Shear
   moves the patch pins along ``s`` with the same fall-off.
 * textures jitter the patch pins while it slides: Lego periodically at
-  ``slide speed / stud pitch``, concrete at random, smooth not at all.
+  ``slide speed / stud pitch``, concrete at random, smooth not at all; with
+  ``pin_shake_mm`` each patch pin also shakes on its own, at random.
 
 Everything is computed for the whole timeline up front, deterministic for a
 seed; rendering then only draws.
@@ -95,6 +96,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
     shear = np.zeros((F, 2))
     jitter = np.zeros((F, 2))
     bump = np.zeros(F)                 # extra indentation from Lego studs
+    shake = np.zeros(F)                # per-pin shake amplitude (mm) while sliding
     slip = np.zeros(F, dtype=bool)
     touch = np.zeros(F, dtype=bool)
     slide_speed = np.zeros(F)          # mm/s of skin sliding over the surface
@@ -129,6 +131,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
             slid += slipped
             slide_speed[i] = slipped * scene.fps
             direction = -s_new / mag
+            shake[i] = sf.pin_shake_mm
             if sf.texture == "lego" and sf.texture_amplitude_mm > 0:
                 ph = 2 * np.pi * slid / sf.stud_pitch_mm
                 jitter[i] = sf.texture_amplitude_mm * np.sin(ph) * direction
@@ -158,6 +161,7 @@ def simulate_contact(scene: Scene, seed: int = 0) -> dict:
         "shear_mm": shear,
         "jitter_mm": jitter,
         "bump_mm": bump,
+        "shake_mm": shake,
         "slip": slip,
         "slide_speed_mm_s": slide_speed,
         "contact": contact,

@@ -4,7 +4,7 @@ The static parts (dome, surround, glare layer, noise bank, sprite bank) are
 built once. Per frame the renderer copies the background, stamps every visible
 pin from a bank of sub-pixel sprites in one vectorised write, then applies only
 the effects the scene names, in a fixed order:
-glare -> motion blur -> exposure flicker -> camera noise.
+glare -> motion blur -> exposure -> exposure flicker -> camera noise.
 Effects that are not named cost nothing and leave no trace.
 """
 from __future__ import annotations
@@ -195,6 +195,8 @@ class Renderer:
             cv2.add(out, self.glare, dst=out)
         if "motion_blur" in fx:
             self._motion_blur(out, pin_motion)
+        if "exposure" in fx:
+            cv2.convertScaleAbs(out, dst=out, alpha=float(fx["exposure"]["gain"]))
         if "exposure_flicker" in fx:
             cv2.convertScaleAbs(out, dst=out, alpha=float(self.gains[i]))
         if "camera_noise" in fx:
@@ -202,7 +204,7 @@ class Renderer:
             cv2.add(out, self.noise_pos[k], dst=out)
             cv2.subtract(out, self.noise_neg[k], dst=out)
         if self.binary and ("camera_noise" in fx or "motion_blur" in fx
-                            or "exposure_flicker" in fx):
+                            or "exposure_flicker" in fx or "exposure" in fx):
             cv2.threshold(out, 127, 255, cv2.THRESH_BINARY, dst=out)
         return out
 

@@ -31,6 +31,7 @@ class Surface:
     texture: str = "smooth"             # smooth | lego | concrete
     stud_pitch_mm: float = 8.0          # Lego stud pitch
     texture_amplitude_mm: float = 0.0   # jitter amplitude while sliding
+    pin_shake_mm: float = 0.0           # each patch pin's own random shake while sliding
 
 
 # Preset surfaces a scene can name directly. Texture amplitudes are pin jitter at
@@ -43,6 +44,13 @@ PRESETS: dict[str, Surface] = {
     "lego": Surface("lego", "hard", 200.0, 0.6, texture="lego", texture_amplitude_mm=0.25),
     "concrete": Surface("concrete", "hard", 200.0, 0.8, texture="concrete",
                         texture_amplitude_mm=0.12),
+    # fitted to the real roboskin clips (docs/simulator.md, "Sim-to-real"): the skin
+    # grips a smooth surface and lets go in stick-slip jumps; on concrete it grips
+    # less and the grit shakes the pins a little
+    "roboskin-smooth": Surface("roboskin-smooth", "hard", 200.0, 1.1, mu_kinetic_ratio=0.6,
+                               stick_slip=True, texture="smooth", pin_shake_mm=0.08),
+    "roboskin-concrete": Surface("roboskin-concrete", "hard", 200.0, 0.45, texture="concrete",
+                                 texture_amplitude_mm=0.02, pin_shake_mm=0.02),
 }
 
 
@@ -73,6 +81,8 @@ EFFECTS: dict[str, dict[str, tuple[float, float, float]]] = {
     "motion_blur": {"exposure_ms": (8.0, 0.0, 1000.0)},
     "lens_distortion": {"k1": (-0.12, -0.5, 0.5)},
     "pin_loss": {"fraction": (0.1, 0.0, 1.0)},
+    "exposure": {"gain": (0.85, 0.05, 4.0)},
+    "pitch": {"scale": (1.03, 0.5, 2.0)},
     "imu_noise": {"accel_g": (0.02, 0.0, 16.0), "gyro_dps": (0.5, 0.0, 2000.0)},
 }
 
@@ -138,6 +148,7 @@ def _parse_surface(f: Fields, name: str) -> Surface:
         texture=f.string("texture", base.texture, choices=TEXTURE_LABELS[1:]),
         stud_pitch_mm=f.number("stud_pitch_mm", base.stud_pitch_mm, min=0, min_exclusive=True),
         texture_amplitude_mm=f.number("texture_amplitude_mm", base.texture_amplitude_mm, min=0),
+        pin_shake_mm=f.number("pin_shake_mm", base.pin_shake_mm, min=0, max=100),
     )
     f.done()
     return s

@@ -78,6 +78,10 @@ class Simulator:
         sx, sy = self.width / prof.width, self.height / prof.height
         ppm = prof.px_per_mm * r.scale
         rest = prof.pins_px * (sx, sy)
+        if "pitch" in effects:
+            # the pin pattern as a whole is larger or smaller (another skin print)
+            c = rest.mean(axis=0)
+            rest = c + (rest - c) * effects["pitch"]["scale"]
         centre = r.centre + phys["contact_offset_mm"] * ppm                     # (F, 2)
         a = phys["patch_radius_mm"] * ppm                                        # (F,)
         u_n = prof.normal_gain * (phys["depth_mm"] + phys["bump_mm"]) * ppm * phys["touch"]
@@ -85,6 +89,10 @@ class Simulator:
         move = shear_px + prof.shear_gain * phys["jitter_mm"] * ppm              # (F, 2)
         # what the per-block pin computation needs
         self._rest, self._centre, self._a, self._u_n, self._move = rest, centre, a, u_n, move
+        # each pin in the sliding patch shakes on its own (falls off as the shear);
+        # drawn per frame in _pins, so a frame's shake does not depend on its block
+        shake = prof.shear_gain * phys["shake_mm"] * ppm                        # (F,)
+        self._shake = shake if np.any(shake) else None
         self.rest_pins_px = rest.astype(np.float32)
         k1 = effects["lens_distortion"]["k1"] if "lens_distortion" in effects else None
         self._k1 = k1
@@ -139,6 +147,11 @@ class Simulator:
         carry = np.where(inside, 1.0, 1.0 / (1.0 + ((dist - safe_a) / safe_a) ** 2))
         pins = (rest[None] + (self._u_n[lo:hi, None] * spread / safe_d)[..., None] * rel
                 + carry[..., None] * self._move[lo:hi, None, :])
+        if self._shake is not None:
+            amp = self._shake[lo:hi]
+            for k in np.flatnonzero(amp):
+                noise = stream(self.seed, f"pin_shake/{lo + k}").standard_normal(rest.shape)
+                pins[k] += (carry[k] * amp[k])[:, None] * noise
         if self._k1 is not None:
             pins = distort_points(pins, self.width, self.height, self._k1)
         visible = (np.hypot(*(pins - r.centre).transpose(2, 0, 1)) <= r.dome_r - r.pin_r)

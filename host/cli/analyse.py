@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import sys
+import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -14,6 +16,7 @@ from device.pi.vision.pipeline import STAGES, fault_names
 from host.analysis.calibrate import calibrate, write_profile
 from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
+from host.analysis.sim2real import SIM2REAL_TRIALS, sim2real_table, sim_to_real
 from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
                              open_stream, out_file, progress_bar, read_frames, real_data_dir,
                              whole)
@@ -142,11 +145,24 @@ def cmd_calibrate(args):
 
 def cmd_realism(args):
     data = real_data_dir(args.data)
+    for name in ("sim2real_trials", "real_frames"):
+        v = getattr(args, name)
+        if v is not None and v < (0 if name == "sim2real_trials" else 20):
+            raise UserError(f"--{name.replace('_', '-')} must be at least "
+                            f"{0 if name == 'sim2real_trials' else 20}, got {v}")
     res = roboskin_realism(data, seed=args.seed)
     if args.png:
         res["png"] = side_by_side_png(data, args.png, seed=args.seed)
-    emit(args, res, realism_table(res) + ("\nall compared figures within 20%: "
-                                          f"{'yes' if res['all_within_20pct'] else 'NO'}"))
+    text = realism_table(res) + ("\nall compared figures within 20%: "
+                                 f"{'yes' if res['all_within_20pct'] else 'NO'}")
+    if args.sim2real_trials:
+        with tempfile.TemporaryDirectory(prefix="tacfoot-sim2real-") as tmp:
+            res["sim_to_real"] = sim_to_real(
+                data, args.work or tmp, n_per_texture=args.sim2real_trials, seed=args.seed,
+                calibrated=not args.uncalibrated, randomise=not args.uncalibrated,
+                real_frames=args.real_frames, progress=not args.json)
+        text += "\n\n" + sim2real_table(res["sim_to_real"])
+    emit(args, res, text)
     return 0 if res["all_within_20pct"] else 1
 
 
@@ -188,5 +204,14 @@ def register(sub) -> None:
                                   "../shared/data)")
     s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
     s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--sim2real-trials", type=whole(0, 1000), default=SIM2REAL_TRIALS, metavar="N",
+                   help="sim-to-real: simulated stroke trials per texture the texture model "
+                        f"trains on (default {SIM2REAL_TRIALS}; 0 skips it)")
+    s.add_argument("--real-frames", type=whole(1), metavar="F",
+                   help="sim-to-real: score only the first F frames of each real clip")
+    s.add_argument("--uncalibrated", action="store_true",
+                   help="sim-to-real with the generic smooth and concrete surfaces and no "
+                        "randomisation (the simulator before calibration)")
+    s.add_argument("--work", help="keep the sim-to-real trials and model in this folder")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_realism)

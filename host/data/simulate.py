@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, load_scene
+from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Scene, Simulator, load_scene
 from host.data.dataset import DatasetWriter
 
 __all__ = ["simulate_to_dataset"]
@@ -18,11 +18,12 @@ def _progress(total: int, desc: str, enabled: bool = True):
                 file=sys.stderr, leave=False)
 
 
-def simulate_to_dataset(scene_ref: str, out: Path, seed: int = 0, trials: int = 1,
+def simulate_to_dataset(scene_ref, out: Path, seed: int = 0, trials: int = 1,
                         progress: bool = True) -> dict:
-    """Render ``trials`` runs of a scene (seeds ``seed``, ``seed + 1``, ...) into the
-    dataset folder ``out``; returns the folder, the trial files and the frame count."""
-    scene = load_scene(scene_ref)
+    """Render ``trials`` runs of a scene (a built-in name, a scene file or a
+    :class:`device.sim.Scene`; seeds ``seed``, ``seed + 1``, ...) into the dataset
+    folder ``out``; returns the folder, the trial files and the frame count."""
+    scene = scene_ref if isinstance(scene_ref, Scene) else load_scene(scene_ref)
     files = []
     with DatasetWriter(out, meta={"surface_labels": list(SURFACE_LABELS),
                                   "texture_labels": list(TEXTURE_LABELS),

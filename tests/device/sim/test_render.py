@@ -34,7 +34,8 @@ def test_rendered_pins_sit_where_truth_says():
 # which outputs each effect is allowed to touch
 TOUCHES = {"glare": {"frames"}, "camera_noise": {"frames"}, "exposure_flicker": {"frames"},
            "motion_blur": {"frames"}, "lens_distortion": {"frames", "pins"},
-           "pin_loss": {"frames", "visible"}, "imu_noise": {"imu"}}
+           "pin_loss": {"frames", "visible"}, "imu_noise": {"imu"}, "exposure": {"frames"},
+           "pitch": {"frames", "pins"}}
 
 
 def outputs(sim):

@@ -64,3 +64,12 @@ def test_presets_are_physical():
     assert PRESETS["wet"].mu < 0.2 < PRESETS["hard"].mu
     assert PRESETS["soft"].stiffness_n_per_mm < PRESETS["hard"].stiffness_n_per_mm
 
+
+
+def test_roboskin_presets_grip_and_shake_as_the_real_clips_do():
+    smooth, concrete = PRESETS["roboskin-smooth"], PRESETS["roboskin-concrete"]
+    assert (smooth.texture, concrete.texture) == ("smooth", "concrete")
+    assert smooth.mu > 2 * concrete.mu and smooth.stick_slip
+    assert smooth.pin_shake_mm > concrete.pin_shake_mm > 0
+    sc = parse_scene(scene_doc(surface={"preset": "roboskin-smooth"}))
+    assert sc.surfaces["scene"].pin_shake_mm == smooth.pin_shake_mm

@@ -36,7 +36,8 @@ def test_render_out_of_order_matches_in_order():
        fx=st.sets(st.sampled_from(sorted(EFFECTS))))
 def test_extreme_legal_values_stay_finite(depth, speed, mu, stiff, direction, loss, texture, fx):
     doc = scene_doc(surface={"preset": "hard", "mu": mu, "stiffness_n_per_mm": stiff,
-                             "texture": texture, "texture_amplitude_mm": 0.3})
+                             "texture": texture, "texture_amplitude_mm": 0.3,
+                             "pin_shake_mm": 0.5})
     doc["sensor"].update(width=64, height=48, fps=30)
     doc["timeline"][0]["depth_mm"] = depth
     doc["timeline"][1].update(speed_mm_s=speed, direction_deg=direction)
@@ -89,3 +90,28 @@ def _motion(pins, i, fps):
         return np.zeros(3)
     v = (pins[i].astype(np.float64) - pins[i - 1]) * fps
     return np.array([*v.mean(axis=0), np.hypot(v[:, 0], v[:, 1]).mean()])
+
+
+def test_pin_shake_moves_pins_only_while_the_patch_slides():
+    doc = scene_doc(surface={"preset": "hard", "mu": 0.3})
+    still = Simulator(parse_scene(doc), seed=2)
+    doc["surface"]["pin_shake_mm"] = 0.1
+    shaken = Simulator(parse_scene(doc), seed=2)
+    moved = np.abs(shaken.truth["pins_px"] - still.truth["pins_px"]).max(axis=(1, 2))
+    slip = still.truth["slip"]
+    assert slip.any() and (~slip).any()
+    assert np.all(moved[~slip] == 0)
+    assert np.all(moved[slip] > 0.05)
+    # the shake is each pin's own: neighbouring pins move differently
+    d = (shaken.truth["pins_px"] - still.truth["pins_px"])[slip]
+    assert np.std(d[:, :, 0], axis=1).mean() > 0.1
+
+
+def test_pitch_effect_scales_the_pin_pattern():
+    doc = scene_doc()
+    base = Simulator(parse_scene(doc), seed=0).rest_pins_px
+    big = Simulator(parse_scene({**doc, "effects": [{"name": "pitch", "scale": 1.1}]}),
+                    seed=0).rest_pins_px
+    spread = np.linalg.norm(big - big.mean(0), axis=1) / np.linalg.norm(base - base.mean(0),
+                                                                        axis=1).clip(1e-9)
+    assert np.allclose(spread[np.linalg.norm(base - base.mean(0), axis=1) > 1], 1.1)

@@ -19,6 +19,12 @@ from tests.domes import DOME, SYNTH_PARAMS, degenerate_frames, render, ring_layo
 from tests.realdata import read_video, real_data_dir
 
 
+def test_cli_realism_refuses_a_too_short_real_slice(capsys):
+    from host.cli import main
+    assert main(["realism", "--data", str(real_data_dir()), "--real-frames", "5"]) == 2
+    assert "--real-frames must be at least 20" in capsys.readouterr().err
+
+
 @pytest.fixture(scope="module")
 def realism():
     return roboskin_realism(real_data_dir())
@@ -37,12 +43,16 @@ def test_only_the_documented_figure_is_left_out(realism):
     assert left == [("concrete.avi", "glare blob area [px^2]")]
 
 
-def test_cli_realism_writes_png(tmp_path, capsys):
+def test_cli_realism_writes_png_and_reports_sim_to_real(tmp_path, capsys):
     from host.cli import main
     png = tmp_path / "side.png"
-    rc = main(["realism", "--data", str(real_data_dir()), "--png", str(png)])
+    rc = main(["realism", "--data", str(real_data_dir()), "--png", str(png),
+               "--sim2real-trials", "1", "--real-frames", "60", "--work", str(tmp_path / "w")])
     out = capsys.readouterr().out
     assert rc == 0 and "within 20%: yes" in out
+    # beside the image statistics: the sim-trained model's accuracy on the real clips
+    assert "sim-to-real texture" in out and "| all |" in out
+    assert "| smooth | pin jitter per frame [px] |" in out
     import cv2
     img = cv2.imread(str(png))
     assert img is not None and img.shape[1] > 2 * img.shape[0] - 20
