@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.vision.encoder import FrameEncoder
+from host.data.video import video_frames
 
 __all__ = ["PI4_FACTOR", "PI4_SOURCE", "machine", "machine_line", "read_frames",
            "frame_times", "vision_cost", "model_cost", "decision_cost", "percentiles"]
@@ -67,19 +68,8 @@ def machine_line(m: dict) -> str:
 
 
 def read_frames(clip, limit: int | None = None) -> list[np.ndarray]:
-    """The frames of a video file (up to ``limit``)."""
-    import cv2
-
-    cap = cv2.VideoCapture(str(clip))
-    frames = []
-    try:
-        while limit is None or len(frames) < limit:
-            ok, img = cap.read()
-            if not ok:
-                break
-            frames.append(img)
-    finally:
-        cap.release()
+    """The frames of a video file (up to ``limit``); ValueError when there are none."""
+    frames = video_frames(clip, limit)
     if not frames:
         raise ValueError(f"{clip}: no frames could be read")
     return frames

@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 
+from host.learn.estimators import Plateau
+
 __all__ = ["REGULARISERS", "DROPOUT", "fit_fnn_variant", "fit_dropout_mlp"]
 
 #: the kinds this module trains, beside the sweep's ``fnn`` (L2)
@@ -68,7 +70,7 @@ def fit_dropout_mlp(X: np.ndarray, y: np.ndarray, n_classes: int, seed: int,
         xt = torch.from_numpy(np.ascontiguousarray(X, np.float32))
         yt = torch.from_numpy(np.asarray(y, np.int64))
         batch = int(min(128, max(4, len(X) // 8)))
-        best, stale, n = math.inf, 0, 0
+        plateau, n = Plateau(tol, patience), 0
         for n in range(1, epochs + 1):
             net.train()
             order = torch.randperm(len(X), generator=gen)
@@ -83,12 +85,8 @@ def fit_dropout_mlp(X: np.ndarray, y: np.ndarray, n_classes: int, seed: int,
             loss = total / len(X)
             if not math.isfinite(loss):
                 raise ValueError(f"the dropout MLP diverged (loss {loss}) after {n} epochs")
-            if loss < best - tol:
-                best, stale = loss, 0
-            else:
-                stale += 1
-                if stale >= patience:
-                    break
+            if plateau.reached(loss):
+                break
         net.eval()
 
         def predict_proba(Z: np.ndarray) -> np.ndarray:

@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from host.analysis.recall import recall_precision
+from host.data.video import video_frames
 
 
 def single_thread():
@@ -79,17 +80,8 @@ def format_sim(res: dict) -> str:
 # -- the marker pipeline ------------------------------------------------------------
 
 def _real_frames(data_dir, clip: str = "smooth.avi", limit: int = 300) -> list:
-    import cv2
     from pathlib import Path
-    cap = cv2.VideoCapture(str(Path(data_dir) / "roboskin" / clip))
-    frames = []
-    while len(frames) < limit:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
-    cap.release()
-    return frames
+    return video_frames(Path(data_dir) / "roboskin" / clip, limit)
 
 
 def _sim_frames_truth(scene: str = "drag-45", effects=("glare", "camera_noise"), seed: int = 0):

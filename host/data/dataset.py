@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from device.jsondoc import read_json_doc
+from device.closing import Closing
 
 FORMAT = "tacfoot-dataset"
 VERSION = 1
@@ -112,7 +113,7 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda fh: fh.write(text.encode()))
 
 
-class DatasetWriter:
+class DatasetWriter(Closing):
     """Append trials to a dataset folder, one atomic file each, holding the folder's
     writer lock until :meth:`close` (or the end of a ``with`` block, or the
     process). ``meta["source"]`` is the source of the trials this writer adds."""
@@ -160,18 +161,6 @@ class DatasetWriter:
         fd, self._lock_fd = self._lock_fd, None
         if fd is not None:
             os.close(fd)              # closing the descriptor drops the flock
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
 
     @property
     def n_trials(self) -> int:

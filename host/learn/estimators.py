@@ -46,6 +46,22 @@ def _mlp(task: str, hidden, alpha: float, seed: int, n: int):
     return MLPRegressor(**kw) if task == "pressure" else MLPClassifier(**kw)
 
 
+class Plateau:
+    """Early stopping on a training loss: :meth:`reached` is True once the loss has
+    not improved on its best by ``tol`` for ``patience`` epochs in a row."""
+
+    def __init__(self, tol: float, patience: int):
+        self.tol, self.patience = float(tol), int(patience)
+        self.best, self.stale = math.inf, 0
+
+    def reached(self, loss: float) -> bool:
+        if loss < self.best - self.tol:
+            self.best, self.stale = loss, 0
+            return False
+        self.stale += 1
+        return self.stale >= self.patience
+
+
 def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alpha: float,
             seed: int, epochs: int, progress: bool, desc: str, temporal: dict | None = None,
             patience: int = 15, tol: float = 1e-4):
@@ -64,7 +80,7 @@ def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alp
     scaler = scaler_class()().fit(X)
     Xs = scaler.transform(X)
     mlp = _mlp(task, hidden, alpha, seed, len(X))
-    best, stale, n = math.inf, 0, 0
+    plateau, n = Plateau(tol, patience), 0
     classes = np.arange(n_classes)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -80,12 +96,8 @@ def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alp
                 bar.update(1)
                 if not math.isfinite(loss):
                     raise TrainError(f"training diverged (loss {loss}) after {n} epochs")
-                if loss < best - tol:
-                    best, stale = loss, 0
-                else:
-                    stale += 1
-                    if stale >= patience:
-                        break
+                if plateau.reached(loss):
+                    break
     return Pipeline(steps + [("scaler", scaler), ("mlp", mlp)]), n, float(mlp.loss_)
 
 

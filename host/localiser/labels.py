@@ -13,13 +13,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
 
-import cv2
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
 from device.pi.vision.matching import mutual_match
 from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, nearest_neighbour_px
 from device.pi.vision.tracking import Tracker
+from host.data.video import video_frames
 from host.localiser.samples import Sample, progress_bar, sensor_geometry, vision_params_for
 
 __all__ = [
@@ -156,18 +156,7 @@ def check_labels(labels_px: np.ndarray, matched: np.ndarray, idx: np.ndarray,
 
 def read_clip(path: Path | str, limit: int | None = None) -> list[np.ndarray]:
     """Gray frames of a video file (ValueError naming the path if unreadable)."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise ValueError(f"cannot open video: path={str(path)!r}")
-    frames = []
-    try:
-        while limit is None or len(frames) < limit:
-            ok, f = cap.read()
-            if not ok:
-                break
-            frames.append(to_gray(f))
-    finally:
-        cap.release()
+    frames = video_frames(path, limit, gray=True)
     if not frames:
         raise ValueError(f"no frames decoded from video: path={str(path)!r}")
     return frames

@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 
 from device.pi.sources.options import opt_bool, opt_float, opt_int, parse_options
+from device.closing import Closing
 
 __all__ = [
     "BadFrameError",
@@ -116,7 +117,7 @@ _STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_float, 
 
 
 # ------------------------------------------------------------------ base class
-class CameraSource:
+class CameraSource(Closing):
     """Base class: subclasses implement ``_next() -> (image, t_s) | None``."""
 
     source: str = ""
@@ -193,18 +194,6 @@ class CameraSource:
     @property
     def closed(self) -> bool:
         return self._closed
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        self.close()
-
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:
-            pass
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}({self.source!r}, width={self.width}, height={self.height}, "

@@ -111,6 +111,16 @@ def _read_like_the_runtime(reader: LinkReader, seconds: float) -> tuple[list, fl
     return got, worst
 
 
+def _read_then_stop(port, stop, sender) -> tuple[list, float]:
+    """Read the port as the runtime does, then stop the sender and close the port."""
+    try:
+        return _read_like_the_runtime(LinkReader(port), 3.2)
+    finally:
+        stop.set()
+        sender.join(2.0)
+        port.close()
+
+
 def _check_keeps_up(got, sent, worst):
     assert len(got) >= len(sent) - 2, f"decoded {len(got)} of {len(sent)} GAIT packets"
     # the loads count up: every packet, in order
@@ -137,11 +147,8 @@ def test_reader_keeps_up_with_100hz_gait_over_socket():
     th.start()
     port = open_port(f"socket://127.0.0.1:{srv.getsockname()[1]}")
     try:
-        got, worst = _read_like_the_runtime(LinkReader(port), 3.2)
+        got, worst = _read_then_stop(port, stop, th)
     finally:
-        stop.set()
-        th.join(2.0)
-        port.close()
         srv.close()
     _check_keeps_up(got, sent, worst)
 
@@ -158,11 +165,8 @@ def test_reader_keeps_up_with_100hz_gait_over_a_pty():
         _gait_stream(lambda b: os.write(master, b), 2.5, stop)), daemon=True)
     th.start()
     try:
-        got, worst = _read_like_the_runtime(LinkReader(port), 3.2)
+        got, worst = _read_then_stop(port, stop, th)
     finally:
-        stop.set()
-        th.join(2.0)
-        port.close()
         os.close(master)
         os.close(slave)
     _check_keeps_up(got, sent, worst)
