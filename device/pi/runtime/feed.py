@@ -12,9 +12,12 @@ from device.pi.sources.camera import BadFrameError
 class CameraFeed:
     """Frames from a camera factory on a grab thread.
 
-    ``lossless`` (files and sim://): every frame is handed over in order (the grab
-    thread waits for the loop). Otherwise (live cameras) only the newest frame is
-    kept. A source that raises is closed and reopened with a backoff doubling from
+    ``lossless`` (files and sim:// read as fast as the loop goes): every frame is
+    handed over in order (the grab thread waits for the loop). Otherwise (live
+    cameras, and sources paced at their frame rate) the newest frame wins: a frame
+    the loop has not taken when the next one arrives is dropped and counted in
+    ``dropped``, so a loop that falls behind works on the newest frame, and each
+    decision keeps the time stamp of the frame it was made on. A source that raises is closed and reopened with a backoff doubling from
     ``reopen_min_s`` to ``reopen_max_s``; the thread never gives up. ``read()``
     returning None ends a finite stream (``eof``). A file source's unreadable frame
     (``BadFrameError``: the source has moved past it) is counted in ``skipped`` and
@@ -33,6 +36,7 @@ class CameraFeed:
         self.opens = 1 if first is not None else 0
         self.errors = 0
         self.skipped = 0                  # unreadable frames of a file source, skipped
+        self.dropped = 0                  # frames overtaken by a newer one (loop behind)
         self.last_error = ""
         self.eof = False
         self.opened_at = clock() if first is not None else None
@@ -52,7 +56,8 @@ class CameraFeed:
                     continue
         else:
             try:
-                self._q.get_nowait()          # drop the older frame: newest only
+                if self._q.get_nowait() is not None:    # drop the older frame: newest only
+                    self.dropped += 1
             except queue.Empty:
                 pass
             try:

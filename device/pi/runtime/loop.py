@@ -412,6 +412,7 @@ class LegRuntime:
                 "faults": self.faults, "fault_names": fault_names(self.faults),
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
                 "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
+                "frames_dropped_behind": self.feed.dropped,
                 "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps}
@@ -446,6 +447,14 @@ class LegRuntime:
 # Building from source strings
 # ---------------------------------------------------------------------------
 
+def paced_source(camera: str) -> bool:
+    """A file or sim:// source played at its frame rate (``realtime=1``) delivers
+    frames as a camera does, whether or not the loop keeps up."""
+    from urllib.parse import parse_qsl, urlsplit
+    flag = dict(parse_qsl(urlsplit(camera).query)).get("realtime", "0")
+    return flag.strip().lower() in ("1", "true", "yes", "on")
+
+
 def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config=None,
                   fps: float | None = None, json_log: str | None = None,
                   status: str | None = None, frames: int | None = None,
@@ -467,6 +476,7 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     except Exception as exc:
         raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
     live = camera.lower().startswith("v4l2://")
+    paced = paced_source(camera)
     opts = {}
     if live:
         from urllib.parse import parse_qsl, urlsplit
@@ -540,7 +550,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
             log = open(json_log, "w", buffering=1)     # line by line: greppable live
         except OSError as exc:
             fail(f"--json-log {json_log!r}: {exc}")
-    return LegRuntime(cfg, factory, imu_src, port, models, lossless=not live, fps=cfg.camera.fps,
+    return LegRuntime(cfg, factory, imu_src, port, models, lossless=not (live or paced),
+                      fps=cfg.camera.fps,
                       json_log=log, status_path=status, max_frames=frames, first_camera=first,
                       notify=notify, camera_opts=opts if live else None)
 

@@ -388,3 +388,33 @@ def test_an_image_folder_with_an_unreadable_image_ends_the_run(tmp_path):
     assert rt.frames == 7 and rt.feed.opens == 1
     assert rt.status()["frames_skipped"] == 1
     assert any(m.faults & FAULT_BAD_FRAME for _, m in faults_written(port))
+
+
+def _run_paced(tmp_path, capsys, camera):
+    import json as _json
+
+    from device.pi.__main__ import main
+    log = tmp_path / "decisions.jsonl"
+    rc = main(["run", "--camera", camera, "--imu", "none", "--serial", "loop://",
+               "--frames", "60", "--json", "--json-log", str(log)])
+    assert rc == 0
+    res = _json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    rows = [_json.loads(x) for x in log.read_text().splitlines()]
+    return res, [r["index"] for r in rows], [r["t_s"] for r in rows]
+
+
+def test_a_camera_faster_than_the_loop_drops_old_frames_and_counts_them(tmp_path, capsys):
+    """sim:// paced at 3000 fps hands over frames faster than the loop can take them:
+    the newest frame wins, the skips are counted, and each decision keeps the index
+    and time stamp of its own frame."""
+    res, index, t_s = _run_paced(tmp_path, capsys, "sim://walk?realtime=1&fps=3000")
+    assert res["frames"] == 60 and res["frames_dropped_behind"] > 0
+    steps = [b - a for a, b in zip(index, index[1:])]
+    assert all(s >= 1 for s in steps) and max(steps) > 1          # newest first, gaps shown
+    assert all(abs(t - i / 3000.0) < 1e-5 for i, t in zip(index, t_s))
+
+
+def test_a_source_read_as_fast_as_the_loop_goes_drops_nothing(tmp_path, capsys):
+    res, index, _ = _run_paced(tmp_path, capsys, "sim://walk")
+    assert res["frames_dropped_behind"] == 0
+    assert index == list(range(index[0], index[0] + len(index)))
