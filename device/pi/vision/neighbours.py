@@ -178,6 +178,7 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     hc[2] = (cur32 * cur32).sum(axis=1)
     col = np.ones(n, np.float32)
     k = np.empty((m, n), np.float32)
+    kt = np.empty((n, m), np.float32)          # k transposed, contiguous: fast products
     # the neighbour graph as a dense (m, m) matrix: one product sums neighbours
     adj = np.zeros((m, m), np.float64)
     rows = np.repeat(np.arange(m), nb.shape[1])
@@ -192,9 +193,10 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         k *= np.float32(-0.5 / (sigma * sigma))
         np.exp(k, out=k)
         k[~use] = 0.0
+        np.copyto(kt, k.T)
         for _ in range(sinkhorn_iters):          # warm-started column scaling
             row = 1.0 / (k @ col + kappa)
-            col = 1.0 / (k.T @ row + kappa)
+            col = 1.0 / (kt @ row + kappa)
         k *= row[:, None]
         k *= col[None, :]
         w = k.sum(axis=1, dtype=np.float64)    # matched mass of each pin, <= ~1
