@@ -53,8 +53,9 @@ def evaluate_scene(scene_name: str, effects=("glare", "camera_noise"), seed: int
     ref_ids = None
     stride = whole_number("stride", stride, 1)
     i, processed, reacquired = 0, 0, 0
+    step = 1
     while i < sim.n_frames:
-        out = stream.process(sim.render(i))
+        out = stream.process(sim.render(i), steps=step)
         processed += 1
         reacquired += int(stream.tracker.reacquired)
         truth = tr["pins_px"][i]
@@ -82,7 +83,8 @@ def evaluate_scene(scene_name: str, effects=("glare", "camera_noise"), seed: int
                                       math.degrees(math.atan2(s[1], s[0]))))
         pred_c.append(out.contact)
         true_c.append(bool(tr["contact"][i]))
-        i += 1 if stream.reference is None else stride
+        step = 1 if stream.reference is None else stride
+        i += step
     pred_c, true_c = np.array(pred_c, bool), np.array(true_c, bool)
     if true_c.any() or pred_c.any():
         f1 = classification_metrics(true_c.astype(int), pred_c.astype(int), CONTACT_CLASSES)[

@@ -127,6 +127,7 @@ class LegRuntime:
         self._still = 0
         self._pipe_faults = 0
         self._skipped_seen = 0
+        self._last_index = -1             # the index of the last frame processed
         self._imu_faults = 0
         self._model_fault = False
         self._t0 = clock()
@@ -213,7 +214,9 @@ class LegRuntime:
         imu_vec, imu_bits = self.imu.read(self._imu_out)
         self._imu_faults = int(imu_bits)
         self._imu_acc(imu_vec)
-        ef = self.encoder.encode(frame.image, frame.t_s)
+        gap = int(frame.index) - self._last_index          # > 1: frames were dropped
+        self._last_index = int(frame.index)
+        ef = self.encoder.encode(frame.image, frame.t_s, gap if 1 < gap <= 1000 else 1)
         ff = ef.features
         self._pipe_faults = int(ff.faults) & PIPELINE_FAULTS
         if self.feed.skipped != self._skipped_seen:   # a bad file frame was skipped before it

@@ -70,9 +70,10 @@ class FrameEncoder:
         """The marker pipeline's profile (``grid_n``, ``match_gate_px``, ...)."""
         return self.stream.profile
 
-    def encode(self, image: np.ndarray, t_s: float | None = None) -> EncodedFrame:
-        """Run the marker pipeline on one frame and map it onto the layout."""
-        ff = self.stream.process(image, t_s)
+    def encode(self, image: np.ndarray, t_s: float | None = None, steps: int = 1) -> EncodedFrame:
+        """Run the marker pipeline on one frame and map it onto the layout
+        (``steps``: frames since the last one encoded, see ``MarkerStream.process``)."""
+        ff = self.stream.process(image, t_s, steps)
         v, lost = self.mapper(self.stream, ff, self._vectors, self._lost)
         crop = binary_crop(self.stream, self.crop_px) if self.crop_px else None
         return EncodedFrame(features=ff, vectors=v, lost=lost, crop=crop)

@@ -145,7 +145,9 @@ class MarkerStream:
         c.clear()
 
     # -- per frame ---------------------------------------------------------------
-    def process(self, frame, t_s: float | None = None) -> FrameFeatures:
+    def process(self, frame, t_s: float | None = None, steps: int = 1) -> FrameFeatures:
+        """One frame's pins, vectors and contact; ``steps`` > 1 when frames were
+        dropped since the last one processed (the tracker predicts further)."""
         clock = time.perf_counter
         timings = {}
         t0 = clock()
@@ -191,7 +193,7 @@ class MarkerStream:
             faults |= FAULT_NO_REFERENCE
             vectors, lost = self._empty2, np.zeros(0, bool)
         else:
-            vectors, lost = self.tracker.update(pins)
+            vectors, lost = self.tracker.update(pins, steps)
         t3 = clock()
         timings["track"] = (t3 - t2) * 1e3
         localised = None
