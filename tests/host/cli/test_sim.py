@@ -74,7 +74,11 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     kinds = {p["type"] for p in packets}
     assert {"surface", "heartbeat", "imu_summary"} <= kinds
     surf = [p for p in packets if p["type"] == "surface"]
-    assert len(surf) == res["frames"] == res["runtime"]["frames"]
+    # the camera is paced at the scene's rate, so a frame the loop was too late for
+    # is dropped (newest wins) and counted; every frame is either decided or counted
+    rt = res["runtime"]
+    assert len(surf) == rt["frames"] and rt["frames"] + rt["frames_dropped_behind"] == res["frames"]
+    assert rt["frames_dropped_behind"] <= 0.05 * res["frames"]
     assert res["decoder"]["crc_errors"] == 0 and res["runtime"]["packets_dropped"] == 0
     assert sorted(p["seq"] for p in packets) == list(range(len(packets)))
     # the demo plays the gait MCU: the runtime decided with its GAIT context ...
