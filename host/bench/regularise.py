@@ -3,9 +3,9 @@ dropout 0.2, on the same windows.
 
 Two variants of the texture fnn share everything but the regulariser: the
 inputs (:func:`host.learn.inputs.model_inputs`), the first layer of frame-to-frame
-changes with the pins that a training recording keeps losing masked out
-(:func:`host.learn.train.recording_lost_pins`), the clipped scaling, two logistic
-hidden layers (64, 32), Adam at 1e-3, mini-batches of ``min(128, n / 8)`` and
+changes and roughness with the pins that a training recording keeps losing masked
+out (:func:`host.learn.train.fnn_temporal_spec`), the clipped scaling, two logistic
+hidden layers of the texture fnn's sizes (``TASK_HIDDEN``), Adam at 1e-3, mini-batches of ``min(128, n / 8)`` and
 early stopping when the training loss has not improved for 15 epochs (at most 300):
 
 * ``fnn`` (in the sweep: :func:`host.learn.train.train_model`): L2 penalty
@@ -29,33 +29,36 @@ REGULARISERS = ("fnn-dropout",)
 DROPOUT = 0.2
 
 
-def fnn_features(tr, te) -> tuple[np.ndarray, np.ndarray]:
-    """The fnn's scaled inputs for ``tr`` and ``te``, fitted on ``tr``: the
-    temporal layer (T >= 2, lost pins masked) and the clipped scaler, as
+def fnn_features(tr, te, profile: str = "roboskin") -> tuple[np.ndarray, np.ndarray]:
+    """The texture fnn's scaled inputs for ``tr`` and ``te``, fitted on ``tr``: the
+    temporal layer of :func:`host.learn.train.fnn_temporal_spec` (T >= 2: lost pins
+    masked, roughness on the profile's layout) and the clipped scaler, as
     :func:`host.learn.train.train_model` builds them."""
     from host.learn.estimators import default_uses_imu
     from host.learn.inputs import model_inputs
     from host.learn.layers import scaler_class, temporal_class
-    from host.learn.train import recording_lost_pins
+    from host.learn.train import fnn_temporal_spec
 
     uses_imu = default_uses_imu("fnn", tr)
     X, Xt = model_inputs(tr, "vectors", uses_imu), model_inputs(te, "vectors", uses_imu)
     if tr.window >= 2:
-        lost = set(recording_lost_pins(tr))
-        tf = temporal_class()(T=tr.window, n_pins=tr.n_pins, uses_imu=bool(uses_imu),
-                              pin_mask=None if not lost else
-                              [0 if m in lost else 1 for m in range(tr.n_pins)]).fit(X)
+        spec = fnn_temporal_spec("texture", tr, tr.window, uses_imu, profile)
+        tf = temporal_class()(**spec).fit(X)
         X, Xt = tf.transform(X), tf.transform(Xt)
     sc = scaler_class()().fit(X)
     return sc.transform(X).astype(np.float32), sc.transform(Xt).astype(np.float32)
 
 
 def fit_dropout_mlp(X: np.ndarray, y: np.ndarray, n_classes: int, seed: int,
-                    dropout: float = DROPOUT, hidden=(64, 32), epochs: int = 300,
+                    dropout: float = DROPOUT, hidden=None, epochs: int = 300,
                     patience: int = 15, tol: float = 1e-4):
-    """A logistic MLP with ``dropout`` after each hidden layer, fitted with Adam
-    (one thread, seeded); returns (predict_proba, epochs run)."""
+    """A logistic MLP with ``dropout`` after each hidden layer (sizes ``hidden``,
+    by default the texture fnn's), fitted with Adam (one thread, seeded); returns
+    (predict_proba, epochs run)."""
     import torch
+
+    from host.learn.tasks import TASK_HIDDEN
+    hidden = hidden or TASK_HIDDEN["texture"]
 
     threads = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -33,20 +33,18 @@ import os
 import subprocess
 import sys
 
+from host.bench.costs import PI4_FACTOR
+
 GOALS = {"latency_ms_p99": 2.0, "rss_mb_peak": 150.0}
 # goals that only a real recording is measured against (120 fps with room to spare)
 REAL_GOALS = {"throughput_fps": 500.0}
-# A Raspberry Pi 4 (Cortex-A72 at 1.5-1.8 GHz) runs single-threaded integer and
-# OpenCV work about 4x slower per core than the x86-64 development machine these
-# figures are taken on. The runtime's per-frame work is one thread, CPU-bound, so
-# times scale by this factor and rates by its inverse; memory is not scaled.
-PI4_FACTOR = 4.0
 PACED_FPS = 120.0
 
 
 def pi4_estimate(value: float | None, kind: str) -> float | None:
     """A figure measured here, as estimated for one Pi 4 core: ``kind`` "ms" (times
-    grow by PI4_FACTOR), "rate" (rates shrink by it) or "mb" (unchanged)."""
+    grow by :data:`host.bench.costs.PI4_FACTOR`: the runtime's per-frame work is one
+    CPU-bound thread), "rate" (rates shrink by it) or "mb" (memory, unchanged)."""
     if value is None:
         return None
     if kind == "ms":

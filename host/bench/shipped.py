@@ -43,7 +43,7 @@ from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
 from host.learn.onnx_io import write_manifest
-from host.learn.tasks import TrainError
+from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
 from host.learn.train import train_model
 
 __all__ = ["DEFAULTS", "build_model", "build_defaults", "main"]
@@ -105,9 +105,6 @@ REAL_TEXTURE = {"concrete.avi": "concrete", "smooth.avi": "smooth", "lego_train.
 #: share of each real clip (its start) the texture model trains on; the rest, after
 #: a gap of T frames, is its held-out test
 REAL_TRAIN_FRAC = 0.7
-#: the texture model on real frames: kind, window (host train's defaults) and hidden
-#: layers (16, 16), which keep the T = 15 model (float + int8) under MAX_BYTES
-REAL_TEXTURE_MODEL = ("fnn", 15, (16, 16))
 
 
 def real_texture_specs(real_data, work, T: int) -> tuple[Path, Path]:
@@ -139,7 +136,9 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
                        progress: bool = True) -> dict:
     """``models/texture`` from the real recordings (:data:`REAL_TEXTURE`): trained on
     the first 70 % of each clip, contact windows only, tested on the rest."""
-    model, T, hidden = REAL_TEXTURE_MODEL
+    # host train's texture defaults (tasks.DEFAULT_MODEL, DEFAULT_WINDOW, TASK_HIDDEN),
+    # whose hidden layers keep the model (float + int8) under MAX_BYTES
+    model, T = DEFAULT_MODEL["texture"], DEFAULT_WINDOW["texture"]
     tr, te = real_texture_specs(real_data, work, T)
     ws = load_spec(str(tr), "texture", T, contact_only=True, progress=progress)
     wt = load_spec(str(te), "texture", T, contact_only=True, progress=progress)
@@ -148,7 +147,7 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
     shutil.rmtree(tmp, ignore_errors=True)
     t0 = time.perf_counter()
     res = train_model("texture", model, ws, wt, quantise="if-passes", seed=seed, out_dir=tmp,
-                      progress=progress, hidden=hidden)
+                      progress=progress)
     trained_on = {"data": "real", "recordings": [f"roboskin/{c} frames 0..{REAL_TRAIN_FRAC:.0%}"
                                                  for c in REAL_TEXTURE],
                   "held_out": f"the rest of each recording after a gap of {T} frames, "

@@ -10,34 +10,19 @@ Each table sits between two marker comments in the document::
 and :func:`replace_section` swaps what is between them, so the prose around the
 tables stays hand-written. Every figure is a median with its p99, the machine's
 1-minute load average stands beside it, and an estimated Raspberry Pi 4 column is
-scaled by :data:`host.bench.runtime.PI4_FACTOR`.
+scaled by :data:`host.bench.costs.PI4_FACTOR`.
 """
 from __future__ import annotations
 
 import os
-import platform
 import re
 from pathlib import Path
 
-from host.bench.runtime import PI4_FACTOR, pi4_estimate
+from host.bench.costs import PI4_FACTOR, machine, machine_line
+from host.bench.runtime import pi4_estimate
 
 # the recordings the tables are measured on, and the IMU file that goes with each
 REAL_CLIPS = (("smooth.avi", None), ("concrete.avi", "concrete_gyro.npy"))
-
-
-def machine_line() -> str:
-    """The CPU, its core count and the load average, in one line."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    return (f"{model}, {os.cpu_count()} cores, load average {load} (1, 5, 15 min); "
-            f"one thread per process")
 
 
 def replace_section(text: str, name: str, body: str) -> str:
@@ -126,7 +111,7 @@ def pipeline_table(res: dict) -> str:
 def scaling_note() -> str:
     return (f"Pi 4 estimate: times x{PI4_FACTOR:g}, rates / {PI4_FACTOR:g}, memory "
             f"unscaled (a Pi 4 core runs this single-threaded work about "
-            f"{PI4_FACTOR:g}x slower than this machine's). Machine: {machine_line()}.")
+            f"{PI4_FACTOR:g}x slower than this machine's). {machine_line(machine())}")
 
 
 def write_tables(doc: Path, data_dir: Path, frames: int = 600, repeats: int = 3,

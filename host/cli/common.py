@@ -67,16 +67,24 @@ def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = 
 
 
 def whole_list(lo: int | None = None, hi: int | None = None) -> Callable[[str], tuple]:
-    """An argparse ``type``: comma-separated whole numbers in ``[lo, hi]`` (``1,2,5``)."""
-    one = whole(lo, hi)
-
+    """An argparse ``type``: whole numbers in ``[lo, hi]`` separated by commas, each
+    one number or a range ``a-b`` (``1,3,10``, ``1-10``), sorted without repeats."""
     def parse(text: str) -> tuple:
+        out = set()
         try:
-            return tuple(one(x.strip()) for x in text.split(","))
-        except argparse.ArgumentTypeError:
+            for part in text.split(","):
+                a, dash, b = part.strip().partition("-")
+                out.update(range(int(a, 10), int(b, 10) + 1) if dash else (int(a, 10),))
+        except ValueError:
             raise argparse.ArgumentTypeError(
-                f"must be whole numbers{bounds_text(lo, hi)} separated by commas, "
-                f"got {text!r}") from None
+                f"expected whole numbers like 1,3,10 or 1-10, got {text!r}") from None
+        if not out:
+            raise argparse.ArgumentTypeError(f"expected at least one number, got {text!r}")
+        if lo is not None and min(out) < lo:
+            raise argparse.ArgumentTypeError(f"every value must be >= {lo}, got {text!r}")
+        if hi is not None and max(out) > hi:
+            raise argparse.ArgumentTypeError(f"every value must be <= {hi}, got {text!r}")
+        return tuple(sorted(out))
     parse.__name__ = "list of whole numbers"
     return parse
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from device.pi.models.artefact import MAX_T, ModelError, read_manifest
 from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
-                             whole)
+                             whole, whole_list)
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
@@ -92,21 +92,6 @@ def cmd_eval(args):
     emit(args, res, json.dumps(res, indent=1, default=json_default))
 
 
-def _int_list(flag: str, text: str, low: int) -> tuple[int, ...]:
-    """``1,2,5`` or ``1-10`` (or both, comma-separated) as whole numbers >= ``low``."""
-    out = []
-    try:
-        for part in text.split(","):
-            a, _, b = part.strip().partition("-")
-            out += list(range(int(a), int(b) + 1)) if b else [int(a)]
-    except ValueError:
-        raise UserError(f"{flag}: expected whole numbers like 1,3,10 or 1-10, got {text!r}") \
-            from None
-    if not out or min(out) < low:
-        raise UserError(f"{flag}: every value must be >= {low}, got {text!r}")
-    return tuple(sorted(set(out)))
-
-
 def cmd_report(args):
     data = None
     try:
@@ -116,14 +101,13 @@ def cmd_report(args):
     if args.jobs == 0 or args.jobs < -1:
         raise UserError(f"--jobs: a number of workers >= 1 (or -1 for all cores), got "
                         f"{args.jobs}")
-    windows = _int_list("--windows", args.windows, 1)
-    seeds = _int_list("--seeds", args.seeds, 0)
-    sim_windows = _int_list("--sim-windows", args.sim_windows, 1)
-    sim_seeds = _int_list("--sim-seeds", args.sim_seeds, 0)
+    windows, seeds = args.windows, args.seeds
+    sim_windows, sim_seeds = args.sim_windows, args.sim_seeds
+    text = lambda xs: ",".join(map(str, xs))  # noqa: E731
     cmd = (f"host report --out {args.out} --work {args.work}"
            + (f" --data {args.data}" if args.data else "")
-           + f" --windows {args.windows} --seeds {args.seeds} --sim-windows "
-           f"{args.sim_windows} --sim-seeds {args.sim_seeds} --jobs {args.jobs}"
+           + f" --windows {text(windows)} --seeds {text(seeds)} --sim-windows "
+           f"{text(sim_windows)} --sim-seeds {text(sim_seeds)} --jobs {args.jobs}"
            + (" --quick" if args.quick else "") + (" --cnn" if args.cnn else "")
            + (" --real-only" if args.real_only else ""))
     if args.real_only and data is None:
@@ -178,11 +162,14 @@ def register(sub) -> None:
                    help="simulated data, models and finished cells, reused by a later run "
                         "on the same windows (remove it after changing the training code)")
     s.add_argument("--data", help="real recordings folder (holding roboskin/)")
-    s.add_argument("--windows", default="1-10", help="window lengths T of the real sections")
-    s.add_argument("--seeds", default="0,1,2", help="seeds of the real sections")
-    s.add_argument("--sim-windows", default="1,3,10",
+    s.add_argument("--windows", type=whole_list(1, MAX_T), default="1-10",
+                   help="window lengths T of the real sections (1,3,10 or 1-10)")
+    s.add_argument("--seeds", type=whole_list(0, 2**32 - 1), default="0,1,2",
+                   help="seeds of the real sections")
+    s.add_argument("--sim-windows", type=whole_list(1, MAX_T), default="1,3,10",
                    help="window lengths T of the simulated sections")
-    s.add_argument("--sim-seeds", default="0,1", help="seeds of the simulated sections")
+    s.add_argument("--sim-seeds", type=whole_list(0, 2**32 - 1), default="0,1",
+                   help="seeds of the simulated sections")
     s.add_argument("--jobs", type=int, default=1,
                    help="parallel cells (joblib workers; -1: all cores); the times are "
                         "taken afterwards, one at a time")

@@ -11,23 +11,12 @@ import numpy as np
 
 from host.learn.tasks import TrainError
 
-__all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "layout_neighbours", "temporal_class", "scaler_class"]
+__all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "temporal_class", "scaler_class"]
 
 
 #: added to the mean |v| (px) that the roughness is divided by, so a frame
 #: without a press does not divide by about zero
 ROUGH_FLOOR_PX = 0.5
-
-
-def layout_neighbours(layout_px, k: int = 6) -> list[list[int]]:
-    """For each pin of a layout (M, 2) px, the indices of its ``k`` nearest other
-    pins (ties broken by index): the ``neighbours`` of :class:`TemporalFeatures`."""
-    p = np.asarray(layout_px, np.float64).reshape(-1, 2)
-    if len(p) <= k:
-        raise TrainError(f"layout_neighbours: {len(p)} pins, need more than k={k}")
-    d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
-    np.fill_diagonal(d, np.inf)
-    return np.argsort(d, axis=1, kind="stable")[:, :k].tolist()
 
 
 def temporal_class():
@@ -52,7 +41,7 @@ def temporal_class():
         loses (glare, a worn pin) cannot become a cue for that recording.
 
         ``neighbours`` (M lists of K layout pin indices, optional, from
-        :func:`layout_neighbours`) adds the spatial roughness of the displacement
+        :func:`device.pi.vision.neighbours.layout_neighbours`) adds the spatial roughness of the displacement
         field: for each pin, its vector minus the mean vector of its K neighbours
         (a smooth shear or press leaves this near zero, studs that push single
         pins do not). Over the pins whose neighbours are all used it appends

@@ -38,6 +38,7 @@ import numpy as np
 
 from device.pi.models.artefact import MANIFEST
 from host.data.dataset import atomic_write
+from device.pi.vision.neighbours import layout_neighbours
 from host.data.extract import layout_for_profile
 from host.data.splits import split_holdout
 from host.data.windows import DataError, WindowSet
@@ -45,7 +46,6 @@ from host.learn.cv import cross_validate_model
 from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hyperparameters,
                                    pipeline_to_onnx, rule_probs)
 from host.learn.inputs import augment_rotations, model_inputs
-from host.learn.layers import layout_neighbours
 from host.learn.metrics import class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
                                 write_manifest, write_model, write_variants)
@@ -89,19 +89,31 @@ def _holdout(ws, seed: int):
 MAX_LOST_SHARE = 0.2
 
 
-def texture_neighbours(profile: str, n_pins: int) -> list[list[int]] | None:
-    """The layout neighbours (:func:`host.learn.layers.layout_neighbours`) of the
-    ``profile``'s pins, from which the texture fnn reads the roughness of the
+def texture_neighbours(profile: str, n_pins: int, k: int = 6) -> list[list[int]] | None:
+    """The ``k`` layout neighbours (:func:`device.pi.vision.neighbours.layout_neighbours`)
+    of the ``profile``'s pins, from which the texture fnn reads the roughness of the
     displacement field; None when the profile's layout is not the windows' M pins."""
     try:
         lay = layout_for_profile(profile)
     except DataError:
         return None
-    return layout_neighbours(lay) if len(lay) == n_pins else None
+    if len(lay) != n_pins or len(lay) <= k:
+        return None
+    return layout_neighbours(lay, k)[0].tolist()
 
 
-def regression_task(task: str) -> bool:
-    return task == "pressure"
+def fnn_temporal_spec(task: str, ws, T: int, uses_imu: bool, profile: str) -> dict:
+    """The settings of the fnn's temporal layer (:class:`TemporalFeatures`) for
+    training windows ``ws``: pins a training recording keeps losing masked (not for
+    the pressure regression), and for texture the layout neighbours of the
+    roughness features. One place, for :func:`train_model` and the regulariser
+    comparison (:mod:`host.bench.regularise`)."""
+    ignored = set(recording_lost_pins(ws)) if task != "pressure" else set()
+    return {"T": T, "n_pins": ws.n_pins, "uses_imu": bool(uses_imu),
+            "pin_mask": (None if not ignored else
+                         [0 if m in ignored else 1 for m in range(ws.n_pins)]),
+            "neighbours": (texture_neighbours(profile, ws.n_pins)
+                           if task == "texture" else None)}
 
 
 def recording_lost_pins(ws) -> list[int]:
@@ -205,13 +217,9 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     if temporal and (model != "fnn" or T < 2):
         raise TrainError(f"temporal=True needs the fnn and T >= 2 frames, got model={model!r} "
                          f"T={T}")
-    ignored = recording_lost_pins(ws_train) if temporal and not regression_task(task) else []
-    tspec = ({"T": T, "n_pins": ws_train.n_pins, "uses_imu": bool(uses_imu),
-              "pin_mask": (None if not ignored else
-                           [0 if m in set(ignored) else 1 for m in range(ws_train.n_pins)]),
-              "neighbours": (texture_neighbours(profile, ws_train.n_pins)
-                             if task == "texture" else None)}
-             if temporal else None)
+    tspec = fnn_temporal_spec(task, ws_train, T, uses_imu, profile) if temporal else None
+    ignored = ([m for m, keep in enumerate(tspec["pin_mask"]) if not keep]
+               if tspec and tspec["pin_mask"] else [])
     if hidden is None:
         hidden = TASK_HIDDEN.get(task)
     hp = hyperparameters(model, hidden, alpha, epochs, tspec) if model != "rule" else {}

@@ -259,7 +259,3 @@ class LinkReader:
             if msg is not None:
                 out.append((msg, self.sender_clock.sent_at(raw.t_ms, now)))
         return out
-
-    def poll(self) -> list:
-        """The decoded messages from the MCU, without their times."""
-        return [m for m, _ in self.poll_timed()]

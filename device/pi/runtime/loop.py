@@ -24,6 +24,7 @@ import os
 import sys
 import time
 from collections import deque
+from urllib.parse import parse_qsl, urlsplit
 
 import cv2
 import numpy as np
@@ -47,6 +48,7 @@ from device.pi.runtime.stats import BoundedStats
 from device.pi.runtime.status import write_status_file
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
+from device.pi.sources.options import opt_bool
 from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import layout_for_profile
 from device.profile import load_pipeline_profile
@@ -216,7 +218,7 @@ class LegRuntime:
         self._imu_acc(imu_vec)
         gap = int(frame.index) - self._last_index          # > 1: frames were dropped
         self._last_index = int(frame.index)
-        ef = self.encoder.encode(frame.image, frame.t_s, gap if 1 < gap <= 1000 else 1)
+        ef = self.encoder.encode(frame.image, frame.t_s, gap)   # the tracker bounds it
         ff = ef.features
         self._pipe_faults = int(ff.faults) & PIPELINE_FAULTS
         if self.feed.skipped != self._skipped_seen:   # a bad file frame was skipped before it
@@ -450,14 +452,6 @@ class LegRuntime:
 # Building from source strings
 # ---------------------------------------------------------------------------
 
-def paced_source(camera: str) -> bool:
-    """A file or sim:// source played at its frame rate (``realtime=1``) delivers
-    frames as a camera does, whether or not the loop keeps up."""
-    from urllib.parse import parse_qsl, urlsplit
-    flag = dict(parse_qsl(urlsplit(camera).query)).get("realtime", "0")
-    return flag.strip().lower() in ("1", "true", "yes", "on")
-
-
 def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config=None,
                   fps: float | None = None, json_log: str | None = None,
                   status: str | None = None, frames: int | None = None,
@@ -479,11 +473,15 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     except Exception as exc:
         raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
     live = camera.lower().startswith("v4l2://")
-    paced = paced_source(camera)
+    q = dict(parse_qsl(urlsplit(camera).query))
+    try:
+        # a file or sim:// source played at its frame rate delivers frames as a
+        # camera does, whether or not the loop keeps up: the newest frame wins
+        paced = opt_bool("realtime", q.get("realtime", False))
+    except ValueError as exc:
+        raise StartupError(f"--camera {camera!r}: {exc}") from None
     opts = {}
     if live:
-        from urllib.parse import parse_qsl, urlsplit
-        q = dict(parse_qsl(urlsplit(camera).query))
         c = cfg.camera
         for k, v in (("width", c.width), ("height", c.height), ("fps", c.fps),
                      ("fourcc", c.fourcc), ("buffersize", c.buffersize)):

@@ -269,11 +269,11 @@ class Tracker:
                 # find them or found them far from where they were predicted: track
                 # the frame again with the coarse matching.
                 self.reacquired = 1
-                start, steps, iters = self.reacquire_schedule
+                a_start, a_steps, a_iters = self.reacquire_schedule
                 idx2, work2 = track_with_neighbours(
                     r, c, self._pitch, init_disp_px=self._pred, neighbours=(self._nb, self._valid),
                     gate_frac=self._gate / self._pitch, coarse=True, grow_rounds=self.grow_rounds,
-                    anneal_start=start, anneal_steps=steps, sinkhorn_iters=iters)
+                    anneal_start=a_start, anneal_steps=a_steps, sinkhorn_iters=a_iters)
                 # keep the answer whose pins move more like their neighbours
                 # (wrong assignments do not), the first one on a tie
                 q1 = neighbour_consistency(self._work, idx >= 0, self._nb, self._valid, self._gate)

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from host.bench.runtime import PI4_FACTOR
-from host.bench.tables import (machine_line, marker_names, pipeline_table, replace_section,
+from host.bench.costs import PI4_FACTOR, machine, machine_line
+from host.bench.tables import (marker_names, pipeline_table, replace_section,
                                runtime_rows)
 from host.cli import main
 from tests.realdata import real_data_dir
@@ -68,7 +68,7 @@ def test_runtime_rows_give_median_p99_load_and_the_pi4_estimate():
 
 
 def test_machine_line_names_cores_and_load():
-    line = machine_line()
+    line = machine_line(machine())
     assert "cores" in line and "load average" in line
 
 

@@ -106,13 +106,14 @@ def test_the_roughness_features_see_single_pins_pushed_not_a_uniform_shear_and_m
     from skl2onnx import convert_sklearn
     from skl2onnx.common.data_types import FloatTensorType
 
-    from host.learn.layers import layout_neighbours, temporal_class
+    from device.pi.vision.neighbours import layout_neighbours
+    from host.learn.layers import temporal_class
     from host.learn.onnx_io import session
 
     T, M = 3, 12
     ang = np.linspace(0, 2 * np.pi, M, endpoint=False)
     lay = np.stack([np.cos(ang), np.sin(ang)], 1) * 50
-    nb = layout_neighbours(lay, 2)
+    nb = layout_neighbours(lay, 2)[0].tolist()
     assert sorted(nb[0]) == [1, M - 1]               # the two pins beside pin 0
     mask = [1] * M
     mask[5] = 0
