@@ -76,7 +76,7 @@ class Tracker:
     two answers the one whose pins move more like their layout neighbours is
     kept. Glare that hides pins and fast shear leave many pins away from
     their prediction but within reach of the growth; on the real smooth.avi
-    the coarse search (8-9 ms) now runs on 7 of 540 frames, not 106. The
+    the coarse search (8-9 ms) now runs on 8 of 540 frames, not 106. The
     prediction goes ``steps`` frames ahead when frames were dropped, with the
     velocity kept per frame. Its annealing
     schedule is ``reacquire_schedule`` = (start in pitches, temperatures,
