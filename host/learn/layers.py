@@ -19,11 +19,20 @@ __all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "temporal_class", "scaler_class"]
 ROUGH_FLOOR_PX = 0.5
 
 
+def defined_once(name: str, define):
+    """The module-level class ``name``, made by ``define()`` on first use: the
+    layers need sklearn, which is host-only, and pickling needs one class object."""
+    if name not in globals():
+        globals()[name] = define()
+    return globals()[name]
+
+
 def temporal_class():
-    """:class:`TemporalFeatures`, defined on first use (sklearn is host-only)."""
-    global TemporalFeatures
-    if "TemporalFeatures" in globals():
-        return TemporalFeatures
+    """:class:`TemporalFeatures`, defined on first use."""
+    return defined_once("TemporalFeatures", _define_temporal)
+
+
+def _define_temporal():
     from sklearn.base import BaseEstimator, TransformerMixin
 
     class TemporalFeatures(TransformerMixin, BaseEstimator):
@@ -153,10 +162,11 @@ SCALED_CLIP = 8.0
 
 
 def scaler_class():
-    """:class:`ClippedScaler`, defined on first use (sklearn is host-only)."""
-    global ClippedScaler
-    if "ClippedScaler" in globals():
-        return ClippedScaler
+    """:class:`ClippedScaler`, defined on first use."""
+    return defined_once("ClippedScaler", _define_scaler)
+
+
+def _define_scaler():
     from sklearn.base import BaseEstimator, TransformerMixin
     from sklearn.preprocessing import StandardScaler
 
