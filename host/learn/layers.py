@@ -361,15 +361,15 @@ def replace_temporal_graph(model, params: dict, seed: int = 0):
         raise TrainError(f"no single tensor of the model equals the temporal layer's output "
                          f"({len(hits)} do)")
     out = hits[0]
-    made = {o: n for n in g.node for o in n.output}
+    made = {o: i for i, n in enumerate(g.node) for o in n.output}
     old, todo = set(), [out]
     while todo:                          # the nodes the layer's output is computed by
-        n = made.get(todo.pop())
-        if n is not None and id(n) not in old:
-            old.add(id(n))
-            todo += list(n.input)
-    inner = {o for n in g.node if id(n) in old for o in n.output} - {out}
-    kept = [n for n in g.node if id(n) not in old]
+        i = made.get(todo.pop())
+        if i is not None and i not in old:
+            old.add(i)
+            todo += list(g.node[i].input)
+    inner = {o for i in old for o in g.node[i].output} - {out}
+    kept = [n for i, n in enumerate(g.node) if i not in old]
     if any(i in inner for n in kept for i in n.input) or \
             any(o.name in inner for o in g.output):
         raise TrainError("a node after the temporal layer reads one of its inner tensors")
