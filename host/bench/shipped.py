@@ -1,6 +1,11 @@
 """Rebuild the shipped default models in ``models/`` (``make models``).
 
     python -m host.bench.shipped --out models [--work out/models-data] [--only surface,slip]
+    python -m host.bench.shipped --out models --regraph texture
+
+``--regraph NAME`` trains nothing: it rewrites the fixed first layer's graph of the
+fnn in ``models/NAME`` with the current converter (:func:`regraph`), so a faster graph
+reaches a shipped model without changing its weights or its figures.
 
 With ``--real-data DIR`` the texture model is trained on the real roboskin
 recordings (the first 70 % of concrete.avi, smooth.avi and lego_train.avi, contact
@@ -42,11 +47,11 @@ from pathlib import Path
 from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
-from host.learn.onnx_io import write_manifest
+from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_manifest, write_variants
 from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
 from host.learn.train import train_model
 
-__all__ = ["DEFAULTS", "build_model", "build_defaults", "main"]
+__all__ = ["DEFAULTS", "build_model", "build_defaults", "regraph", "main"]
 
 #: name -> (task, simulated kinds, trials per kind, T)
 DEFAULTS = {
@@ -166,6 +171,46 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
             "ignored_pins": res.get("ignored_pins")}
 
 
+def regraph(folder, seed: int = 0) -> dict:
+    """Rewrite the fixed first layer (``TemporalFeatures``) of the fnn in ``folder``
+    (model.onnx and, when there, model.int8.onnx) with the graph its converter writes
+    now, without training again: weights, metrics and the training record are kept.
+    Each file is replaced only when the new graph names the same class as the old one
+    on random windows with probabilities within 1e-4; sha256 and sizes are recorded
+    again. Returns {file: (bytes before, bytes after)}."""
+    import numpy as np
+    import onnx
+
+    from host.data.dataset import atomic_write
+    from host.learn.layers import replace_temporal_graph
+
+    folder = Path(folder)
+    doc = json.loads((folder / "manifest.json").read_text())
+    params = (doc.get("training") or {}).get("temporal")
+    if not params:
+        raise TrainError(f"{folder}: the manifest records no temporal layer to rewrite")
+    names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
+    X = np.random.default_rng(seed).normal(0, 3, (256, doc["input"]["shape"][1]))
+    X = X.astype(np.float32)
+    out = {}
+    for name in names:
+        old = onnx.load(str(folder / name))
+        new = replace_temporal_graph(old, params, seed)
+        feed = {doc["input"].get("name", "x"): X}
+        a, b = session(old).run(None, feed), session(new).run(None, feed)
+        if not (np.array_equal(a[0], b[0]) and np.allclose(a[1], b[1], atol=1e-4)):
+            raise TrainError(f"{folder / name}: the rewritten graph gives other outputs")
+        data = new.SerializeToString()
+        out[name] = ((folder / name).stat().st_size, len(data))
+        atomic_write(folder / name, lambda fh, data=data: fh.write(data))
+    updates = {}
+    if INT8_NAME in out and isinstance(doc.get("int8"), dict):
+        updates["int8"] = dict(doc["int8"], float_bytes=out[FLOAT_NAME][1],
+                               int8_bytes=out[INT8_NAME][1])
+    write_variants(folder, INT8_NAME in out and doc.get("variant") == "int8", updates)
+    return out
+
+
 def mark_trained_on(folder: Path, trained_on: dict) -> None:
     """Record in each manifest of ``folder`` what the model was trained on (real or
     simulated data) and, where real data exist, its accuracy on real frames."""
@@ -212,11 +257,23 @@ def main(argv=None) -> int:
     p.add_argument("--only", help="comma-separated subset of " + ",".join(DEFAULTS))
     p.add_argument("--real-data", help="folder holding roboskin/: texture trains on the real "
                                        "recordings (concrete, smooth, lego_train)")
+    p.add_argument("--regraph", metavar="NAME",
+                   help="rewrite the first layer's graph of the fnn in OUT/NAME with the "
+                        "current converter, without training again")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     names = [n.strip() for n in args.only.split(",")] if args.only else None
+    if args.regraph:
+        try:
+            sizes = regraph(Path(args.out) / args.regraph, seed=args.seed)
+        except (TrainError, OSError, ValueError, KeyError) as exc:
+            print(f"host.bench.shipped: error: {args.regraph}: {exc}", file=sys.stderr)
+            return 2
+        for name, (before, after) in sizes.items():
+            print(f"{args.regraph}/{name}: {before} -> {after} bytes")
+        return 0
     try:
         rows = build_defaults(args.out, args.work, names, seed=args.seed,
                               progress=not args.quiet, real_data=args.real_data)

@@ -4,6 +4,8 @@
 
 The classes are defined on first use by :func:`temporal_class` and
 :func:`scaler_class` (scikit-learn and skl2onnx are host-only, optional imports).
+:func:`replace_temporal_graph` puts the current graph of the temporal layer into a
+model already exported, without training again.
 """
 from __future__ import annotations
 
@@ -11,7 +13,8 @@ import numpy as np
 
 from host.learn.tasks import TrainError
 
-__all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "temporal_class", "scaler_class"]
+__all__ = ["SCALED_CLIP", "ROUGH_FLOOR_PX", "temporal_class", "scaler_class",
+           "replace_temporal_graph"]
 
 
 #: added to the mean |v| (px) that the roughness is divided by, so a frame
@@ -63,8 +66,9 @@ def _define_temporal():
         Texture shake, slip and a wet floor show in these changes, which are small
         next to the vectors themselves; given explicitly, the MLP finds them from
         few trials. No weights: in ONNX it is Slice / Sub / ReduceMean /
-        ReduceSumSquare / Sqrt / Concat (:func:`_temporal_to_onnx`), left in float
-        by the int8 quantiser.
+        ReduceSumSquare / Sqrt / Concat, and for the roughness a Transpose to pins
+        first and a Gather of whole pin rows (:func:`_temporal_to_onnx`), left in
+        float by the int8 quantiser.
         """
 
         def __init__(self, T: int = 3, n_pins: int = 133, uses_imu: bool = False,
@@ -298,16 +302,23 @@ def _temporal_to_onnx(scope, operator, container):
         nb = np.asarray(op.neighbours, np.int64)
         nbn = scope.get_unique_variable_name("neighbours")
         container.add_initializer(nbn, TensorProto.INT64, list(nb.shape), nb.ravel().tolist())
-        # a Gather and a mean, not a MatMul: the int8 quantiser leaves it in float
-        vt = node("Transpose", [v], perm=[0, 1, 3, 2])                         # (N, T, 2, M)
-        nbmean = node("ReduceMean", [node("Gather", [vt, nbn], axis=3)], axes=[4], keepdims=0)
-        r = node("Sub", [vt, nbmean])
-        dr = node("Sub", [frames(r, 1, T), frames(r, 0, T - 1)])
-        u = fconst(use, [M])
+        # pins first, so the Gather copies whole rows of N x T x 2 values (a Gather
+        # along the last axis copies them one by one); a Gather and a mean, not a
+        # MatMul, so the int8 quantiser leaves it in float
+        vm = node("Transpose", [v], perm=[2, 0, 1, 3])                         # (M, N, T, 2)
+        nbmean = node("ReduceMean", [node("Gather", [vm, nbn], axis=0)], axes=[1],
+                      keepdims=0)                                              # (M, N, T, 2)
+        r = node("Sub", [vm, nbmean])
+
+        def pins_frames(a, lo, hi):  # a[:, :, lo:hi]
+            return node("Slice", [a, const([lo]), const([hi]), const([2])])
+
+        dr = node("Sub", [pins_frames(r, 1, T), pins_frames(r, 0, T - 1)])
+        u = fconst(use, [M, 1, 1])
 
         def pooled(a):              # sum over pins of use * |a|, (N, frames)
-            n = node("Sqrt", [node("ReduceSumSquare", [a], axes=[2], keepdims=0)])
-            return node("ReduceSum", [node("Mul", [n, u]), const([2])], keepdims=0)
+            n = node("Sqrt", [node("ReduceSumSquare", [a], axes=[3], keepdims=0)])
+            return node("ReduceSum", [node("Mul", [n, u]), const([0])], keepdims=0)
 
         rm, drm = pooled(r), pooled(dr)
         den = node("Add", [mag, fconst([ROUGH_FLOOR_PX], [])])
@@ -315,3 +326,88 @@ def _temporal_to_onnx(scope, operator, container):
     container.add_node("Concat", parts, operator.outputs[0].full_name, axis=1,
                        name=scope.get_unique_operator_name("Concat"))
 
+
+
+def replace_temporal_graph(model, params: dict, seed: int = 0):
+    """``model`` (an onnx.ModelProto whose first layer is a :class:`TemporalFeatures`
+    with ``params``, e.g. a manifest's ``training.temporal``) with that layer's nodes
+    replaced by the graph :func:`_temporal_to_onnx` writes now. The rest (scaler,
+    MLP, int8 nodes) is kept as it is. The layer's output is found by its numbers:
+    the Concat whose output equals the transform on random windows. TrainError when
+    none does, or when a later node reads one of the layer's inner tensors."""
+    import onnx
+    from onnx import helper
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.onnx_io import session
+
+    tf = temporal_class()(**params)
+    n_in = tf._n_in()
+    X = np.random.default_rng(seed).normal(0, 3, (8, n_in)).astype(np.float32)
+    want = tf.fit(X).transform(X)
+    g = model.graph
+    x_name = g.input[0].name
+    probe = onnx.ModelProto()
+    probe.CopyFrom(model)
+    cands = [n.output[0] for n in g.node if n.op_type == "Concat"]
+    del probe.graph.output[:]
+    probe.graph.output.extend(helper.make_tensor_value_info(c, onnx.TensorProto.FLOAT, None)
+                              for c in cands)
+    outs = session(probe).run(cands, {x_name: X})
+    hits = [c for c, o in zip(cands, outs) if o.shape == want.shape
+            and np.allclose(o, want, rtol=1e-4, atol=1e-4)]
+    if len(hits) != 1:
+        raise TrainError(f"no single tensor of the model equals the temporal layer's output "
+                         f"({len(hits)} do)")
+    out = hits[0]
+    made = {o: i for i, n in enumerate(g.node) for o in n.output}
+    old, todo = set(), [out]
+    while todo:                          # the nodes the layer's output is computed by
+        i = made.get(todo.pop())
+        if i is not None and i not in old:
+            old.add(i)
+            todo += list(g.node[i].input)
+    inner = {o for i in old for o in g.node[i].output} - {out}
+    kept = [n for i, n in enumerate(g.node) if i not in old]
+    if any(i in inner for n in kept for i in n.input) or \
+            any(o.name in inner for o in g.output):
+        raise TrainError("a node after the temporal layer reads one of its inner tensors")
+    layer = convert_sklearn(tf, initial_types=[(x_name, FloatTensorType([None, n_in]))],
+                            target_opset={"": next(o.version for o in model.opset_import
+                                                   if o.domain in ("", "ai.onnx"))})
+    lg = layer.graph
+    names = {t for n in g.node for t in (*n.input, *n.output, n.name)}
+    names |= {i.name for i in g.initializer}
+    k = 0
+    while any(t.startswith(f"temporal{k}_") for t in names):
+        k += 1
+    pre = f"temporal{k}_"                 # no name of the model starts with it
+    rename = {i.name: pre + i.name for i in lg.initializer}
+    rename.update({o: pre + o for n in lg.node for o in n.output})
+    rename[lg.output[0].name] = out
+    nodes = []
+    for n in lg.node:
+        m = onnx.NodeProto()
+        m.CopyFrom(n)
+        m.name = pre + n.name
+        m.input[:] = [rename.get(i, i) for i in n.input]
+        m.output[:] = [rename[o] for o in n.output]
+        nodes.append(m)
+    inits = []
+    for i in lg.initializer:
+        t = onnx.TensorProto()
+        t.CopyFrom(i)
+        t.name = rename[i.name]
+        inits.append(t)
+    new = onnx.ModelProto()
+    new.CopyFrom(model)
+    del new.graph.node[:]
+    new.graph.node.extend(nodes + kept)
+    used = {i for n in kept for i in n.input}
+    keep_inits = [i for i in g.initializer if i.name in used]
+    del new.graph.initializer[:]
+    new.graph.initializer.extend(keep_inits + inits)
+    del new.graph.value_info[:]
+    onnx.checker.check_model(new)
+    return new

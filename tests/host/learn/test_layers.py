@@ -3,6 +3,7 @@ and their ONNX graphs."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
@@ -135,3 +136,76 @@ def test_the_roughness_features_see_single_pins_pushed_not_a_uniform_shear_and_m
     X2 = X.reshape(8, T, M, 2).copy()
     X2[:, :, 5] += 9.0
     assert np.allclose(tf.transform(X2.reshape(8, -1))[:, -(4 * T - 2):], rough, atol=1e-5)
+
+
+@pytest.mark.parametrize("seed, T, N, K", [(0, 2, 1, 3), (1, 4, 9, 6), (2, 15, 3, 6)])
+def test_the_roughness_graph_equals_the_transform_on_random_windows(seed, T, N, K):
+    """For random pin vectors, a random layout's neighbours (a pin may list a
+    neighbour twice) and a random pin mask, the ONNX graph gives the transform's
+    numbers, one window (as on the leg) or a batch, and the roughness columns equal
+    a per-pin loop over each pin's neighbours."""
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from device.pi.vision.neighbours import layout_neighbours
+    from host.learn.layers import ROUGH_FLOOR_PX, temporal_class
+    from host.learn.onnx_io import session
+
+    rng = np.random.default_rng(seed)
+    M = 20
+    nb = layout_neighbours(rng.uniform(0, 100, (M, 2)), K)[0]
+    nb[0, -1] = nb[0, 0]                                 # a neighbour listed twice
+    mask = (rng.random(M) > 0.2).astype(int)
+    mask[nb[1]] = mask[1] = 1                            # pin 1 and its neighbours are used
+    X = rng.normal(0, 3, (N, T * M * 2)).astype(np.float32)
+    tf = temporal_class()(T=T, n_pins=M, pin_mask=mask.tolist(),
+                          neighbours=nb.tolist()).fit(X)
+    want = tf.transform(X)
+    m = convert_sklearn(tf, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                        target_opset=17)
+    sess = session(m)
+    assert np.allclose(sess.run(None, {"x": X})[0], want, rtol=1e-5, atol=1e-5)
+    assert np.allclose(sess.run(None, {"x": X[-1:]})[0], want[-1:], rtol=1e-5, atol=1e-5)
+    # the roughness columns, from a loop over the pins
+    v = X.reshape(N, T, M, 2) * mask[None, None, :, None]
+    ok = [i for i in range(M) if mask[i] and mask[nb[i]].all()]
+    assert 1 in ok
+    r = np.stack([v[:, :, i] - v[:, :, nb[i]].mean(axis=2) for i in ok], axis=2)
+    rm = np.linalg.norm(r, axis=3).mean(axis=2)
+    drm = np.linalg.norm(r[:, 1:] - r[:, :-1], axis=3).mean(axis=2)
+    den = np.linalg.norm(v, axis=3).mean(axis=2) + ROUGH_FLOOR_PX
+    rough = want[:, -(4 * T - 2):]
+    assert np.allclose(rough, np.concatenate([rm, rm / den, drm, drm / den[:, 1:]], axis=1),
+                       rtol=1e-4, atol=1e-5)
+
+
+def test_replacing_the_temporal_graph_keeps_the_model_numbers_and_needs_its_parameters():
+    """A pipeline model (temporal layer with roughness, clipped scaler) gives the same
+    outputs with its first layer's graph replaced, and the rest of the graph is kept;
+    parameters that do not describe the model's layer are refused."""
+    from sklearn.pipeline import make_pipeline
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from host.learn.layers import replace_temporal_graph, scaler_class, temporal_class
+    from host.learn.onnx_io import session
+    from host.learn.tasks import TrainError
+
+    T, M = 3, 8
+    rng = np.random.default_rng(3)
+    nb = [[(i + 1) % M, (i - 1) % M] for i in range(M)]
+    params = {"T": T, "n_pins": M, "pin_mask": [1] * 7 + [0], "neighbours": nb}
+    X = rng.normal(0, 3, (40, T * M * 2)).astype(np.float32)
+    pipe = make_pipeline(temporal_class()(**params), scaler_class()()).fit(X)
+    m = convert_sklearn(pipe, initial_types=[("x", FloatTensorType([None, X.shape[1]]))],
+                        target_opset=17)
+    new = replace_temporal_graph(m, params)
+    got = session(new).run(None, {"x": X})[0]
+    assert np.allclose(got, session(m).run(None, {"x": X})[0], atol=1e-5)
+    assert np.allclose(got, pipe.transform(X), atol=1e-4)
+    assert [n.op_type for n in new.graph.node][-3:] == ["Sub", "Mul", "Clip"]  # the scaler
+    gathers = [n for n in new.graph.node if n.op_type == "Gather"]
+    assert len(gathers) == 1 and gathers[0].attribute[0].i == 0   # whole pin rows
+    with pytest.raises(TrainError):
+        replace_temporal_graph(m, dict(params, neighbours=[[(i + 2) % M] * 2
+                                                           for i in range(M)]))
