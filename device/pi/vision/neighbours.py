@@ -16,7 +16,8 @@ import math
 import numpy as np
 
 from device.checks import finite_number, positive_number, whole_number
-from device.pi.vision.matching import all_rows_usable, as_points, match_pins, usable_rows
+from device.pi.vision.matching import (all_rows_usable, as_points, match_pins, match_pins_unchecked,
+                                       usable_rows)
 
 __all__ = ["layout_pitch_px", "nearest_neighbour_px", "layout_neighbours", "track_with_neighbours",
            "match_and_grow", "neighbour_median", "neighbour_consistency"]
@@ -334,16 +335,24 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
        neighbour prediction, or, when the growth never reached it, at its own
        prediction corrected by the median error of all tracked pins.
 
-    ``disp`` (m, 2) float64 is written in place (it may be ``pred``): the
+    ``c`` (n, 2) float64 holds usable rows only (finite, within
+    ``MAX_COORD_PX``: both callers drop the others first). ``disp`` (m, 2)
+    float64 is written in place (it may be ``pred``): the
     measured displacement of tracked pins and the best prediction of lost
     ones. Returns ``idx`` and the number of confident matches of step 1.
     """
     prior = np.array(pred, dtype=np.float64)            # the caller's prediction, kept
-    prior[~fin_r] = 0.0
+    all_fin = bool(fin_r.all())
+    if not all_fin:
+        prior[~fin_r] = 0.0
     pos = r + prior
-    pos[~fin_r] = np.nan
+    if not all_fin:
+        pos[~fin_r] = np.nan
+    # every position usable (the tracker's case, and the current pins are checked
+    # by the caller): the matching skips its argument checks
+    match = match_pins_unchecked if all_fin and all_rows_usable(pos) else match_pins
     disp[:] = prior
-    idx = match_pins(pos, c, 0.5 * gate)
+    idx = match(pos, c, 0.5 * gate)
     ok = idx >= 0
     n_ok = int(np.count_nonzero(ok))
     if n_ok < 0.5 * np.count_nonzero(fin_r):
@@ -353,11 +362,11 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         # Kept when it catches more pins confidently and keeps most of the
         # pins already caught (a prior that is right for part of the layout
         # is not overruled by the rest).
-        wide = match_pins(pos, c, 1.25 * gate)
+        wide = match(pos, c, 1.25 * gate)
         hit = wide >= 0
         if hit.any():
             shift = np.median(c[wide[hit]] - pos[hit], axis=0)
-            idx2 = match_pins(pos + shift, c, 0.5 * gate)
+            idx2 = match(pos + shift, c, 0.5 * gate)
             ok2 = idx2 >= 0
             n2 = int(np.count_nonzero(ok2))
             kept = int(np.count_nonzero(idx2[ok] == idx[ok]))
@@ -388,7 +397,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     def take(rows, g):
         """Match ``rows`` at disp against the free pins (gate g); returns the rows caught."""
         fc = np.flatnonzero(free)
-        sub = match_pins(r[rows] + disp[rows], c[fc], g)
+        sub = match(r[rows] + disp[rows], c[fc], g)
         hit = sub >= 0
         got = rows[hit]
         idx[got] = fc[sub[hit]]
@@ -419,8 +428,8 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         if n_now != n_pred:
             sup = predict(lost)
             n_pred = n_now
-        if n_now >= 3:                                  # a common error needs a few pins
-            far = lost[~sup]
+        far = lost[~sup]
+        if n_now >= 3 and far.size:                     # a common error needs a few pins
             disp[far] = prior[far] + np.median(err[ok], axis=0)
         if not free.any() or take(lost, gate).size == 0:
             break
