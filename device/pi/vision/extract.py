@@ -292,32 +292,30 @@ def binarise(
     return out
 
 
+#: the labelling algorithm for the pin image: Grana's block-based decision tree
+#: (BBDT) with statistics is 2-3x faster on the sparse pin image than OpenCV 5's
+#: default (Spaghetti) with statistics, with the same labels and centroids
+_CCL = getattr(cv2, "CCL_BBDT", getattr(cv2, "CCL_GRANA", 1))
+
+
 def components(binary: np.ndarray, labels: np.ndarray | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
     """All foreground blobs (8-connected): centroids float32 (n,2) x,y and areas int32 (n,).
 
-    Labels come from ``cv2.connectedComponents``; areas and centroids from
-    ``np.bincount`` over the foreground pixels only (found by ``cv2.findNonZero``), which is several times
-    cheaper than OpenCV's per-component statistics on a sparse pin image.
-    Pass ``labels`` (int32, the binary's shape) to label without allocating.
+    One ``cv2.connectedComponentsWithStatsWithAlgorithm`` call with the BBDT
+    labelling (:data:`_CCL`). Pass ``labels`` (int32, the binary's shape) to label
+    without allocating.
     """
     if binary.ndim != 2:
         raise ValueError(f"binary must be 2-D, got shape={binary.shape!r}")
     b = binary if binary.dtype == np.uint8 else (binary != 0).astype(np.uint8)
     if labels is None or labels.shape != b.shape or labels.dtype != np.int32:
         labels = np.empty(b.shape, np.int32)
-    n, _ = cv2.connectedComponents(b, labels, 8, cv2.CV_32S)
+    n, _, stats, cents = cv2.connectedComponentsWithStatsWithAlgorithm(
+        b, 8, cv2.CV_32S, _CCL, labels=labels)
     if n <= 1:
         return np.zeros((0, 2), np.float32), np.zeros((0,), np.int32)
-    # the foreground pixels' x, y: cv2.findNonZero is several times faster than
-    # np.flatnonzero on a uint8 image
-    pts = cv2.findNonZero(b).reshape(-1, 2)
-    xs, ys = pts[:, 0], pts[:, 1]
-    lab = labels.reshape(-1)[ys * b.shape[1] + xs]
-    area = np.bincount(lab, minlength=n)[1:]
-    cx = np.bincount(lab, weights=xs, minlength=n)[1:] / area
-    cy = np.bincount(lab, weights=ys, minlength=n)[1:] / area
-    return np.stack([cx, cy], axis=1).astype(np.float32), area.astype(np.int32)
+    return cents[1:].astype(np.float32), stats[1:, cv2.CC_STAT_AREA].astype(np.int32)
 
 
 def extract_pins(
@@ -386,8 +384,12 @@ class PinDetector:
         bh, bw = y1 - y0, x1 - x0
         self._gray = np.empty((bh, bw), np.uint8)     # the crop in gray (colour frames)
         self._smooth = np.empty((bh, bw), np.uint8)
-        self._binary = np.empty((bh, bw), np.uint8)
-        self._labels = np.empty((bh, bw), np.int32)
+        # the labelling (_CCL) with statistics takes its fast path on even sides
+        # only (about 2.5x faster on a 240 px crop): the binary crop is a view into
+        # a buffer one zero row / column larger when a side is odd
+        self._binary_even = np.zeros((bh + bh % 2, bw + bw % 2), np.uint8)
+        self._binary = self._binary_even[:bh, :bw]
+        self._labels = np.empty(self._binary_even.shape, np.int32)
         # a kernel of +-2 sigma (OpenCV's own default is +-3, which is slower)
         k = max(3, 2 * int(math.ceil(2.0 * p.blur_sigma_px)) + 1)
         self._ksize = (k, k)
@@ -424,9 +426,9 @@ class PinDetector:
 
     def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,)."""
-        b = self.threshold(frame)
-        xy, areas = extract_pins(b, self.params.min_area_px, self.params.max_area_px,
-                                 self._labels)
+        self.threshold(frame)
+        xy, areas = extract_pins(self._binary_even, self.params.min_area_px,
+                                 self.params.max_area_px, self._labels)
         xy += self._origin
         return xy, areas
 

@@ -3,6 +3,7 @@
 * :class:`ContactGrid` - the receptive-field contact grid (the paper's eq. 1).
 * :func:`average_vector` - the mean pin vector: shear direction and magnitude.
 * :func:`magnitude_sum` - the sum of pin-vector magnitudes, P (the paper's eq. 3).
+* :func:`shear_and_sum` - both of the last two in one pass.
 
 All of them return finite numbers for any input, including empty or NaN vectors.
 """
@@ -115,6 +116,17 @@ def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tupl
         return 0.0, 0.0
     m = v.mean(axis=0)
     return float(m[0]), float(m[1])
+
+
+def shear_and_sum(vectors: np.ndarray, valid: np.ndarray | None = None
+                  ) -> tuple[float, float, float]:
+    """(dx, dy, P): :func:`average_vector` and :func:`magnitude_sum` of the same
+    vectors in one pass (the marker pipeline's per-frame call)."""
+    v = _finite_rows(vectors, valid)
+    if v.shape[0] == 0:
+        return 0.0, 0.0, 0.0
+    m = v.mean(axis=0)
+    return float(m[0]), float(m[1]), float(np.hypot(v[:, 0], v[:, 1]).sum())
 
 
 def direction_deg(dx: float, dy: float) -> float:

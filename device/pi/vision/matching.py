@@ -18,7 +18,7 @@ import numpy as np
 
 from device.checks import positive_number
 
-__all__ = ["match_pins", "mutual_match", "MAX_COORD_PX", "as_points", "usable_rows",
+__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "MAX_COORD_PX", "as_points", "usable_rows",
            "all_rows_usable"]
 
 
@@ -112,6 +112,11 @@ def _homogeneous(r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ut, vt
 
 
+#: up to this many (reference, current) pairs the scores are exact squared
+#: distances by broadcasting; above it, one matrix product (:func:`_homogeneous`)
+_SMALL_PAIRS = 4096
+
+
 def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> None:
     """Greedy-by-distance one-to-one matching of finite points; writes ``idx`` in place.
 
@@ -125,20 +130,36 @@ def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) 
     others).
     """
     m, n = r.shape[0], c.shape[0]
-    ut, vt = _homogeneous(r, c)
-    s_rc = _SCRATCH.get("s_rc", m * n, ut.dtype).reshape(m, n)
-    np.matmul(ut[:, :m].T, vt[:, m:], out=s_rc)
+    small = m * n <= _SMALL_PAIRS
+    if small:
+        # few pairs (the tracker's re-searches for a handful of lost pins): the
+        # exact negative squared distances, without the product's set-up
+        dx = np.subtract.outer(r[:, 0], c[:, 0])
+        dy = np.subtract.outer(r[:, 1], c[:, 1])
+        dx *= dx
+        dy *= dy
+        s_rc = np.negative(dx + dy, out=dx)
+    else:
+        ut, vt = _homogeneous(r, c)
+        s_rc = _SCRATCH.get("s_rc", m * n, ut.dtype).reshape(m, n)
+        np.matmul(ut[:, :m].T, vt[:, m:], out=s_rc)
     nn_r = s_rc.argmax(axis=1)
-    d = r - c[nn_r]
-    d *= d
-    d2 = d[:, 0] + d[:, 1]
+    if small:
+        d2 = -s_rc.max(axis=1)             # the exact distances already
+    else:
+        d = r - c[nn_r]
+        d *= d
+        d2 = d[:, 0] + d[:, 1]
     reach = d2 <= max_d2
     hits = nn_r[reach]
     if np.bincount(hits, minlength=n).max(initial=0) <= 1:
         idx[reach] = hits
         return
-    s_cr = _SCRATCH.get("s_cr", m * n, ut.dtype).reshape(n, m)
-    np.matmul(ut[:, m:].T, vt[:, :m], out=s_cr)
+    if small:
+        s_cr = s_rc.T
+    else:
+        s_cr = _SCRATCH.get("s_cr", m * n, ut.dtype).reshape(n, m)
+        np.matmul(ut[:, m:].T, vt[:, :m], out=s_cr)
     nn_c = s_cr.argmax(axis=1)
     rows = np.arange(m)
     cols = np.arange(n)
@@ -182,6 +203,16 @@ def mutual_match(pred: np.ndarray, det: np.ndarray, gate_px: float) -> np.ndarra
     rows = np.arange(len(pred))
     ok = (back[fwd] == rows) & (d2[rows, fwd] <= gate_px * gate_px)
     idx[ok] = fwd[ok]
+    return idx
+
+
+def match_pins_unchecked(ref: np.ndarray, cur: np.ndarray, max_dist_px: float) -> np.ndarray:
+    """:func:`match_pins` for callers that already hold float64 (m, 2) and (n, 2)
+    arrays of usable rows (finite, within ``MAX_COORD_PX``) and a positive gate:
+    the same answer without the argument checks (the tracker's inner loop)."""
+    idx = np.full(ref.shape[0], -1, np.int64)
+    if ref.shape[0] and cur.shape[0]:
+        _match_finite(ref, cur, max_dist_px * max_dist_px, idx)
     return idx
 
 

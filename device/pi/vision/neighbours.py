@@ -16,10 +16,11 @@ import math
 import numpy as np
 
 from device.checks import finite_number, positive_number, whole_number
-from device.pi.vision.matching import all_rows_usable, as_points, match_pins, usable_rows
+from device.pi.vision.matching import (all_rows_usable, as_points, match_pins, match_pins_unchecked,
+                                       usable_rows)
 
 __all__ = ["layout_pitch_px", "nearest_neighbour_px", "layout_neighbours", "track_with_neighbours",
-           "match_and_grow", "neighbour_median", "neighbour_consistency"]
+           "match_and_grow", "neighbour_median", "neighbour_consistency", "column_median"]
 
 
 # --------------------------------------------------------------------------
@@ -98,6 +99,16 @@ def neighbour_consistency(disp: np.ndarray, ok: np.ndarray, nb: np.ndarray, vali
     return int(np.count_nonzero(good))
 
 
+def column_median(a: np.ndarray) -> np.ndarray:
+    """``np.median(a, axis=0)`` of a non-empty, finite (k, d) array, the same numbers
+    at a fraction of the cost for the few dozen rows the tracker has."""
+    s = np.sort(a, axis=0)
+    k = s.shape[0]
+    if k % 2:
+        return s[k // 2].copy()
+    return (s[k // 2 - 1] + s[k // 2]) / 2.0
+
+
 def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.ndarray,
                       rows: np.ndarray | None = None):
     """Per pin, the median of ``obs`` over its valid, tracked neighbours.
@@ -112,14 +123,14 @@ def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.
     use = valid & ok[nb]                                  # (r, k)
     count = use.sum(axis=1)
     med = np.zeros((nb.shape[0], obs.shape[1]), np.float64)
-    has = np.flatnonzero(count)
-    if has.size:
-        vals = obs[nb[has]]                                # (h, k, d)
-        vals[~use[has]] = np.inf                           # inf sorts last
-        vals.sort(axis=1)
-        c = count[has]
-        ar = np.arange(has.size)
-        med[has] = 0.5 * (vals[ar, (c - 1) // 2] + vals[ar, c // 2])
+    vals = obs[nb]                                         # (r, k, d)
+    vals[~use] = np.inf                                    # inf sorts last
+    vals.sort(axis=1)
+    ar = np.arange(nb.shape[0])
+    lo = np.maximum(count - 1, 0) // 2
+    both = vals[ar, lo] + vals[ar, count // 2]             # inf where no neighbour is tracked
+    has = count > 0
+    np.multiply(both, 0.5, out=med, where=has[:, None])
     return med, count
 
 
@@ -130,6 +141,9 @@ def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.
 #: Annealing schedule of the coarse soft matching, in units of the pin pitch.
 _ANNEAL_START = 3.0
 _ANNEAL_END = 0.1
+#: The soft matching's exponents are floored here: exp(-87) is float32's smallest
+#: normal number, so no weight is subnormal.
+_EXP_FLOOR = np.float32(-87.0)
 #: Passes with the full gate over the pins the half-gate growth left lost.
 _FINAL_ROUNDS = 4
 
@@ -191,6 +205,10 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         np.matmul(hp, hc, out=k)
         np.maximum(k, 0.0, out=k)              # rounding can dip below 0
         k *= np.float32(-0.5 / (sigma * sigma))
+        # weights below float32's smallest normal number would be subnormal, and
+        # arithmetic on subnormals is tens of times slower on most CPUs: floor the
+        # exponent there (a weight of 1e-38 against the slack's 1e-2 changes nothing)
+        np.maximum(k, _EXP_FLOOR, out=k)
         np.exp(k, out=k)
         k[~use] = 0.0
         np.copyto(kt, k.T)
@@ -334,16 +352,24 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
        neighbour prediction, or, when the growth never reached it, at its own
        prediction corrected by the median error of all tracked pins.
 
-    ``disp`` (m, 2) float64 is written in place (it may be ``pred``): the
+    ``c`` (n, 2) float64 holds usable rows only (finite, within
+    ``MAX_COORD_PX``: both callers drop the others first). ``disp`` (m, 2)
+    float64 is written in place (it may be ``pred``): the
     measured displacement of tracked pins and the best prediction of lost
     ones. Returns ``idx`` and the number of confident matches of step 1.
     """
     prior = np.array(pred, dtype=np.float64)            # the caller's prediction, kept
-    prior[~fin_r] = 0.0
+    all_fin = bool(fin_r.all())
+    if not all_fin:
+        prior[~fin_r] = 0.0
     pos = r + prior
-    pos[~fin_r] = np.nan
+    if not all_fin:
+        pos[~fin_r] = np.nan
+    # every position usable (the tracker's case, and the current pins are checked
+    # by the caller): the matching skips its argument checks
+    match = match_pins_unchecked if all_fin and all_rows_usable(pos) else match_pins
     disp[:] = prior
-    idx = match_pins(pos, c, 0.5 * gate)
+    idx = match(pos, c, 0.5 * gate)
     ok = idx >= 0
     n_ok = int(np.count_nonzero(ok))
     if n_ok < 0.5 * np.count_nonzero(fin_r):
@@ -353,11 +379,11 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         # Kept when it catches more pins confidently and keeps most of the
         # pins already caught (a prior that is right for part of the layout
         # is not overruled by the rest).
-        wide = match_pins(pos, c, 1.25 * gate)
+        wide = match(pos, c, 1.25 * gate)
         hit = wide >= 0
         if hit.any():
             shift = np.median(c[wide[hit]] - pos[hit], axis=0)
-            idx2 = match_pins(pos + shift, c, 0.5 * gate)
+            idx2 = match(pos + shift, c, 0.5 * gate)
             ok2 = idx2 >= 0
             n2 = int(np.count_nonzero(ok2))
             kept = int(np.count_nonzero(idx2[ok] == idx[ok]))
@@ -372,10 +398,14 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     free = np.ones(c.shape[0], bool)
     free[idx[ok]] = False
 
+    supported = np.zeros(r.shape[0], bool)   # lost pins with min_support tracked neighbours
+
     def predict(rows):
-        """Neighbour predictions of lost ``rows``: written to disp; returns support mask."""
+        """Neighbour predictions of lost ``rows``: written to disp and ``supported``;
+        returns the support mask of ``rows``."""
         med, count = neighbour_median(np.hstack([err, disp]), ok, nb, valid, rows)
         sup = count >= min_support
+        supported[rows] = sup
         if sup.any():
             s_rows = rows[sup]
             own = prior[s_rows] + med[sup, :2]
@@ -388,7 +418,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     def take(rows, g):
         """Match ``rows`` at disp against the free pins (gate g); returns the rows caught."""
         fc = np.flatnonzero(free)
-        sub = match_pins(r[rows] + disp[rows], c[fc], g)
+        sub = match(r[rows] + disp[rows], c[fc], g)
         hit = sub >= 0
         got = rows[hit]
         idx[got] = fc[sub[hit]]
@@ -399,15 +429,27 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         return got
 
     n_pred = -1                       # tracked count when the lost pins were last predicted
-    sup = None
+    rows = np.flatnonzero(~ok & fin_r)
+    newly = np.zeros(r.shape[0], bool)
     for _ in range(grow_rounds):
-        lost = np.flatnonzero(~ok & fin_r)
-        if lost.size == 0 or not ok.any():
+        if rows.size == 0 or not ok.any():
             break
-        sup = predict(lost)
+        sup = predict(rows)
         n_pred = int(np.count_nonzero(ok))
-        if not sup.any() or not free.any() or take(lost[sup], 0.5 * gate).size == 0:
+        if not sup.any() or not free.any():
             break
+        got = take(rows[sup], 0.5 * gate)
+        if got.size == 0:
+            break
+        # Only a lost pin with a newly tracked neighbour can be predicted anew; the
+        # others keep the prediction that found no free pin within the gate (and
+        # there are fewer free pins now), so they are not searched again.
+        newly[:] = False
+        newly[got] = True
+        lost = np.flatnonzero(~ok & fin_r)
+        rows = lost[(valid[lost] & newly[nb[lost]]).any(axis=1)]
+        if rows.size == 0:
+            n_pred = int(np.count_nonzero(ok))   # every lost pin's prediction is current
     for _ in range(_FINAL_ROUNDS):
         # last passes over every pin still lost: the neighbour prediction where
         # there is one, else the pin's own prediction corrected by the median
@@ -417,11 +459,11 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         if lost.size == 0 or n_now == 0:
             break
         if n_now != n_pred:
-            sup = predict(lost)
+            predict(lost)
             n_pred = n_now
-        if n_now >= 3:                                  # a common error needs a few pins
-            far = lost[~sup]
-            disp[far] = prior[far] + np.median(err[ok], axis=0)
+        far = lost[~supported[lost]]
+        if n_now >= 3 and far.size:                     # a common error needs a few pins
+            disp[far] = prior[far] + column_median(err[ok])
         if not free.any() or take(lost, gate).size == 0:
             break
     return idx, n_confident

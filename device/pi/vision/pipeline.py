@@ -20,7 +20,7 @@ import numpy as np
 
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_LOCALISER,
                               FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
-from device.pi.vision.features import ContactGrid, average_vector, magnitude_sum
+from device.pi.vision.features import ContactGrid, shear_and_sum
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
 from device.pi.vision.tracking import Tracker
@@ -208,8 +208,7 @@ class MarkerStream:
         t5 = clock()
         timings["grid"] = (t5 - t4) * 1e3
         valid = ~lost
-        sx, sy = average_vector(vectors, valid)
-        msum = magnitude_sum(vectors, valid)
+        sx, sy, msum = shear_and_sum(vectors, valid)
         n_valid = int(valid.sum())
         mean_mag = msum / n_valid if n_valid else 0.0
         contact = bool(self.reference is not None

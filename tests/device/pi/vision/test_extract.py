@@ -148,6 +148,24 @@ def test_detector_crop_matches_full_frame_pipeline():
         det.detect(frame[:-1])
 
 
+@pytest.mark.parametrize("dx, dy", [(0, 0), (1, 0), (0, 1), (1, 1)])
+def test_detector_odd_and_even_crops_find_the_same_pins(dx, dy):
+    """The dome box's sides are odd or even with the dome's centre; the labelling's
+    padded buffer must not change what is found, and ``binary`` stays the box."""
+    frame = render(ring_layout())
+    dome = find_dome(frame)
+    p = SYNTH_PARAMS
+    det = PinDetector(p, frame.shape, (dome[0] + 0.5 * dx, dome[1] + 0.5 * dy, dome[2] + 0.5 * dx))
+    xy, areas = det.detect(frame)
+    x0, y0, x1, y1 = det.box
+    assert det.binary.shape == (y1 - y0, x1 - x0)
+    ref_xy, ref_areas = extract_pins(np.ascontiguousarray(det.binary), p.min_area_px,
+                                     p.max_area_px)
+    assert len(xy) == len(ring_layout())
+    np.testing.assert_array_equal(xy, ref_xy + np.float32([x0, y0]))
+    np.testing.assert_array_equal(areas, ref_areas)
+
+
 # --------------------------------------------------------------------------
 # Property tests: degenerate frames never break the front end
 # --------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from device.pi.vision.features import (ContactGrid, average_vector, direction_deg, magnitude_sum,
-                                vector_features)
+                                shear_and_sum, vector_features)
 
 
 def test_grid_marks_the_changed_cell_and_fades_by_gamma():
@@ -93,6 +93,7 @@ def test_average_vector_direction_and_magnitude_sum():
 def test_vector_features_are_finite_for_any_input(v):
     ax, ay = average_vector(v)
     s = magnitude_sum(v)
+    assert shear_and_sum(v) == (ax, ay, s)          # one pass, the same numbers
     finite = np.isfinite(v).all(axis=1)
     assert math.isfinite(ax) and math.isfinite(ay) and math.isfinite(s)
     assert math.isfinite(direction_deg(ax, ay))

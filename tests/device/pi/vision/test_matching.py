@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision.matching import match_pins, mutual_match
+from device.pi.vision.matching import match_pins, match_pins_unchecked, mutual_match
 from tests.pins import hex_pins
 from tests.pins import points
 
@@ -156,6 +156,23 @@ def test_match_permutation_dropout_duplicates(n, seed, drop, n_dup, n_extra):
     hit = idx >= 0
     assert set(np.flatnonzero(hit)) == set(keep.tolist())
     assert (ids[idx[hit]] == np.flatnonzero(hit)).all()
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(m=st.integers(1, 160), n=st.integers(1, 160), seed=st.integers(0, 2**31 - 1),
+       gate=st.floats(0.5, 30.0))
+def test_unchecked_matching_is_the_greedy_answer_small_and_large(m, n, seed, gate):
+    """Few pairs take the exact-distance path, many the matrix-product path: both
+    give the slow greedy answer (integer coordinates: no ties within rounding are
+    possible unless exact, and exact ties are avoided by distinct offsets)."""
+    rng = np.random.default_rng(seed)
+    ref = rng.integers(0, 400, (m, 2)).astype(np.float64) + rng.random((m, 2)) * 1e-3
+    cur = np.vstack([ref[rng.permutation(m)[:min(m, n)]] + rng.normal(0, gate / 2, (min(m, n), 2)),
+                     rng.uniform(0, 400, (max(0, n - m), 2))])
+    idx = match_pins_unchecked(ref, cur, gate)
+    check_greedy(ref, cur, gate, idx)
+    assert (idx == match_pins(ref, cur, gate)).all()
+    assert (idx == greedy_reference(ref, cur, gate)).all()
 
 
 def test_mutual_match_keeps_only_pairs_that_choose_each_other():

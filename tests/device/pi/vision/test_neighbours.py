@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from device.pi.vision.matching import match_pins
-from device.pi.vision.neighbours import layout_neighbours, layout_pitch_px, track_with_neighbours
+from device.pi.vision.neighbours import (column_median, layout_neighbours, layout_pitch_px,
+                                         neighbour_median, track_with_neighbours)
 from tests.pins import hex_pins
 from tests.pins import big_deformation, points
 
@@ -114,3 +115,27 @@ def test_nearest_neighbour_px_is_the_one_copy_and_skips_unusable_rows():
     assert nearest_neighbour_px(np.zeros((1, 2))).shape == (0,)
     assert layout_pitch_px(xy) == 3.0
     assert frames.nearest_neighbour_px is nearest_neighbour_px
+
+
+@settings(max_examples=60, deadline=None)
+@given(k=st.integers(1, 60), d=st.integers(1, 4), seed=st.integers(0, 2**31 - 1))
+def test_column_median_is_numpys_median(k, d, seed):
+    a = np.random.default_rng(seed).normal(0, 5, (k, d)).round(1)    # ties included
+    np.testing.assert_array_equal(column_median(a), np.median(a, axis=0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(m=st.integers(2, 40), seed=st.integers(0, 2**31 - 1), frac=st.floats(0.0, 1.0))
+def test_neighbour_median_matches_a_slow_reference(m, seed, frac):
+    rng = np.random.default_rng(seed)
+    ref = rng.uniform(0, 100, (m, 2))
+    nb, valid = layout_neighbours(ref, 6)
+    obs = rng.normal(0, 3, (m, 4))
+    ok = rng.random(m) < frac
+    rows = np.flatnonzero(rng.random(m) < 0.6)
+    med, count = neighbour_median(obs, ok, nb, valid, rows)
+    for j, i in enumerate(rows):
+        use = [n for n, v in zip(nb[i], valid[i]) if v and ok[n]]
+        assert count[j] == len(use)
+        want = np.median(obs[use], axis=0) if use else np.zeros(4)
+        np.testing.assert_allclose(med[j], want, rtol=0, atol=1e-12)
