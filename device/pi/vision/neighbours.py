@@ -143,7 +143,7 @@ _ANNEAL_START = 3.0
 _ANNEAL_END = 0.1
 #: The soft matching's exponents are floored here: exp(-87) is float32's smallest
 #: normal number, so no weight is subnormal.
-_EXP_FLOOR = np.float32(-87.0)
+_EXP_FLOOR = np.float32(-60.0)
 #: Passes with the full gate over the pins the half-gate growth left lost.
 _FINAL_ROUNDS = 4
 
@@ -191,6 +191,7 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     hc[:2] = -2.0 * cur32.T
     hc[2] = (cur32 * cur32).sum(axis=1)
     col = np.ones(n, np.float32)
+    row = np.empty(m, np.float32)
     k = np.empty((m, n), np.float32)
     kt = np.empty((n, m), np.float32)          # k transposed, contiguous: fast products
     # the neighbour graph as a dense (m, m) matrix: one product sums neighbours
@@ -198,6 +199,7 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     rows = np.repeat(np.arange(m), nb.shape[1])
     np.add.at(adj, (rows[valid.ravel()], nb.ravel()[valid.ravel()]), 1.0)
     deg = adj.sum(axis=1)
+    diag = np.diag_indices(m)
     for sigma in np.geomspace(start, _ANNEAL_END, steps) * pitch:
         pos = ref + v - origin
         hp[:, :2] = pos
@@ -213,8 +215,12 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         k[~use] = 0.0
         np.copyto(kt, k.T)
         for _ in range(sinkhorn_iters):          # warm-started column scaling
-            row = 1.0 / (k @ col + kappa)
-            col = 1.0 / (kt @ row + kappa)
+            np.matmul(k, col, out=row)
+            row += kappa
+            np.reciprocal(row, out=row)
+            np.matmul(kt, row, out=col)
+            col += kappa
+            np.reciprocal(col, out=col)
         k *= row[:, None]
         k *= col[None, :]
         w = k.sum(axis=1, dtype=np.float64)    # matched mass of each pin, <= ~1
@@ -224,9 +230,15 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         lam = smooth * sigma / pitch
         if lam <= 0.0:
             continue
-        den = (w + lam * deg + 1e-12)[:, None]
-        for _ in range(smooth_iters):           # Jacobi sweeps from the data
-            v = (wt + lam * (adj @ v) + 1e-12 * v) / den
+        # Jacobi sweeps from the data, v <- (wt + lam adj v + eps v) / den, as
+        # v <- a + B v with the constant parts folded once per temperature
+        inv = 1.0 / (w + lam * deg + 1e-12)
+        a = wt * inv[:, None]
+        B = adj * (lam * inv)[:, None]
+        B[diag] += 1e-12 * inv
+        for _ in range(smooth_iters):
+            v = np.matmul(B, v)
+            v += a
     return v
 
 
