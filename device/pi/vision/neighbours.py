@@ -192,6 +192,8 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
     hc[2] = (cur32 * cur32).sum(axis=1)
     col = np.ones(n, np.float32)
     row = np.empty(m, np.float32)
+    cc = np.empty((n, 3), np.float32)          # [x * col, y * col, col] of the current pins
+    all_used = bool(np.all(use))
     k = np.empty((m, n), np.float32)
     kt = np.empty((n, m), np.float32)          # k transposed, contiguous: fast products
     # the neighbour graph as a dense (m, m) matrix: one product sums neighbours
@@ -212,7 +214,8 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         # exponent there (a weight of 1e-38 against the slack's 1e-2 changes nothing)
         np.maximum(k, _EXP_FLOOR, out=k)
         np.exp(k, out=k)
-        k[~use] = 0.0
+        if not all_used:
+            k[~use] = 0.0
         np.copyto(kt, k.T)
         for _ in range(sinkhorn_iters):          # warm-started column scaling
             np.matmul(k, col, out=row)
@@ -221,10 +224,13 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
             np.matmul(kt, row, out=col)
             col += kappa
             np.reciprocal(col, out=col)
-        k *= row[:, None]
-        k *= col[None, :]
-        w = k.sum(axis=1, dtype=np.float64)    # matched mass of each pin, <= ~1
-        wt = (k @ cur32).astype(np.float64) + w[:, None] * (origin - ref)   # w * (target - ref)
+        # the scaled weights diag(row) k diag(col), read through two products
+        # instead of being formed
+        cc[:, :2] = cur32 * col[:, None]
+        cc[:, 2] = col
+        kc = (k @ cc).astype(np.float64) * row[:, None].astype(np.float64)
+        w = kc[:, 2]                           # matched mass of each pin, <= ~1
+        wt = kc[:, :2] + w[:, None] * (origin - ref)   # w * (target - ref)
         has = w > 1e-12
         v[has] = wt[has] / w[has, None]        # the data term's own answer
         lam = smooth * sigma / pitch
