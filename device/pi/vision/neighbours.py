@@ -438,6 +438,8 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         fc = np.flatnonzero(free)
         sub = match(r[rows] + disp[rows], c[fc], g)
         hit = sub >= 0
+        if not hit.any():
+            return rows[:0]
         got = rows[hit]
         idx[got] = fc[sub[hit]]
         ok[got] = True
