@@ -386,7 +386,6 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     # every position usable (the tracker's case, and the current pins are checked
     # by the caller): the matching skips its argument checks
     match = match_pins_unchecked if all_fin and all_rows_usable(pos) else match_pins
-    disp[:] = prior
     idx = match(pos, c, 0.5 * gate)
     ok = idx >= 0
     n_ok = int(np.count_nonzero(ok))
@@ -410,18 +409,22 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
                 pos += shift
                 idx, ok, n_ok = idx2, ok2, n2
     n_confident = n_ok
-    disp[:] = prior
-    disp[ok] = c[idx[ok]] - r[ok]
-    err = disp - prior                                   # prediction error (0 for lost pins)
+    # the prediction errors and the displacements side by side (one array for the
+    # neighbour medians): measured for tracked pins, predicted for lost ones
+    ed = np.empty((r.shape[0], 4))
+    err, dd = ed[:, :2], ed[:, 2:]
+    dd[:] = prior
+    dd[ok] = c[idx[ok]] - r[ok]
+    np.subtract(dd, prior, out=err)                      # prediction error (0 for lost pins)
     free = np.ones(c.shape[0], bool)
     free[idx[ok]] = False
 
     supported = np.zeros(r.shape[0], bool)   # lost pins with min_support tracked neighbours
 
     def predict(rows):
-        """Neighbour predictions of lost ``rows``: written to disp and ``supported``;
+        """Neighbour predictions of lost ``rows``: written to dd and ``supported``;
         returns the support mask of ``rows``."""
-        med, count = neighbour_median(np.hstack([err, disp]), ok, nb, valid, rows)
+        med, count = neighbour_median(ed, ok, nb, valid, rows)
         sup = count >= min_support
         supported[rows] = sup
         if sup.any():
@@ -430,13 +433,13 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
             med_disp = med[sup, 2:]
             dev = own - med_disp
             agree = dev[:, 0] * dev[:, 0] + dev[:, 1] * dev[:, 1] <= gate * gate
-            disp[s_rows] = np.where(agree[:, None], own, med_disp)
+            dd[s_rows] = np.where(agree[:, None], own, med_disp)
         return sup
 
     def take(rows, g):
-        """Match ``rows`` at disp against the free pins (gate g); returns the rows caught."""
+        """Match ``rows`` at dd against the free pins (gate g); returns the rows caught."""
         fc = np.flatnonzero(free)
-        sub = match(r[rows] + disp[rows], c[fc], g)
+        sub = match(r[rows] + dd[rows], c[fc], g)
         hit = sub >= 0
         if not hit.any():
             return rows[:0]
@@ -444,8 +447,8 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         idx[got] = fc[sub[hit]]
         ok[got] = True
         free[idx[got]] = False
-        disp[got] = c[idx[got]] - r[got]
-        err[got] = disp[got] - prior[got]
+        dd[got] = c[idx[got]] - r[got]
+        err[got] = dd[got] - prior[got]
         return got
 
     n_pred = -1                       # tracked count when the lost pins were last predicted
@@ -483,7 +486,8 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
             n_pred = n_now
         far = lost[~supported[lost]]
         if n_now >= 3 and far.size:                     # a common error needs a few pins
-            disp[far] = prior[far] + column_median(err[ok])
+            dd[far] = prior[far] + column_median(err[ok])
         if not free.any() or take(lost, gate).size == 0:
             break
+    disp[:] = dd
     return idx, n_confident
