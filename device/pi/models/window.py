@@ -30,18 +30,25 @@ VECTOR_CLIP_PX = 64.0
 IMU_CLIP = np.array([16.0, 16.0, 16.0, 2000.0, 2000.0, 2000.0], np.float32)
 
 LAYOUTS = ("vectors", "grids", "frames")
+#: no value of any encoding is larger in size than this (the IMU's gyro clip)
+ENCODED_BOUND = float(max(VECTOR_CLIP_PX, IMU_CLIP.max(), 2.0))
 
 
 def _clean(a, clip) -> np.ndarray:
     return np.clip(finite(a), -clip, clip)
 
 
+def quantise_vectors(vectors) -> np.ndarray:
+    """Pin vectors as a model sees them: finite, clipped to VECTOR_CLIP_PX and
+    rounded to VECTOR_STEP_PX (float32, same shape)."""
+    return np.round(_clean(vectors, VECTOR_CLIP_PX) / VECTOR_STEP_PX) * VECTOR_STEP_PX
+
+
 def encode_vectors(vectors: np.ndarray, imu: np.ndarray | None = None) -> np.ndarray:
     """(N, T, M, 2) or (T, M, 2) vectors [+ (N, T, 6) or (T, 6) IMU] -> (N, D) float32."""
-    v = _clean(vectors, VECTOR_CLIP_PX)
+    v = quantise_vectors(vectors)
     if v.ndim == 3:
         v = v[None]
-    v = np.round(v / VECTOR_STEP_PX) * VECTOR_STEP_PX
     x = v.reshape(v.shape[0], -1)
     if imu is not None:
         m = _clean(imu, IMU_CLIP)
@@ -82,7 +89,12 @@ def encode(layout: str, **parts) -> np.ndarray:
 
 class RollingWindow:
     """The last T frames of per-frame features, preallocated; the Pi pushes one
-    frame at a time and encodes the window when it is full."""
+    frame at a time and encodes the window when it is full.
+
+    The buffers are written by :meth:`push` only: it also keeps each frame's vectors
+    quantised and its IMU row clipped as it arrives, so the ``vectors`` encoding is
+    those rows put together, the same numbers as :func:`encode_vectors` on the
+    whole window without redoing T frames each time."""
 
     def __init__(self, T: int, n_pins: int, grid_n: int = 8, frame_size: int = 32):
         if not isinstance(T, (int, np.integer)) or T < 1:
@@ -92,6 +104,8 @@ class RollingWindow:
         self.imu = np.zeros((self.T, 6), np.float32)
         self.grids = np.zeros((self.T, grid_n, grid_n), np.float32)
         self.frames = np.zeros((self.T, frame_size, frame_size), np.uint8)
+        self._qvectors = np.zeros((self.T, n_pins * 2), np.float32)
+        self._qimu = np.zeros((self.T, 6), np.float32)
         self.count = 0
         # encodings of the current contents, by (layout, with_imu): several models
         # with the same window read one encoding per frame; push/clear drop them
@@ -113,6 +127,10 @@ class RollingWindow:
                 buf[-1] = 0
             else:
                 buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
+        for buf in (self._qvectors, self._qimu):
+            buf[:-1] = buf[1:]
+        self._qvectors[-1] = quantise_vectors(self.vectors[-1]).reshape(-1)
+        self._qimu[-1] = _clean(self.imu[-1], IMU_CLIP)
         self.count += 1
         self._encoded.clear()
 
@@ -122,8 +140,13 @@ class RollingWindow:
         key = (layout, bool(with_imu))
         x = self._encoded.get(key)
         if x is None:
-            x = encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
-                       grids=self.grids, frames=self.frames)
+            if layout == "vectors":
+                x = self._qvectors.reshape(1, -1)
+                x = np.concatenate([x, self._qimu.reshape(1, -1)], axis=1) if with_imu \
+                    else x.copy()
+            else:
+                x = encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
+                           grids=self.grids, frames=self.frames)
             x.flags.writeable = False
             self._encoded[key] = x
         return x
