@@ -6,6 +6,7 @@ import math
 import numpy as np
 
 from device.pi.models.artefact import ModelError, load_model
+from device.pi.numerics import finite
 
 
 class Regressor:
@@ -54,7 +55,7 @@ class Regressor:
         if f.size != self.n_features:
             raise ModelError(f"{self.model.path}: expects {self.n_features} features, "
                              f"got {f.size}")
-        x[0] = np.nan_to_num(f, nan=0.0, posinf=0.0, neginf=0.0)
+        x[0] = finite(f)
         if self._lo is not None:
             np.clip(x, self._lo, self._hi, out=x)
         y = float(np.asarray(self.model.run(x)[0]).reshape(-1)[0])

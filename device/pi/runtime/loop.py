@@ -282,13 +282,14 @@ class LegRuntime:
 
     def _auto_rezero(self, v, lost, contact: bool, gait) -> None:
         rz = self.cfg.rezero
-        ok = ~lost
-        step = (float(np.hypot(*(v[ok] - self._prev_v[ok]).T).mean()) if ok.any() else 0.0)
-        self._prev_v[:] = v
         if not rz.auto or gait is None or gait["stance"] or contact \
                 or self.stream.reference is None:
+            self._prev_v[:] = v
             self._still = 0
             return
+        ok = ~lost          # the step is only measured when it can lead to a re-zero
+        step = (float(np.hypot(*(v[ok] - self._prev_v[ok]).T).mean()) if ok.any() else 0.0)
+        self._prev_v[:] = v
         self._still = self._still + 1 if step < rz.still_px else 0
         if self._still >= rz.still_frames and \
                 self.clock() - self._last_rezero >= rz.min_interval_s:

@@ -113,3 +113,20 @@ def test_a_window_reaches_the_model_as_predict_would_clean_it(small_classifier, 
     k, p = clf.predict_window(w)
     k2, p2 = clf.predict(x)
     assert k == k2 and np.array_equal(p, p2)
+
+
+def test_each_prediction_reads_its_own_input(small_model):
+    """The session reads the classifier's input buffer at every run (bound once, on
+    the first): predictions in a row match ONNX Runtime's plain run on each input."""
+    clf = Classifier.load(small_model[1])
+    sess = clf.model.session
+    out_name = sess.get_outputs()[-1].name
+    rng = np.random.default_rng(1)
+    seen = set()
+    for _ in range(6):
+        x = rng.normal(0.0, 3.0, (1,) + clf.input_shape).astype(np.float32)
+        k, p = clf.predict(x)
+        want = clf.probabilities_from_output(sess.run([out_name], {clf.model.input_name: x})[0])
+        assert np.array_equal(p, want) and k == int(np.argmax(want))
+        seen.add(tuple(np.round(p, 6)))
+    assert len(seen) > 1                      # the inputs did give different outputs
