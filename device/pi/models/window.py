@@ -139,19 +139,66 @@ class RollingWindow:
         self.count += 1
         self._encoded.clear()
 
-    def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
-        """The model input for the current T frames (read-only; computed once per
-        push for each layout)."""
-        key = (layout, bool(with_imu))
+    def encode(self, layout: str, with_imu: bool = False, last: int | None = None) -> np.ndarray:
+        """The model input for the current T frames, or the newest ``last`` of them
+        (read-only; computed once per push for each layout)."""
+        n = self.T if last is None else int(last)
+        key = (layout, bool(with_imu), n)
         x = self._encoded.get(key)
         if x is None:
             if layout == "vectors":
-                x = self._qvectors.reshape(1, -1)
-                x = np.concatenate([x, self._qimu.reshape(1, -1)], axis=1) if with_imu \
+                x = self._qvectors[-n:].reshape(1, -1)
+                x = np.concatenate([x, self._qimu[-n:].reshape(1, -1)], axis=1) if with_imu \
                     else x.copy()
             else:
-                x = encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
-                           grids=self.grids, frames=self.frames)
+                x = encode(layout, vectors=self.vectors[-n:],
+                           imu=self.imu[-n:] if with_imu else None,
+                           grids=self.grids[-n:], frames=self.frames[-n:])
             x.flags.writeable = False
             self._encoded[key] = x
         return x
+
+
+class WindowTail:
+    """The newest T frames of a longer :class:`RollingWindow`, read in place: models
+    of several T read one window that is pushed once per frame. Full once the
+    window has had T pushes since it was cleared; pushed through the window only."""
+
+    def __init__(self, window: RollingWindow, T: int):
+        if isinstance(T, bool) or not isinstance(T, (int, np.integer)) or not 1 <= T <= window.T:
+            raise ValueError(f"a tail's T must be a whole number 1..{window.T}, got {T!r}")
+        self.window = window
+        self.T = int(T)
+
+    @property
+    def count(self) -> int:
+        return self.window.count
+
+    @property
+    def full(self) -> bool:
+        return self.window.count >= self.T
+
+    def clear(self) -> None:
+        self.window.clear()
+
+    def push(self, **parts) -> None:
+        raise TypeError("a WindowTail is read only: push its RollingWindow")
+
+    def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
+        return self.window.encode(layout, with_imu, last=self.T)
+
+    @property
+    def vectors(self) -> np.ndarray:
+        return self.window.vectors[-self.T:]
+
+    @property
+    def imu(self) -> np.ndarray:
+        return self.window.imu[-self.T:]
+
+    @property
+    def grids(self) -> np.ndarray:
+        return self.window.grids[-self.T:]
+
+    @property
+    def frames(self) -> np.ndarray:
+        return self.window.frames[-self.T:]
