@@ -29,7 +29,8 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, load_model, model_file, read_manifest
+from device.pi.models.artefact import (BoundRun, ModelError, load_model, model_file,
+                                       read_manifest)
 from device.pi.models.rules import RuleClassifier
 from device.pi.numerics import finite, sigmoid, softmax
 
@@ -122,8 +123,7 @@ class Classifier:
         self._out_index = names.index(want) if want in names else len(names) - 1
         self._out_name = names[self._out_index]
         self._x = np.zeros((1,) + self.input_shape, np.float32)
-        self._binding = None          # the I/O binding, set up by the first run
-        self._out = None
+        self._runner = BoundRun(sess, model.input_name, self._x, self._out_name)
         self.fault = False
 
     @classmethod
@@ -162,37 +162,13 @@ class Classifier:
         return a
 
     def _run(self) -> tuple[int, np.ndarray]:
-        """The model on the input buffer, which holds finite values within INPUT_CLIP.
-        After the first call the session reads that buffer and writes its output into
-        a preallocated one (an ONNX Runtime I/O binding): no per-call feed dict,
-        input checks or output allocation."""
-        sess = self.model.session
+        """The model on the input buffer, which holds finite values within INPUT_CLIP."""
         try:
-            if self._binding:
-                sess.run_with_iobinding(self._binding)
-                out = self._out
-            else:
-                out = sess.run([self._out_name], {self.model.input_name: self._x})[0]
-                if self._binding is None:
-                    self._bind(np.asarray(out))
+            out = self._runner()
         except Exception as exc:  # onnxruntime's own exception types
             raise ModelError(f"{self.onnx_path}: ONNX Runtime failed: {exc}") from None
         probs = self.probabilities_from_output(out)
         return int(np.argmax(probs)), probs
-
-    def _bind(self, out: np.ndarray) -> None:
-        """Bind the input buffer and an output buffer shaped as ``out``; a session
-        without I/O binding keeps ``run``."""
-        try:
-            b = self.model.session.io_binding()
-            b.bind_cpu_input(self.model.input_name, self._x)
-            self._out = np.empty(out.shape, out.dtype)
-            b.bind_output(self._out_name, "cpu", 0, self._out.dtype, list(self._out.shape),
-                          self._out.ctypes.data)
-        except Exception:
-            self._binding = False
-            return
-        self._binding = b
 
     def probabilities_from_output(self, out) -> np.ndarray:
         """The model's raw output for one window -> cleaned probabilities (C,)."""
