@@ -5,7 +5,7 @@ costs ~2 µs, and on the Pi almost every array is clean. :func:`finite` gives th
 result as ``np.nan_to_num(a, nan=, posinf=, neginf=)`` (a float array, NaN and inf
 replaced) and only pays for the replacement when something needs replacing.
 :func:`softmax` and :func:`sigmoid` are finite for any input; :func:`sigmoid1` is
-:func:`sigmoid` of one Python float, the same number for a fraction of the calls.
+:func:`sigmoid` of one Python float: the same number at a fraction of the cost.
 """
 from __future__ import annotations
 

@@ -143,6 +143,8 @@ class RollingWindow:
         """The model input for the current T frames, or the newest ``last`` of them
         (read-only; computed once per push for each layout)."""
         n = self.T if last is None else int(last)
+        if not 1 <= n <= self.T:
+            raise ValueError(f"last must be 1..{self.T} frames, got {last!r}")
         key = (layout, bool(with_imu), n)
         x = self._encoded.get(key)
         if x is None:
