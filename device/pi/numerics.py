@@ -4,9 +4,12 @@
 costs ~2 µs, and on the Pi almost every array is clean. :func:`finite` gives the same
 result as ``np.nan_to_num(a, nan=, posinf=, neginf=)`` (a float array, NaN and inf
 replaced) and only pays for the replacement when something needs replacing.
-:func:`softmax` and :func:`sigmoid` are finite for any input.
+:func:`softmax` and :func:`sigmoid` are finite for any input; :func:`sigmoid1` is
+:func:`sigmoid` of one Python float: the same number at a fraction of the cost.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -49,3 +52,18 @@ def sigmoid(z) -> np.ndarray:
     z = _clean_logits(z)
     e = np.exp(-np.abs(z))
     return np.where(z >= 0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
+def sigmoid1(z: float) -> float:
+    """``float(sigmoid(z))`` for one number: the same cleaning (NaN -> 0, +-inf and
+    beyond -> +-LOGIT_CLIP) and the same arithmetic, with numpy's ``exp`` (libm's
+    ``math.exp`` may differ in the last bit), so the result is identical."""
+    z = float(z)
+    if math.isnan(z):
+        z = 0.0
+    elif z > LOGIT_CLIP:
+        z = LOGIT_CLIP
+    elif z < -LOGIT_CLIP:
+        z = -LOGIT_CLIP
+    e = float(np.exp(-abs(z)))
+    return 1.0 / (1.0 + e) if z >= 0 else e / (1.0 + e)

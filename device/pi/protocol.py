@@ -14,6 +14,7 @@ can import it without numpy.
 """
 from __future__ import annotations
 
+import binascii
 import math
 import struct
 from dataclasses import dataclass
@@ -70,7 +71,10 @@ _CRC_TABLE = _crc_table()
 
 
 def crc16(data, crc: int = 0xFFFF) -> int:
-    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, xorout 0)."""
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, xorout 0): the CRC
+    binascii.crc_hqx computes, from the given start value."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return binascii.crc_hqx(data, crc)
     t = _CRC_TABLE
     for b in data:
         crc = ((crc << 8) & 0xFFFF) ^ t[((crc >> 8) ^ b) & 0xFF]
@@ -80,6 +84,13 @@ def crc16(data, crc: int = 0xFFFF) -> int:
 def cobs_encode(data) -> bytes:
     """COBS-encode ``data`` (no zero bytes in the result; the delimiter is not added)."""
     data = bytes(data)
+    if len(data) < 0xFE:
+        # no block can reach 254 bytes: each zero ends a block, coded by its length + 1
+        out = bytearray()
+        for block in data.split(b"\x00"):
+            out.append(len(block) + 1)
+            out += block
+        return bytes(out)
     out = bytearray([0])
     code_at, code = 0, 1
     last = len(data) - 1

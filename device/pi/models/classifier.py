@@ -29,7 +29,8 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, load_model, model_file, read_manifest
+from device.pi.models.artefact import (BoundRun, ModelError, load_model, model_file,
+                                       read_manifest)
 from device.pi.models.rules import RuleClassifier
 from device.pi.numerics import finite, sigmoid, softmax
 
@@ -122,6 +123,7 @@ class Classifier:
         self._out_index = names.index(want) if want in names else len(names) - 1
         self._out_name = names[self._out_index]
         self._x = np.zeros((1,) + self.input_shape, np.float32)
+        self._runner = BoundRun(sess, model.input_name, self._x, self._out_name)
         self.fault = False
 
     @classmethod
@@ -146,16 +148,23 @@ class Classifier:
         """(class id, probabilities (C,) float64) for one encoded window: (D,), (1, D)
         or the layout's (1, T, S, S). Finite for any values; a wrong size raises
         :class:`ModelError` naming the model file."""
+        a = self._sized(window_input)
+        np.clip(finite(a.reshape(-1), 0.0, INPUT_CLIP, -INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP,
+                out=self._x.reshape(-1))
+        return self._run()
+
+    def _sized(self, window_input) -> np.ndarray:
         a = np.asarray(window_input)
         if a.size != self.n_features:
             raise ModelError(f"{self.onnx_path}: expects an input of {self.n_features} values "
                              f"{self.input_shape}, got {a.size} (shape {a.shape}); build it "
                              f"with device.pi.models.window.encode({self.input_layout!r}, ...)")
-        x = self._x
-        np.clip(finite(a.reshape(-1), 0.0, INPUT_CLIP, -INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP,
-                out=x.reshape(-1))
+        return a
+
+    def _run(self) -> tuple[int, np.ndarray]:
+        """The model on the input buffer, which holds finite values within INPUT_CLIP."""
         try:
-            out = self.model.session.run([self._out_name], {self.model.input_name: x})[0]
+            out = self._runner()
         except Exception as exc:  # onnxruntime's own exception types
             raise ModelError(f"{self.onnx_path}: ONNX Runtime failed: {exc}") from None
         probs = self.probabilities_from_output(out)
@@ -165,6 +174,15 @@ class Classifier:
         """The model's raw output for one window -> cleaned probabilities (C,)."""
         o = np.asarray(out, dtype=np.float64).reshape(-1)
         C = self.n_classes
+        if self.output_kind == "probabilities" and o.size == C:
+            # the usual output: finite, in 0..1, not all 0. clean_probabilities changes
+            # nothing but the scale then, so this is its result (the same sum and
+            # division), without its copies and guards
+            if o.min() >= 0.0 and o.max() <= 1.0:        # False for a NaN
+                s = o.sum()
+                if s > 0:
+                    self.fault = False
+                    return o / s
         if self.output_kind == "logits":
             if o.size == C:
                 p = softmax(o)
@@ -190,8 +208,12 @@ class Classifier:
 
     def predict_window(self, window) -> tuple[int, np.ndarray]:
         """:meth:`predict` on a :class:`device.pi.models.window.RollingWindow`, encoded the
-        way the model was trained. The window must hold T frames."""
+        way the model was trained. The window must hold T frames. A window's encoding
+        is finite and within ``window.ENCODED_BOUND`` (<= INPUT_CLIP) for any pushed
+        values, so it goes to the model as it is, without :meth:`predict`'s cleaning."""
         if window.T != self.T:
             raise ModelError(f"{self.onnx_path}: the model sees T={self.T} frames, the "
                              f"window holds {window.T}")
-        return self.predict(window.encode(self.input_layout, with_imu=self.uses_imu))
+        a = self._sized(window.encode(self.input_layout, with_imu=self.uses_imu))
+        self._x.reshape(-1)[:] = a.reshape(-1)
+        return self._run()

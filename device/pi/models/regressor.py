@@ -5,7 +5,8 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, load_model
+from device.pi.models.artefact import BoundRun, ModelError, load_model
+from device.pi.numerics import finite
 
 
 class Regressor:
@@ -32,6 +33,8 @@ class Regressor:
         self.input_layout = str(m.get("input_layout", "vectors"))
         self.uses_imu = bool(m.get("uses_imu", False))
         self._x = np.zeros((1, self.n_features), np.float32)
+        sess = model.session
+        self._runner = BoundRun(sess, model.input_name, self._x, sess.get_outputs()[0].name)
         self.fault = False
 
     @classmethod
@@ -54,9 +57,9 @@ class Regressor:
         if f.size != self.n_features:
             raise ModelError(f"{self.model.path}: expects {self.n_features} features, "
                              f"got {f.size}")
-        x[0] = np.nan_to_num(f, nan=0.0, posinf=0.0, neginf=0.0)
+        x[0] = finite(f)
         if self._lo is not None:
             np.clip(x, self._lo, self._hi, out=x)
-        y = float(np.asarray(self.model.run(x)[0]).reshape(-1)[0])
+        y = float(self._runner().reshape(-1)[0])
         self.fault = not math.isfinite(y)
         return self.fallback if self.fault else y

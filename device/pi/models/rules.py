@@ -52,7 +52,7 @@ import math
 import numpy as np
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
-from device.pi.numerics import sigmoid
+from device.pi.numerics import finite, sigmoid1
 from device.pi.protocol import SURFACE_CLASSES  # the SURFACE class ids
 from device.pi.vision.features import direction_deg
 
@@ -88,7 +88,7 @@ def check_rule(rule, where: str = "rule") -> dict:
 def window_measures(vectors: np.ndarray) -> dict:
     """The rules' measures of one window of pin vectors (T, M, 2) px; finite for
     any input (NaN and inf count as no displacement)."""
-    v = np.nan_to_num(np.asarray(vectors, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    v = finite(vectors, dtype=np.float64)
     if v.ndim != 3 or v.shape[2] != 2:
         raise ValueError(f"vectors must have shape (T, M, 2), got {v.shape}")
     T, M = v.shape[0], v.shape[1]
@@ -96,19 +96,20 @@ def window_measures(vectors: np.ndarray) -> dict:
         return {"magnitude_px": 0.0, "shear_x_px": 0.0, "shear_y_px": 0.0,
                 "direction_deg": 0.0, "motion_px": None}
     last = v[-1]
-    mag = float(np.hypot(last[:, 0], last[:, 1]).mean())
-    avg = v.mean(axis=1)                                  # (T, 2) average vector per frame
-    motion = (float(np.hypot(*(avg[-1] - avg[0]))) / (T - 1)) if T >= 2 else None
-    return {"magnitude_px": mag, "shear_x_px": float(avg[-1, 0]),
-            "shear_y_px": float(avg[-1, 1]),
-            "direction_deg": direction_deg(float(avg[-1, 0]), float(avg[-1, 1])),
-            "motion_px": motion}
+    # sum / count: the numbers of ndarray.mean without its Python wrapper
+    mag = float(np.add.reduce(np.hypot(last[:, 0], last[:, 1])) / M)
+    avg = np.add.reduce(v, axis=1) / M                    # (T, 2) average vector per frame
+    ax, ay = float(avg[-1, 0]), float(avg[-1, 1])
+    motion = (float(np.hypot(ax - float(avg[0, 0]), ay - float(avg[0, 1]))) / (T - 1)
+              if T >= 2 else None)
+    return {"magnitude_px": mag, "shear_x_px": ax, "shear_y_px": ay,
+            "direction_deg": direction_deg(ax, ay), "motion_px": motion}
 
 
 def _step_below(value: float, threshold: float) -> float:
     """Confidence that ``value`` is below ``threshold`` (a sigmoid step)."""
     w = STEP_WIDTH * threshold + _EPS
-    return float(sigmoid((threshold - value) / w))
+    return sigmoid1((threshold - value) / w)
 
 
 def rule_probabilities(measures: dict, rule: dict, classes, expected_mag_px=None,

@@ -30,18 +30,25 @@ VECTOR_CLIP_PX = 64.0
 IMU_CLIP = np.array([16.0, 16.0, 16.0, 2000.0, 2000.0, 2000.0], np.float32)
 
 LAYOUTS = ("vectors", "grids", "frames")
+#: no value of any encoding is larger in size than this (the IMU's gyro clip)
+ENCODED_BOUND = float(max(VECTOR_CLIP_PX, IMU_CLIP.max(), 2.0))
 
 
 def _clean(a, clip) -> np.ndarray:
     return np.clip(finite(a), -clip, clip)
 
 
+def quantise_vectors(vectors) -> np.ndarray:
+    """Pin vectors as a model sees them: finite, clipped to VECTOR_CLIP_PX and
+    rounded to VECTOR_STEP_PX (float32, same shape)."""
+    return np.round(_clean(vectors, VECTOR_CLIP_PX) / VECTOR_STEP_PX) * VECTOR_STEP_PX
+
+
 def encode_vectors(vectors: np.ndarray, imu: np.ndarray | None = None) -> np.ndarray:
     """(N, T, M, 2) or (T, M, 2) vectors [+ (N, T, 6) or (T, 6) IMU] -> (N, D) float32."""
-    v = _clean(vectors, VECTOR_CLIP_PX)
+    v = quantise_vectors(vectors)
     if v.ndim == 3:
         v = v[None]
-    v = np.round(v / VECTOR_STEP_PX) * VECTOR_STEP_PX
     x = v.reshape(v.shape[0], -1)
     if imu is not None:
         m = _clean(imu, IMU_CLIP)
@@ -82,7 +89,12 @@ def encode(layout: str, **parts) -> np.ndarray:
 
 class RollingWindow:
     """The last T frames of per-frame features, preallocated; the Pi pushes one
-    frame at a time and encodes the window when it is full."""
+    frame at a time and encodes the window when it is full.
+
+    The buffers are written by :meth:`push` only: it also keeps each frame's vectors
+    quantised and its IMU row clipped as it arrives, so the ``vectors`` encoding is
+    those rows put together, the same numbers as :func:`encode_vectors` on the
+    whole window without redoing T frames each time."""
 
     def __init__(self, T: int, n_pins: int, grid_n: int = 8, frame_size: int = 32):
         if not isinstance(T, (int, np.integer)) or T < 1:
@@ -92,6 +104,8 @@ class RollingWindow:
         self.imu = np.zeros((self.T, 6), np.float32)
         self.grids = np.zeros((self.T, grid_n, grid_n), np.float32)
         self.frames = np.zeros((self.T, frame_size, frame_size), np.uint8)
+        self._qvectors = np.zeros((self.T, n_pins * 2), np.float32)
+        self._qimu = np.zeros((self.T, 6), np.float32)
         self.count = 0
         # encodings of the current contents, by (layout, with_imu): several models
         # with the same window read one encoding per frame; push/clear drop them
@@ -113,17 +127,80 @@ class RollingWindow:
                 buf[-1] = 0
             else:
                 buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
+        for buf in (self._qvectors, self._qimu):
+            buf[:-1] = buf[1:]
+        # quantise_vectors and _clean in place (the new rows are finite already)
+        q = self._qvectors[-1]
+        np.clip(self.vectors[-1].reshape(-1), -VECTOR_CLIP_PX, VECTOR_CLIP_PX, out=q)
+        np.divide(q, VECTOR_STEP_PX, out=q)
+        np.round(q, out=q)
+        np.multiply(q, VECTOR_STEP_PX, out=q)
+        np.clip(self.imu[-1], -IMU_CLIP, IMU_CLIP, out=self._qimu[-1])
         self.count += 1
         self._encoded.clear()
 
-    def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
-        """The model input for the current T frames (read-only; computed once per
-        push for each layout)."""
-        key = (layout, bool(with_imu))
+    def encode(self, layout: str, with_imu: bool = False, last: int | None = None) -> np.ndarray:
+        """The model input for the current T frames, or the newest ``last`` of them
+        (read-only; computed once per push for each layout)."""
+        n = self.T if last is None else int(last)
+        if not 1 <= n <= self.T:
+            raise ValueError(f"last must be 1..{self.T} frames, got {last!r}")
+        key = (layout, bool(with_imu), n)
         x = self._encoded.get(key)
         if x is None:
-            x = encode(layout, vectors=self.vectors, imu=self.imu if with_imu else None,
-                       grids=self.grids, frames=self.frames)
+            if layout == "vectors":
+                x = self._qvectors[-n:].reshape(1, -1)
+                x = np.concatenate([x, self._qimu[-n:].reshape(1, -1)], axis=1) if with_imu \
+                    else x.copy()
+            else:
+                x = encode(layout, vectors=self.vectors[-n:],
+                           imu=self.imu[-n:] if with_imu else None,
+                           grids=self.grids[-n:], frames=self.frames[-n:])
             x.flags.writeable = False
             self._encoded[key] = x
         return x
+
+
+class WindowTail:
+    """The newest T frames of a longer :class:`RollingWindow`, read in place: models
+    of several T read one window that is pushed once per frame. Full once the
+    window has had T pushes since it was cleared; pushed through the window only."""
+
+    def __init__(self, window: RollingWindow, T: int):
+        if isinstance(T, bool) or not isinstance(T, (int, np.integer)) or not 1 <= T <= window.T:
+            raise ValueError(f"a tail's T must be a whole number 1..{window.T}, got {T!r}")
+        self.window = window
+        self.T = int(T)
+
+    @property
+    def count(self) -> int:
+        return self.window.count
+
+    @property
+    def full(self) -> bool:
+        return self.window.count >= self.T
+
+    def clear(self) -> None:
+        self.window.clear()
+
+    def push(self, **parts) -> None:
+        raise TypeError("a WindowTail is read only: push its RollingWindow")
+
+    def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
+        return self.window.encode(layout, with_imu, last=self.T)
+
+    @property
+    def vectors(self) -> np.ndarray:
+        return self.window.vectors[-self.T:]
+
+    @property
+    def imu(self) -> np.ndarray:
+        return self.window.imu[-self.T:]
+
+    @property
+    def grids(self) -> np.ndarray:
+        return self.window.grids[-self.T:]
+
+    @property
+    def frames(self) -> np.ndarray:
+        return self.window.frames[-self.T:]

@@ -11,6 +11,7 @@ decided in contact. Probabilities are in the SURFACE class order
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -76,14 +77,24 @@ def no_touch_probs() -> np.ndarray:
     return p
 
 
+@functools.lru_cache(maxsize=32)
+def _surface_ids(classes: tuple) -> tuple[tuple[tuple[int, int], ...], bool]:
+    """((index in the model's classes, SURFACE class id), ...) of the classes the link
+    has an id for, and whether that is all of them: worked out once per class list."""
+    pairs = tuple((i, SURFACE_CLASSES.index(c)) for i, c in enumerate(classes)
+                  if c in SURFACE_CLASSES)
+    return pairs, len(pairs) == len(classes)
+
+
 def surface_probs_of_model(classes, p) -> np.ndarray:
     """A learned surface model's probabilities, listed in its manifest's class order,
     as SURFACE class ids (classes it does not know get 0; renormalised, uniform when
     nothing is left)."""
     out = np.zeros(len(SURFACE_CLASSES))
-    for c, x in zip(classes, p):
-        if c in SURFACE_CLASSES:
-            out[SURFACE_CLASSES.index(c)] = x
+    n = len(p)
+    for i, j in _surface_ids(tuple(classes))[0]:
+        if i < n:
+            out[j] = p[i]
     s = out.sum()
     return out / s if s > 0 else np.full(len(SURFACE_CLASSES), 1.0 / len(SURFACE_CLASSES))
 
@@ -92,6 +103,8 @@ def unknown_class_wins(classes, p) -> bool:
     """True when a surface model's most likely class is not a SURFACE class (a label
     the link has no id for): the decision then carries a model fault instead of
     quietly taking the best of the classes left."""
+    if _surface_ids(tuple(classes))[1]:
+        return False                  # every class has an id
     p = np.asarray(p, np.float64)
     return bool(p.size) and str(classes[int(np.argmax(p))]) not in SURFACE_CLASSES
 

@@ -8,6 +8,9 @@ import time
 
 from device.pi.sources.camera import BadFrameError
 
+#: frames a lossless source (a file, sim://) is read ahead of the loop
+READ_AHEAD = 8
+
 
 class CameraFeed:
     """Frames from a camera factory on a grab thread.
@@ -29,7 +32,8 @@ class CameraFeed:
         self.lossless = lossless
         self.min_s, self.max_s = reopen_min_s, reopen_max_s
         self.clock = clock
-        self._q: queue.Queue = queue.Queue(maxsize=1)
+        self._q: queue.Queue = queue.Queue(maxsize=READ_AHEAD)
+        self._room = threading.Event()   # lossless: set by get() once half the queue is free
         self._stop = threading.Event()
         self._reopen = threading.Event()
         self._cam = first
@@ -48,18 +52,24 @@ class CameraFeed:
 
     def _put(self, item) -> None:
         if self.lossless:
+            # read ahead; when the queue is full, wait until get() has freed half of
+            # it: the loop wakes this thread once per READ_AHEAD // 2 frames, not per frame
             while not self._stop.is_set():
                 try:
-                    self._q.put(item, timeout=0.05)
+                    self._q.put_nowait(item)
                     return
                 except queue.Full:
-                    continue
+                    self._room.clear()
+                    if self._q.qsize() < self._q.maxsize:     # freed meanwhile
+                        continue
+                    self._room.wait(0.05)
         else:
-            try:
-                if self._q.get_nowait() is not None:    # drop the older frame: newest only
-                    self.dropped += 1
-            except queue.Empty:
-                pass
+            while True:                                   # newest only: drop older frames
+                try:
+                    if self._q.get_nowait() is not None:
+                        self.dropped += 1
+                except queue.Empty:
+                    break
             try:
                 self._q.put_nowait(item)
             except queue.Full:
@@ -117,6 +127,8 @@ class CameraFeed:
             item = self._q.get(timeout=max(timeout, 0.0)) if timeout > 0 else self._q.get_nowait()
         except queue.Empty:
             return None
+        if self._q.qsize() <= READ_AHEAD // 2 and not self._room.is_set():
+            self._room.set()
         return "eof" if item is None else item
 
     def reopen(self) -> None:
@@ -126,6 +138,7 @@ class CameraFeed:
 
     def stop(self) -> None:
         self._stop.set()
+        self._room.set()
         try:
             self._q.get_nowait()
         except queue.Empty:

@@ -33,7 +33,7 @@ from device.config import ConfigError
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL,
                               FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
 from device.pi.models.artefact import ModelError
-from device.pi.models.window import RollingWindow
+from device.pi.models.window import RollingWindow, WindowTail
 from device.pi import protocol as P
 from device.pi.runtime import sdnotify
 from device.pi.runtime.config import LegConfig, load_leg_config
@@ -97,7 +97,9 @@ class LegRuntime:
                 Ts.add(c.T)
         if models.pressure is not None:
             Ts.add(models.pressure.T)
-        self.windows = {T: RollingWindow(T, self.n_pins, self.stream.profile.grid_n)
+        # one window of the longest T, pushed once per frame; shorter T read its tail
+        self._window = RollingWindow(max(Ts), self.n_pins, self.stream.profile.grid_n)
+        self.windows = {T: self._window if T == self._window.T else WindowTail(self._window, T)
                         for T in sorted(Ts)}
         self.imu = imu
         self._imu_out = np.zeros(6, np.float32)
@@ -231,8 +233,7 @@ class LegRuntime:
         else:
             self._pins_lost = 0
         v = ef.vectors
-        for w in self.windows.values():
-            w.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
+        self._window.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
         exp_mag, exp_motion, gait = expected_context(self.gait, self.clock(),
                                                      self.cfg.decision, self.fps)
         d = decide(self.models, self.windows, contact_seen=bool(ff.contact),
@@ -282,13 +283,14 @@ class LegRuntime:
 
     def _auto_rezero(self, v, lost, contact: bool, gait) -> None:
         rz = self.cfg.rezero
-        ok = ~lost
-        step = (float(np.hypot(*(v[ok] - self._prev_v[ok]).T).mean()) if ok.any() else 0.0)
-        self._prev_v[:] = v
         if not rz.auto or gait is None or gait["stance"] or contact \
                 or self.stream.reference is None:
+            self._prev_v[:] = v
             self._still = 0
             return
+        ok = ~lost          # the step is only measured when it can lead to a re-zero
+        step = (float(np.hypot(*(v[ok] - self._prev_v[ok]).T).mean()) if ok.any() else 0.0)
+        self._prev_v[:] = v
         self._still = self._still + 1 if step < rz.still_px else 0
         if self._still >= rz.still_frames and \
                 self.clock() - self._last_rezero >= rz.min_interval_s:
@@ -296,8 +298,7 @@ class LegRuntime:
 
     def rezero(self, why: str) -> None:
         self.stream.rezero()
-        for w in self.windows.values():
-            w.clear()
+        self._window.clear()
         self._still = 0
         self._last_rezero = self.clock()
         self.rezeros[why] = self.rezeros.get(why, 0) + 1

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from device.pi.numerics import sigmoid, softmax
+from device.pi.numerics import sigmoid, sigmoid1, softmax
 
 
 finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
@@ -38,3 +38,11 @@ def test_sigmoid_is_finite_bounded_symmetric_and_monotone(z):
     order = np.argsort(np.nan_to_num(z[ok], posinf=1e308, neginf=-1e308), kind="stable")
     assert (np.diff(s[ok][order]) >= 0).all()
 
+
+
+@given(finite_or_not)
+@settings(max_examples=300, deadline=None)
+def test_sigmoid_of_one_number_is_the_array_sigmoid_to_the_bit(z):
+    s = sigmoid1(z)
+    assert s == float(sigmoid(np.array([z]))[0])
+    assert 0.0 <= s <= 1.0

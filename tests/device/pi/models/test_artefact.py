@@ -9,7 +9,7 @@ from sklearn.linear_model import Ridge
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
-from device.pi.models.artefact import ModelError, load_model
+from device.pi.models.artefact import BoundRun, ModelError, load_model
 from host.learn.onnx_io import sklearn_to_onnx, write_model
 
 
@@ -137,3 +137,27 @@ def test_model_file_keeps_names_inside_the_folder(tmp_path):
     for bad in ("/etc/hostname", "../x.onnx", "sub/../../x.onnx", "", 5):
         with pytest.raises(ModelError):
             model_file(tmp_path, bad)
+
+
+def test_a_bound_run_reads_its_buffer_at_every_call(ridge_dir):
+    """BoundRun runs the model on the current contents of its input buffer, call after
+    call (bound to the buffer after the first), as a plain run would; a session with
+    no I/O binding is run the plain way."""
+    out, est, X = ridge_dir
+    m = load_model(out, expect_kind="pressure")
+    name = m.session.get_outputs()[0].name
+    x = np.zeros((1, 12), np.float32)
+    bound = BoundRun(m.session, m.input_name, x, name)
+    for row in X[:5]:
+        x[0] = row
+        assert np.allclose(bound(), est.predict(row[None]), atol=1e-4)
+        assert np.array_equal(bound(), m.run(x)[0])
+
+    class PlainSession:                   # only run(), as a minimal stand-in has
+        def run(self, names, feed):
+            return m.session.run(names, feed)
+
+    plain = BoundRun(PlainSession(), m.input_name, x, name)
+    for row in X[5:8]:
+        x[0] = row
+        assert np.array_equal(plain(), m.run(x)[0])

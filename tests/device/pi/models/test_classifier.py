@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError
-from device.pi.models.classifier import Classifier, clean_probabilities
+from device.pi.models.classifier import INPUT_CLIP, Classifier, clean_probabilities
+from device.pi.models.window import ENCODED_BOUND, RollingWindow
 
 finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
@@ -77,3 +78,55 @@ def test_the_classifier_is_finite_for_any_window(small_classifier, values):
     assert np.isfinite(p).all() and p.sum() == pytest.approx(1.0) and 0 <= k < clf.n_classes
     assert not clf.fault
 
+
+
+@given(arrays(np.float32, 2, elements=st.floats(width=32, allow_nan=True, allow_infinity=True)))
+@settings(max_examples=200, deadline=None)
+def test_model_output_gives_the_cleaned_probabilities_to_the_bit(small_classifier, out):
+    """Usual outputs (in 0..1, not all 0) and odd ones alike come out as
+    clean_probabilities makes them; the fault flag is set for a non-finite output or
+    one with nothing left after clipping."""
+    clf = small_classifier
+    assert clf.n_classes == 2
+    p = clf.probabilities_from_output(out)
+    want, _ = clean_probabilities(out)
+    assert np.array_equal(p, want)
+    broken = not np.isfinite(out).all() or not np.nan_to_num(out).clip(0, 1).sum() > 0
+    assert clf.fault == broken
+
+
+@given(st.lists(arrays(np.float64, 2, elements=finite_or_not), min_size=1, max_size=6))
+@settings(max_examples=60, deadline=None)
+def test_a_window_reaches_the_model_as_predict_would_clean_it(small_classifier, small_model,
+                                                                values):
+    """predict_window hands the window's encoding to the model as it is: for any pushed
+    values that is what predict's cleaning would give."""
+    clf = small_classifier
+    ws = small_model[2]
+    w = RollingWindow(clf.T, ws.n_pins)
+    with np.errstate(over="ignore", invalid="ignore"):       # float32 casts of huge values
+        for i in range(clf.T):
+            v = np.resize(values[i % len(values)] * (i + 1), (ws.n_pins, 2))
+            w.push(vectors=v, imu=np.resize(values[-1], 6) * 1e5)
+    x = w.encode(clf.input_layout, with_imu=clf.uses_imu)
+    assert np.isfinite(x).all() and np.abs(x).max() <= ENCODED_BOUND <= INPUT_CLIP
+    k, p = clf.predict_window(w)
+    k2, p2 = clf.predict(x)
+    assert k == k2 and np.array_equal(p, p2)
+
+
+def test_each_prediction_reads_its_own_input(small_model):
+    """The session reads the classifier's input buffer at every run (bound once, on
+    the first): predictions in a row match ONNX Runtime's plain run on each input."""
+    clf = Classifier.load(small_model[1])
+    sess = clf.model.session
+    out_name = sess.get_outputs()[-1].name
+    rng = np.random.default_rng(1)
+    seen = set()
+    for _ in range(6):
+        x = rng.normal(0.0, 3.0, (1,) + clf.input_shape).astype(np.float32)
+        k, p = clf.predict(x)
+        want = clf.probabilities_from_output(sess.run([out_name], {clf.model.input_name: x})[0])
+        assert np.array_equal(p, want) and k == int(np.argmax(want))
+        seen.add(tuple(np.round(p, 6)))
+    assert len(seen) > 1                      # the inputs did give different outputs
