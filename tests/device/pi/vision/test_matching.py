@@ -163,8 +163,9 @@ def test_match_permutation_dropout_duplicates(n, seed, drop, n_dup, n_extra):
        gate=st.floats(0.5, 30.0))
 def test_unchecked_matching_is_the_greedy_answer_small_and_large(m, n, seed, gate):
     """Few pairs take the exact-distance path, many the matrix-product path: both
-    give the slow greedy answer (integer coordinates: no ties within rounding are
-    possible unless exact, and exact ties are avoided by distinct offsets)."""
+    are the greedy answer (to the product's float32 rounding, which check_greedy
+    allows for), and the same as match_pins. Up to 40 x 40 pins (the exact path)
+    it is the slow reference's answer itself."""
     rng = np.random.default_rng(seed)
     ref = rng.integers(0, 400, (m, 2)).astype(np.float64) + rng.random((m, 2)) * 1e-3
     cur = np.vstack([ref[rng.permutation(m)[:min(m, n)]] + rng.normal(0, gate / 2, (min(m, n), 2)),
@@ -172,7 +173,8 @@ def test_unchecked_matching_is_the_greedy_answer_small_and_large(m, n, seed, gat
     idx = match_pins_unchecked(ref, cur, gate)
     check_greedy(ref, cur, gate, idx)
     assert (idx == match_pins(ref, cur, gate)).all()
-    assert (idx == greedy_reference(ref, cur, gate)).all()
+    if m <= 40 and n <= 40:
+        assert (idx == greedy_reference(ref, cur, gate)).all()
 
 
 def test_mutual_match_keeps_only_pairs_that_choose_each_other():
