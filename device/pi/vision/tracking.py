@@ -296,10 +296,16 @@ class Tracker:
         if n_ok >= self.min_tracked_frac * m:
             # exponential average of the change, so centroid noise is not
             # doubled into the prediction
-            self._vel *= 1.0 - _VEL_ALPHA
-            self._vel += (_VEL_ALPHA / steps) * (self._work - self._disp)   # per frame
-            self._vel[lost] *= 0.8
-            np.clip(self._vel, -0.5 * self._pitch, 0.5 * self._pitch, out=self._vel)
+            vel = self._vel
+            vel *= 1.0 - _VEL_ALPHA
+            np.subtract(self._work, self._disp, out=self._disp)        # the change, in place
+            self._disp *= _VEL_ALPHA / steps                           # per frame
+            vel += self._disp
+            if n_ok < m:
+                vel[lost] *= 0.8
+            cap = 0.5 * self._pitch
+            np.minimum(vel, cap, out=vel)
+            np.maximum(vel, -cap, out=vel)
             np.copyto(self._disp, self._work)
         if self.fill == "hold":
             np.copyto(self._vec, self._work, casting="unsafe", where=~lost[:, None])
