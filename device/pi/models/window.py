@@ -161,6 +161,12 @@ class RollingWindow:
         return x
 
 
+def _tail_of(name: str) -> property:
+    """A read-only view of the newest T rows of the window's ``name`` buffer."""
+    return property(lambda self: getattr(self.window, name)[-self.T:],
+                    doc=f"The newest T rows of the window's {name}.")
+
+
 class WindowTail:
     """The newest T frames of a longer :class:`RollingWindow`, read in place: models
     of several T read one window that is pushed once per frame. Full once the
@@ -189,18 +195,7 @@ class WindowTail:
     def encode(self, layout: str, with_imu: bool = False) -> np.ndarray:
         return self.window.encode(layout, with_imu, last=self.T)
 
-    @property
-    def vectors(self) -> np.ndarray:
-        return self.window.vectors[-self.T:]
-
-    @property
-    def imu(self) -> np.ndarray:
-        return self.window.imu[-self.T:]
-
-    @property
-    def grids(self) -> np.ndarray:
-        return self.window.grids[-self.T:]
-
-    @property
-    def frames(self) -> np.ndarray:
-        return self.window.frames[-self.T:]
+    vectors = _tail_of("vectors")
+    imu = _tail_of("imu")
+    grids = _tail_of("grids")
+    frames = _tail_of("frames")

@@ -76,17 +76,17 @@ class Tracker:
     two answers the one whose pins move more like their layout neighbours is
     kept. Glare that hides pins and fast shear leave many pins away from
     their prediction but within reach of the growth; on the real smooth.avi
-    the coarse search (8-9 ms) now runs on 8 of 540 frames, not 106. The
+    the coarse search (about 3 ms) runs on 8 of 540 frames. The
     prediction goes ``steps`` frames ahead when frames were dropped, with the
     velocity kept per frame. Its annealing
     schedule is ``reacquire_schedule`` = (start in pitches, temperatures,
     Sinkhorn normalisations per temperature), by default the search from
     scratch, ``FULL_SEARCH_SCHEDULE``. A cheaper one trades accuracy on large
-    jumps for time: (1.5, 6, 5) costs a third as much (2.6 against 8.3 ms per
-    re-acquisition on the real clips, one thread) and keeps every identity on
-    the simulated scenes with frames skipped in threes and fives
+    jumps for time: (1.5, 6, 5) costs less than half as much (1.3 against
+    3.0 ms per re-acquisition on the real clips, one thread) and keeps every
+    identity on the simulated scenes with frames skipped in threes and fives
     (:func:`host.analysis.pipeline_eval.evaluate_scene` with ``stride``), but
-    after a jump of more than a pitch from rest it places 92 % of the pins
+    after a jump of more than a pitch from rest it places 94 % of the pins
     right, against 97 %.
 
     Lost pins are flagged in ``lost`` and never invented: their vector is
