@@ -75,13 +75,25 @@ def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tupl
     cap2 = np.inf if max_dist_px is None else positive_number("max_dist_px", max_dist_px) ** 2
     finite = usable_rows(r)
     rr = np.where(finite[:, None], r, 0.0)
-    d2 = ((rr[:, None, :] - rr[None, :, :]) ** 2).sum(axis=2)
+    dx = np.subtract.outer(rr[:, 0], rr[:, 0])
+    dy = np.subtract.outer(rr[:, 1], rr[:, 1])
+    d2 = dx * dx
+    d2 += dy * dy
     d2[~finite, :] = np.inf
     d2[:, ~finite] = np.inf
     np.fill_diagonal(d2, np.inf)
     kk = min(k, m - 1)
-    order = np.argsort(d2, axis=1, kind="stable")[:, :kk]
-    dist2 = np.take_along_axis(d2, order, axis=1)
+    # the kk nearest of each row, ties by index (as a stable sort of the whole row
+    # would give): only the entries up to each row's kk-th smallest value are sorted
+    kth = np.partition(d2, kk - 1, axis=1)[:, kk - 1]
+    rows, cols = np.nonzero(d2 <= kth[:, None])
+    vals = d2[rows, cols]
+    o = np.lexsort((cols, vals, rows))
+    rows, cols, vals = rows[o], cols[o], vals[o]
+    first = np.searchsorted(rows, np.arange(m))
+    keep = np.arange(rows.size) - first[rows] < kk
+    order = cols[keep].reshape(m, kk)
+    dist2 = vals[keep].reshape(m, kk)
     nb[:, :kk] = order
     valid[:, :kk] = (dist2 <= 4.0 * dist2[:, :1]) & (dist2 <= cap2)
     return nb, valid

@@ -139,3 +139,21 @@ def test_neighbour_median_matches_a_slow_reference(m, seed, frac):
         assert count[j] == len(use)
         want = np.median(obs[use], axis=0) if use else np.zeros(4)
         np.testing.assert_allclose(med[j], want, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=80, deadline=None)
+@given(m=st.integers(2, 60), k=st.integers(1, 8), seed=st.integers(0, 2**31 - 1),
+       grid=st.booleans())
+def test_layout_neighbours_are_the_nearest_with_ties_by_index(m, k, seed, grid):
+    """The k nearest of each pin, ties broken by the lower index (coarse integer
+    layouts have many ties), as a stable sort of each whole row gives them."""
+    rng = np.random.default_rng(seed)
+    ref = (rng.integers(0, 4, (m, 2)).astype(float) if grid else rng.uniform(0, 50, (m, 2)))
+    nb, valid = layout_neighbours(ref, k)
+    d2 = ((ref[:, None, :] - ref[None, :, :]) ** 2).sum(axis=2)
+    np.fill_diagonal(d2, np.inf)
+    kk = min(k, m - 1)
+    want = np.argsort(d2, axis=1, kind="stable")[:, :kk]
+    assert (nb[:, :kk] == want).all()
+    dist2 = np.take_along_axis(d2, want, axis=1)
+    assert (valid[:, :kk] == (dist2 <= 4.0 * dist2[:, :1])).all()
