@@ -411,7 +411,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         wide = match(pos, c, 1.25 * gate)
         hit = wide >= 0
         if hit.any():
-            shift = np.median(c[wide[hit]] - pos[hit], axis=0)
+            shift = column_median(c[wide[hit]] - pos[hit])
             idx2 = match(pos + shift, c, 0.5 * gate)
             ok2 = idx2 >= 0
             n2 = int(np.count_nonzero(ok2))
