@@ -175,9 +175,9 @@ def regraph(folder, seed: int = 0) -> dict:
     """Rewrite the fixed first layer (``TemporalFeatures``) of the fnn in ``folder``
     (model.onnx and, when there, model.int8.onnx) with the graph its converter writes
     now, without training again: weights, metrics and the training record are kept.
-    Each file is replaced only when the new graph names the same class as the old one
-    on random windows with probabilities within 1e-4; sha256 and sizes are recorded
-    again. Returns {file: (bytes before, bytes after)}."""
+    The files are replaced only when, for each of them, the new graph names the same
+    class as the old one on random windows with probabilities within 1e-4 (none is
+    written unless all pass); sha256 and sizes are recorded again. Returns {file: (bytes before, bytes after)}."""
     import numpy as np
     import onnx
 
@@ -192,16 +192,21 @@ def regraph(folder, seed: int = 0) -> dict:
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
     X = np.random.default_rng(seed).normal(0, 3, (256, doc["input"]["shape"][1]))
     X = X.astype(np.float32)
-    out = {}
-    for name in names:
+    out, new_bytes = {}, {}
+    for name in names:                  # every file is checked before any is written
         old = onnx.load(str(folder / name))
         new = replace_temporal_graph(old, params, seed)
         feed = {doc["input"].get("name", "x"): X}
-        a, b = session(old).run(None, feed), session(new).run(None, feed)
+        try:
+            a, b = session(old).run(None, feed), session(new).run(None, feed)
+        except Exception as exc:       # ONNX Runtime's own exception types
+            raise TrainError(f"{folder / name}: the rewritten graph does not run: "
+                             + " ".join(str(exc).split())) from None
         if not (np.array_equal(a[0], b[0]) and np.allclose(a[1], b[1], atol=1e-4)):
             raise TrainError(f"{folder / name}: the rewritten graph gives other outputs")
-        data = new.SerializeToString()
-        out[name] = ((folder / name).stat().st_size, len(data))
+        new_bytes[name] = new.SerializeToString()
+        out[name] = ((folder / name).stat().st_size, len(new_bytes[name]))
+    for name, data in new_bytes.items():
         atomic_write(folder / name, lambda fh, data=data: fh.write(data))
     updates = {}
     if INT8_NAME in out and isinstance(doc.get("int8"), dict):

@@ -352,9 +352,13 @@ def replace_temporal_graph(model, params: dict, seed: int = 0):
     probe.CopyFrom(model)
     cands = [n.output[0] for n in g.node if n.op_type == "Concat"]
     del probe.graph.output[:]
-    probe.graph.output.extend(helper.make_tensor_value_info(c, onnx.TensorProto.FLOAT, None)
-                              for c in cands)
-    outs = session(probe).run(cands, {x_name: X})
+    # outputs of any type (a shape Concat is int64): ONNX Runtime infers them
+    probe.graph.output.extend(helper.make_empty_tensor_value_info(c) for c in cands)
+    try:
+        outs = session(probe).run(cands, {x_name: X})
+    except Exception as exc:            # ONNX Runtime's own exception types
+        raise TrainError("the model cannot be probed for the temporal layer: "
+                         + " ".join(str(exc).split())) from None
     hits = [c for c, o in zip(cands, outs) if o.shape == want.shape
             and np.allclose(o, want, rtol=1e-4, atol=1e-4)]
     if len(hits) != 1:

@@ -10,6 +10,16 @@ from device.pi.sources.camera import BadFrameError
 
 #: frames a lossless source (a file, sim://) is read ahead of the loop
 READ_AHEAD = 8
+#: and at most this many bytes of them (at least one frame): 8 VGA colour frames,
+#: one 1080p frame
+READ_AHEAD_BYTES = 8 * 1024 * 1024
+
+
+def read_ahead_frames(nbytes: int) -> int:
+    """Frames a lossless source is read ahead when each holds ``nbytes`` bytes."""
+    if nbytes <= 0:
+        return READ_AHEAD
+    return max(1, min(READ_AHEAD, READ_AHEAD_BYTES // nbytes))
 
 
 class CameraFeed:
@@ -33,6 +43,7 @@ class CameraFeed:
         self.min_s, self.max_s = reopen_min_s, reopen_max_s
         self.clock = clock
         self._q: queue.Queue = queue.Queue(maxsize=READ_AHEAD)
+        self._limit = READ_AHEAD          # frames read ahead, fewer for large frames
         self._room = threading.Event()   # lossless: set by get() once half the queue is free
         self._stop = threading.Event()
         self._reopen = threading.Event()
@@ -52,17 +63,23 @@ class CameraFeed:
 
     def _put(self, item) -> None:
         if self.lossless:
-            # read ahead; when the queue is full, wait until get() has freed half of
-            # it: the loop wakes this thread once per READ_AHEAD // 2 frames, not per frame
+            # read ahead (read_ahead_frames of this frame's size); when that many are
+            # queued, wait until get() has freed half of them: the loop wakes this
+            # thread once per READ_AHEAD // 2 frames, not per frame
+            if item is not None:
+                image = getattr(item[0], "image", None)
+                self._limit = read_ahead_frames(int(getattr(image, "nbytes", 0)))
             while not self._stop.is_set():
-                try:
-                    self._q.put_nowait(item)
-                    return
-                except queue.Full:
-                    self._room.clear()
-                    if self._q.qsize() < self._q.maxsize:     # freed meanwhile
-                        continue
-                    self._room.wait(0.05)
+                if self._q.qsize() < self._limit:
+                    try:
+                        self._q.put_nowait(item)
+                        return
+                    except queue.Full:
+                        pass
+                self._room.clear()
+                if self._q.qsize() < self._limit:             # freed meanwhile
+                    continue
+                self._room.wait(0.05)
         else:
             while True:                                   # newest only: drop older frames
                 try:
@@ -127,7 +144,7 @@ class CameraFeed:
             item = self._q.get(timeout=max(timeout, 0.0)) if timeout > 0 else self._q.get_nowait()
         except queue.Empty:
             return None
-        if self._q.qsize() <= READ_AHEAD // 2 and not self._room.is_set():
+        if self._q.qsize() <= self._limit // 2 and not self._room.is_set():
             self._room.set()
         return "eof" if item is None else item
 

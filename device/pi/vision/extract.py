@@ -434,7 +434,7 @@ class PinDetector:
 
     def detect_all(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All blobs (pins, glare and noise) in frame px, for measurement."""
-        b = self.threshold(frame)
-        xy, areas = components(b)
+        self.threshold(frame)
+        xy, areas = components(self._binary_even, self._labels)
         xy += self._origin
         return xy, areas

@@ -132,6 +132,8 @@ def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.
     if rows is not None:
         nb = nb[rows]
         valid = valid[rows]
+    if nb.shape[1] == 0:                                  # no neighbours at all
+        return np.zeros((nb.shape[0], obs.shape[1]), np.float64), np.zeros(nb.shape[0], np.int64)
     use = valid & ok[nb]                                  # (r, k)
     count = use.sum(axis=1)
     med = np.zeros((nb.shape[0], obs.shape[1]), np.float64)
@@ -153,9 +155,12 @@ def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.
 #: Annealing schedule of the coarse soft matching, in units of the pin pitch.
 _ANNEAL_START = 3.0
 _ANNEAL_END = 0.1
-#: The soft matching's exponents are floored here: exp(-87) is float32's smallest
-#: normal number, so no weight is subnormal.
+#: The soft matching's exponents are floored here: exp(-60) = 9e-27 stays a normal
+#: float32 after the Sinkhorn scalings (exp(-87), the smallest normal, does not).
 _EXP_FLOOR = np.float32(-60.0)
+#: Largest ``outlier_sigmas``: the slack exp(-s^2 / 2) must stay far above the floored
+#: weights (at 6, 1.5e-8 against a few hundred pins x 9e-27).
+_MAX_OUTLIER_SIGMAS = 6.0
 #: Passes with the full gate over the pins the half-gate growth left lost.
 _FINAL_ROUNDS = 4
 
@@ -221,9 +226,10 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         np.matmul(hp, hc, out=k)
         np.maximum(k, 0.0, out=k)              # rounding can dip below 0
         k *= np.float32(-0.5 / (sigma * sigma))
-        # weights below float32's smallest normal number would be subnormal, and
-        # arithmetic on subnormals is tens of times slower on most CPUs: floor the
-        # exponent there (a weight of 1e-38 against the slack's 1e-2 changes nothing)
+        # weights near float32's smallest normal number (1e-38) turn subnormal when
+        # the Sinkhorn factors scale them, and arithmetic on subnormals is tens of
+        # times slower on most CPUs: the exponent is floored at -60 (a weight of
+        # 1e-26 against the slack's 1e-2 at the default outlier_sigmas changes nothing)
         np.maximum(k, _EXP_FLOOR, out=k)
         np.exp(k, out=k)
         if not all_used:
@@ -305,6 +311,9 @@ def track_with_neighbours(
        ``grow_rounds``), so tracking grows outward from the confident
        matches. A few last passes use the full gate.
 
+    ``outlier_sigmas`` (above 0, at most 6): in the soft matching a pin further
+    than that many sigma from every current pin keeps its mass unmatched.
+
     Returns ``idx`` int64 (m,) (row of ``cur`` or -1 when lost) and
     ``disp_px`` float64 (m, 2): measured for tracked pins; for lost pins the
     neighbour prediction (or the coarse / prior prediction when no neighbour
@@ -317,7 +326,8 @@ def track_with_neighbours(
     anneal_steps = whole_number("anneal_steps", anneal_steps, 1)
     sinkhorn_iters = whole_number("sinkhorn_iters", sinkhorn_iters, 1)
     anneal_start = positive_number("anneal_start", anneal_start)
-    outlier_sigmas = positive_number("outlier_sigmas", outlier_sigmas)
+    outlier_sigmas = finite_number("outlier_sigmas", outlier_sigmas, 0.0, _MAX_OUTLIER_SIGMAS,
+                                   lo_open=True)
     smooth = finite_number("smooth", smooth, 0)
     grow_rounds = whole_number("grow_rounds", grow_rounds, 0)
     min_support = whole_number("min_support", min_support, 1)

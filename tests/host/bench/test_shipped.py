@@ -174,3 +174,22 @@ def test_regraph_of_a_folder_without_a_temporal_layer_is_one_line_and_exit_2(tmp
     assert main(["--out", str(tmp_path), "--regraph", "texture"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "texture" in err[0]
+
+
+def test_regraph_writes_no_file_unless_every_file_passes(tmp_path, capsys):
+    """A folder whose int8 file is not the float model's twin: the float file passes
+    its check, the int8 one fails, and the float file is left as it was (the manifests'
+    checksums still hold)."""
+    import shutil
+
+    from host.bench.shipped import main
+
+    shutil.copytree(MODELS / "texture", tmp_path / "texture")
+    int8 = manifest("texture")["variants"]["int8"]
+    shutil.copy(MODELS / "surface" / manifest("surface")["variants"]["int8"],
+                tmp_path / "texture" / int8)
+    before = {p.name: p.read_bytes() for p in (tmp_path / "texture").iterdir()}
+    assert main(["--out", str(tmp_path), "--regraph", "texture"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    after = {p.name: p.read_bytes() for p in (tmp_path / "texture").iterdir()}
+    assert after == before

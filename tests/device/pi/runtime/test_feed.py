@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import time
 
-from device.pi.runtime.feed import READ_AHEAD, CameraFeed
+import numpy as np
+
+from device.pi.runtime.feed import READ_AHEAD, READ_AHEAD_BYTES, CameraFeed, read_ahead_frames
 
 
 class Counter:
@@ -68,3 +70,41 @@ def test_stop_ends_a_grab_thread_that_waits_for_room():
     t0 = time.monotonic()
     feed.stop()
     assert time.monotonic() - t0 < 0.5
+
+
+class Big:
+    """``n`` frames of ``nbytes`` bytes each (None after the last)."""
+
+    class Frame:
+        def __init__(self, image):
+            self.image = image
+
+    def __init__(self, n: int, nbytes: int):
+        self.n, self.nbytes, self.reads = n, nbytes, 0
+
+    def read(self):
+        if self.reads >= self.n:
+            return None
+        self.reads += 1
+        return Big.Frame(np.zeros(self.nbytes, np.uint8))
+
+    def close(self):
+        pass
+
+
+def test_large_frames_are_read_ahead_within_the_byte_budget():
+    assert read_ahead_frames(640 * 480 * 3) == READ_AHEAD              # VGA: all 8
+    assert read_ahead_frames(1920 * 1080 * 3) == 1                     # 1080p: one
+    assert read_ahead_frames(READ_AHEAD_BYTES // 3) == 3
+    assert read_ahead_frames(0) == READ_AHEAD
+    cam = Big(20, READ_AHEAD_BYTES // 3)
+    feed = CameraFeed(lambda: cam, lossless=True, first=cam).start()
+    try:
+        time.sleep(0.2)                               # the loop is busy: nothing taken
+        assert cam.reads == 3 + 1                     # 3 queued (the budget), one in hand
+        got = 0
+        while feed.get(0.5) not in (None, "eof"):
+            got += 1
+        assert got == 20
+    finally:
+        feed.stop()

@@ -73,6 +73,8 @@ def test_track_with_neighbours_edge_cases():
 @pytest.mark.parametrize("kw,field", [({"pitch_px": 0.0}, "pitch_px"), ({"pitch_px": np.nan}, "pitch_px"),
                                       ({"gate_frac": -1.0}, "gate_frac"),
                                       ({"anneal_steps": 0}, "anneal_steps"),
+                                      ({"outlier_sigmas": 8.0}, "outlier_sigmas"),
+                                      ({"outlier_sigmas": 0.0}, "outlier_sigmas"),
                                       ({"init_disp_px": np.zeros((2, 2))}, "init_disp_px")])
 def test_track_with_neighbours_bad_arguments_name_the_field(kw, field):
     args = {"ref": np.zeros((3, 2)) + [[0, 0], [10, 0], [0, 10]], "cur": np.zeros((3, 2)), "pitch_px": 10.0}
@@ -157,3 +159,14 @@ def test_layout_neighbours_are_the_nearest_with_ties_by_index(m, k, seed, grid):
     assert (nb[:, :kk] == want).all()
     dist2 = np.take_along_axis(d2, want, axis=1)
     assert (valid[:, :kk] == (dist2 <= 4.0 * dist2[:, :1])).all()
+
+
+def test_a_pin_far_from_every_current_pin_stays_near_its_prior_at_the_largest_slack():
+    """At the largest outlier_sigmas the floored soft-matching weights must not pull a
+    pin with no current pin anywhere near it to the centroid of the cloud."""
+    ref = hex_pins(3, 16.0)
+    cur = ref[1:] + [1.0, 0.0]                      # pin 0 has no current pin
+    far = np.vstack([ref[:1] + [900.0, 900.0], ref[1:]])   # and sits far from the rest
+    idx, disp = track_with_neighbours(far, cur, 16.0, outlier_sigmas=6.0, smooth=0.0)
+    assert idx[0] == -1
+    assert np.hypot(*disp[0]) < 16.0
