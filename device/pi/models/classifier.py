@@ -50,6 +50,13 @@ def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bo
     """(probabilities, fault): NaN -> 0, clipped to 0..1, renormalised to sum 1. A
     row with nothing left (all zero) becomes uniform and sets the fault flag."""
     p = np.asarray(p, dtype=np.float64)
+    if p.ndim == 1 and p.size and (n_classes is None or p.size == n_classes):
+        # the usual model output: in 0..1 (so finite) and not all 0: only the scale
+        # changes, by the same sum and division as below
+        if p.min() >= 0.0 and p.max() <= 1.0:          # False for a NaN
+            s = p.sum()
+            if s > 0:
+                return p / s, False
     squeeze = p.ndim == 1
     p = np.atleast_2d(p).copy()
     if n_classes is not None and p.shape[1] != n_classes:
@@ -175,14 +182,9 @@ class Classifier:
         o = np.asarray(out, dtype=np.float64).reshape(-1)
         C = self.n_classes
         if self.output_kind == "probabilities" and o.size == C:
-            # the usual output: finite, in 0..1, not all 0. clean_probabilities changes
-            # nothing but the scale then, so this is its result (the same sum and
-            # division), without its copies and guards
-            if o.min() >= 0.0 and o.max() <= 1.0:        # False for a NaN
-                s = o.sum()
-                if s > 0:
-                    self.fault = False
-                    return o / s
+            p, fault = clean_probabilities(o)            # finite, sums to 1
+            self.fault = fault or not np.isfinite(o).all()
+            return p
         if self.output_kind == "logits":
             if o.size == C:
                 p = softmax(o)
@@ -193,10 +195,7 @@ class Classifier:
                 p = np.zeros(C)
             fault = o.size not in (C, 1) or not np.isfinite(o).all()
         else:
-            if o.size == C:
-                p, fault = clean_probabilities(o)
-                fault = fault or not np.isfinite(o).all()
-            elif o.size == 1 and C == 2:
+            if o.size == 1 and C == 2:
                 s = float(np.clip(np.nan_to_num(o[0], nan=0.5), 0.0, 1.0))
                 p, fault = np.array([1.0 - s, s]), not math.isfinite(float(o[0]))
             else:

@@ -129,13 +129,9 @@ class RollingWindow:
                 buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
         for buf in (self._qvectors, self._qimu):
             buf[:-1] = buf[1:]
-        # quantise_vectors and _clean in place (the new rows are finite already)
-        q = self._qvectors[-1]
-        np.clip(self.vectors[-1].reshape(-1), -VECTOR_CLIP_PX, VECTOR_CLIP_PX, out=q)
-        np.divide(q, VECTOR_STEP_PX, out=q)
-        np.round(q, out=q)
-        np.multiply(q, VECTOR_STEP_PX, out=q)
-        np.clip(self.imu[-1], -IMU_CLIP, IMU_CLIP, out=self._qimu[-1])
+        # the new frame as encode_vectors would give it
+        self._qvectors[-1] = quantise_vectors(self.vectors[-1]).reshape(-1)
+        self._qimu[-1] = _clean(self.imu[-1], IMU_CLIP)
         self.count += 1
         self._encoded.clear()
 

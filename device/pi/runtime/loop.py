@@ -24,6 +24,7 @@ import os
 import sys
 import time
 from collections import deque
+from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
 
 import cv2
@@ -41,7 +42,7 @@ from device.pi.runtime.decisions import (GaitContext, decide, expected_context, 
                                          gait_from_message)
 from device.pi.runtime.feed import CameraFeed
 from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
-from device.pi.runtime.load import Models, load_models
+from device.pi.runtime.load import CLASSIFIER_TASKS, Models, load_models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
 from device.pi.runtime.stats import BoundedStats
@@ -561,7 +562,6 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
 def _check_models_folder(models_dir, fail) -> None:
     """Refuse one model's folder given for the models folder (it would load nothing
     and run the rules alone); warn when the folder holds no model."""
-    from pathlib import Path
     d = Path(models_dir)
     if not d.is_dir():
         return                                # load_models names the missing folder
@@ -570,7 +570,7 @@ def _check_models_folder(models_dir, fail) -> None:
              f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
              f"give the folder that holds surface/, texture/, slip/ and pressure/, "
              f"e.g. {d.parent}")
-    tasks = ("surface", "texture", "slip", "pressure")
+    tasks = (*CLASSIFIER_TASKS, "pressure")
     if not any((d / t).is_dir() for t in tasks):
         print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
               f"({', '.join(tasks)}); running the rules only", file=sys.stderr)

@@ -3,7 +3,7 @@
 * :class:`ContactGrid` - the receptive-field contact grid (the paper's eq. 1).
 * :func:`average_vector` - the mean pin vector: shear direction and magnitude.
 * :func:`magnitude_sum` - the sum of pin-vector magnitudes, P (the paper's eq. 3).
-* :func:`shear_and_sum` - both of the last two in one pass.
+* :func:`shear_and_sum` - both of the last two in one pass (they are read from it).
 
 All of them return finite numbers for any input, including empty or NaN vectors.
 """
@@ -109,24 +109,20 @@ def _finite_rows(vectors: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
     return np.clip(v[ok], -MAX_VECTOR_PX, MAX_VECTOR_PX)
 
 
-def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
-    """Mean (dx, dy) over the valid, finite pin vectors; (0, 0) when none."""
-    v = _finite_rows(vectors, valid)
-    if v.shape[0] == 0:
-        return 0.0, 0.0
-    m = v.mean(axis=0)
-    return float(m[0]), float(m[1])
-
-
 def shear_and_sum(vectors: np.ndarray, valid: np.ndarray | None = None
                   ) -> tuple[float, float, float]:
-    """(dx, dy, P): :func:`average_vector` and :func:`magnitude_sum` of the same
-    vectors in one pass (the marker pipeline's per-frame call)."""
+    """(dx, dy, P): the mean vector and the sum of magnitudes over the valid, finite
+    pin vectors, in one pass (the marker pipeline's per-frame call); zeros when none."""
     v = _finite_rows(vectors, valid)
     if v.shape[0] == 0:
         return 0.0, 0.0, 0.0
     m = v.mean(axis=0)
     return float(m[0]), float(m[1]), float(np.hypot(v[:, 0], v[:, 1]).sum())
+
+
+def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
+    """Mean (dx, dy) over the valid, finite pin vectors; (0, 0) when none."""
+    return shear_and_sum(vectors, valid)[:2]
 
 
 def direction_deg(dx: float, dy: float) -> float:
@@ -138,10 +134,7 @@ def direction_deg(dx: float, dy: float) -> float:
 
 def magnitude_sum(vectors: np.ndarray, valid: np.ndarray | None = None) -> float:
     """P = sum of |v_i| over the valid, finite pin vectors (the paper's eq. 3)."""
-    v = _finite_rows(vectors, valid)
-    if v.shape[0] == 0:
-        return 0.0
-    return float(np.hypot(v[:, 0], v[:, 1]).sum())
+    return shear_and_sum(vectors, valid)[2]
 
 
 def vector_features(vectors: np.ndarray, lost: np.ndarray) -> np.ndarray:

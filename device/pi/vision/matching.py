@@ -18,7 +18,7 @@ import numpy as np
 
 from device.checks import positive_number
 
-__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "MAX_COORD_PX", "as_points", "usable_rows",
+__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "MAX_COORD_PX", "as_points", "usable_rows",
            "all_rows_usable"]
 
 
@@ -112,6 +112,17 @@ def _homogeneous(r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return ut, vt
 
 
+def pair_d2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Squared distances (m, n) between the rows of ``a`` (m, 2) and ``b`` (n, 2):
+    ``(ax - bx)^2 + (ay - by)^2``, without a (m, n, 2) temporary."""
+    dx = np.subtract.outer(a[:, 0], b[:, 0])
+    dy = np.subtract.outer(a[:, 1], b[:, 1])
+    dx *= dx
+    dy *= dy
+    dx += dy
+    return dx
+
+
 #: up to this many (reference, current) pairs the scores are exact squared
 #: distances by broadcasting; above it, one matrix product (:func:`_homogeneous`)
 _SMALL_PAIRS = 4096
@@ -134,11 +145,8 @@ def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) 
     if small:
         # few pairs (the tracker's re-searches for a handful of lost pins): the
         # exact negative squared distances, without the product's set-up
-        dx = np.subtract.outer(r[:, 0], c[:, 0])
-        dy = np.subtract.outer(r[:, 1], c[:, 1])
-        dx *= dx
-        dy *= dy
-        s_rc = np.negative(dx + dy, out=dx)
+        s_rc = pair_d2(r, c)
+        np.negative(s_rc, out=s_rc)
     else:
         ut, vt = _homogeneous(r, c)
         s_rc = _SCRATCH.get("s_rc", m * n, ut.dtype).reshape(m, n)
@@ -197,7 +205,7 @@ def mutual_match(pred: np.ndarray, det: np.ndarray, gate_px: float) -> np.ndarra
     idx = np.full(len(pred), -1, np.int64)
     if len(pred) == 0 or len(det) == 0:
         return idx
-    d2 = ((pred[:, None, :] - det[None, :, :]) ** 2).sum(-1)
+    d2 = pair_d2(np.asarray(pred), np.asarray(det))
     fwd = d2.argmin(axis=1)
     back = d2.argmin(axis=0)
     rows = np.arange(len(pred))

@@ -17,7 +17,7 @@ import numpy as np
 
 from device.checks import finite_number, positive_number, whole_number
 from device.pi.vision.matching import (all_rows_usable, as_points, match_pins, match_pins_unchecked,
-                                       usable_rows)
+                                       pair_d2, usable_rows)
 
 __all__ = ["layout_pitch_px", "nearest_neighbour_px", "layout_neighbours", "track_with_neighbours",
            "match_and_grow", "neighbour_median", "neighbour_consistency", "column_median"]
@@ -34,7 +34,7 @@ def _nearest_d2(name: str, points) -> np.ndarray:
     r = r[usable_rows(r)]
     if r.shape[0] < 2:
         return np.zeros(0, np.float64)
-    d2 = ((r[:, None, :] - r[None, :, :]) ** 2).sum(axis=2)
+    d2 = pair_d2(r, r)
     np.fill_diagonal(d2, np.inf)
     return d2.min(axis=1)
 
@@ -75,10 +75,7 @@ def layout_neighbours(ref, k: int = 6, max_dist_px: float | None = None) -> tupl
     cap2 = np.inf if max_dist_px is None else positive_number("max_dist_px", max_dist_px) ** 2
     finite = usable_rows(r)
     rr = np.where(finite[:, None], r, 0.0)
-    dx = np.subtract.outer(rr[:, 0], rr[:, 0])
-    dy = np.subtract.outer(rr[:, 1], rr[:, 1])
-    d2 = dx * dx
-    d2 += dy * dy
+    d2 = pair_d2(rr, rr)
     d2[~finite, :] = np.inf
     d2[:, ~finite] = np.inf
     np.fill_diagonal(d2, np.inf)
