@@ -80,9 +80,8 @@ def _define_temporal():
             self.neighbours = neighbours
 
         def _rough(self):
-            """(W, use): W (M, M) float32 averages each pin's neighbours; use (M,)
-            float32 is 1 / (pins counted) for each pin whose neighbours are all
-            used, else 0. None without ``neighbours``."""
+            """use (M,) float32: 1 / (pins counted) for each pin whose neighbours are
+            all used, else 0; None without ``neighbours``."""
             if self.neighbours is None:
                 return None
             nb = np.asarray(self.neighbours, np.int64)
@@ -91,15 +90,12 @@ def _define_temporal():
                     or nb.max() >= M:
                 raise TrainError(f"neighbours must be {M} rows of pin indices in 0..{M - 1}, "
                                  f"got shape {nb.shape}")
-            W = np.zeros((M, M), np.float32)
-            np.add.at(W, (np.repeat(np.arange(M), nb.shape[1]), nb.ravel()),
-                      np.float32(1.0 / nb.shape[1]))
             m = self._mask()
             ok = np.ones(M, bool) if m is None else m > 0
             ok = ok & ok[nb].all(axis=1)
             if not ok.any():
                 raise TrainError("neighbours: no pin has all its neighbours in use")
-            return W, (ok / ok.sum()).astype(np.float32)
+            return (ok / ok.sum()).astype(np.float32)
 
         def _mask(self):
             """(M,) float32 of 1 (pin used) and 0 (pin ignored), or None."""
@@ -144,19 +140,18 @@ def _define_temporal():
             parts += [dv.reshape(N, -1), avg.reshape(N, -1), davg.reshape(N, -1),
                       np.sqrt((davg * davg).sum(axis=2)),
                       np.sqrt((dv * dv).sum(axis=3)).mean(axis=2), mag]
-            rough = self._rough()
-            if rough is not None:
-                W, use = rough
-                vt = v.transpose(0, 1, 3, 2)                     # (N, T, 2, M)
-                r = vt - vt @ W.T
+            use = self._rough()
+            if use is not None:
+                # each pin minus the mean of its neighbours, as the graph gathers them
+                nb = np.asarray(self.neighbours, np.int64)
+                r = v - sum(v[:, :, nb[:, k]] for k in range(nb.shape[1])) / nb.shape[1]
                 dr = r[:, 1:] - r[:, :-1]
-                rm = (np.sqrt((r * r).sum(axis=2)) * use).sum(axis=2)
-                drm = (np.sqrt((dr * dr).sum(axis=2)) * use).sum(axis=2)
+                rm = (np.sqrt((r * r).sum(axis=3)) * use).sum(axis=2)
+                drm = (np.sqrt((dr * dr).sum(axis=3)) * use).sum(axis=2)
                 den = mag + np.float32(ROUGH_FLOOR_PX)
                 parts += [rm, rm / den, drm, drm / den[:, 1:]]
             return np.concatenate(parts, axis=1).astype(np.float32)
 
-    globals()["TemporalFeatures"] = TemporalFeatures
     _register_temporal(TemporalFeatures)
     return TemporalFeatures
 
@@ -201,8 +196,6 @@ def _define_scaler():
             z = (np.asarray(X, np.float32) - self.mean_) * self.inv_scale_
             return np.clip(z, -self.clip, self.clip).astype(np.float32)
 
-    globals()["ClippedScaler"] = ClippedScaler
-    from onnx import TensorProto
     from skl2onnx import update_registered_converter
     from skl2onnx.common.data_types import FloatTensorType
 
@@ -213,16 +206,10 @@ def _define_scaler():
         op = operator.raw_operator
 
         def init(values, dims):
-            name = scope.get_unique_variable_name("c")
-            container.add_initializer(name, TensorProto.FLOAT, dims,
-                                      np.asarray(values, np.float32).ravel().tolist())
-            return name
+            return _onnx_init(scope, container, values, dims)
 
         def node(op_type, inputs, out=None):
-            out = out or scope.get_unique_variable_name(op_type.lower())
-            container.add_node(op_type, inputs, out,
-                               name=scope.get_unique_operator_name(op_type))
-            return out
+            return _onnx_node(scope, container, op_type, inputs, out)
 
         D = int(op.n_features_in_)
         z = node("Mul", [node("Sub", [operator.inputs[0].full_name, init(op.mean_, [D])]),
@@ -232,6 +219,27 @@ def _define_scaler():
 
     update_registered_converter(ClippedScaler, "TacfootClippedScaler", shape, convert)
     return ClippedScaler
+
+
+def _onnx_init(scope, container, values, dims, dtype: str = "float") -> str:
+    """An initializer (float32 or int64) named by ``scope``; returns its name."""
+    from onnx import TensorProto
+    name = scope.get_unique_variable_name("c")
+    if dtype == "int64":
+        container.add_initializer(name, TensorProto.INT64, dims,
+                                  np.asarray(values, np.int64).ravel().tolist())
+    else:
+        container.add_initializer(name, TensorProto.FLOAT, dims,
+                                  np.asarray(values, np.float32).ravel().tolist())
+    return name
+
+
+def _onnx_node(scope, container, op_type, inputs, out=None, **attrs) -> str:
+    """A node of ``op_type`` whose output is ``out`` (or a fresh name); returns it."""
+    out = out or scope.get_unique_variable_name(op_type.lower())
+    container.add_node(op_type, inputs, out, name=scope.get_unique_operator_name(op_type),
+                       **attrs)
+    return out
 
 
 def _register_temporal(cls) -> None:
@@ -246,21 +254,17 @@ def _register_temporal(cls) -> None:
 
 def _temporal_to_onnx(scope, operator, container):
     """ONNX for :class:`TemporalFeatures` (the same numbers as its transform)."""
-    from onnx import TensorProto
-
     op = operator.raw_operator
     T, M = int(op.T), int(op.n_pins)
 
-    def const(values):
-        name = scope.get_unique_variable_name("c")
-        container.add_initializer(name, TensorProto.INT64, [len(values)], list(values))
-        return name
+    def const(values):              # an int64 vector (indices, axes, shapes)
+        return _onnx_init(scope, container, values, [len(values)], "int64")
+
+    def fconst(values, dims):
+        return _onnx_init(scope, container, values, dims)
 
     def node(op_type, inputs, **attrs):
-        out = scope.get_unique_variable_name(op_type.lower())
-        container.add_node(op_type, inputs, out, name=scope.get_unique_operator_name(op_type),
-                           **attrs)
-        return out
+        return _onnx_node(scope, container, op_type, inputs, **attrs)
 
     def frames(a, lo, hi):          # a[:, lo:hi] along axis 1
         return node("Slice", [a, const([lo]), const([hi]), const([1])])
@@ -273,10 +277,7 @@ def _temporal_to_onnx(scope, operator, container):
                          const([-1, T, M, 2])])
     mask = op._mask()
     if mask is not None:                 # ignored pins read as zero
-        mname = scope.get_unique_variable_name("pin_mask")
-        container.add_initializer(mname, TensorProto.FLOAT, [1, 1, M, 2],
-                                  np.repeat(mask, 2).astype(float).tolist())
-        v = node("Mul", [v, mname])
+        v = node("Mul", [v, fconst(np.repeat(mask, 2), [1, 1, M, 2])])
         rest = node("Slice", [x, const([T * M * 2]), const([op.n_features_in_]), const([1])])
         x = node("Concat", [flat(v, T * M * 2), rest], axis=1)
     avg = node("ReduceMean", [v], axes=[2], keepdims=0)                       # (N, T, 2)
@@ -289,19 +290,10 @@ def _temporal_to_onnx(scope, operator, container):
              node("ReduceMean", [node("Sqrt", [node("ReduceSumSquare", [dv], axes=[3],
                                                     keepdims=0)])], axes=[2], keepdims=0),
              mag]
-    rough = op._rough()
-    if rough is not None:
-        _, use = rough
-
-        def fconst(values, dims):
-            name = scope.get_unique_variable_name("c")
-            container.add_initializer(name, TensorProto.FLOAT, dims,
-                                      np.asarray(values, np.float32).ravel().tolist())
-            return name
-
+    use = op._rough()
+    if use is not None:
         nb = np.asarray(op.neighbours, np.int64)
-        nbn = scope.get_unique_variable_name("neighbours")
-        container.add_initializer(nbn, TensorProto.INT64, list(nb.shape), nb.ravel().tolist())
+        nbn = _onnx_init(scope, container, nb, list(nb.shape), "int64")
         # pins first, so the Gather copies whole rows of N x T x 2 values (a Gather
         # along the last axis copies them one by one); a Gather and a mean, not a
         # MatMul, so the int8 quantiser leaves it in float
