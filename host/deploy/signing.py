@@ -27,7 +27,7 @@ import stat
 from pathlib import Path
 
 from device.config import tomllib
-from device.pi.models.artefact import ModelError, model_file, read_manifest, sha256_file
+from device.pi.models.artefact import ModelError, checked_model_file, read_manifest
 from device.pi.models.signature import (decode_public_key, key_id, signature_doc,
                                         signature_path, verify)
 from host.deploy.options import DeployInputError
@@ -122,19 +122,16 @@ class SigningKey:
 
 
 def check_listed_files(manifest: Path) -> None:
-    """Every file a model manifest lists (``onnx`` and the ``sha256`` table) lies
-    inside its folder and has the SHA-256 given; DeployInputError naming it if not."""
+    """Every file a model manifest lists (``onnx``, none for a rule model, and the
+    ``sha256`` table) lies inside its folder and has the SHA-256 given
+    (:func:`device.pi.models.artefact.checked_model_file`); DeployInputError naming
+    it if not."""
     try:
         doc, folder = read_manifest(manifest)
         hashes = doc["sha256"]
-        if not isinstance(hashes, dict) or doc["onnx"] not in hashes:
-            raise ModelError(f"{manifest}: sha256 must map {doc['onnx']!r} to its hash")
-        for name, want in hashes.items():
-            path = model_file(folder, name, manifest)
-            if not path.is_file():
-                raise ModelError(f"{path}: model file missing")
-            if sha256_file(path) != want:
-                raise ModelError(f"{path}: checksum does not match {manifest.name}")
+        names = set(hashes) | ({doc["onnx"]} if doc["onnx"] is not None else set())
+        for name in sorted(names):
+            checked_model_file(folder, name, hashes, manifest)
     except (ModelError, TypeError) as exc:
         raise DeployInputError(f"will not sign: {exc}") from None
 

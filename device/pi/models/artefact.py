@@ -70,6 +70,22 @@ def model_file(folder: Path | str, name, where: Path | str | None = None) -> Pat
     return path
 
 
+def checked_model_file(folder: Path, name, sha256: dict, where) -> Path:
+    """The file ``name`` a manifest lists, inside ``folder`` (:func:`model_file`),
+    present and with the SHA-256 the manifest's ``sha256`` table gives it; a
+    ModelError naming the file if not."""
+    path = model_file(folder, name, where)
+    if not path.is_file():
+        raise ModelError(f"{path}: model file missing")
+    want = sha256.get(name) if isinstance(sha256, dict) else None
+    got = sha256_file(path)
+    if want != got:
+        raise ModelError(f"{path}: checksum does not match the manifest (file "
+                         f"{got[:12]}..., manifest {str(want)[:12]}...); the file is corrupt, "
+                         f"truncated or replaced")
+    return path
+
+
 def read_manifest(path: Path | str) -> tuple[dict, Path]:
     """(manifest, folder) from a model folder or a manifest path."""
     doc, mpath = read_json_doc(path, MANIFEST, FORMAT, VERSION, "model", "manifest", ModelError)
@@ -205,14 +221,7 @@ def load_model(path: Path | str, expect_kind: str | None = None,
     if expect_kind is not None and doc.get("kind") != expect_kind:
         raise ModelError(f"{folder / MANIFEST}: kind is {doc.get('kind')!r}, "
                          f"expected {expect_kind!r}")
-    onnx_path = model_file(folder, doc["onnx"], folder / MANIFEST)
-    if not onnx_path.is_file():
-        raise ModelError(f"{onnx_path}: model file missing")
-    want = doc["sha256"].get(doc["onnx"]) if isinstance(doc["sha256"], dict) else None
-    got = sha256_file(onnx_path)
-    if want != got:
-        raise ModelError(f"{onnx_path}: checksum {got[:12]}... does not match the manifest "
-                         f"({str(want)[:12]}...); the file is corrupt, truncated or replaced")
+    onnx_path = checked_model_file(folder, doc["onnx"], doc["sha256"], folder / MANIFEST)
     try:
         sess = ort_session(str(onnx_path), threads)
     except Exception as exc:  # onnxruntime raises its own exception types

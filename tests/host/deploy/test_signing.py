@@ -88,3 +88,16 @@ def test_config_naming_another_key_is_refused(tmp_path):
         config_with_key(text, key, allow_unsigned=False, where="leg.toml")
     same = config_with_key(f'[signing]\npublic_key = "{key.public_key}"\n', key, True, "x")
     assert tomllib.loads(same)["signing"]["allow_unsigned"] is True
+
+
+def test_a_rule_model_without_an_onnx_file_is_signed(tmp_path):
+    """A rule model (``host train --model rule``) lists no ONNX file: it is signed
+    like any other model, and its signature verifies."""
+    from host.learn.onnx_io import new_manifest, write_manifest
+
+    key = SigningKey.load(tmp_path / "k.pem")
+    write_manifest(tmp_path / "models" / "surface",
+                   new_manifest(6, {"kind": "surface", "model": "rule"}))
+    done = sign_models(tmp_path / "models", key)
+    assert [p.parent.name for p in done] == ["surface"]
+    assert check_manifest(done[0], key.public_key, allow_unsigned=False)
