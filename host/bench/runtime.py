@@ -33,6 +33,7 @@ import os
 import subprocess
 import sys
 
+from device.pi.runtime.loop import EXIT_BAD_INPUT
 from host.bench.costs import PI4_FACTOR
 
 GOALS = {"latency_ms_p99": 2.0, "rss_mb_peak": 150.0}
@@ -61,6 +62,11 @@ def with_option(url: str, option: str) -> str:
     return url + ("&" if "?" in url else "?") + option
 
 
+class RunRefused(Exception):
+    """``device.pi run`` refused its input (a camera, IMU or models folder it cannot
+    use: exit 2); the message is its own one-line reason."""
+
+
 def _child(camera: str, imu: str, frames: int, models: str | None) -> dict:
     load_before = os.getloadavg()[0]
     cmd = [sys.executable, "-m", "device.pi", "run", "--camera", camera, "--imu", imu,
@@ -69,6 +75,9 @@ def _child(camera: str, imu: str, frames: int, models: str | None) -> dict:
         cmd += ["--models", models]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    if r.returncode == EXIT_BAD_INPUT:
+        lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
+        raise RunRefused(lines[-1] if lines else f"{' '.join(cmd)}: bad input")
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr.strip()}")
     res = json.loads(r.stdout.strip().splitlines()[-1])

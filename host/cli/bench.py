@@ -6,20 +6,9 @@ import sys
 from pathlib import Path
 
 from host.bench import sim as bench_sim
-from host.bench.runtime import bench_runtime, format_runtime
+from host.bench.runtime import RunRefused, bench_runtime, format_runtime
 from host.bench.tables import write_tables
 from host.cli.common import UserError, emit, real_data_dir, whole
-
-
-def _camera_url(camera: str) -> str:
-    """A bare path is a file source; a missing file is refused before any run."""
-    if "://" not in camera:
-        camera = f"file://{camera}"
-    if camera.startswith("file://"):
-        path = Path(camera[len("file://"):].split("?")[0])
-        if not path.exists():
-            raise UserError(f"--camera: {path} does not exist")
-    return camera
 
 
 def cmd_bench(args):
@@ -36,11 +25,16 @@ def cmd_bench(args):
         res = bench_sim.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
         emit(args, res, bench_sim.format_pipeline(res))
     elif args.what == "runtime":
-        camera = _camera_url(args.camera) if args.camera else None
+        camera = args.camera
+        if camera and "://" not in camera:
+            camera = f"file://{camera}"          # a bare path is a file source
         if args.imu and camera is None:
             raise UserError("--imu goes with --camera (sim://walk brings its own IMU)")
-        res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
-                            imu=args.imu)
+        try:
+            res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
+                                imu=args.imu)
+        except RunRefused as exc:               # the runtime's own one-line reason
+            raise UserError(str(exc)) from None
         emit(args, res, format_runtime(res))
     elif args.what == "tables":
         data = real_data_dir(args.data)

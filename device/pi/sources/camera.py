@@ -435,7 +435,8 @@ def _open_path(path_str: str, source: str, query: dict, opts: dict) -> CameraSou
     if path.is_dir() or path.suffix.lower() in IMAGE_SUFFIXES or path_str.endswith(("/", os.sep)):
         return ImageFolderSource(path, source=source, **o)
     if not path.exists():
-        raise CameraError(errno.ENOENT, "no such video file or image folder", str(path))
+        raise CameraError(errno.ENOENT, "does not exist (no such video file or image folder)",
+                          str(path))
     return VideoFileSource(path, source=source, **o)
 
 

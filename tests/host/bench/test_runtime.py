@@ -38,3 +38,25 @@ def test_host_bench_runtime_on_a_real_recording(capsys):
 def test_host_bench_runtime_refuses_a_missing_recording(tmp_path, capsys):
     assert main(["bench", "runtime", "--camera", str(tmp_path / "nope.avi")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_host_bench_runtime_bad_sources_are_one_line_and_exit_2(tmp_path, capsys):
+    """A missing recording, a file that is no video and an IMU the runtime refuses:
+    each is the runtime's own one-line reason and exit 2, not a traceback."""
+    import cv2
+    import numpy as np
+
+    not_video = tmp_path / "notes.txt"
+    not_video.write_text("not a video\n")
+    clip = tmp_path / "clip.avi"
+    vw = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48), False)
+    for _ in range(5):
+        vw.write(np.zeros((48, 64), np.uint8))
+    vw.release()
+    for argv, word in ((["--camera", str(tmp_path / "missing.avi")], "--camera"),
+                       (["--camera", str(not_video)], "--camera"),
+                       (["--camera", str(clip), "--imu", "bogus://x"], "--imu")):
+        capsys.readouterr()
+        assert main(["bench", "runtime", *argv, "--frames", "5"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and word in err[0], err
