@@ -43,8 +43,8 @@ SEEDS = (0, 1, 2)
 #: the simulated sections' reduced grid
 SIM_WINDOWS = (1, 3, 10)
 SIM_SEEDS = (0, 1)
-#: T of the regulariser comparison (the texture default, host.learn.tasks.DEFAULT_WINDOW)
-REGULARISER_T = 10
+#: T of the regulariser comparison (the longest window of the real grid)
+REGULARISER_T = REAL_WINDOWS[-1]
 #: the simulated scene kinds behind each task (host.bench.scenes.simulate_scenes)
 TASK_KINDS = {"surface": ("hard", "soft", "wet", "no-touch"),
               "texture": ("lego", "concrete", "smooth"),

@@ -14,12 +14,12 @@ scaled by :data:`host.bench.costs.PI4_FACTOR`.
 """
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 from host.bench.costs import PI4_FACTOR, machine, machine_line
 from host.bench.runtime import pi4_estimate
+from host.data.dataset import atomic_write_text
 
 # the recordings the tables are measured on, and the IMU file that goes with each
 REAL_CLIPS = (("smooth.avi", None), ("concrete.avi", "concrete_gyro.npy"))
@@ -139,9 +139,7 @@ def write_tables(doc: Path, data_dir: Path, frames: int = 600, repeats: int = 3,
     text = replace_section(text, "machine", scaling_note())
     text = replace_section(text, "pipeline-real", pipeline_table(pipe))
     text = replace_section(text, "runtime-real", runtime_table(runs))
-    tmp = doc.with_name(doc.name + f".{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, doc)
+    atomic_write_text(doc, text)
     return {"pipeline": pipe, "runtime": runs}
 
 
