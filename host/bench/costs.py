@@ -16,6 +16,7 @@ import numpy as np
 
 from device.pi.vision.encoder import FrameEncoder
 from host.data.video import video_frames
+from host.learn import evaluate
 
 __all__ = ["PI4_FACTOR", "PI4_SOURCE", "machine", "machine_line", "read_frames",
            "frame_times", "vision_cost", "model_cost", "decision_cost", "percentiles"]
@@ -31,12 +32,9 @@ PI4_SOURCE = (
 
 
 def percentiles(ms) -> dict:
-    """Median, p99 and count of a list of times in ms (None when empty)."""
-    a = np.asarray(list(ms), np.float64)
-    if not len(a):
-        return {"p50": None, "p99": None, "n": 0}
-    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)),
-            "n": int(len(a))}
+    """Median, p99 and count of a list of times in ms (None when empty), unrounded:
+    :func:`host.learn.evaluate.percentiles` without the mean."""
+    return evaluate.percentiles(ms, mean=False, digits=None)
 
 
 def cpu_model() -> str:
@@ -118,9 +116,8 @@ def model_cost(model_dir, ws, warmup: int = 20) -> dict:
     model (ONNX Runtime, one thread), {"wall", "cpu"} p50/p99 in ms, its input
     layout and its file size."""
     from device.pi.models.window import encode
-    from host.learn.evaluate import load_variant
 
-    pred, doc, kind = load_variant(model_dir, "float")
+    pred, doc, kind = evaluate.load_variant(model_dir, "float")
     layout = doc.get("input_layout", "vectors")
     uses_imu = bool(doc.get("uses_imu", False))
     call = pred.predict_window if kind == "regressor" else None

@@ -26,7 +26,7 @@ from host.learn.inputs import model_inputs
 from host.learn.metrics import classification_metrics, regression_metrics, slip_latency
 from host.learn.tasks import label_ids
 
-__all__ = ["evaluate_model", "load_variant", "VARIANTS"]
+__all__ = ["evaluate_model", "load_variant", "percentiles", "VARIANTS"]
 
 
 def _manifest_for(model_dir, variant: str | None) -> Path:
@@ -58,13 +58,20 @@ def load_variant(model_dir, variant: str | None = None):
     return Classifier.load(mpath), doc, "classifier"
 
 
-def _percentiles(ms: list[float]) -> dict:
-    a = np.asarray(ms, np.float64)
-    if not len(a):
-        return {"p50": None, "p99": None, "mean": None, "n": 0}
-    return {"p50": round(float(np.percentile(a, 50)), 5),
-            "p99": round(float(np.percentile(a, 99)), 5),
-            "mean": round(float(a.mean()), 5), "n": int(len(a))}
+def percentiles(ms, mean: bool = True, digits: int | None = 5) -> dict:
+    """Median ("p50"), p99, (with ``mean``) the mean, and the count of times in ms,
+    rounded to ``digits`` (None: not rounded); None for each when there are none."""
+    a = np.asarray(list(ms), np.float64)
+
+    def r(x):
+        return None if x is None else (float(x) if digits is None else round(float(x), digits))
+    out = {"p50": None, "p99": None}
+    if len(a):
+        out = {"p50": r(np.percentile(a, 50)), "p99": r(np.percentile(a, 99))}
+    if mean:
+        out["mean"] = r(a.mean()) if len(a) else None
+    out["n"] = int(len(a))
+    return out
 
 
 def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
@@ -152,8 +159,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     onnx_name = doc.get("onnx")
     res["model_bytes"] = int(model_file(folder, onnx_name).stat().st_size) if onnx_name else 0
     res["manifest_bytes"] = int((folder / MANIFEST).stat().st_size)
-    res["latency_ms"] = _percentiles(lat)
-    res["encode_ms"] = _percentiles(enc)
+    res["latency_ms"] = percentiles(lat)
+    res["encode_ms"] = percentiles(enc)
     res["threads"] = 1
     res["kept_fraction"] = round(float(ws.kept_fraction), 6)
     res["decision_delay_ms"] = {f"{fps}fps": round(1000.0 * ws.window / fps, 3)
