@@ -20,7 +20,7 @@ from device.pi.sources.camera import CameraError, open_camera
 from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
-from host.data.dataset import is_dataset
+from host.data.dataset import addable_folder, is_dataset
 from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 
@@ -133,9 +133,7 @@ def dataset_folder(path: Path) -> bool:
     """A dataset folder, or one a dataset writer was stopped in before its first
     trial was complete (it holds only the writer's temporary ``.*.tmp`` files and the
     rig's run state): the folders that ``simulate``, ``record`` and ``rig run`` add to."""
-    return is_dataset(path) or all(
-        (f.name.startswith(".") and f.name.endswith(".tmp")) or f.name == RUN_STATE
-        for f in path.iterdir())
+    return addable_folder(path, (RUN_STATE,))
 
 
 def camera_text(exc: OSError) -> str:

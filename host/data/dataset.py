@@ -234,3 +234,12 @@ def load_trial(dataset_dir: Path | str, i: int) -> dict:
 
 def is_dataset(path: Path | str) -> bool:
     return (Path(path) / INDEX).is_file()
+
+
+def addable_folder(path: Path | str, also: tuple[str, ...] = ()) -> bool:
+    """A folder a :class:`DatasetWriter` may add trials to: a dataset, or one a writer
+    was stopped in before its first trial was complete (it holds only writers'
+    temporary ``.*.tmp`` files, and files named in ``also``). ``path`` is a folder."""
+    return is_dataset(path) or all(
+        (f.name.startswith(".") and f.name.endswith(".tmp")) or f.name in also
+        for f in Path(path).iterdir())

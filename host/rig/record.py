@@ -25,7 +25,8 @@ import numpy as np
 
 from device.pi.sources.camera import CameraSource
 from device.pi.sources.imu import ImuSource
-from host.data.dataset import DatasetError, DatasetWriter, is_dataset, read_index, temp_prefix
+from host.data.dataset import DatasetError, DatasetWriter, addable_folder, temp_prefix
+from host.rig.trials import RUN_STATE
 
 __all__ = ["RecordError", "record", "LABEL_RE"]
 
@@ -65,15 +66,13 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise RecordError(f"--out {out}: exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not is_dataset(out):
+    if out.is_dir() and not addable_folder(out, (RUN_STATE,)):
         raise RecordError(f"--out {out}: a folder that is not a tacfoot dataset; choose an "
                           f"empty or new folder")
     if not out.parent.is_dir():
         raise RecordError(f"--out {out}: the parent folder {out.parent} does not exist")
     try:
-        if is_dataset(out):
-            read_index(out)
-        writer = DatasetWriter(out, source="record")
+        writer = DatasetWriter(out, source="record")     # reads and checks the index
     except DatasetError as exc:
         raise RecordError(str(exc)) from None
     try:

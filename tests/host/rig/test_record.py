@@ -94,3 +94,18 @@ def test_a_failed_recording_leaves_the_dataset_as_it_was(tmp_path, capsys):
     assert "first is 40x40" in capsys.readouterr().err
     assert sorted(p.name for p in out.iterdir()) == before
     assert len(read_index(out)["trials"]) == 1
+
+
+def test_record_adds_to_a_folder_a_stopped_writer_left_only_temporary_files_in(tmp_path):
+    """The folder rule is the dataset writer's: a folder holding only a stopped
+    writer's temporary files is taken (the command line accepts it too)."""
+    from device.pi.sources.camera import open_camera
+    from host.data.dataset import is_dataset
+    from host.rig.record import record
+
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / ".record.pid99999.abc.tmp").write_bytes(b"partial")
+    with open_camera("sim://press-soft") as cam:
+        entry = record(cam, None, "hard", 0.05, out)
+    assert entry["label"] == "hard" and is_dataset(out)
