@@ -67,6 +67,7 @@ from typing import Callable, Iterable, Mapping
 import numpy as np
 
 from device.checks import finite_number, positive_number, whole_number
+from device.closing import Closing
 
 __all__ = [
     "FakeMPU6050",
@@ -184,7 +185,7 @@ def _to_raw(value: float, lsb_per_unit: float) -> int:
     return int(round(scaled))
 
 
-class FakeMPU6050:
+class FakeMPU6050(Closing):
     """An smbus2.SMBus stand-in with one MPU6050 on it. See the module docstring.
 
     Parameters
@@ -362,12 +363,6 @@ class FakeMPU6050:
     @property
     def closed(self) -> bool:
         return self._closed
-
-    def __enter__(self) -> "FakeMPU6050":
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        self.close()
 
     # -------------------------------------------------------------- internals
     def _reset_registers(self) -> None:

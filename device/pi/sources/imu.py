@@ -43,13 +43,14 @@ import numpy as np
 
 from device.pi.sources.mpu6050 import (ACCEL_RANGES_G, FAULT_ENDED, FAULT_OFFLINE, FAULT_STALE, GYRO_RANGES_DPS, MPU6050,
                                        IMUError, IMUUnavailable)
+from device.closing import Closing
 from device.pi.sources.options import opt_bool, opt_choice, opt_int_in, opt_positive, parse_options
 
 __all__ = ["ImuSource", "MPU6050Source", "RetryingImuSource", "FileImuSource", "NoImuSource", "open_imu"]
 
 
 # ---------------------------------------------------------------- sources
-class ImuSource:
+class ImuSource(Closing):
     """Base class of what ``open_imu`` returns."""
 
     source: str = ""
@@ -74,12 +75,6 @@ class ImuSource:
 
     def close(self) -> None:
         self.closed = True
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.source!r})"
