@@ -120,14 +120,14 @@ def model_cost(model_dir, ws, warmup: int = 20) -> dict:
     pred, doc, kind = evaluate.load_variant(model_dir, "float")
     layout = doc.get("input_layout", "vectors")
     uses_imu = bool(doc.get("uses_imu", False))
-    call = pred.predict_window if kind == "regressor" else None
+    call = pred.predict_one if kind == "regressor" else pred.predict
 
     def decide(i):
         parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],
                  "frames": None if ws.frames is None else ws.frames[i],
                  "imu": ws.imu[i] if uses_imu else None}
         x = encode(layout, **parts)
-        return pred.predict_one(x) if call is not None else pred.predict(x)
+        return call(x)
 
     for i in range(min(warmup, len(ws))):
         decide(i)
