@@ -14,7 +14,6 @@ The real frames are never trained on.
 """
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from pathlib import Path
@@ -136,18 +135,14 @@ def sim_to_real(data_dir, work, n_per_texture: int = 8, seed: int = 0,
     man = real_texture_manifest(data_dir, work, real_frames)
     real = load_spec(str(man), "texture", m["T"], contact_only=True, progress=progress)
     ev = evaluate_model(model_dir, real)
-    manifest = json.loads((model_dir / "manifest.json").read_text())
     cm = ev["metrics"]["confusion"]
-    per_clip = {}
-    for clip, label in SIM2REAL_CLIPS.items():
-        i = cm["labels"].index(label)
-        row = cm["matrix"][i]
-        j = cm["predicted"].index(label) if label in cm["predicted"] else -1
-        per_clip[clip] = round(row[j] / max(1, sum(row)), 4) if j >= 0 else 0.0
+    per_class = ev["metrics"]["per_class"]
+    per_clip = {clip: round(per_class[label]["recall"], 4) if label in per_class else 0.0
+                for clip, label in SIM2REAL_CLIPS.items()}
     return {"accuracy": ev["metrics"]["accuracy"], "per_clip": per_clip, "confusion": cm,
             "sim_test_accuracy": res["metrics"]["test"]["accuracy"],
             "sim_windows": len(ws), "real_windows": len(real),
-            "ignored_pins": len(manifest.get("ignored_pins") or []),
+            "ignored_pins": len(res.get("ignored_pins") or []),
             "motion": {"real": motion_by_class(real), "sim": motion_by_class(ws)},
             "settings": {"calibrated": calibrated, "randomise": randomise,
                          "trials_per_texture": n_per_texture, "seed": seed,
