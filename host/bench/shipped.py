@@ -44,6 +44,7 @@ import sys
 import time
 from pathlib import Path
 
+from device.pi.models.artefact import read_manifest
 from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
@@ -185,7 +186,7 @@ def regraph(folder, seed: int = 0) -> dict:
     from host.learn.layers import replace_temporal_graph
 
     folder = Path(folder)
-    doc = json.loads((folder / "manifest.json").read_text())
+    doc, _ = read_manifest(folder)
     params = (doc.get("training") or {}).get("temporal")
     if not params:
         raise TrainError(f"{folder}: the manifest records no temporal layer to rewrite")
@@ -221,7 +222,7 @@ def mark_trained_on(folder: Path, trained_on: dict) -> None:
     simulated data) and, where real data exist, its accuracy on real frames."""
     for name in ("manifest.json", "manifest.float.json"):
         if (Path(folder) / name).is_file():
-            doc = json.loads((Path(folder) / name).read_text())
+            doc, _ = read_manifest(Path(folder) / name)
             doc["trained_on"] = trained_on
             write_manifest(folder, doc, name=name)
 
