@@ -7,8 +7,13 @@ Writing: drop / coalesce policy
 -------------------------------
 The runtime hands every packet to :meth:`LinkWriter.send` and calls
 :meth:`LinkWriter.pump` once per loop. ``pump`` writes only what the port accepts
-right now (pyserial ``write_timeout=0``; a port that takes nothing gives 0 bytes,
-never a wait), so a slow, full or blocked port can never stall the frame loop.
+right now (:func:`try_write`: a port that takes nothing gives 0 bytes, never a wait),
+so a slow, full or blocked port can never stall the frame loop. pyserial's own
+``write()`` cannot be trusted for this: with ``write_timeout=0`` on a device
+(``serialposix``) or ``socket://``, a full buffer makes ``os.write`` / ``send`` raise
+EAGAIN, which ``write()`` swallows and retries for ever (a pty whose peer stopped
+reading froze the loop at 74 % CPU, deaf to SIGTERM). So for those two ports
+:func:`try_write` makes the one non-blocking system call itself.
 What waits is held in one slot per kind:
 
 * ``fault``: a FIFO, never dropped. At most :data:`FAULT_QUEUE` wait; beyond that
@@ -33,6 +38,7 @@ clock (:class:`SenderClock`), so a context read late counts as old.
 """
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 
@@ -67,13 +73,36 @@ def open_port(url: str, baudrate: int = 921600):
             # bounded instead and try_write only offers what fits
             port.write_timeout = None
         port.open()
+        if isinstance(getattr(port, "fd", None), int):
+            os.set_blocking(port.fd, False)     # pyserial opens O_NONBLOCK; make sure
     except (serial.SerialException, ValueError, OSError) as exc:
         raise LinkError(f"--serial {url!r}: cannot open: {exc}") from None
     return port
 
 
+def _raw_writer(port):
+    """The non-blocking system call under a pyserial port, or None: ``os.write`` on
+    a device's file descriptor (opened O_NONBLOCK), ``send`` on a ``socket://``
+    socket (non-blocking). Other ports (``loop://``, rfc2217, stand-ins) use their
+    ``write``."""
+    fd = getattr(port, "fd", None)
+    if isinstance(fd, int) and fd >= 0 and type(port).__module__ == "serial.serialposix":
+        return lambda data: os.write(fd, data)
+    sock = getattr(port, "_socket", None)
+    if sock is not None and type(port).__module__ == "serial.urlhandler.protocol_socket":
+        return sock.send
+    return None
+
+
 def try_write(port, data) -> int:
-    """Write what the port accepts now; the count of bytes taken (0 when none)."""
+    """Write what the port accepts now, never waiting; the count of bytes taken (0
+    when none)."""
+    raw = _raw_writer(port)
+    if raw is not None:
+        try:
+            return int(raw(data))
+        except (BlockingIOError, InterruptedError):
+            return 0
     q = getattr(port, "queue", None)          # pyserial loop://: a bounded queue
     if q is not None and getattr(q, "maxsize", 0) > 0:
         room = q.maxsize - q.qsize()

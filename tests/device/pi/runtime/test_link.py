@@ -207,3 +207,144 @@ def test_sender_clock_follows_drift_and_restarts():
         assert now - c.sent_at(1000 + int(k * 999.5), now) < 0.01
     # the sender restarts (its clock goes back to 1 s): fresh again at once
     assert c.sent_at(1000, 700.0) == pytest.approx(700.0)
+
+
+# -- a peer that stops reading ---------------------------------------------------------
+
+def _raw_pty():
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    tty.setraw(master)
+    return master, slave
+
+
+def _surface(i: int) -> bytes:
+    return P.Surface(pins=i % 200).encode(i & 0xFFFF, 0)
+
+
+def _run_writer(w: LinkWriter, seconds: float, start: int = 0) -> tuple[int, float]:
+    """Send a SURFACE, an IMU summary and a HEARTBEAT and pump, ~500 times a second
+    (about 50 kB/s: a pty's 17 kB buffer fills in well under a second), for
+    ``seconds``; (packets handed over, the longest single pass, s)."""
+    worst = 0.0
+    i = start
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        t = time.monotonic()
+        w.send("surface", P.MSG_SURFACE, _surface(i))
+        w.send("imu", P.MSG_IMU_SUMMARY, P.ImuSummary(samples=i % 255).encode(i & 0xFFFF, 0))
+        w.send("heartbeat", P.MSG_HEARTBEAT, P.Heartbeat(uptime_s=i).encode(i & 0xFFFF, 0))
+        w.pump()
+        worst = max(worst, time.monotonic() - t)
+        i += 3
+        time.sleep(0.002)
+    return i - start, worst
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
+def test_a_pty_whose_peer_never_reads_never_blocks_the_writer():
+    """pyserial's own write() with write_timeout=0 spins for ever on a full pty (it
+    swallows EAGAIN and loops); the writer must return at once, drop old SURFACEs and
+    raise the stall."""
+    master, slave = _raw_pty()
+    port = open_port(os.ttyname(slave))
+    done = threading.Event()
+    res = {}
+
+    def work():
+        w = LinkWriter(port, stall_ms=50)
+        res["n"], res["worst"] = _run_writer(w, 1.0)
+        res["w"] = w
+        done.set()
+
+    th = threading.Thread(target=work, daemon=True)
+    th.start()
+    try:
+        assert done.wait(3.0), "the writer blocked on a pty nobody reads"
+        w = res["w"]
+        assert res["worst"] < 0.05, f"one send + pump took {res['worst'] * 1e3:.0f} ms"
+        assert w.bytes_written > 0                      # the buffer took some, then filled
+        assert w.stalled and w.packets_dropped > 0
+        assert w.packets_sent + w.packets_dropped + w.pending == res["n"]
+        assert w.pending <= 4                 # one partly written + the newest of each kind
+    finally:
+        port.close()
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
+def test_a_pty_whose_peer_reads_again_clears_the_stall_and_packets_flow():
+    master, slave = _raw_pty()
+    port = open_port(os.ttyname(slave))
+    try:
+        w = LinkWriter(port, stall_ms=50)
+        _run_writer(w, 1.0)
+        assert w.stalled
+        sent_before = w.packets_sent
+        # the peer drains from now on
+        os.set_blocking(master, False)
+        got = bytearray()
+
+        def drain():
+            while True:
+                try:
+                    chunk = os.read(master, 65536)
+                except BlockingIOError:
+                    return
+                if not chunk:
+                    return
+                got.extend(chunk)
+
+        t_end = time.monotonic() + 0.5
+        i = 100000
+        while time.monotonic() < t_end:
+            drain()
+            w.send("surface", P.MSG_SURFACE, _surface(i))
+            w.pump()
+            i += 1
+            time.sleep(0.002)
+        drain()
+        assert not w.stalled
+        assert w.packets_sent - sent_before > 100       # ~250 handed over in 0.5 s
+        dec = P.FrameDecoder(max_frame=64)
+        frames = list(dec.feed(bytes(got)))
+        # the stream stays framed: the newest SURFACEs decode
+        assert sum(P.decode_message(f) is not None for f in frames) > 100
+    finally:
+        port.close()
+        os.close(master)
+        os.close(slave)
+
+
+def test_a_socket_whose_peer_never_reads_never_blocks_the_writer():
+    """pyserial's socket:// write() spins on EAGAIN the same way."""
+    srv = socket.create_server(("127.0.0.1", 0))
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    conns = []
+    th = threading.Thread(target=lambda: conns.append(srv.accept()[0]), daemon=True)
+    th.start()
+    port = open_port(f"socket://127.0.0.1:{srv.getsockname()[1]}")
+    port._socket.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    done = threading.Event()
+    res = {}
+
+    def work():
+        w = LinkWriter(port, stall_ms=50)
+        res["n"], res["worst"] = _run_writer(w, 1.0)
+        res["w"] = w
+        done.set()
+
+    worker = threading.Thread(target=work, daemon=True)
+    worker.start()
+    try:
+        assert done.wait(3.0), "the writer blocked on a socket nobody reads"
+        w = res["w"]
+        assert res["worst"] < 0.05 and w.stalled and w.packets_dropped > 0
+    finally:
+        port.close()
+        th.join(1.0)
+        for c in conns:
+            c.close()
+        srv.close()
