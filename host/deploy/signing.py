@@ -10,6 +10,9 @@ What a deploy signs (:mod:`device.pi.models.signature` has the format):
 - every model manifest it ships (``manifest.json.sig`` beside ``manifest.json``),
   after checking that each file the manifest lists lies inside the model's folder
   and has the SHA-256 the manifest gives;
+- the set of models: ``models/models-set.json`` names every model folder and the
+  SHA-256 of each of its manifests (``models-set.json.sig``), so a model removed,
+  emptied, changed or added on the leg is refused at start;
 - the release's ``release.json`` (which lists the SHA-256 of every file of the
   release) as ``release.json.sig``.
 
@@ -28,8 +31,9 @@ from pathlib import Path
 
 from device.config import tomllib
 from device.pi.models.artefact import ModelError, checked_model_file, read_manifest
-from device.pi.models.signature import (decode_public_key, key_id, signature_doc,
-                                        signature_path, verify)
+from device.pi.models.signature import (SET_FILE, decode_public_key, key_id,
+                                        model_set_doc, signature_doc, signature_path,
+                                        verify)
 from host.deploy.options import DeployInputError
 
 KEY_ENV = "TACFOOT_SIGNING_KEY"
@@ -138,12 +142,19 @@ def check_listed_files(manifest: Path) -> None:
 
 def sign_models(models: Path, key: SigningKey) -> list[Path]:
     """Sign every model manifest under ``models`` (each file checked first by
-    :func:`check_listed_files`); the manifests signed."""
+    :func:`check_listed_files`), then the set of them (``models-set.json`` naming
+    every model folder and the SHA-256 of its manifests); the manifests signed."""
     done = []
     for manifest in sorted(models.glob("*/manifest*.json")):
         check_listed_files(manifest)
         key.sign_file(manifest)
         done.append(manifest)
+    doc = model_set_doc(models)
+    empty = sorted(name for name, manifests in doc["models"].items() if not manifests)
+    if empty:
+        raise DeployInputError(f"will not sign: {models / empty[0]} holds no manifest.json")
+    (models / SET_FILE).write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    key.sign_file(models / SET_FILE)
     return done
 
 

@@ -12,6 +12,18 @@ the host's key (:mod:`host.deploy.signing`) and writes the signature beside it::
 The leg's config holds the public key (``[signing] public_key``, base64 of the 32
 raw bytes). :func:`check_manifest` refuses a manifest whose signature does not
 verify with that key, and an unsigned one unless ``allow_unsigned`` is true.
+
+The signatures of single manifests cannot tell a model that was removed from one
+that was never shipped, so ``host deploy`` also signs the set: ``models-set.json``
+at the top of the models folder names every model folder it ships and the SHA-256
+of each of its manifests::
+
+    {"format": "tacfoot-models-set", "version": 1,
+     "models": {"surface": {"manifest.json": "<sha256>", ...}, ...}}
+
+:func:`check_model_set` refuses a models folder where a model it names is missing
+or changed, where a model it does not name appears, or, when signatures are
+required, where the set file is missing or not signed by the configured key.
 The signature arithmetic is the ``cryptography`` package's.
 """
 from __future__ import annotations
@@ -25,6 +37,10 @@ from pathlib import Path
 from device.pi.models.artefact import ModelError
 
 FORMAT = "tacfoot-signature"
+SET_FORMAT = "tacfoot-models-set"
+SET_FILE = "models-set.json"
+#: folders that hold a model even before a manifest is found in them
+MODEL_TASKS = ("surface", "texture", "slip", "pressure")
 VERSION = 1
 ALGORITHM = "ed25519"
 SUFFIX = ".sig"
@@ -115,4 +131,71 @@ def check_manifest(manifest: Path | str, public_key: str, allow_unsigned: bool) 
     except OSError as exc:
         raise ModelError(f"{manifest}: cannot read the manifest ({exc})") from None
     verify(data, sig, decode_public_key(public_key), manifest)
+    return True
+
+
+def model_folders(models_dir: Path | str) -> dict[str, dict[str, str]]:
+    """Every model folder under ``models_dir`` (one holding a ``manifest*.json``, or a
+    non-empty task folder) and the SHA-256 of each of its manifests."""
+    from device.pi.models.artefact import sha256_file
+
+    d = Path(models_dir)
+    out = {}
+    for f in sorted(p for p in d.iterdir() if p.is_dir()):
+        manifests = sorted(f.glob("manifest*.json"))
+        if manifests or (f.name in MODEL_TASKS and any(f.iterdir())):
+            out[f.name] = {m.name: sha256_file(m) for m in manifests if m.is_file()}
+    return out
+
+
+def model_set_doc(models_dir: Path | str) -> dict:
+    """The models-set document for the models folder as it is now."""
+    return {"format": SET_FORMAT, "version": VERSION, "models": model_folders(models_dir)}
+
+
+def check_model_set(models_dir: Path | str, public_key: str, allow_unsigned: bool) -> bool:
+    """Check the models folder against its signed ``models-set.json`` before any model
+    is loaded. True when the set file is signed by ``public_key`` and the folder
+    matches it; False when signatures are not required (``allow_unsigned``: the set
+    is not checked then, as unsigned models may load). SignatureError naming the
+    folder and the model otherwise: the set file missing or unsigned, a signature
+    that does not verify, a model it names missing or changed, a model it does not
+    name present."""
+    if allow_unsigned:
+        return False
+    d = Path(models_dir)
+    f = d / SET_FILE
+    sig = signature_path(f)
+    if not f.is_file() or not sig.is_file() or not public_key:
+        what = (f"no {SET_FILE} (the signed list of the models a deploy shipped)"
+                if not f.is_file() else f"{SET_FILE} is unsigned ({sig.name} not found)"
+                if not sig.is_file() else "no signing.public_key is configured to check it with")
+        raise SignatureError(f"{d}: {what}, and signing.allow_unsigned is false")
+    try:
+        data = f.read_bytes()
+    except OSError as exc:
+        raise SignatureError(f"{f}: cannot read it ({exc})") from None
+    verify(data, sig, decode_public_key(public_key), f)
+    try:
+        doc = json.loads(data)
+        want = doc["models"] if doc.get("format") == SET_FORMAT else None
+        if not isinstance(want, dict) or not all(
+                isinstance(v, dict) and all(isinstance(h, str) for h in v.values())
+                for v in want.values()):
+            raise ValueError("not a tacfoot models set")
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise SignatureError(f"{f}: unreadable models set ({exc})") from None
+    have = model_folders(d)
+    for name in sorted(want):
+        if name not in have:
+            raise SignatureError(f"{d}: signed model {name!r} is missing (named in {SET_FILE})")
+        if have[name] != want[name]:
+            diff = sorted(set(have[name]) ^ set(want[name]) |
+                          {m for m in have[name] if have[name][m] != want[name].get(m)})
+            raise SignatureError(f"{d / name}: model changed since it was signed "
+                                 f"({', '.join(diff)} differ from {SET_FILE})")
+    extra = sorted(set(have) - set(want))
+    if extra:
+        raise SignatureError(f"{d / extra[0]}: model not named in the signed {SET_FILE} "
+                             f"(an unsigned model was added)")
     return True

@@ -1,7 +1,10 @@
 """The leg runtime's model set: every model in the models folder, loaded once and
 checked against the pin layout before the loop starts. Each manifest's signature is
 checked against the config's ``[signing]`` key before its model is loaded
-(:func:`device.pi.models.signature.check_manifest`)."""
+(:func:`device.pi.models.signature.check_manifest`), and, when signatures are
+required, the folder as a whole against its signed ``models-set.json``
+(:func:`device.pi.models.signature.check_model_set`): a signed model missing,
+emptied or changed, or an unsigned one added, and the leg refuses to start."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,7 +17,7 @@ from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
 from device.pi.models.window import RollingWindow
 from device.pi.runtime.config import LegConfig
 from device.pi.models.localiser import Localiser
-from device.pi.models.signature import check_manifest
+from device.pi.models.signature import check_manifest, check_model_set
 
 #: the classifier tasks, each loaded from the folder of that name
 CLASSIFIER_TASKS = ("surface", "texture", "slip")
@@ -90,6 +93,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         return manifest
 
     if d.is_dir():
+        check_model_set(d, sig.public_key, sig.allow_unsigned)
         for kind in CLASSIFIER_TASKS:
             f = d / kind
             if (f / "manifest.json").is_file() or (f.is_dir() and any(f.iterdir())):

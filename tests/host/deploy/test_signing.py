@@ -101,3 +101,22 @@ def test_a_rule_model_without_an_onnx_file_is_signed(tmp_path):
     done = sign_models(tmp_path / "models", key)
     assert [p.parent.name for p in done] == ["surface"]
     assert check_manifest(done[0], key.public_key, allow_unsigned=False)
+
+
+def test_sign_models_signs_the_set_of_models(tmp_path):
+    """models-set.json names every model folder with its manifests' SHA-256, signed."""
+    from device.pi.models.signature import SET_FILE, check_model_set
+    key = SigningKey.load(tmp_path / "k.pem")
+    d = tmp_path / "models"
+    _model(d / "surface")
+    _model(d / "pressure", data=b"other")
+    sign_models(d, key)
+    doc = json.loads((d / SET_FILE).read_text())
+    assert doc["models"] == {n: {"manifest.json": sha256_file(d / n / "manifest.json")}
+                             for n in ("pressure", "surface")}
+    assert check_model_set(d, key.public_key, allow_unsigned=False) is True
+    # a folder that holds a model but no manifest is not signed as part of the set
+    (d / "slip").mkdir()
+    (d / "slip" / "model.onnx").write_bytes(b"x")
+    with pytest.raises(DeployInputError, match="slip holds no manifest.json"):
+        sign_models(d, key)

@@ -146,10 +146,80 @@ def test_signed_models_load_and_altered_or_unsigned_ones_do_not(model_dir, tmp_p
         load_models(d, "int8", 133, _signing_cfg(key, allow_unsigned=True))
     # unsigned: refused when the config says so, loaded in development
     shutil.rmtree(d / "pressure")
+    sign_models(d, key)
     signature_path(d / "surface" / "manifest.json").unlink()
     with pytest.raises(SignatureError, match="unsigned model"):
         load_models(d, "int8", 133, strict)
     assert load_models(d, "int8", 133, LegConfig()).loaded == ("surface",)
+
+
+@pytest.fixture()
+def signed_set(model_dir, tmp_path):
+    """A copy of the models folder signed as a deploy signs it, its key, and the
+    config that requires signatures."""
+    from host.deploy.signing import SigningKey, sign_models
+    d = tmp_path / "models"
+    shutil.copytree(model_dir, d)
+    key = SigningKey.load(tmp_path / "key.pem")
+    sign_models(d, key)
+    return d, key, _signing_cfg(key, allow_unsigned=False)
+
+
+def _remove(d):
+    shutil.rmtree(d / "surface")
+
+
+def _empty(d):
+    for f in (d / "surface").iterdir():
+        f.unlink()
+
+
+def _change(d):
+    m = d / "surface" / "manifest.float.json"
+    m.write_text(m.read_text() + " ")
+
+
+def _add(d):
+    shutil.copytree(d / "pressure", d / "slip")
+    for f in (d / "slip").glob("*.sig"):
+        f.unlink()
+
+
+def _unsigned_set(d):
+    (d / "models-set.json.sig").unlink()
+
+
+def _no_set(d):
+    (d / "models-set.json").unlink()
+
+
+@pytest.mark.parametrize("spoil, match", [
+    (_remove, "signed model 'surface' is missing"),
+    (_empty, "signed model 'surface' is missing"),
+    (_change, "surface: model changed since it was signed .*manifest.float.json"),
+    (_add, "slip: model not named in the signed models-set.json"),
+    (_unsigned_set, "models-set.json is unsigned"),
+    (_no_set, "no models-set.json"),
+])
+def test_a_leg_requiring_signatures_refuses_a_models_folder_unlike_its_signed_set(
+        signed_set, spoil, match, capsys):
+    from device.pi.__main__ import main
+    from device.pi.models.signature import SignatureError
+    d, key, strict = signed_set
+    assert set(load_models(d, "int8", 133, strict).loaded) == {"surface", "pressure"}
+    spoil(d)
+    with pytest.raises(SignatureError, match=match):
+        load_models(d, "int8", 133, strict)
+    # the runtime refuses to start: one line, exit 2 (not rule-only decisions)
+    cfg = d.parent / "leg.toml"
+    cfg.write_text(f'[signing]\npublic_key = "{key.public_key}"\nallow_unsigned = false\n')
+    rc = main(["run", "--camera", "sim://press-hard", "--imu", "none", "--serial", "loop://",
+               "--models", str(d), "--config", str(cfg), "--frames", "5"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "models-set.json" in err, err
+    # in development (allow_unsigned) the set is not required
+    from device.pi.models.signature import check_model_set
+    assert check_model_set(d, key.public_key, allow_unsigned=True) is False
 
 
 def test_signing_config_is_checked():
