@@ -13,7 +13,13 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-__all__ = ["whole_number", "finite_number", "positive_number", "bounds_text", "serial_url"]
+__all__ = ["whole_number", "finite_number", "positive_number", "frame_rate", "bounds_text",
+           "serial_url", "FPS_MIN_HZ", "FPS_MAX_HZ"]
+
+#: the frame rates a camera may run at: ``--fps``, a camera source's ``fps``
+#: option and a scene's ``fps`` are all held to this range (a slower rate would
+#: let the stall check wait minutes; a faster one is no camera the leg has)
+FPS_MIN_HZ, FPS_MAX_HZ = 1.0, 1000.0
 
 
 def bounds_text(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
@@ -55,6 +61,11 @@ def finite_number(name: str, value, lo: float | None = None, hi: float | None = 
 def positive_number(name: str, value, error: type[ValueError] = ValueError) -> float:
     """``value`` as a finite float > 0."""
     return finite_number(name, value, 0, lo_open=True, error=error)
+
+
+def frame_rate(name: str, value, error: type[ValueError] = ValueError) -> float:
+    """``value`` as a frame rate in [:data:`FPS_MIN_HZ`, :data:`FPS_MAX_HZ`] frames/s."""
+    return finite_number(name, value, FPS_MIN_HZ, FPS_MAX_HZ, error=error)
 
 
 #: pyserial URL schemes that reach a port over the network and need host:port

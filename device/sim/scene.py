@@ -10,6 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
 from device.config import ConfigError, Fields, read_toml
 from device.profile import SensorProfile, builtin_toml, load_profile
 
@@ -183,7 +184,8 @@ def parse_scene(doc: dict, source: str = "", default_name: str = "scene",
         raise ConfigError(f"{source}: {exc}") from None
     width = sen.integer("width", profile.width, min=16, max=4096)
     height = sen.integer("height", profile.height, min=16, max=4096)
-    fps = sen.number("fps", 120.0, min=1, max=10000)
+    # the camera's bound (--fps): a scene is played as a camera source
+    fps = sen.number("fps", 120.0, min=FPS_MIN_HZ, max=FPS_MAX_HZ)
     sen.done()
 
     surfaces = dict(PRESETS)

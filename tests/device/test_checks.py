@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from device.checks import bounds_text, finite_number, positive_number, serial_url, whole_number
+from device.checks import (bounds_text, finite_number, frame_rate, positive_number, serial_url,
+                           whole_number)
 
 
 def test_whole_numbers_in_range_come_back_as_int():
@@ -73,3 +74,10 @@ def test_a_serial_url_without_what_it_needs_is_refused(url, why):
 def test_bounds_are_worded_as_the_messages_word_them():
     assert bounds_text(1, None) == " >= 1" and bounds_text(None, 9) == " <= 9"
     assert bounds_text(0, 1, lo_open=True) == " in (0, 1]" and bounds_text(None, None) == ""
+
+
+def test_frame_rates_are_held_to_what_a_camera_runs_at():
+    assert frame_rate("fps", 120) == 120.0 and frame_rate("fps", 1) == 1.0
+    for bad in (0.5, 1e9, float("nan"), 0):
+        with pytest.raises(ValueError, match=rf"fps must be a finite number in \[1\.0, 1000\.0\], got fps={bad!r}"):
+            frame_rate("fps", bad)

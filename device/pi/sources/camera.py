@@ -22,11 +22,17 @@ Options come as keyword arguments or in the URL query (``?seed=3``); keyword
 arguments win. An option a source does not know is a ``ValueError`` naming it.
 
 * file / folder / sim: ``start_frame`` (int, default 0), ``end_frame`` (int,
-  exclusive, default: to the end), ``fps`` (float, overrides the declared rate),
+  exclusive, default: to the end), ``fps`` (float in 1..1000, the bound ``--fps``
+  has; overrides the declared rate),
   ``realtime`` (bool: pace ``read()`` to ``fps`` instead of returning at once).
 * sim: ``seed`` (int, default 0).
-* v4l2: ``width``, ``height`` (int), ``fps`` (float), ``fourcc`` (4 chars, e.g.
+* v4l2: ``width``, ``height`` (int), ``fps`` (float in 1..1000), ``fourcc`` (4 chars, e.g.
   MJPG or YUYV), ``buffersize`` (int, default 1: always the newest frame).
+
+A video file whose header declares a rate outside 1..1000 frames/s (a broken
+or odd header) is read at :data:`DEFAULT_FILE_FPS`, with a warning on stderr; a
+simulated scene's rate is checked when the scene loads. A live camera that
+reports such a rate counts as one whose rate is unknown.
 
 Images are returned as decoded: video frames as HxWx3 BGR uint8; folder images with
 ``cv2.IMREAD_UNCHANGED`` (a grayscale PNG stays HxW; an alpha channel is dropped);
@@ -40,6 +46,7 @@ import errno
 import math
 import os
 import re
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,7 +56,8 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 import cv2
 import numpy as np
 
-from device.pi.sources.options import opt_bool, opt_float, opt_int, parse_options
+from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
+from device.pi.sources.options import opt_bool, opt_fps, opt_int, parse_options
 from device.closing import Closing
 
 __all__ = [
@@ -64,7 +72,12 @@ __all__ = [
     "open_camera",
     "IMAGE_SUFFIXES",
     "VIDEO_SUFFIXES",
+    "DEFAULT_FILE_FPS",
 ]
+
+#: the rate a video file is read at when its header declares an implausible one
+#: (the leg camera's usual rate)
+DEFAULT_FILE_FPS = 120.0
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".pbm", ".webp"})
 VIDEO_SUFFIXES = frozenset({".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".h264"})
@@ -108,12 +121,14 @@ def _range_opts(opts: dict) -> tuple[int, int | None]:
 
 def _fps_opt(opts: dict) -> float | None:
     fps = opts.get("fps")
-    if fps is not None and fps <= 0:
-        raise ValueError(f"fps must be > 0, got {fps!r}")
-    return fps
+    return None if fps is None else opt_fps("fps", fps)
 
 
-_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_float, "realtime": opt_bool}
+def _plausible_fps(fps) -> bool:
+    return math.isfinite(fps) and FPS_MIN_HZ <= fps <= FPS_MAX_HZ
+
+
+_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_fps, "realtime": opt_bool}
 
 
 # ------------------------------------------------------------------ base class
@@ -216,8 +231,15 @@ class VideoFileSource(CameraSource):
             raise CameraError(errno.EIO, "cannot open video file (not a video, or no decoder)", str(path))
         self.width = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH))
         self.height = int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        declared = self._cap.get(cv2.CAP_PROP_FPS)
-        self.fps = fps if fps is not None else (float(declared) if math.isfinite(declared) and declared > 0 else None)
+        declared = float(self._cap.get(cv2.CAP_PROP_FPS))
+        if fps is None and _plausible_fps(declared):
+            fps = declared
+        elif fps is None:
+            fps = DEFAULT_FILE_FPS
+            print(f"warning: camera source {self.source!r}: the file declares {declared:g} "
+                  f"frames/s, outside {FPS_MIN_HZ:g}..{FPS_MAX_HZ:g}; reading it at "
+                  f"{DEFAULT_FILE_FPS:g} frames/s (give ?fps= to choose)", file=sys.stderr)
+        self.fps = fps
         count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
         total = count if count > 0 else None
         if total is not None:
@@ -404,8 +426,8 @@ class V4L2Source(CameraSource):
             raise CameraError(errno.EINVAL, f"camera gives {self.width}x{self.height}, asked "
                                             f"for {width or self.width}x{height or self.height}",
                               str(device))
-        got_fps = cap.get(cv2.CAP_PROP_FPS)
-        self.fps = float(got_fps) if math.isfinite(got_fps) and got_fps > 0 else None
+        got_fps = float(cap.get(cv2.CAP_PROP_FPS))
+        self.fps = got_fps if _plausible_fps(got_fps) else None
         code = int(cap.get(cv2.CAP_PROP_FOURCC))
         self.fourcc = "".join(chr((code >> (8 * k)) & 0xFF) for k in range(4)) if code > 0 else None
         self.n_frames = None
@@ -424,7 +446,7 @@ class V4L2Source(CameraSource):
 
 
 # ------------------------------------------------------------------ factory
-_V4L2_OPTS = {"width": opt_int, "height": opt_int, "fps": opt_float, "fourcc": _opt_fourcc,
+_V4L2_OPTS = {"width": opt_int, "height": opt_int, "fps": opt_fps, "fourcc": _opt_fourcc,
               "buffersize": opt_int}
 _SIM_OPTS = {**_STREAM_OPTS, "seed": opt_int}
 

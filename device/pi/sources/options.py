@@ -13,8 +13,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["opt_int", "opt_int_in", "opt_float", "opt_positive", "opt_bool", "opt_choice",
-           "parse_options"]
+from device.checks import frame_rate
+
+__all__ = ["opt_int", "opt_int_in", "opt_float", "opt_positive", "opt_fps", "opt_bool",
+           "opt_choice", "parse_options"]
 
 
 def opt_int(name: str, value: Any) -> int:
@@ -62,6 +64,12 @@ def opt_positive(name: str, value: Any) -> float:
     if v <= 0:
         raise ValueError(f"{name} must be > 0, got {value!r}")
     return v
+
+
+def opt_fps(name: str, value: Any) -> float:
+    """A frame rate in 1..1000 frames/s, the bound ``--fps`` has
+    (:func:`device.checks.frame_rate`)."""
+    return frame_rate(name, opt_float(name, value))
 
 
 def opt_bool(name: str, value: Any) -> bool:

@@ -47,6 +47,8 @@ def test_every_builtin_scene_loads_and_runs():
     (lambda d: d.update(effects=[{"name": "camera_noise", "sigma": -2}]),
      r"effects\[0\]\.sigma must be >= 0"),
     (lambda d: d["sensor"].update(fps=0), r"sensor\.fps must be >= 1"),
+    # a scene plays as a camera source: the bound --fps has (issue 21, item 5)
+    (lambda d: d["sensor"].update(fps=1e9), r"sensor\.fps must be <= 1000"),
     (lambda d: d.update(timeline=[]), r"timeline must be a non-empty list"),
     (lambda d: d["timeline"][0].update(surface="lava"), r"timeline\[0\]\.surface must name"),
     (lambda d: d["sensor"].update(profile="nope"), r"unknown profile 'nope'"),

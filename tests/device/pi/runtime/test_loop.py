@@ -403,15 +403,25 @@ def _run_paced(tmp_path, capsys, camera):
     return res, [r["index"] for r in rows], [r["t_s"] for r in rows]
 
 
-def test_a_camera_faster_than_the_loop_drops_old_frames_and_counts_them(tmp_path, capsys):
-    """sim:// paced at 3000 fps hands over frames faster than the loop can take them:
-    the newest frame wins, the skips are counted, and each decision keeps the index
-    and time stamp of its own frame."""
-    res, index, t_s = _run_paced(tmp_path, capsys, "sim://walk?realtime=1&fps=3000")
+def test_a_camera_faster_than_the_loop_drops_old_frames_and_counts_them(tmp_path, capsys,
+                                                                        monkeypatch):
+    """sim:// paced at 100 fps hands over frames faster than a loop slowed to 25 ms a
+    frame can take them (a source's own rate is bounded as --fps is, 1..1000, so the
+    loop is slowed rather than the camera sped up): the newest frame wins,
+    the skips are counted, and each decision keeps the index and time stamp of its
+    own frame."""
+    frame = LegRuntime._frame
+
+    def slow_frame(self, *args):
+        time.sleep(0.025)
+        return frame(self, *args)
+
+    monkeypatch.setattr(LegRuntime, "_frame", slow_frame)
+    res, index, t_s = _run_paced(tmp_path, capsys, "sim://walk?realtime=1&fps=100")
     assert res["frames"] == 60 and res["frames_dropped_behind"] > 0
     steps = [b - a for a, b in zip(index, index[1:])]
     assert all(s >= 1 for s in steps) and max(steps) > 1          # newest first, gaps shown
-    assert all(abs(t - i / 3000.0) < 1e-5 for i, t in zip(index, t_s))
+    assert all(abs(t - i / 100.0) < 1e-5 for i, t in zip(index, t_s))
 
 
 def test_a_source_read_as_fast_as_the_loop_goes_drops_nothing(tmp_path, capsys):

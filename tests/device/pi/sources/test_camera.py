@@ -490,3 +490,48 @@ def test_a_folder_skips_past_an_unreadable_or_odd_sized_image(tmp_path):
             break
         got.append((fr.index, int(fr.image[0, 0])))
     assert got == [(0, 0), (2, 80), (4, 160)] and bad == ["1.png", "3.png"]
+
+
+# ------------------------------------------------------------------ frame-rate bound (issue 21, item 5)
+@pytest.mark.parametrize("src", ["sim://walk?fps=1e9", "sim://walk?fps=0.001", "FILE?fps=0.0001",
+                                 "v4l2:///dev/video0?fps=5000"])
+def test_a_sources_own_frame_rate_has_the_bound_fps_has(clip, src):
+    src = src.replace("FILE", f"file://{clip}")
+    with pytest.raises(ValueError, match=r"fps must be a finite number in \[1\.0, 1000\.0\]"):
+        open_camera(src)
+    with pytest.raises(ValueError, match=r"fps.*2000"):
+        open_camera(str(clip), fps=2000)            # a keyword too
+
+
+def _clip_at(path: Path, fps: float) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (W, H))
+    for i in range(3):
+        writer.write(np.full((H, W, 3), level(i), np.uint8))
+    writer.release()
+    return path
+
+
+def test_a_file_whose_header_rate_is_implausible_is_read_at_the_default(tmp_path, capsys):
+    path = _clip_at(tmp_path / "half.avi", 0.5)
+    with open_camera(str(path)) as cam:
+        assert cam.fps == camera.DEFAULT_FILE_FPS
+        frames = list(cam)
+    assert frames[2].t_s == pytest.approx(2 / camera.DEFAULT_FILE_FPS)   # not 4 s
+    err = capsys.readouterr().err
+    assert err.count("warning") == 1 and "0.5 frames/s" in err and "120 frames/s" in err
+    with open_camera(str(path), fps=30) as cam:     # a stated rate: no warning
+        assert cam.fps == 30.0
+    assert capsys.readouterr().err == ""
+
+
+def test_a_live_camera_reporting_an_implausible_rate_counts_as_unknown(tmp_path, monkeypatch):
+    dev = tmp_path / "video8"
+    dev.touch()
+
+    class Odd(FakeCapture):
+        def get(self, prop):
+            return 1e6 if prop == cv2.CAP_PROP_FPS else super().get(prop)
+
+    monkeypatch.setattr(camera.cv2, "VideoCapture", Odd)
+    with open_camera(f"v4l2://{dev}?width=64&height=48") as cam:
+        assert cam.fps is None
