@@ -23,18 +23,35 @@ def load_directions(path: Path | str) -> dict:
     from ``host analyse`` JSON lines (contact frames' shear_x, shear_y)."""
     path = Path(path)
     if path.suffix == ".npy":
-        a = np.load(path, allow_pickle=False)
-        if a.ndim != 4 or a.shape[-1] != 2:
+        try:
+            a = np.load(path, allow_pickle=False)
+        except EOFError:            # zero-length or cut short
+            raise ValueError(f"{path}: the file is empty or cut short (no .npy array)") from None
+        if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 2:
             raise ValueError(f"{path}: expected shape (trials, sensations, pressures, 2), "
-                             f"got {a.shape}")
+                             f"got {getattr(a, 'shape', type(a).__name__)}")
+        if a.size == 0:
+            raise ValueError(f"{path}: no vectors to plot (shape {a.shape})")
         t, s, p, _ = a.shape
         sens = np.broadcast_to(np.arange(s)[None, :, None], (t, s, p)).reshape(-1)
         pres = np.broadcast_to(np.arange(p)[None, None, :], (t, s, p)).reshape(-1)
         return {"label": path.stem, "xy": a.reshape(-1, 2), "sensation": sens, "pressure": pres}
-    xs = [(d["shear_x"], d["shear_y"]) for d in read_lines(path) if d.get("contact")]
+    lines = _lines(path)
+    xs = [(d["shear_x"], d["shear_y"]) for d in lines if d.get("contact")]
+    if not xs:
+        raise ValueError(f"{path}: no contact frame to plot (of {len(lines)} frame lines)")
     xy = np.asarray(xs, dtype=float).reshape(-1, 2)
     return {"label": path.stem, "xy": xy, "sensation": np.zeros(len(xy), int),
             "pressure": np.zeros(len(xy), int)}
+
+
+def _lines(path: Path) -> list[dict]:
+    """The frame lines of ``path``; an empty file is a ValueError naming it (an empty
+    plot would look like a result)."""
+    lines = read_lines(path)
+    if not lines:
+        raise ValueError(f"{path}: the file holds no frame lines (empty)")
+    return lines
 
 
 def plot_directions(inputs: list[dict], out: Path | str, title: str = "") -> Path:
@@ -73,11 +90,14 @@ def load_comparison(path: Path | str) -> tuple[list[dict], dict]:
     """The two direction series of one ``host analyse --localiser`` file as
     :func:`plot_directions` inputs, and how well they agree."""
     path = Path(path)
+    lines = _lines(path)
     try:
-        series = direction_series(read_lines(path))
+        series = direction_series(lines)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
     n = len(series["frame"])
+    if n == 0:
+        raise ValueError(f"{path}: no contact frame with a sound localisation to compare")
     zeros = np.zeros(n, int)
     inputs = [{"label": f"{path.stem}: tracked vectors", "xy": series["vectors_px"],
                "sensation": zeros, "pressure": zeros},

@@ -20,8 +20,10 @@ The driver is :class:`device.pi.sources.mpu6050.MPU6050`.
   faults.
 * ``file://PATH.npy``: ax, ay, az [g], gx, gy, gz [deg/s] per row, like
   roboskin/concrete_gyro.npy; options ``loop`` (default true; false holds the last
-  row with ``FAULT_ENDED``) and ``rate_hz`` (informational). No temperature
-  (``temp_c`` stays 0).
+  row with ``FAULT_ENDED``; when it loops, the first wrap is said once on stderr)
+  and ``rate_hz`` (informational). No temperature (``temp_c`` stays 0). A value
+  beyond the sensor's widest range (16 g, 2000 deg/s) is held at full scale and
+  its row reads with ``FAULT_SATURATED``.
 
 Every source has ``read(out=None) -> (values, faults)`` (never raises; ``values`` is a
 float32 (6,) array owned by the source and overwritten by the next read unless
@@ -35,18 +37,24 @@ that cannot be used at open time raises ``IMUError`` naming it.
 from __future__ import annotations
 
 import re
+import sys
 import time
 from pathlib import Path
 from urllib.parse import parse_qsl, unquote, urlsplit
 
 import numpy as np
 
-from device.pi.sources.mpu6050 import (ACCEL_RANGES_G, FAULT_ENDED, FAULT_OFFLINE, FAULT_STALE, GYRO_RANGES_DPS, MPU6050,
-                                       IMUError, IMUUnavailable)
+from device.pi.sources.mpu6050 import (ACCEL_RANGES_G, FAULT_ENDED, FAULT_OFFLINE, FAULT_SATURATED, FAULT_STALE,
+                                       GYRO_RANGES_DPS, MPU6050, IMUError, IMUUnavailable)
 from device.closing import Closing
 from device.pi.sources.options import opt_bool, opt_choice, opt_int_in, opt_positive, parse_options
 
-__all__ = ["ImuSource", "MPU6050Source", "RetryingImuSource", "FileImuSource", "NoImuSource", "open_imu"]
+__all__ = ["ImuSource", "MPU6050Source", "RetryingImuSource", "FileImuSource", "NoImuSource", "open_imu",
+           "FULL_SCALE"]
+
+#: the MPU6050's widest ranges per column (ax, ay, az g; gx, gy, gz deg/s): a
+#: recorded value beyond them is no reading the sensor can give
+FULL_SCALE = np.array([max(ACCEL_RANGES_G)] * 3 + [max(GYRO_RANGES_DPS)] * 3, dtype=np.float64)
 
 
 # ---------------------------------------------------------------- sources
@@ -182,31 +190,49 @@ class FileImuSource(ImuSource):
             data = np.load(path, allow_pickle=False)
         except FileNotFoundError:
             raise IMUError(f"IMU recording not found: {str(path)!r} (source {self.source!r})") from None
+        except EOFError:                # a zero-length or cut-short file
+            raise IMUError(f"cannot read IMU recording {str(path)!r} (source {self.source!r}): "
+                           f"the file is empty or cut short") from None
         except (OSError, ValueError) as e:
             raise IMUError(f"cannot read IMU recording {str(path)!r} (source {self.source!r}): {e}") from None
-        if data.ndim != 2 or data.shape[1] != 6 or data.shape[0] < 1 or data.dtype.kind not in "iuf":
+        if (not isinstance(data, np.ndarray) or data.ndim != 2 or data.shape[1] != 6
+                or data.shape[0] < 1 or data.dtype.kind not in "iuf"):
             raise IMUError(f"IMU recording {str(path)!r} must be a numeric (F, 6) array, "
-                           f"got {data.dtype}{data.shape}")
+                           f"got {getattr(data, 'dtype', type(data).__name__)}"
+                           f"{getattr(data, 'shape', '')}")
         bad = ~np.isfinite(data)
         if bad.any():
             r, c = np.argwhere(bad)[0]
             raise IMUError(f"IMU recording {str(path)!r} has a non-finite value at [{r}, {c}]: {data[r, c]!r}")
-        self.data = np.ascontiguousarray(data, dtype=np.float32)
+        # no MPU6050 reads beyond its widest range: a value past it (1e308 would
+        # even become inf as float32) is held at full scale, and its row reads
+        # with FAULT_SATURATED, as the driver reports a saturated axis
+        data = np.asarray(data, dtype=np.float64)
+        clipped = np.clip(data, -FULL_SCALE, FULL_SCALE)
+        self.saturated = (clipped != data).any(axis=1)                # (F,) bool
+        self.data = np.ascontiguousarray(clipped, dtype=np.float32)
         self.n_frames = int(self.data.shape[0])
         self.loop = loop
         self.rate_hz = rate_hz
         self.index = 0      # row the next read() returns
+        self.wraps = 0      # times the recording ran out and started again
 
     def read(self, out=None):
         if self.index >= self.n_frames:
             if self.loop:
                 self.index = 0
+                self.wraps += 1
+                if self.wraps == 1:     # said once: the rows repeat from here on
+                    print(f"warning: IMU source {self.source!r}: the recording's "
+                          f"{self.n_frames} rows ran out; looping from its first row "
+                          f"(give ?loop=0 to hold the last row with the imu_ended fault)",
+                          file=sys.stderr)
             else:
                 self.faults = FAULT_ENDED
                 return self._ret(out)
         np.copyto(self.values, self.data[self.index])
+        self.faults = FAULT_SATURATED if self.saturated[self.index] else 0
         self.index += 1
-        self.faults = 0
         return self._ret(out)
 
 

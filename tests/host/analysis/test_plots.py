@@ -91,3 +91,24 @@ def test_plots_are_written_by_the_one_figure_saver(tmp_path, monkeypatch):
     report_doc.plot_accuracy_vs_t([row], tmp_path / "sub" / "p.png", "surface")
     assert saved == [(tmp_path / "d.png", "t"), (tmp_path / "sub" / "p.png", "")]
     assert (tmp_path / "sub" / "p.png").stat().st_size > 1000
+
+
+def test_an_empty_input_is_one_line_naming_it_and_exit_2(tmp_path, capsys):
+    """Issue 21, items 6 and 13: a zero-length .npy was an EOFError traceback, and an
+    empty JSON-lines file wrote an empty plot and exited 0."""
+    (tmp_path / "empty.npy").write_bytes(b"")
+    (tmp_path / "empty.jsonl").write_text("")
+    np.save(tmp_path / "none.npy", np.zeros((0, 3, 3, 2)))
+    (tmp_path / "air.jsonl").write_text(json.dumps({"frame": 0, "contact": False,
+                                                    "shear_x": 0.0, "shear_y": 0.0}))
+    for name, compare, why in (("empty.npy", [], "empty or cut short"),
+                               ("empty.jsonl", [], "no frame lines"),
+                               ("empty.jsonl", ["--compare"], "no frame lines"),
+                               ("none.npy", [], "no vectors"),
+                               ("air.jsonl", [], "no contact frame")):
+        out = tmp_path / "x.png"
+        assert main(["plot", "directions", str(tmp_path / name), *compare,
+                     "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and name in err[0] and why in err[0], err
+        assert not out.exists()

@@ -60,3 +60,14 @@ def test_host_bench_runtime_bad_sources_are_one_line_and_exit_2(tmp_path, capsys
         assert main(["bench", "runtime", *argv, "--frames", "5"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and word in err[0], err
+
+
+def test_host_bench_runtime_an_empty_imu_recording_is_one_line_naming_it(tmp_path, capsys):
+    """Issue 21, item 6: a zero-length .npy was an EOFError traceback in the runtime
+    (device.pi run) and so in the bench that runs it."""
+    empty = tmp_path / "empty.npy"
+    empty.write_bytes(b"")
+    assert main(["bench", "runtime", "--camera", "sim://walk", "--imu", f"file://{empty}",
+                 "--frames", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--imu" in err[0] and "empty.npy" in err[0], err

@@ -120,6 +120,42 @@ def test_file_source_refuses_bad_recordings_naming_the_file(tmp_path, arr, match
         open_imu(f"file://{p}")
 
 
+@pytest.mark.parametrize("content,match", [(b"", "empty or cut short"),
+                                           (np.lib.format.MAGIC_PREFIX, "")])
+def test_an_empty_or_cut_short_recording_is_one_error_naming_the_file(tmp_path, content, match):
+    """Issue 21, item 6: a zero-length .npy was an EOFError traceback."""
+    p = tmp_path / "empty.npy"
+    p.write_bytes(content)
+    with pytest.raises(IMUError, match=r"cannot read IMU recording '.*empty\.npy'.*" + match):
+        open_imu(f"file://{p}")
+
+
+def test_a_value_beyond_the_sensors_range_reads_at_full_scale_with_the_saturated_fault(tmp_path):
+    """Issue 21, item 10: 1e308 is finite as float64 and inf as float32."""
+    m = np.zeros((3, 6))
+    m[1, 0], m[1, 5], m[2, 2] = 1e308, -1e308, 15.0
+    src = open_imu(f"file://{write_npy(tmp_path, m)}")
+    v0, f0 = src.read(out=np.empty(6, np.float32))
+    with np.errstate(over="raise"):
+        v1, f1 = src.read(out=np.empty(6, np.float32))
+    v2, f2 = src.read(out=np.empty(6, np.float32))
+    assert (f0, f1, f2) == (0, drv.FAULT_SATURATED, 0)
+    assert np.isfinite(v1).all() and (v1[0], v1[5]) == (16.0, -2000.0)
+    assert v2[2] == 15.0                  # within range: as recorded
+
+
+def test_a_recording_shorter_than_the_run_says_once_that_it_loops(tmp_path, capsys):
+    """Issue 21, item 13: 10 rows against 383 frames looped silently."""
+    src = open_imu(f"file://{write_npy(tmp_path, np.zeros((10, 6)), 'short.npy')}")
+    for _ in range(10):
+        src.read()
+    assert capsys.readouterr().err == ""
+    for _ in range(373):
+        src.read()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "short.npy" in err and "10 rows" in err and "loop" in err
+
+
 def test_file_source_missing_file_names_it(tmp_path):
     with pytest.raises(IMUError, match="nothere.npy"):
         open_imu(f"file://{tmp_path}/nothere.npy")
