@@ -17,7 +17,11 @@ One writer at a time: :class:`DatasetWriter` holds an exclusive advisory lock
 (``fcntl.flock``) on the folder itself while it is open, and a second writer is
 refused with :class:`DatasetLocked`. The folder, not ``dataset.json``, is locked,
 because the index is replaced (a new inode) on every write. Readers take no lock:
-they see the last complete index.
+they see the last complete index. (:func:`lock_folder` is that lock; ``host train``
+takes it on its ``--out`` folder too.)
+
+An index that lists a trial file twice, or a trial file that is not in the folder,
+is refused when read (and so when a writer opens it to append), naming the entries.
 
 Each trial entry records its ``source`` (``simulator``, ``rig``, ``record``); the
 index's ``source`` is the one they share, or ``"mixed"`` with the list in
@@ -113,6 +117,23 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda fh: fh.write(text.encode()))
 
 
+def lock_folder(folder: Path | str, busy: str) -> int:
+    """Take the exclusive advisory lock (``fcntl.flock``) on the existing folder
+    ``folder``; the descriptor that holds it (closing it releases the lock, as
+    does the end of the process). When another open holds it: DatasetLocked,
+    ``"{folder}: {busy}"``. A dataset's writer and ``host train --out`` lock their
+    folder this way."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        os.close(fd)
+        if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise DatasetLocked(f"{folder}: {busy}") from None
+        raise
+    return fd
+
+
 class DatasetWriter(Closing):
     """Append trials to a dataset folder, one atomic file each, holding the folder's
     writer lock until :meth:`close` (or the end of a ``with`` block, or the
@@ -123,7 +144,9 @@ class DatasetWriter(Closing):
         self.dir = Path(out_dir)
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock_fd: int | None = None
-        self._lock()
+        self._lock_fd = lock_folder(
+            self.dir, "another writer is adding trials to this dataset; wait for it to "
+                      "finish, or choose another folder")
         try:
             self.removed_temp_files = remove_stale_temp_files(self.dir)
             idx = self.dir / INDEX
@@ -142,19 +165,6 @@ class DatasetWriter(Closing):
                 if isinstance(t, dict):
                     t.setdefault("source", old)
         self.index.update(meta)
-
-    def _lock(self) -> None:
-        fd = os.open(self.dir, os.O_RDONLY)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise DatasetLocked(f"{self.dir}: another writer is adding trials to this "
-                                    f"dataset; wait for it to finish, or choose another "
-                                    f"folder") from None
-            raise
-        self._lock_fd = fd
 
     def close(self) -> None:
         """Release the folder's writer lock."""
@@ -179,7 +189,11 @@ class DatasetWriter(Closing):
     def add_trial(self, frames: np.ndarray, truth: dict, info: dict) -> Path:
         if self._lock_fd is None:
             raise DatasetError(f"{self.dir}: the writer is closed")
-        name = f"trial_{self.n_trials:04d}.npz"
+        listed = {t["file"] for t in self.index["trials"]}
+        k = self.n_trials
+        while f"trial_{k:04d}.npz" in listed or (self.dir / f"trial_{k:04d}.npz").exists():
+            k += 1                       # never a listed name, nor a file left in the folder
+        name = f"trial_{k:04d}.npz"
         arrays = {"frames": np.ascontiguousarray(frames)}
         for k, v in truth.items():
             arrays[k] = np.asarray(v)
@@ -193,14 +207,18 @@ class DatasetWriter(Closing):
         return self.dir / name
 
 
-def read_index(path: Path | str) -> dict:
+def read_index(path: Path | str, check_files: bool = True) -> dict:
     """A dataset folder's index; a DatasetError names the file when it is not one,
     or when ``trials`` is not a list of entries that each name a trial file and
-    its frame count."""
+    its frame count. A file listed twice (its windows would be trained and tested
+    on) and, with ``check_files``, a listed file that is not in the folder are
+    DatasetErrors naming them."""
     doc, file = read_json_doc(path, INDEX, FORMAT, VERSION, "dataset", "index", DatasetError)
     trials = doc.get("trials", [])
     if not isinstance(trials, list):
         raise DatasetError(f"{file}: trials must be a list of trial entries, got {trials!r:.60}")
+    first: dict[str, int] = {}
+    twice = []
     for i, e in enumerate(trials):
         if (not isinstance(e, dict) or not isinstance(e.get("file"), str)
                 or Path(e["file"]).name != e["file"] or not e["file"].endswith(".npz")):
@@ -210,14 +228,31 @@ def read_index(path: Path | str) -> dict:
         if isinstance(n, bool) or not isinstance(n, int) or n < 0:
             raise DatasetError(f"{file}: trials[{i}].frames must be a whole number >= 0, "
                                f"got {n!r}")
+        if e["file"] in first:
+            twice.append(f"trials[{i}] {e['file']} (also trials[{first[e['file']]}])")
+        first.setdefault(e["file"], i)
+    if twice:
+        raise DatasetError(f"{file}: {len(twice)} trial file(s) listed twice: "
+                           f"{_some(twice)}; remove the repeated entries")
+    if check_files:
+        missing = [f"trials[{i}] {e['file']}" for i, e in enumerate(trials)
+                   if not (file.parent / e["file"]).is_file()]
+        if missing:
+            raise DatasetError(f"{file}: {len(missing)} listed trial file(s) missing from "
+                               f"{file.parent}: {_some(missing)}; restore them or remove "
+                               f"their entries")
     doc["trials"] = trials
     return doc
+
+
+def _some(names: list[str], n: int = 5) -> str:
+    return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
 def load_trial(dataset_dir: Path | str, i: int) -> dict:
     """Trial ``i``'s arrays and its index entry (``info``); a missing, truncated or
     corrupt trial file is a DatasetError naming it."""
-    doc = read_index(dataset_dir)
+    doc = read_index(dataset_dir, check_files=False)
     try:
         entry = doc["trials"][i]
     except IndexError:

@@ -6,6 +6,7 @@ range only chooses which windows are cut."""
 from __future__ import annotations
 
 import csv
+import io
 import math
 import warnings
 from dataclasses import dataclass
@@ -45,12 +46,14 @@ def _parse_manifest(path: Path, task: str) -> list[_Row]:
         raise DataError(f"no such manifest: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise DataError(f"{path}: cannot read the manifest: {exc}") from None
-    lines = text.splitlines()
-    reader = csv.reader(lines)
+    # newline="": a quoted field keeps its line break (and the label rule refuses
+    # it) instead of the two lines being glued into another name
+    reader = csv.reader(io.StringIO(text, newline=""))
     header = None
     rows: list[_Row] = []
     base = path.parent
-    for lineno, rec in enumerate(reader, 1):
+    for rec in reader:
+        lineno = reader.line_num            # the record's last line
         if not rec or all(not c.strip() for c in rec) or rec[0].lstrip().startswith("#"):
             continue
         rec = [c.strip() for c in rec]

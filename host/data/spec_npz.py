@@ -82,7 +82,8 @@ def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
             if lab.dtype.kind not in "US":
                 raise DataError(f"{path}: labels must be strings, got dtype {lab.dtype}")
             labels = lab.astype(str).astype(object)
-            check_labels(task, labels, f"{where or path}: labels", indexed=True)
+            check_labels(task, labels, f"{where or path}: labels", indexed=True,
+                         allow_no_touch=True)
     c = per_window("contact", (), None)
     if c is not None:
         contact, contact_from = c.astype(bool), "npz"

@@ -10,6 +10,7 @@ made.
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Iterable
 
@@ -28,6 +29,11 @@ SLIP_LABELS = ("no-slip", "slip")          # slip task labels from a dataset fol
 #: the tasks whose classes are fixed (the surface link's classes; slip or not); texture
 #: labels are the user's own names
 FIXED_CLASSES = {"surface": SURFACE_CLASSES, "slip": SLIP_LABELS}
+#: a label of the user's own (a texture class, ``host record --label``): 1-64 letters,
+#: digits, '-', '_' and '.', starting with a letter or digit
+LABEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+#: names the loader and the simulator give frames without contact; never a class name
+RESERVED_LABELS = ("none", NO_TOUCH)
 IMU_CHANNELS = 6                            # ax, ay, az [g], gx, gy, gz [deg/s]
 DEFAULT_FRAME_SIZE = 32
 
@@ -275,19 +281,46 @@ def finalise(ws: WindowSet, min_classes: int, spec: str) -> WindowSet:
     return ws
 
 
-def check_labels(task: str, labels, where: str, indexed: bool = False) -> None:
+def check_label_name(label, where: str, error: type[ValueError] = DataError,
+                     allow: tuple[str, ...] = ()) -> None:
+    """``error`` naming ``where`` unless ``label`` is a name of the user's own class
+    (:data:`LABEL_RE`, not one of :data:`RESERVED_LABELS` except those in ``allow``):
+    ``no-touch`` would merge with the windows without contact, and a newline or a
+    5,000-character name has no place in a manifest, a plot or a log line. The one
+    rule for ``host record --label`` and the texture labels ``host train`` reads."""
+    if isinstance(label, str) and label in allow:
+        return
+    if not isinstance(label, str) or not LABEL_RE.fullmatch(label) or label in RESERVED_LABELS:
+        raise error(f"{where} must be 1-64 letters, digits, '-', '_' or '.', starting with a "
+                    f"letter or digit, and not {' or '.join(RESERVED_LABELS)}; got "
+                    f"{label!r:.80}")
+
+
+def check_labels(task: str, labels, where: str, indexed: bool = False,
+                 allow_no_touch: bool = False) -> None:
     """A DataError naming ``where`` (the row, trial or file) when a fixed-class task
     (:data:`FIXED_CLASSES`) gets a label that is not one of its classes: a typo such as
-    ``lava`` must not become a class of its own. ``labels`` is one label, or an array
-    when ``indexed`` (the message then names the first bad entry)."""
+    ``lava`` must not become a class of its own; or when a texture label breaks the
+    rule of :func:`check_label_name` (``allow_no_touch``: windows already labelled
+    no-touch, as an ``.npz`` marks its windows without contact, pass). ``labels`` is
+    one label, or an array when ``indexed`` (the message then names the first bad
+    entry)."""
     known = FIXED_CLASSES.get(task)
-    if known is None or labels is None:
+    if (known is None and task != "texture") or labels is None:
         return
     if not indexed:
         labels, where_i = [labels], (lambda i: where)
     else:
         def where_i(i):
             return f"{where}[{i}]"
+    if known is None:               # texture: the user's own names, each checked once
+        seen: set = set()
+        for i, x in enumerate(labels):
+            if x not in seen:
+                seen.add(x)
+                check_label_name(x, f"{where_i(i)}: a texture label",
+                                 allow=(NO_TOUCH,) if allow_no_touch else ())
+        return
     for i, x in enumerate(labels):
         if x not in known:
             raise DataError(f"{where_i(i)}: {x!r} is not a {task} class; the {task} classes "

@@ -16,7 +16,6 @@ folder) and each trial's ``label``, ``camera`` and ``imu``.
 from __future__ import annotations
 
 import os
-import re
 import tempfile
 import time
 from pathlib import Path
@@ -26,14 +25,10 @@ import numpy as np
 from device.pi.sources.camera import CameraSource
 from device.pi.sources.imu import ImuSource
 from host.data.dataset import DatasetError, DatasetWriter, addable_folder, temp_prefix
+from host.data.windows import LABEL_RE, check_label_name
 from host.rig.trials import RUN_STATE
 
 __all__ = ["RecordError", "record", "LABEL_RE"]
-
-#: a label: letters, digits, '-', '_' and '.', starting with a letter or digit
-LABEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
-#: labels the loader gives windows without contact; not a recorded class
-RESERVED = ("none", "no-touch")
 
 
 class RecordError(ValueError):
@@ -58,9 +53,7 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
     ends), one IMU row per frame from ``imu`` when given, and append the trial to
     the dataset folder ``out``. ``progress``: a callable taking the number of new
     frames (a progress bar's ``update``). Returns the trial's index entry."""
-    if not isinstance(label, str) or not LABEL_RE.fullmatch(label) or label in RESERVED:
-        raise RecordError(f"--label must be 1-64 letters, digits, '-', '_' or '.', and not "
-                          f"{' or '.join(RESERVED)}; got {label!r}")
+    check_label_name(label, "--label", RecordError)     # the rule host train applies too
     if not (isinstance(seconds, (int, float)) and np.isfinite(seconds) and seconds > 0):
         raise RecordError(f"--seconds must be a number > 0, got {seconds!r}")
     out = Path(out)

@@ -162,8 +162,65 @@ def test_a_folder_written_before_per_trial_sources_keeps_its_trials_source(tmp_p
     (out / "dataset.json").write_text(json.dumps(
         {"format": "tacfoot-dataset", "version": 1, "source": "simulator",
          "trials": [{"file": "trial_0000.npz", "frames": 3}]}))
+    np.savez_compressed(out / "trial_0000.npz", frames=_frames())
     with dataset.DatasetWriter(out, meta={"source": "rig"}) as w:
         w.add_trial(_frames(), {}, {})
     idx = dataset.read_index(out)
     assert [t["source"] for t in idx["trials"]] == ["simulator", "rig"]
     assert idx["source"] == "mixed"
+
+
+# -- an index listing a trial twice, or a missing trial file ------------------------
+
+def _two_trials(out):
+    with dataset.DatasetWriter(out, meta={"source": "simulator"}) as w:
+        w.add_trial(_frames(), {}, {})
+        w.add_trial(_frames(), {}, {})
+
+
+def _edit_index(out, edit):
+    import json
+    idx = json.loads((out / "dataset.json").read_text())
+    edit(idx["trials"])
+    (out / "dataset.json").write_text(json.dumps(idx))
+
+
+def test_a_trial_listed_twice_is_refused_when_read_and_when_appending(tmp_path):
+    out = tmp_path / "ds"
+    _two_trials(out)
+    _edit_index(out, lambda t: t.append(dict(t[0])))
+    why = r"1 trial file\(s\) listed twice: trials\[2\] trial_0000\.npz \(also trials\[0\]\)"
+    with pytest.raises(dataset.DatasetError, match=why):
+        dataset.read_index(out)
+    with pytest.raises(dataset.DatasetError, match=why):
+        dataset.DatasetWriter(out)
+    with dataset.DatasetWriter(tmp_path / "ds2"):    # the refused writer let go of no lock
+        pass
+    with pytest.raises(dataset.DatasetError, match="listed twice"):   # nor one of out's
+        dataset.DatasetWriter(out)
+
+
+def test_a_missing_trial_file_is_refused_when_read_and_when_appending(tmp_path):
+    out = tmp_path / "ds"
+    _two_trials(out)
+    (out / "trial_0001.npz").unlink()
+    why = r"1 listed trial file\(s\) missing from .*: trials\[1\] trial_0001\.npz"
+    with pytest.raises(dataset.DatasetError, match=why):
+        dataset.read_index(out)
+    with pytest.raises(dataset.DatasetError, match=why):
+        dataset.DatasetWriter(out)
+    assert len(dataset.read_index(out, check_files=False)["trials"]) == 2   # unchanged
+
+
+def test_a_new_trial_never_takes_a_name_the_index_lists(tmp_path):
+    """An index whose entries were edited down to trial_0001 alone: the next trial is
+    not named trial_0001.npz (it would overwrite that trial and list it twice)."""
+    out = tmp_path / "ds"
+    _two_trials(out)
+    _edit_index(out, lambda t: t.pop(0))
+    (out / "trial_0000.npz").unlink()
+    with dataset.DatasetWriter(out) as w:
+        w.add_trial(_frames(5), {}, {})
+    idx = dataset.read_index(out)
+    assert [t["file"] for t in idx["trials"]] == ["trial_0001.npz", "trial_0002.npz"]
+    assert dataset.load_trial(out, 0)["frames"].shape[0] == 3

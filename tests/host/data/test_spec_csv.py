@@ -170,3 +170,15 @@ def test_a_mistyped_surface_or_slip_label_is_refused_naming_the_row(tmp_path, wr
         load_spec(str(m), "surface", 2, progress=False)
     tex = load_spec(str(m), "texture", 2, progress=False)       # texture names are the user's
     assert "lava" in tex.classes
+
+
+@pytest.mark.parametrize("label, shown", [("no-touch", "'no-touch'"),
+                                          ('"smooth\nlego"', r"'smooth\\nlego'"),
+                                          ("x" * 5000, "'xxxx")])
+def test_a_texture_label_host_record_refuses_is_refused_naming_the_row(tmp_path, write_csv,
+                                                                       label, shown):
+    m = write_csv(tmp_path / "m.csv", ["path,label", "sim://press-hard,smooth",
+                                       f"sim://press-soft,{label}"])
+    with pytest.raises(DataError, match=rf"row 2 \(line [34]\), column label: a texture label "
+                                        rf"must be 1-64 .* got {shown}"):
+        load_spec(str(m), "texture", 2, progress=False)

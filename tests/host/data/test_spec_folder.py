@@ -77,3 +77,33 @@ def test_a_dataset_whose_surface_labels_hold_a_typo_is_refused_naming_the_trial(
     with pytest.raises(DataError, match=r"ds/trial_0000\.npz: surface code 1 \(surface_labels in "
                                         r".*dataset\.json\): 'lava' is not a surface class"):
         load_spec(str(ds), "surface", 2, progress=False)
+
+
+def test_a_dataset_whose_texture_labels_name_a_contact_frame_no_touch_is_refused(sim_ds,
+                                                                                 tmp_path):
+    """The simulator's "none" names only frames without contact and passes; a texture
+    name that reaches a contact window must be a name host record would accept."""
+    import json
+    import shutil
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_ds, ds)
+    doc = json.loads((ds / "dataset.json").read_text())
+    assert doc["texture_labels"][0] == "none"
+    doc["texture_labels"] = [("no-touch" if x == "smooth" else x) for x in doc["texture_labels"]]
+    (ds / "dataset.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError, match=r"ds/trial_0000\.npz: texture code 1 \(texture_labels in "
+                                        r".*dataset\.json\): a texture label must be .* got "
+                                        r"'no-touch'"):
+        load_spec(str(ds), "texture", 2, progress=False)
+
+
+def test_a_dataset_listing_a_trial_twice_is_refused_before_any_window_leaks(sim_ds, tmp_path):
+    import json
+    import shutil
+    ds = tmp_path / "ds"
+    shutil.copytree(sim_ds, ds)
+    doc = json.loads((ds / "dataset.json").read_text())
+    doc["trials"].append(dict(doc["trials"][0]))
+    (ds / "dataset.json").write_text(json.dumps(doc))
+    with pytest.raises(DataError, match=r"listed twice: trials\[3\] trial_0000\.npz"):
+        load_spec(str(ds), "surface", 2, progress=False)

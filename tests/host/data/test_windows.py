@@ -76,3 +76,25 @@ def test_fixed_class_tasks_refuse_a_label_that_is_not_a_class_naming_where():
     with pytest.raises(DataError, match=r"^v\.npz: labels\[1\]: 'slipping' is not a slip class"):
         check_labels("slip", np.array(["slip", "slipping"], object), "v.npz: labels",
                      indexed=True)
+
+
+@pytest.mark.parametrize("label", ["no-touch", "none", "x" * 5000, "smooth\nlego", "", "-a",
+                                   "a b", 5])
+def test_a_texture_label_follows_the_rule_host_record_applies(label):
+    """no-touch would merge with the windows without contact (losing the class); a
+    newline or a 5,000-character name has no place in a manifest or a log line."""
+    with pytest.raises(DataError, match=r"^m\.csv row 1: a texture label must be 1-64 letters"):
+        check_labels("texture", label, "m.csv row 1")
+
+
+def test_texture_labels_name_the_first_bad_window_and_an_npz_may_mark_no_touch():
+    check_labels("texture", "x" * 64, "m.csv row 1")
+    check_labels("texture", "concrete_2.wet-A", "m.csv row 1")
+    labels = np.array(["smooth", "no-touch", "lego"], object)
+    check_labels("texture", labels, "v.npz: labels", indexed=True, allow_no_touch=True)
+    with pytest.raises(DataError, match=r"^v\.npz: labels\[1\]: a texture label .* got "
+                                        r"'no-touch'$"):
+        check_labels("texture", labels, "v.npz: labels", indexed=True)
+    with pytest.raises(DataError, match=r"labels\[2\]: .* got 'xxxxxxx"):
+        check_labels("texture", np.array(["a", "a", "x" * 5000], object), "v.npz: labels",
+                     indexed=True, allow_no_touch=True)
