@@ -2,17 +2,25 @@
 
 Exit status: 0 when it stops (end of a finite source, ``--frames`` reached, SIGTERM
 or Ctrl-C); 2 when it refuses to start (bad config, model, source or port), with
-one line on stderr naming what is wrong.
+one line on stderr naming what is wrong; 3 when, after SIGTERM or Ctrl-C, the loop
+had not finished within :data:`STOP_GRACE_S` and the process was ended without its
+clean-up (a guard: SIGTERM always ends the process within a second).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
+import threading
 
 
 from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
+
+#: after a stop signal, the loop has this long to finish before the process ends anyway
+STOP_GRACE_S = 0.8
+EXIT_FORCED = 3
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,12 +61,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"device.pi run: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
+    guard: list[threading.Timer] = []
+
     def stop(signum, frame):
         rt.stopped = True
+        if not guard:                 # the loop should end at its next pass; if not, end
+            guard.append(threading.Timer(STOP_GRACE_S, _force_exit, (signum,)))
+            guard[0].daemon = True
+            guard[0].start()
 
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
-    rc = rt.run()
+    try:
+        rc = rt.run()
+    finally:
+        if guard:
+            guard[0].cancel()
     st = rt.status()
     st["latency_ms_p50"] = _pct(rt.latency_ms, 50)
     st["latency_ms_p99"] = _pct(rt.latency_ms, 99)
@@ -76,6 +94,14 @@ def main(argv: list[str] | None = None) -> int:
               f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}",
               file=sys.stderr)
     return rc
+
+
+def _force_exit(signum: int) -> None:
+    try:
+        os.write(2, (f"device.pi run: error: still running {STOP_GRACE_S} s after "
+                     f"{signal.Signals(signum).name}; ending without clean-up\n").encode())
+    finally:
+        os._exit(EXIT_FORCED)
 
 
 def _rss_mb() -> float | None:

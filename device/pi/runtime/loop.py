@@ -18,7 +18,6 @@ systemd watchdog is fed.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
@@ -46,7 +45,7 @@ from device.pi.runtime.load import CLASSIFIER_TASKS, Models, load_models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
 from device.pi.runtime.stats import BoundedStats
-from device.pi.runtime.status import write_status_file
+from device.pi.runtime.status import JsonLog, write_status_file
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
 from device.pi.sources.options import opt_bool
@@ -114,7 +113,7 @@ class LegRuntime:
                                reopen_min_s=cfg.camera.reopen_min_s,
                                reopen_max_s=cfg.camera.reopen_max_s, first=first_camera,
                                clock=clock)
-        self.json_log = json_log
+        self.json_log = None if json_log is None else JsonLog(json_log)
         self.status_path = status_path
         self.max_frames = max_frames
         self.notify = notify
@@ -280,7 +279,7 @@ class LegRuntime:
         if d.model_probs is not None:
             dec["model_probs"] = [round(float(x), 4) for x in d.model_probs]
             dec["rule_probs"] = [round(float(x), 4) for x in d.rule_probs]
-        self.json_log.write(json.dumps(dec) + "\n")
+        self.json_log.write(dec)
 
     def _auto_rezero(self, v, lost, contact: bool, gait) -> None:
         rz = self.cfg.rezero
@@ -422,7 +421,10 @@ class LegRuntime:
                 "frames_dropped_behind": self.feed.dropped,
                 "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
-                "models": list(self.models.loaded), "fps": self.fps}
+                "models": list(self.models.loaded), "fps": self.fps,
+                "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
+                "link_write_errors": w.write_errors, "json_log_lines_lost":
+                    0 if self.json_log is None else self.json_log.lines_lost}
 
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:
@@ -516,6 +518,9 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     if fps is None and first is not None and first.fps:
         cfg.camera.fps = float(first.fps)      # the rate the source actually runs at
     if status:
+        if os.path.isdir(status):
+            fail(f"--status {status!r} is a folder; give a file, e.g. "
+                 f"{os.path.join(status, 'status.json')}")
         folder = os.path.dirname(os.path.abspath(status))
         if not os.path.isdir(folder):
             fail(f"--status {status!r}: the folder {folder} does not exist")
@@ -550,7 +555,7 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     log = None
     if json_log:
         try:
-            log = open(json_log, "w", buffering=1)     # line by line: greppable live
+            log = open(json_log, "wb", buffering=0)    # line by line: greppable live
         except OSError as exc:
             fail(f"--json-log {json_log!r}: {exc}")
     return LegRuntime(cfg, factory, imu_src, port, models, lossless=not (live or paced),

@@ -4,9 +4,12 @@ problem, and a missing live camera or IMU is a fault, not an exit (until SIGTERM
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
+
+import pytest
 
 from device.pi.__main__ import main
 
@@ -141,3 +144,114 @@ def test_status_in_a_missing_folder_and_one_models_folder_refuse_to_start(model_
     empty.mkdir()
     rc, err = _run_main(cam + ["--models", str(empty)], capsys)
     assert rc == 0 and "warning" in err and "rules only" in err
+
+
+def _fill(fd: int) -> None:
+    """Write to a non-blocking fd until the kernel takes no more."""
+    os.set_blocking(fd, False)
+    try:
+        while True:
+            os.write(fd, b"\0" * 4096)
+    except BlockingIOError:
+        pass
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
+def test_a_serial_peer_that_never_reads_raises_the_link_fault_and_sigterm_ends_it(tmp_path):
+    """The MCU stops reading: the loop runs on (status refreshed, the link fault set,
+    old packets dropped), and SIGTERM ends the process within 1 s. (pyserial's own
+    write() froze it here: stale status, no fault, SIGTERM ignored.)"""
+    import signal
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    _fill(slave)                     # the buffer an MCU that stopped reading left full
+    status = tmp_path / "st.json"
+    p = subprocess.Popen([sys.executable, "-m", "device.pi", "run", "--camera",
+                          "sim://walk?realtime=1", "--imu", "none", "--serial",
+                          os.ttyname(slave), "--status", str(status), "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        docs = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and p.poll() is None:
+            time.sleep(0.1)
+            try:
+                doc = json.loads(status.read_text())
+            except (OSError, ValueError):
+                continue
+            if "link" in doc["fault_names"] and doc["frames"] > 0:
+                docs.append(doc)
+            if len(docs) >= 12:                     # >= 1.2 s with the link full
+                break
+        assert p.poll() is None, p.stderr.read()
+        assert len(docs) >= 12, "no status with the link fault"
+        assert docs[-1]["frames"] > docs[0]["frames"]         # frames go on
+        assert docs[-1]["t_unix"] > docs[0]["t_unix"]         # the file is refreshed
+        assert time.time() - docs[-1]["t_unix"] < 1.5
+        assert docs[-1]["packets_dropped"] > docs[0]["packets_dropped"]
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=10)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+        os.close(master)
+        os.close(slave)
+    assert took < 1.0, f"SIGTERM took {took:.2f} s"
+    assert p.returncode == 0, err                  # the loop itself stopped, not the guard
+    assert "link" in json.loads(out)["fault_names"]
+
+
+STUCK = """
+import sys, time
+import device.pi.__main__ as m
+
+class Stuck:                       # a loop caught in a call that never returns
+    stopped = False
+    def run(self):
+        print("running", flush=True)
+        while True:
+            time.sleep(0.01)
+
+m.build_runtime = lambda *a, **k: Stuck()
+sys.exit(m.main(["run", "--camera", "sim://walk", "--imu", "none", "--serial", "loop://"]))
+"""
+
+
+def test_sigterm_ends_even_a_stuck_loop_within_1_s():
+    import signal
+    p = subprocess.Popen([sys.executable, "-c", STUCK], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    try:
+        assert p.stdout.readline().strip() == "running"
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=10)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert took < 1.0 and p.returncode == 3
+    assert "still running 0.8 s after SIGTERM" in err
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
+def test_a_full_disk_under_json_log_is_a_warning_and_a_count_not_an_exit(tmp_path, capsys):
+    status = tmp_path / "st.json"
+    rc, err = _run_main(["--camera", "sim://press-hard", "--json-log", "/dev/full",
+                         "--status", str(status), "--frames", "6"], capsys)
+    assert rc == 0, err
+    assert "Traceback" not in err
+    assert err.count("--json-log /dev/full: cannot write") == 1       # warned once
+    doc = json.loads(status.read_text())
+    assert doc["frames"] == 6 and doc["json_log_lines_lost"] == 6
+
+
+def test_status_naming_a_folder_refuses_to_start(tmp_path, capsys):
+    rc, err = _run_main(["--camera", "sim://press-hard", "--status", str(tmp_path)], capsys)
+    assert rc == 2
+    line, = err.strip().splitlines()
+    assert f"--status {str(tmp_path)!r} is a folder" in line

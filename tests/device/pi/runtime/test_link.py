@@ -223,14 +223,14 @@ def _surface(i: int) -> bytes:
     return P.Surface(pins=i % 200).encode(i & 0xFFFF, 0)
 
 
-def _run_writer(w: LinkWriter, seconds: float, start: int = 0) -> tuple[int, float]:
+def _run_writer(w: LinkWriter, seconds: float, until=None) -> tuple[int, float]:
     """Send a SURFACE, an IMU summary and a HEARTBEAT and pump, ~500 times a second
     (about 50 kB/s: a pty's 17 kB buffer fills in well under a second), for
-    ``seconds``; (packets handed over, the longest single pass, s)."""
+    ``seconds`` or until ``until(w)``; (packets handed over, the longest pass, s)."""
     worst = 0.0
-    i = start
+    i = 0
     t_end = time.monotonic() + seconds
-    while time.monotonic() < t_end:
+    while time.monotonic() < t_end and not (until is not None and until(w)):
         t = time.monotonic()
         w.send("surface", P.MSG_SURFACE, _surface(i))
         w.send("imu", P.MSG_IMU_SUMMARY, P.ImuSummary(samples=i % 255).encode(i & 0xFFFF, 0))
@@ -239,7 +239,7 @@ def _run_writer(w: LinkWriter, seconds: float, start: int = 0) -> tuple[int, flo
         worst = max(worst, time.monotonic() - t)
         i += 3
         time.sleep(0.002)
-    return i - start, worst
+    return i, worst
 
 
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
@@ -254,16 +254,20 @@ def test_a_pty_whose_peer_never_reads_never_blocks_the_writer():
 
     def work():
         w = LinkWriter(port, stall_ms=50)
-        res["n"], res["worst"] = _run_writer(w, 1.0)
+        res["n"], res["worst"] = _run_writer(w, 5.0, until=lambda w: w.stalled)
+        n, worst = _run_writer(w, 0.2)              # and on, with the port full
+        res["n"] += n
+        res["worst"] = max(res["worst"], worst)
         res["w"] = w
         done.set()
 
     th = threading.Thread(target=work, daemon=True)
     th.start()
     try:
-        assert done.wait(3.0), "the writer blocked on a pty nobody reads"
+        assert done.wait(8.0), "the writer blocked on a pty nobody reads"
         w = res["w"]
-        assert res["worst"] < 0.05, f"one send + pump took {res['worst'] * 1e3:.0f} ms"
+        # a blocked write never returns; a loaded machine may take a few ms a pass
+        assert res["worst"] < 0.25, f"one send + pump took {res['worst'] * 1e3:.0f} ms"
         assert w.bytes_written > 0                      # the buffer took some, then filled
         assert w.stalled and w.packets_dropped > 0
         assert w.packets_sent + w.packets_dropped + w.pending == res["n"]
@@ -280,7 +284,7 @@ def test_a_pty_whose_peer_reads_again_clears_the_stall_and_packets_flow():
     port = open_port(os.ttyname(slave))
     try:
         w = LinkWriter(port, stall_ms=50)
-        _run_writer(w, 1.0)
+        _run_writer(w, 5.0, until=lambda w: w.stalled)
         assert w.stalled
         sent_before = w.packets_sent
         # the peer drains from now on
@@ -297,17 +301,18 @@ def test_a_pty_whose_peer_reads_again_clears_the_stall_and_packets_flow():
                     return
                 got.extend(chunk)
 
-        t_end = time.monotonic() + 0.5
+        t_end = time.monotonic() + 3.0
         i = 100000
-        while time.monotonic() < t_end:
+        while time.monotonic() < t_end and w.packets_sent - sent_before <= 100:
             drain()
             w.send("surface", P.MSG_SURFACE, _surface(i))
             w.pump()
             i += 1
             time.sleep(0.002)
         drain()
-        assert not w.stalled
-        assert w.packets_sent - sent_before > 100       # ~250 handed over in 0.5 s
+        w.pump()
+        assert not w.stalled and w.pending == 0
+        assert w.packets_sent - sent_before > 100       # ~0.2 s when not loaded
         dec = P.FrameDecoder(max_frame=64)
         frames = list(dec.feed(bytes(got)))
         # the stream stays framed: the newest SURFACEs decode
@@ -332,16 +337,16 @@ def test_a_socket_whose_peer_never_reads_never_blocks_the_writer():
 
     def work():
         w = LinkWriter(port, stall_ms=50)
-        res["n"], res["worst"] = _run_writer(w, 1.0)
+        res["n"], res["worst"] = _run_writer(w, 5.0, until=lambda w: w.stalled)
         res["w"] = w
         done.set()
 
     worker = threading.Thread(target=work, daemon=True)
     worker.start()
     try:
-        assert done.wait(3.0), "the writer blocked on a socket nobody reads"
+        assert done.wait(8.0), "the writer blocked on a socket nobody reads"
         w = res["w"]
-        assert res["worst"] < 0.05 and w.stalled and w.packets_dropped > 0
+        assert res["worst"] < 0.25 and w.stalled and w.packets_dropped > 0
     finally:
         port.close()
         th.join(1.0)

@@ -4,6 +4,7 @@ bytes, and the hardware faults (camera stall, unplug and replug; I2C EIO bursts;
 port that takes no bytes) with FAULT timing measured on the bytes written."""
 from __future__ import annotations
 
+import os
 import sys
 import time
 
@@ -14,6 +15,7 @@ from hypothesis import strategies as st
 
 from device.pi import protocol as P
 from device.pi.runtime.config import LegConfig
+from device.pi.runtime.link import open_port
 from device.pi.runtime.loop import FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime, load_models
 from tests.device.pi.runtime.standins import (FPS, ListCamera, NullImu, RecordingPort, SimCamera,
                                               faults_written, make_runtime, run_for)
@@ -154,6 +156,55 @@ def test_port_that_takes_no_bytes_never_stalls_the_loop(tmp_path, raise_timeout)
     t_fault = next(t for t, m in after if isinstance(m, P.Fault))
     assert (t_fault - state["u"]) * 1e3 <= 100.0
     assert not rt.faults & FAULT_LINK and rt.frames == 250
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="no pty on this system")
+def test_a_real_pty_never_read_then_read_again_raises_then_clears_the_link_fault(tmp_path):
+    """The MCU stops reading (the pty's buffer is full): the loop goes on with the link
+    fault; it reads again: the fault clears, the FAULT with the link bit and fresh
+    SURFACEs arrive."""
+    import tty
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    os.set_blocking(slave, False)
+    try:
+        while True:
+            os.write(slave, b"\0" * 4096)          # what the MCU left unread
+    except BlockingIOError:
+        pass
+    port = open_port(os.ttyname(slave))
+    os.set_blocking(master, False)
+    got = bytearray()
+    state = {}
+
+    def hook(rt):
+        if "fault" not in state and rt.faults & FAULT_LINK:
+            state["fault"] = rt.frames
+        if "fault" in state and rt.frames >= state["fault"] + 20:
+            try:                                    # the MCU reads again
+                while True:
+                    got.extend(os.read(master, 65536))
+            except BlockingIOError:
+                pass
+            if "cleared" not in state and not rt.faults & FAULT_LINK:
+                state["cleared"] = rt.frames
+                state["sent"] = rt.writer.packets_sent
+        if "cleared" in state and rt.writer.packets_sent >= state["sent"] + 20:
+            rt.stopped = True
+
+    rt, cam, _ = make_runtime(tmp_path, port=port)
+    try:
+        run_for(rt, seconds=8, hook=hook)
+    finally:
+        port.close()
+        os.close(master)
+        os.close(slave)
+    assert "fault" in state and "cleared" in state, state
+    assert rt.writer.packets_dropped > 0
+    msgs = [P.decode_message(f) for f in P.FrameDecoder(max_frame=64).feed(bytes(got))]
+    assert any(isinstance(m, P.Fault) and m.faults & FAULT_LINK for m in msgs)
+    assert sum(isinstance(m, P.Surface) for m in msgs) >= 10
 
 
 # -- writer policy ----------------------------------------------------------------
