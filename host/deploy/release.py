@@ -16,6 +16,7 @@ Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
         tacfoot.service  tacfootctl   the systemd unit and the no-systemd starter
         release.json(.sig)            every file's SHA-256, signed
         .complete                     written last
+        .healthy                      written when it passes a health check
     PREFIX/current  -> releases/<r>   what the service runs (switched atomically)
     PREFIX/previous -> releases/<r>   what ``--rollback`` goes back to
     PREFIX/run/status.json            the runtime's status file (health check)
@@ -23,7 +24,9 @@ Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
 Order: probe, build, stage, prepare, copy, install (venv + wheel, then
 ``.complete``), switch (``current``), service (unit + restart), health (the
 service is active and ``packets_sent`` in the status file grows, from the
-service's own pid). A failed health check switches ``current`` back and
+service's own pid; a pass writes ``.healthy`` in the release folder). The service
+runs with ``TACFOOT_RELEASE=<release>`` in its environment, so ``--status`` can tell
+which release the running process belongs to. A failed health check switches ``current`` back and
 restarts the old release. Everything before the switch writes only inside the
 new release's folder, so an interrupted deploy leaves the old release running.
 The phases (:meth:`Deployer.begin`, ``install``, ``switch``, ``commit``,
@@ -33,6 +36,7 @@ from __future__ import annotations
 
 import json
 import secrets
+from dataclasses import replace
 import shlex
 import shutil
 import subprocess
@@ -123,13 +127,14 @@ class Deployer(SshSession):
         return (f"ln -sfn {q(target)} {p}/.{link}.tmp\n"
                 f"mv -T {p}/.{link}.tmp {p}/{link}\n")
 
-    def _health_script(self) -> str:
+    def _health_script(self, marker: str | None = None) -> str:
+        """The health check; ``marker``: the file it writes when the check passes."""
         o = self.o
         # systemd restarts a failed runtime (Restart=on-failure): wait the whole
         # timeout; with a pid file nothing will, so 2 s not running is final
         dead_s = 0 if self.manager == "systemd" else 2
         return (f"{q(o.python)} -c {q(HEALTH_PY)} {q(status_path(o))} {q(self._pid_cmd())} "
-                f"{o.health_timeout_s:g} {dead_s}\n")
+                f"{o.health_timeout_s:g} {dead_s}" + (f" {q(marker)}" if marker else "") + "\n")
 
     # -- local steps -------------------------------------------------------------
     def build_wheel(self, out_dir: Path) -> Path:
@@ -147,8 +152,9 @@ class Deployer(SshSession):
             shutil.copy2(REPO / name, src / name)
         for pkg in ("device", "host"):
             shutil.copytree(REPO / pkg, src / pkg, ignore=ignore)
-        r = subprocess.run(cmd, capture_output=True, text=True)
+        r = subprocess.run(cmd, capture_output=True, text=True, start_new_session=True)
         step.update(rc=r.returncode, seconds=round(time.monotonic() - t0, 3))
+        self.check_stop("build")
         wheels = sorted((out_dir / "dist").glob("tacfoot-*.whl"))
         if r.returncode != 0 or not wheels:
             raise DeployError(f"step build failed: {r.stderr.strip()[-500:]}")
@@ -185,8 +191,9 @@ class Deployer(SshSession):
             (st / "config" / cfg.name).write_text(text)
             if prof is not None:       # a calibrated profile named beside the config
                 shutil.copy2(prof, st / "config" / prof.name)
-        (st / "tacfoot.service").write_text(render_unit(o))
-        (st / "tacfootctl").write_text(render_ctl(o))
+        named = replace(o, release=self.release)      # TACFOOT_RELEASE in the service
+        (st / "tacfoot.service").write_text(render_unit(named))
+        (st / "tacfootctl").write_text(render_ctl(named))
         (st / "tacfootctl").chmod(0o755)
         files = {p.relative_to(st).as_posix(): sha256_file(p)
                  for p in sorted(st.rglob("*")) if p.is_file()}
@@ -258,7 +265,8 @@ class Deployer(SshSession):
                     f"[ ! -e {q(self.release)} ] || "
                     f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
         self.copy(staged, f"{o.prefix}/releases/{self.release}")
-        self.remote("install", self._install_script(f"{o.prefix}/releases/{self.release}"))
+        self.remote("install", self._install_script(f"{o.prefix}/releases/{self.release}"),
+                    interruptible=True)
 
     def switch(self, res: dict) -> bool:
         """Point current at the new release, restart the service and check its
@@ -271,12 +279,14 @@ class Deployer(SshSession):
                     f"{{ echo 'release {self.release} is incomplete' >&2; exit 3; }}\n"
                     + self._link_script("current", relname))
         self.remote("service", self._service_script())
-        h = self.health("health")
+        h = self.health("health", marker=f"{self.o.prefix}/{relname}/.healthy")
         res["health"] = h
         return bool(self.dry_run or h.get("ok"))
 
     def commit(self, res: dict) -> None:
-        """The new release runs: set previous and prune (a failure is a warning)."""
+        """The new release runs: set previous and prune (a failure is a warning; a
+        signal no longer stops anything: the deploy is done)."""
+        self.unwinding = True
         relname = f"releases/{self.release}"
         if self.old and self.old != relname:
             st = self.remote("previous", self._link_script("previous", self.old), check=False)
@@ -289,6 +299,7 @@ class Deployer(SshSession):
 
     def revert(self, res: dict, exc: BaseException | None) -> None:
         """Put the old release back after a switch (the runtime's last words kept)."""
+        self.unwinding = True
         if exc is not None:
             res.setdefault("error", str(exc) or type(exc).__name__)
         if not self.switched:
@@ -304,6 +315,7 @@ class Deployer(SshSession):
 
     def discard(self) -> None:
         """Remove the new release's folder when it never became current."""
+        self.unwinding = True
         if self.release and not self.switched:
             rel = f"releases/{self.release}"
             self.remote("discard", f"cd {q(self.o.prefix)}\n"
@@ -318,7 +330,11 @@ class Deployer(SshSession):
         with tempfile.TemporaryDirectory(prefix="tacfoot-deploy-") as tmp:
             wheel = self.build_wheel(Path(tmp))
             res["wheel"] = wheel.name
-            self.install(wheel, Path(tmp))
+            try:
+                self.install(wheel, Path(tmp))
+            except DeployError:
+                self.discard()
+                raise
         try:
             if self.switch(res):
                 self.commit(res)
@@ -374,7 +390,8 @@ class Deployer(SshSession):
                             + self._link_script("current", old)
                             + f"touch {q(failed + '/.failed')}\n")
                 self.remote("rollback-service", self._service_script())
-                out["health"] = self.health("rollback-health")
+                out["health"] = self.health("rollback-health",
+                                            marker=f"{self.o.prefix}/{old}/.healthy")
                 out["ok"] = bool(out["health"].get("ok"))
             else:
                 self.remote("rollback-stop", self._stop_script()
@@ -385,9 +402,11 @@ class Deployer(SshSession):
             out.update(ok=False, error=str(exc))
         return out
 
-    def health(self, name: str) -> dict:
-        step = self.remote(name, self._health_script(), check=False,
-                           timeout_s=self.o.health_timeout_s + 60)
+    def health(self, name: str, marker: str | None = None) -> dict:
+        """Whether packets flow from the service (see HEALTH_PY); ``marker`` is
+        written on the Pi when they do."""
+        step = self.remote(name, self._health_script(marker), check=False,
+                           timeout_s=self.o.health_timeout_s + 60, interruptible=True)
         if self.dry_run:
             return {"ok": None}
         try:
@@ -395,6 +414,33 @@ class Deployer(SshSession):
         except (ValueError, IndexError):
             return {"ok": False, "reason": "health check gave no answer: "
                     + step.get("stderr", "").strip()[-300:]}
+
+    def running_release(self) -> dict:
+        """What runs on the Pi: the release ``current`` names, whether it passed a
+        health check (its ``.healthy``), the service's pid and the release that
+        process was started from (its ``TACFOOT_RELEASE``; "" when unknown)."""
+        o = self.o
+        st = self.remote("running", SUDO + f"cd {q(o.prefix)}\n"
+                         "cur=$(readlink current || true)\n"
+                         "echo current=${cur##*/}\n"
+                         "if [ -n \"$cur\" ] && [ -f \"$cur/.healthy\" ]; then echo healthy=yes; "
+                         "else echo healthy=no; fi\n"
+                         f"pid=$({self._pid_cmd()} 2>/dev/null) || pid=\n"
+                         "echo pid=$pid\n"
+                         "if [ -n \"$pid\" ]; then\n"
+                         "  rel=$( { cat /proc/$pid/environ 2>/dev/null || "
+                         "$SUDO cat /proc/$pid/environ 2>/dev/null || true; } | tr '\\0' '\\n' | "
+                         "sed -n 's/^TACFOOT_RELEASE=//p')\n"
+                         "  echo running=$rel\n"
+                         "fi\n", check=False)
+        info = {"current": "", "healthy": "", "pid": "", "running": ""}
+        for line in st.get("stdout", "").splitlines():
+            k, _, v = line.partition("=")
+            if k in info:
+                info[k] = v.strip()
+        return {"current": info["current"] or None, "healthy": info["healthy"] == "yes",
+                "pid": int(info["pid"]) if info["pid"].isdigit() else None,
+                "running": info["running"] or None}
 
     def log_tail(self, n: int = 20) -> list[str]:
         """The service's last log lines (journal, or tacfootctl's log file)."""
@@ -425,7 +471,8 @@ class Deployer(SshSession):
                     "ln -sfn \"$prev\" .current.tmp\nmv -T .current.tmp current\n"
                     "ln -sfn \"$cur\" .previous.tmp\nmv -T .previous.tmp previous\n")
         self.remote("service", self._service_script())
-        res["health"] = self.health("health")
+        res["health"] = self.health("health",
+                                    marker=f"{o.prefix}/{prev}/.healthy" if prev else None)
         res["ok"] = True if self.dry_run else bool(res["health"].get("ok"))
         if not res["ok"]:
             res["error"] = f"health check failed: {res['health'].get('reason', 'unknown')}"
@@ -433,13 +480,16 @@ class Deployer(SshSession):
 
 
 def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
-        log=None, key=None) -> dict:
+        log=None, key=None, stop=None) -> dict:
     """Deploy (or roll back); the result dict has ok, release, steps, health.
     ``key`` signs the release (default: the host key of ``opts.signing_key``,
-    created on first use; a dry run creates none)."""
+    created on first use; a dry run creates none). ``stop``
+    (:class:`host.deploy.ssh.Stop`): a signal that trips it unwinds the deploy;
+    ``interrupted`` then names it."""
     if key is None and not rollback:
         key = load_key(opts, dry_run)
     d = Deployer(opts, dry_run=dry_run, log=log, key=key)
+    d.stop = stop
     try:
         d.open_connection()
         res = d.rollback() if rollback else d.deploy()
@@ -448,6 +498,8 @@ def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
     finally:
         d.close_connection()
     res["steps"] = d.steps
+    if stop is not None and stop.signal_name:
+        res["interrupted"] = stop.signal_name
     return res
 
 

@@ -16,12 +16,16 @@ install the release on every leg at once (each in its own folder: nothing runnin
 changes); only when every leg has it installed, switch every leg and check each
 one's health at once. If any leg fails before the switch, no leg switches (and the
 new release folders are removed); if any leg fails after it, every leg that
-switched goes back to the release it had, the healthy ones too.
+switched goes back to the release it had, the healthy ones too. A signal
+(SIGTERM, SIGHUP, SIGINT: :class:`host.deploy.ssh.Stop`) before every leg passed its
+health check is such a failure on every leg at once: the same unwinding, then a
+summary naming the signal.
 """
 from __future__ import annotations
 
 import base64
 import binascii
+import re
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -34,6 +38,7 @@ from host.deploy.options import DeployError, DeployInputError, DeployOptions
 from host.deploy.scripts import q
 from host.deploy.release import Deployer, load_key, new_release_name, summary_text
 from host.deploy.signing import SigningKey, default_key_path
+from host.deploy.ssh import Stop
 
 #: keys a [[leg]] table may hold, and whether they name a file (relative to the robot file)
 LEG_KEYS = {"target": False, "name": False, "port": False, "prefix": False,
@@ -73,7 +78,16 @@ def read_robot(path: Path | str, base: DeployOptions) -> list[DeployOptions]:
             if k == "name":
                 continue
             kw[k] = str(path.parent / Path(v).expanduser()) if LEG_KEYS[k] else v
-        out.append(replace(base, **kw))
+        o = replace(base, **kw)
+        try:
+            o.check()
+        except DeployInputError as exc:
+            # "--camera must not ..." is about this leg's own camera key when it has one
+            m = re.fullmatch(r"--([a-z-]+)(:?) (.*)", str(exc), re.S)
+            if m and m[1] in leg:
+                raise DeployInputError(f"{where} ({leg['target']}): {m[1]}{m[2]} {m[3]}") from None
+            raise
+        out.append(o)
     return out
 
 
@@ -111,17 +125,19 @@ def _attempt(fn):
 
 
 class _Leg:
-    def __init__(self, opts: DeployOptions, dry_run: bool, log, key):
+    def __init__(self, opts: DeployOptions, dry_run: bool, log, key, stop):
         tag = opts.target
         self.d = Deployer(opts, dry_run=dry_run, log=lambda m: log(f"[{tag}] {m}"), key=key)
+        self.d.stop = stop
         self.res = {"target": opts.target, "prefix": opts.prefix, "ok": False,
                     "rolled_back": False}
 
 
 def deploy_robot(legs: list[DeployOptions], dry_run: bool = False, log=None,
-                 key=None) -> dict:
+                 key=None, stop: Stop | None = None) -> dict:
     """Deploy one release to every leg, all or none (see the module doc). The
-    result: ok, release, and per leg its result (steps included)."""
+    result: ok, release, and per leg its result (steps included); ``interrupted``
+    names the signal that tripped ``stop``, if one did."""
     check_legs(legs)
     log = log if log is not None else (lambda m: None)
     if key is None:
@@ -129,7 +145,7 @@ def deploy_robot(legs: list[DeployOptions], dry_run: bool = False, log=None,
     for o in legs[1:]:
         load_key(replace(o, signing_key=str(key.path)) if key else o, dry_run)
     release = legs[0].release or new_release_name()
-    state = [_Leg(replace(o, release=release), dry_run, log, key) for o in legs]
+    state = [_Leg(replace(o, release=release), dry_run, log, key, stop) for o in legs]
     res = {"dry_run": dry_run, "ok": False, "release": release, "legs": [l.res for l in state],
            "rolled_back": False}
     try:
@@ -157,6 +173,12 @@ def deploy_robot(legs: list[DeployOptions], dry_run: bool = False, log=None,
         _each(lambda l: l.d.close_connection(), state)
         for l in state:
             l.res["steps"] = l.d.steps
+    if stop is not None and stop.signal_name:
+        res["interrupted"] = stop.signal_name
+        if not res["ok"]:
+            res["error"] = (f"stopped by {stop.signal_name}; " + (
+                "every leg went back to the release it had" if res["rolled_back"] else
+                "no leg was switched") + f" ({res.get('error')})")
     return res
 
 
@@ -222,34 +244,66 @@ def _signed_by(d: Deployer, key) -> bool | None:
 
 def status(legs: list[DeployOptions], wait_s: float = 5.0) -> dict:
     """Each leg's current and previous release, whether this host's key signed it,
-    and its health (packets flowing from the service within ``wait_s``);
-    ``same_release`` says whether all legs run one."""
+    whether the running process belongs to the release ``current`` names and that
+    release passed its health check (``.healthy``), and its health (packets flowing
+    from the service within ``wait_s``). A leg that cannot be reached says so
+    (``reachable`` false). ``same_release``: every leg reached runs one release;
+    ``ok``: every leg reached, on one release, running it and healthy."""
     check_legs(legs)
     path = legs[0].signing_key or default_key_path()
     key = SigningKey.load(path, create=False) if Path(path).exists() else None
 
     def one(o):
         d = Deployer(replace(o, health_timeout_s=wait_s))
-        out = {"target": o.target, "prefix": o.prefix}
+        out = {"target": o.target, "prefix": o.prefix, "reachable": False}
         try:
             d.open_connection()
             info = d.probe()
+            out["reachable"] = True
             d.resolve_manager(info)
             out.update(release=info["current"].rpartition("/")[2] or None,
                        previous=info["previous"].rpartition("/")[2] or None)
-            out["health"] = d.health("health") if info["current"] else {
-                "ok": False, "reason": "nothing deployed"}
-            out["signed"] = _signed_by(d, key) if info["current"] else None
+            if not info["current"]:
+                out["health"] = {"ok": False, "reason": "nothing deployed"}
+                out["signed"] = None
+                return out
+            run = d.running_release()
+            out["running"] = run
+            out["problems"] = _release_problems(out["release"], run)
+            out["health"] = d.health("health")
+            out["signed"] = _signed_by(d, key)
         except DeployError as exc:
             out.update(release=None, health={"ok": False, "reason": str(exc)})
+            if not out["reachable"]:
+                out["error"] = str(exc)
         finally:
             d.close_connection()
         return out
 
     legs_out = _each(one, legs)
-    rels = {l["release"] for l in legs_out}
-    return {"legs": legs_out, "same_release": len(rels) == 1 and None not in rels,
-            "ok": all(l["health"].get("ok") for l in legs_out) and len(rels) == 1}
+    reached = [l for l in legs_out if l["reachable"]]
+    rels = {l["release"] for l in reached}
+    same = bool(reached) and len(rels) == 1 and None not in rels
+    return {"legs": legs_out, "same_release": same,
+            "unreachable": [l["target"] for l in legs_out if not l["reachable"]],
+            "ok": same and len(reached) == len(legs_out) and all(
+                l["health"].get("ok") and not l.get("problems") for l in legs_out)}
+
+
+def _release_problems(release: str | None, run: dict) -> list[str]:
+    """What is wrong with what runs on a leg whose ``current`` is ``release``."""
+    out = []
+    if run.get("pid") is None:
+        out.append("no service process runs")
+    elif run.get("running") is None:
+        out.append(f"cannot tell which release the running process (pid {run['pid']}) "
+                   f"belongs to (started by an older host deploy: redeploy)")
+    elif run["running"] != release:
+        out.append(f"the running process (pid {run['pid']}) is release {run['running']}, "
+                   f"not {release}, which current names")
+    if not run.get("healthy"):
+        out.append(f"release {release} never passed its health check")
+    return out
 
 
 def robot_text(res: dict) -> str:
@@ -257,20 +311,58 @@ def robot_text(res: dict) -> str:
     if res.get("dry_run"):
         return "\n\n".join(f"# leg {l['target']}\n" + summary_text(dict(l, dry_run=True))
                            for l in res.get("legs", []))
+    if "same_release" in res:
+        return _status_text(res)
     lines = []
     for l in res.get("legs", []):
         h = l.get("health") or {}
         health = (f"healthy ({h.get('packets_per_s')} packets/s)" if h.get("ok") else
                   f"NOT healthy: {h.get('reason')}" if h else "")
+        if res.get("ok"):
+            lines.append(f"{l['target']}: release {l.get('release')} {health}".rstrip())
+        elif l.get("rolled_back"):
+            rb = l.get("rollback") or {}
+            lines.append(f"{l['target']}: back on {rb.get('to') or 'nothing (service stopped)'}"
+                         + (" (ok)" if rb.get("ok") else
+                            f" (rollback FAILED: {rb.get('error') or rb.get('health')})")
+                         + (f"; {l['error']}" if l.get("error") else ""))
+        else:
+            lines.append(f"{l['target']}: not switched, still on {l.get('previous') or 'nothing'}"
+                         + (f"; {l['error']}" if l.get("error") else ""))
+    if res.get("ok"):
+        lines.append(f"release {res['release']} running on every leg"
+                     + (f" ({res['interrupted']} came after every leg was healthy)"
+                        if res.get("interrupted") else ""))
+    else:
+        lines.append(f"FAILED: {res.get('error')}")
+    return "\n".join(lines)
+
+
+def _status_text(res: dict) -> str:
+    lines = []
+    for l in res.get("legs", []):
+        if not l.get("reachable", True):
+            lines.append(f"{l['target']}: UNREACHABLE: {l.get('error')}")
+            continue
+        h = l.get("health") or {}
+        health = (f"healthy ({h.get('packets_per_s')} packets/s)" if h.get("ok") else
+                  f"NOT healthy: {h.get('reason')}")
         signed = {True: ", signed by this host", False: ", NOT signed by this host's key",
                   None: ""}[l.get("signed")]
         lines.append(f"{l['target']}: release {l.get('release')}{signed} {health}".rstrip()
-                     + (f"; {l['error']}" if l.get("error") and not res.get("ok") else ""))
-    if "same_release" in res:
+                     + "".join(f"; {p}" for p in l.get("problems", [])))
+    bad = res.get("unreachable") or []
+    if bad:
+        n = len(res["legs"]) - len(bad)
+        lines.append(f"{len(bad)} of {len(res['legs'])} legs UNREACHABLE ({', '.join(bad)}); "
+                     + ("no leg was reached" if n == 0 else
+                        f"the {n} reached run the same release" if res["same_release"] else
+                        f"the {n} reached run DIFFERENT releases"))
+    else:
         lines.append("every leg runs the same release" if res["same_release"] else
                      "the legs run DIFFERENT releases")
-    elif res.get("ok"):
-        lines.append(f"release {res['release']} running on every leg")
-    elif not res.get("dry_run"):
-        lines.append(f"FAILED: {res.get('error')}")
+    if not res.get("ok"):
+        lines.append("NOT OK: " + ("; ".join(
+            f"{l['target']}: {', '.join(l['problems'])}" for l in res["legs"]
+            if l.get("problems")) or "see above"))
     return "\n".join(lines)

@@ -30,6 +30,12 @@ def runtime_argv(o: DeployOptions) -> list[str]:
     return argv + list(o.runtime_args)
 
 
+def service_env(o: DeployOptions) -> list[str]:
+    """The service's environment: ``--env`` and, for a named release,
+    TACFOOT_RELEASE (how ``host deploy --status`` tells which release runs)."""
+    return list(o.env) + ([f"TACFOOT_RELEASE={o.release}"] if o.release else [])
+
+
 def status_path(o: DeployOptions) -> str:
     return f"{o.prefix}/run/status.json"
 
@@ -46,7 +52,7 @@ def render_unit(o: DeployOptions, template: str | None = None) -> str:
     """The systemd unit for these options, from device/pi/tacfoot.service."""
     text = template if template is not None else UNIT_TEMPLATE.read_text()
     user = o.service_user if o.service_user is not None else o.ssh_user
-    env = "\n".join("Environment=" + _systemd_word(kv) for kv in o.env)
+    env = "\n".join("Environment=" + _systemd_word(kv) for kv in service_env(o))
     fields = {"SERVICE": o.service_name, "PREFIX": o.prefix,
               "EXEC_START": " ".join(_systemd_word(a) for a in runtime_argv(o)),
               "USER_LINE": f"User={user}" if user and user != "root" else "",
@@ -59,7 +65,8 @@ def render_ctl(o: DeployOptions) -> str:
     """tacfootctl: start/stop/restart/pid with a pid file, for a Pi without
     systemd (and the tests). Same command line and environment as the unit."""
     run = f"{o.prefix}/run"
-    env = "".join(f"export {kv.partition('=')[0]}={q(kv.partition('=')[2])}\n" for kv in o.env)
+    env = "".join(f"export {kv.partition('=')[0]}={q(kv.partition('=')[2])}\n"
+                  for kv in service_env(o))
     return f"""#!/bin/sh
 # tacfootctl: runs the tacfoot runtime without systemd (pid file {run}/{o.service_name}.pid).
 # Written by host deploy; usage: tacfootctl start|stop|restart|pid
@@ -96,6 +103,7 @@ HEALTH_PY = r"""
 import json, subprocess, sys, time
 status, pid_cmd, timeout_s = sys.argv[1], sys.argv[2], float(sys.argv[3])
 dead_s = float(sys.argv[4])     # give up when not active this long (0: wait it out)
+marker = sys.argv[5] if len(sys.argv) > 5 else None     # written when healthy
 t0 = time.monotonic()
 alive_t = t0
 base = None
@@ -134,6 +142,12 @@ while time.monotonic() - t0 < timeout_s:
                 break
     time.sleep(0.2)
 out["waited_s"] = round(time.monotonic() - t0, 2)
+if out["ok"] and marker:
+    try:
+        with open(marker, "w") as fh:
+            fh.write(json.dumps(dict(out, unix=round(time.time(), 3))) + "\n")
+    except OSError as exc:
+        out["marker_error"] = str(exc)
 if not out["ok"]:
     out["reason"] = why
 print(json.dumps(out))

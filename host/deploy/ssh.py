@@ -1,20 +1,62 @@
 """One SSH session to a Pi for ``host deploy``: every step is one ``ssh`` command
 running a small POSIX shell script (``sh -c``, ``set -eu``), over one shared
 connection (ControlMaster), logged with its command; a dry run only records them.
-:meth:`SshSession.copy` streams a local folder as a tar over the same connection."""
+:meth:`SshSession.copy` streams a local folder as a tar over the same connection.
+
+A signal (SIGTERM, SIGHUP, SIGINT) during a deploy trips the shared :class:`Stop`:
+a step that only waits (copy, install, health) is cut short, any other step is let
+finish, and the next step raises :class:`DeployInterrupted`, so the deploy unwinds
+as after a failed step (the steps that put the old release back still run). Every
+``ssh`` runs in its own session, so Ctrl-C in the terminal reaches only ``host``."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
+import signal
 import subprocess
 import sys
 import tarfile
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 from host.deploy.options import DeployError, DeployOptions
 from host.deploy.scripts import HEALTH_PY, VERIFY_RELEASE_PY, q
+
+
+class DeployInterrupted(DeployError):
+    """A signal stopped the deploy; the message names the signal and the step."""
+
+
+class Stop:
+    """Set by a signal handler, shared by every leg's session: which signal asked the
+    deploy to stop (None: none), and the running ``ssh`` processes that may be cut
+    short when it does."""
+
+    def __init__(self):
+        self.signal_name: str | None = None
+        self._procs: set = set()
+        self._lock = threading.Lock()
+
+    def trip(self, name: str) -> bool:
+        """Stop (the first signal counts); True the first time. Safe in a signal handler."""
+        first = self.signal_name is None
+        if first:
+            self.signal_name = name
+        for proc in list(self._procs):
+            try:
+                proc.terminate()
+            except OSError:
+                pass
+        return first
+
+    def track(self, proc, on: bool) -> None:
+        with self._lock:
+            (self._procs.add if on else self._procs.discard)(proc)
+        if on and self.signal_name is not None:
+            proc.terminate()
 
 
 class SshSession:
@@ -29,6 +71,13 @@ class SshSession:
         self.steps: list[dict] = []
         self.copy_hook = None          # called (proc, bytes_sent) while copying
         self._cm_dir: str | None = None          # ssh ControlMaster socket folder
+        self.stop: Stop | None = None            # shared by the legs of one deploy
+        self.unwinding = False                   # putting things back: never interrupted
+
+    def check_stop(self, name: str) -> None:
+        """DeployInterrupted when a signal stopped the deploy (unless unwinding)."""
+        if self.stop is not None and self.stop.signal_name and not self.unwinding:
+            raise DeployInterrupted(f"stopped by {self.stop.signal_name} at step {name}")
 
     # -- plumbing --------------------------------------------------------------
     def _ssh_base(self) -> list[str]:
@@ -54,7 +103,7 @@ class SshSession:
                                    "-o", "ControlPersist=600", "-f", "-N", self.o.ssh_target]
         try:
             r = subprocess.run(argv, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL, timeout=60)
+                               stderr=subprocess.DEVNULL, timeout=60, start_new_session=True)
             ok = r.returncode == 0 and os.path.exists(f"{d}/cm")
         except subprocess.TimeoutExpired:
             ok = False
@@ -64,12 +113,32 @@ class SshSession:
             shutil.rmtree(d, ignore_errors=True)
 
     def close_connection(self):
+        """Close the shared connection: ``ssh -O exit``; a master that does not go
+        is killed (its pid from ``ssh -O check``)."""
         if self._cm_dir is None:
             return
         d, self._cm_dir = self._cm_dir, None
-        subprocess.run(self._ssh_base() + ["-o", f"ControlPath={d}/cm", "-O", "exit",
-                                           self.o.ssh_target],
-                       stdin=subprocess.DEVNULL, capture_output=True, timeout=30)
+        base = self._ssh_base() + ["-o", f"ControlPath={d}/cm"]
+
+        def ctl(op):
+            try:
+                return subprocess.run(base + ["-O", op, self.o.ssh_target],
+                                      stdin=subprocess.DEVNULL, capture_output=True,
+                                      text=True, timeout=15, start_new_session=True)
+            except subprocess.TimeoutExpired:
+                return None
+        ctl("exit")
+        t0 = time.monotonic()
+        while os.path.exists(f"{d}/cm") and time.monotonic() - t0 < 2:
+            time.sleep(0.05)
+        if os.path.exists(f"{d}/cm"):
+            r = ctl("check")
+            m = re.search(r"pid=(\d+)", (r.stderr + r.stdout) if r else "")
+            if m:
+                try:
+                    os.kill(int(m[1]), signal.SIGKILL)
+                except OSError:
+                    pass
         shutil.rmtree(d, ignore_errors=True)
 
     def ssh_argv(self, script: str) -> list[str]:
@@ -84,21 +153,34 @@ class SshSession:
         return step
 
     def remote(self, name: str, script: str, check: bool = True, timeout_s: float = 600,
-               keep_chars: int = 2000):
+               keep_chars: int = 2000, interruptible: bool = False):
         """Run ``script`` on the Pi; the step records the last ``keep_chars`` of its
-        output. DeployError naming the step when it fails and ``check``."""
+        output. DeployError naming the step when it fails and ``check``;
+        DeployInterrupted when a signal stopped the deploy (an ``interruptible``
+        step is cut short then, any other is let finish first)."""
+        self.check_stop(name)
         step = self.record(name, "remote", script)
         if self.dry_run:
             return step
         t0 = time.monotonic()
+        proc = subprocess.Popen(self.ssh_argv(script), stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+                                start_new_session=True)
+        if interruptible and self.stop is not None and not self.unwinding:
+            self.stop.track(proc, True)
         try:
-            r = subprocess.run(self.ssh_argv(script), capture_output=True, text=True,
-                               timeout=timeout_s, stdin=subprocess.DEVNULL)
-            rc, out, err = r.returncode, r.stdout, r.stderr
+            out, err = proc.communicate(timeout=timeout_s)
+            rc = proc.returncode
         except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
             rc, out, err = -1, "", f"timed out after {timeout_s:.0f} s"
+        finally:
+            if self.stop is not None:
+                self.stop.track(proc, False)
         step.update(rc=rc, seconds=round(time.monotonic() - t0, 3), stdout=out[-keep_chars:],
                     stderr=err[-2000:])
+        self.check_stop(name)
         if rc != 0:
             self.log(f"[deploy] {name}: exit {rc}: {err.strip()[-500:]}")
             if check:
@@ -111,6 +193,7 @@ class SshSession:
         """Stream the local folder ``staged`` as a tar over one ssh into the remote
         folder ``rel`` (made if missing)."""
         script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
+        self.check_stop("copy")
         step = self.record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
                             + script.strip().replace("\n", "; "))
         if self.dry_run:
@@ -118,13 +201,17 @@ class SshSession:
         t0 = time.monotonic()
         with tempfile.TemporaryFile() as err:
             proc = subprocess.Popen(self.ssh_argv(script), stdin=subprocess.PIPE,
-                                    stdout=subprocess.DEVNULL, stderr=err)
+                                    stdout=subprocess.DEVNULL, stderr=err,
+                                    start_new_session=True)
+            if self.stop is not None:
+                self.stop.track(proc, True)
             sent = 0
             hook = self.copy_hook
             try:
                 class _Counting:
                     def write(_self, b):
                         nonlocal sent
+                        self.check_stop("copy")
                         proc.stdin.write(b)
                         sent += len(b)
                         if hook is not None:
@@ -137,17 +224,20 @@ class SshSession:
                 with tarfile.open(fileobj=_Counting(), mode="w|gz") as tar:
                     tar.add(staged, arcname=".")
                 proc.stdin.close()
-            except (BrokenPipeError, OSError, ValueError):
-                pass
+            except (BrokenPipeError, OSError, ValueError, DeployInterrupted):
+                proc.terminate()
             finally:
                 try:
                     rc = proc.wait(timeout=600)
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     rc = proc.wait()
+                if self.stop is not None:
+                    self.stop.track(proc, False)
             err.seek(0)
             msg = err.read().decode(errors="replace").strip()
         step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3), stderr=msg[-2000:])
+        self.check_stop("copy")
         if rc != 0:
             raise DeployError(f"step copy failed (exit {rc}) after {sent} bytes"
                               + (f": {msg.splitlines()[-1]}" if msg else ""))

@@ -217,3 +217,20 @@ def test_cli_refuses_bad_leg_lists(capsys, tmp_path):
     assert "not both" in capsys.readouterr().err
     assert main(["deploy", "pi@a", "pi@b", "--rollback"]) == 2
     assert "--rollback takes one target" in capsys.readouterr().err
+
+
+def test_a_robot_file_error_names_the_file_and_the_field(tmp_path):
+    """A bad value in a [[leg]] is named by the file, the leg and its key, not as if it
+    were a command-line flag; a bad flag given for every leg still names the flag."""
+    f = tmp_path / "robot.toml"
+    f.write_text('[[leg]]\ntarget = "pi@a"\n[[leg]]\ntarget = "pi@b"\ncamera = "x\\ny"\n')
+    with pytest.raises(DeployInputError) as exc:
+        read_robot(f, DeployOptions(target="robot"))
+    msg = str(exc.value)
+    assert msg.startswith(f"{f}: leg 2 (pi@b): camera must not hold control") and "--" not in msg
+    f.write_text('[[leg]]\ntarget = "pi@a"\nmodels = "nope"\n')
+    with pytest.raises(DeployInputError, match=r"leg 1 \(pi@a\): models: .*nope not found"):
+        read_robot(f, DeployOptions(target="robot"))
+    f.write_text('[[leg]]\ntarget = "pi@a"\n')
+    with pytest.raises(DeployInputError, match="^--imu must not"):
+        read_robot(f, DeployOptions(target="robot", imu="a\tb"))
