@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -9,6 +10,7 @@ from device.pi.models.artefact import MAX_T, ModelError, read_manifest
 from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
                              whole, whole_list)
+from host.data.dataset import DatasetLocked, lock_folder
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
@@ -32,11 +34,51 @@ def _jsonable(res: dict) -> dict:
     return {k: v for k, v in res.items() if k not in ("onnx", "estimator", "pipeline")}
 
 
+def _lock_out(args) -> int:
+    """The ``--out`` folder, created and locked (:func:`host.data.dataset.lock_folder`)
+    for this run: a second ``host train`` into it is refused (exit 2) instead of the
+    two writing over each other. The descriptor holding the lock."""
+    out = out_folder(args.out, force=args.force)
+    created = not out.exists()
+    try:
+        out.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") \
+            from None
+    try:
+        fd = lock_folder(out, "another host train is writing a model to this folder; "
+                              "wait for it to finish, or choose another --out")
+    except DatasetLocked as exc:
+        raise UserError(str(exc)) from None
+    except OSError as exc:
+        raise UserError(f"--out {out}: cannot lock the folder ({exc.strerror or exc})") \
+            from None
+    args.out_created = created
+    try:
+        out_folder(out, force=args.force)   # filled by a run that ended since the first check
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
 def cmd_train(args):
     args.model = args.model or DEFAULT_MODEL[args.task]
     if args.window is None:
         args.window = DEFAULT_WINDOW[args.task]
-    out_folder(args.out, force=args.force)
+    fd = _lock_out(args)
+    try:
+        _train(args)
+    except BaseException:
+        out = Path(args.out)
+        if args.out_created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()                 # nothing written: leave no empty folder behind
+        raise
+    finally:
+        os.close(fd)
+
+
+def _train(args):
     ws = _load_windows(args, args.task, args.window, min_classes=1)
     ws_test = (_load_windows(args, args.task, args.window, min_classes=1, specs=args.test)
                if args.test else None)

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from device.profile import load_pipeline_profile
-from host.data.windows import IMU_CHANNELS, DataError, WindowSet, check_labels, finalise
+from host.data.windows import (IMU_CHANNELS, NO_TOUCH, DataError, WindowSet, check_label_name,
+                               check_labels, finalise)
 
 
 def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
@@ -95,6 +96,13 @@ def load_npz(path: Path, task: str, T: int, contact_only: bool, profile: str,
         mean_mag = np.where(n_ok > 0, (np.hypot(last[..., 0], last[..., 1]) * ok).sum(axis=1)
                             / np.maximum(n_ok, 1), 0.0)
         contact, contact_from = mean_mag > thr, "vectors"
+    if task == "texture" and labels is not None:
+        # no-touch marks an .npz's windows without contact; on one with contact it
+        # would be a texture class merged with them
+        hit = np.flatnonzero((labels == NO_TOUCH) & contact)
+        if hit.size:
+            check_label_name(NO_TOUCH, f"{where}: labels[{hit[0]}] (a window with contact): "
+                                       f"a texture label")
     g = per_window("groups", (), "num")
     if g is None:
         groups = np.arange(N, dtype=np.int64)

@@ -3,7 +3,10 @@ Real clips from ../shared/data (skipped without them)."""
 from __future__ import annotations
 
 import json
+import os
+import re
 
+import numpy as np
 import pytest
 
 from host.cli import main
@@ -80,3 +83,59 @@ def test_report_refuses_bad_grids_with_exit_2(tmp_path, argv, msg, capsys):
     assert rc == 2
     assert msg in capsys.readouterr().err
     assert not (tmp_path / "a.md").exists()
+
+
+# -- small windows from an .npz (no video): the output lock, the texture label rule --
+
+def _texture_npz(path, names=("smooth", "lego"), n=24, T=2, M=6, seed=0):
+    """Two separable texture classes of n windows each, 4 groups per class."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(0, 0.3, (2 * n, T, M, 2))
+    v[n:] += 2.0
+    np.savez(path, vectors=v, labels=np.array([names[0]] * n + [names[1]] * n),
+             contact=np.ones(2 * n, bool), groups=np.arange(2 * n) // (n // 4))
+    return path
+
+
+def test_a_second_train_into_a_locked_out_folder_is_refused_with_one_line(tmp_path, capsys):
+    """While one host train holds --out (here: the test holds its lock), another is
+    exit 2 with one line and writes nothing; once it is free, training proceeds."""
+    from host.data.dataset import lock_folder
+    data = _texture_npz(tmp_path / "v.npz")
+    out = tmp_path / "m"
+    out.mkdir()
+    argv = ["train", "--task", "texture", "--window", "2", "--data", str(data),
+            "--out", str(out), "--json"]
+    fd = lock_folder(out, "held by the test")
+    try:
+        rc = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and len(err.splitlines()) == 1
+        assert "another host train is writing a model to this folder" in err
+        assert list(out.iterdir()) == []
+    finally:
+        os.close(fd)
+    assert main(argv) == 0
+    assert json.loads((out / "manifest.json").read_text())["classes"] == ["lego", "smooth"]
+
+
+def test_a_failed_train_leaves_no_empty_out_folder_it_created(tmp_path, capsys):
+    data = _texture_npz(tmp_path / "v.npz", names=("smooth", "smooth"))
+    out = tmp_path / "new" / "m"
+    rc = main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+               "--out", str(out)])
+    assert rc == 2 and "at least 2 classes" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("bad, shown", [("no-touch", "'no-touch'"), ("x" * 5000, "'xxxx"),
+                                        ("smooth\nlego", r"'smooth\\nlego'")])
+def test_train_refuses_texture_labels_host_record_refuses(tmp_path, capsys, bad, shown):
+    data = _texture_npz(tmp_path / "v.npz", names=("smooth", bad))
+    rc = main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+               "--out", str(tmp_path / "m")])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert re.search(rf"labels\[24\]( \(a window with contact\))?: a texture label must be "
+                     rf"1-64 .* got {shown}", err)
+    assert not (tmp_path / "m").exists()

@@ -46,3 +46,19 @@ def test_a_mistyped_surface_label_is_refused_naming_the_window(tmp_path):
     with pytest.raises(DataError, match=r"v\.npz: labels\[2\]: 'lava' is not a surface class"):
         load_spec(str(p), "surface", 2)
     assert "lava" in load_spec(str(p), "texture", 2).classes
+
+
+def test_no_touch_marks_npz_windows_without_contact_but_not_a_texture_with_contact(tmp_path):
+    p = tmp_path / "v.npz"
+    labels = np.array(["smooth", "no-touch", "lego", "no-touch"])
+    np.savez(p, vectors=np.ones((4, 2, 5, 2)), labels=labels,
+             contact=np.array([True, False, True, False]))
+    assert load_spec(str(p), "texture", 2).classes == ["lego", "no-touch", "smooth"]
+    np.savez(p, vectors=np.ones((4, 2, 5, 2)), labels=labels,
+             contact=np.array([True, False, True, True]))
+    with pytest.raises(DataError, match=r"v\.npz: labels\[3\] \(a window with contact\): a "
+                                        r"texture label must be .* got 'no-touch'"):
+        load_spec(str(p), "texture", 2)
+    np.savez(p, vectors=np.ones((2, 2, 5, 2)), labels=np.array(["smooth", "a\nb"]))
+    with pytest.raises(DataError, match=r"labels\[1\]: a texture label .* got 'a\\nb'"):
+        load_spec(str(p), "texture", 2)
