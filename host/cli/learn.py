@@ -105,17 +105,18 @@ def _train(args):
 def _train_cnn(args, ws, ws_test=None):
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
+    labels = ws.labels                     # every class of the data, before the split
     if ws_test is None:
         tr, te, how = split_holdout(ws, 0.3, seed=args.seed)
         ws, ws_test = ws.subset(tr), ws.subset(te)
     else:
         how = "given"
-    check_classes(ws, ws_test, ws.labels)
+    check_classes(ws, ws_test, labels)
     res = train_cnn(ws, ws_test, seed=args.seed, out_dir=args.out, progress=not args.json)
     res["holdout"] = how
-    if args.quantise:
-        res["int8"] = quantise_cnn(res["onnx_path"], ws.subset(tr),
-                                   Path(args.out) / "model.int8.onnx", seed=args.seed)
+    if args.quantise:                      # calibrated on the training windows
+        res["int8"] = quantise_cnn(res["onnx_path"], ws, Path(args.out) / "model.int8.onnx",
+                                   seed=args.seed)
     return res
 
 

@@ -139,3 +139,62 @@ def test_train_refuses_texture_labels_host_record_refuses(tmp_path, capsys, bad,
     assert re.search(rf"labels\[24\]( \(a window with contact\))?: a texture label must be "
                      rf"1-64 .* got {shown}", err)
     assert not (tmp_path / "m").exists()
+
+
+# -- the CNN from the command line ----------------------------------------------------
+
+_TINY_PRESS = """\
+[sensor]
+profile = "roboskin"
+fps = 60
+[surface]
+preset = "{preset}"
+[[timeline]]
+action = "hold"
+duration_s = 0.05
+[[timeline]]
+action = "lower"
+depth_mm = 3.0
+duration_s = 0.1
+[[timeline]]
+action = "hold"
+duration_s = 0.15
+[[timeline]]
+action = "lift"
+duration_s = 0.1
+"""
+
+
+def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch):
+    """--model cnn --quantise, with the default held-out split and with --test: the
+    int8 model is calibrated on the training windows and becomes the default; both
+    variants load. (Before the fix: an index out of range, or an unbound name.)"""
+    pytest.importorskip("torch", reason="the CNN needs PyTorch, the optional 'cnn' extra: "
+                                        "make install-cnn")
+    import functools
+
+    import host.cli.learn as learn
+    from device.pi.models.artefact import load_model
+    from host.data.simulate import simulate_to_dataset
+    from host.learn.cnn import train_cnn
+
+    ds = tmp_path / "ds"
+    for preset in ("hard", "soft"):
+        scene = tmp_path / f"{preset}.toml"
+        scene.write_text(_TINY_PRESS.format(preset=preset))
+        simulate_to_dataset(str(scene), ds, seed=0, trials=2, progress=False)
+    # a small, short training (the command's own defaults take minutes)
+    monkeypatch.setattr(learn, "train_cnn",
+                        functools.partial(train_cnn, epochs=2, hidden=16, filters=2))
+    for extra, holdout in (([], "time split"), (["--test", str(ds)], "given")):
+        out = tmp_path / f"m{len(extra)}"
+        rc = main(["train", "--task", "surface", "--model", "cnn", "--window", "2",
+                   "--data", str(ds), *extra, "--quantise", "--out", str(out), "--json"])
+        res = json.loads(capsys.readouterr().out)
+        assert rc == 0 and res["holdout"].startswith(holdout)
+        assert "agreement" in res["int8"]
+        man = json.loads((out / "manifest.json").read_text())
+        assert man["variant"] == "int8" and man["model"] == "cnn"
+        assert man["classes"] == ["hard", "no-touch", "soft"]
+        for m in ("manifest.json", "manifest.float.json"):
+            assert load_model(out / m, expect_kind="surface") is not None
