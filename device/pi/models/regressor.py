@@ -1,4 +1,8 @@
-"""A Ridge regressor (pressure or depth from all pin vectors) run through ONNX Runtime."""
+"""A regressor (pressure or depth from all pin vectors) run through ONNX Runtime.
+
+The model reads the ``vectors`` window encoding, in which a lost (untracked) pin is
+exactly (0, 0): :mod:`host.learn.pressure` models fill those pins from the tracked
+ones inside their graph, so a 0 must reach the graph as 0."""
 from __future__ import annotations
 
 import math
@@ -14,8 +18,10 @@ class Regressor:
 
     Inputs are cleaned (NaN/inf -> 0) and clipped to the range seen in
     training (stored in the manifest as ``input_clip``), so an extreme frame
-    cannot push the output to infinity; a non-finite output gives the
-    training mean instead and sets :attr:`fault`.
+    cannot push the output to infinity; an input of exactly 0 (an untracked pin)
+    is left at 0 even when the training range excludes it, so it still reads as
+    untracked. A non-finite output gives the training mean instead and sets
+    :attr:`fault`.
     """
 
     def __init__(self, model, kind: str = "pressure"):
@@ -59,7 +65,9 @@ class Regressor:
                              f"got {f.size}")
         x[0] = finite(f)
         if self._lo is not None:
+            zero = x == 0
             np.clip(x, self._lo, self._hi, out=x)
+            x[zero] = 0
         y = float(self._runner().reshape(-1)[0])
         self.fault = not math.isfinite(y)
         return self.fallback if self.fault else y
