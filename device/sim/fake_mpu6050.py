@@ -71,6 +71,7 @@ from device.closing import Closing
 
 __all__ = [
     "FakeMPU6050",
+    "SceneMotion",
     "MPU6050_ADDR",
     "WHO_AM_I_MPU6050",
     "WHO_AM_I_CLONES",
@@ -185,6 +186,39 @@ def _to_raw(value: float, lsb_per_unit: float) -> int:
     return int(round(scaled))
 
 
+def _motion_array(motion) -> np.ndarray:
+    try:
+        arr = np.array(motion, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"motion must be a numeric array of shape (F, 6), got {motion!r:.80}") from None
+    if arr.ndim != 2 or arr.shape[1] != 6 or arr.shape[0] < 1:
+        raise ValueError(f"motion must have shape (F, 6) with F >= 1, got shape {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise ValueError(f"motion must be finite, got motion[{r}, {c}] = {float(arr[r, c])!r}")
+    return arr
+
+
+class SceneMotion:
+    """A simulated scene's IMU rows (``truth["imu"]``) read a block at a time, so a
+    scene of any length takes the same memory: ``motion[i]`` (a (6,) float64 copy)
+    and ``motion[i, k]``, ``shape`` (F, 6), ``len``."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.shape = (int(sim.n_frames), 6)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key):
+        i, k = key if isinstance(key, tuple) else (key, slice(None))
+        i = int(i) + (self.shape[0] if int(i) < 0 else 0)
+        lo, truth = self.sim.truth_block(i)
+        return np.array(truth["imu"][i - lo, k], dtype=np.float64)
+
+
 class FakeMPU6050(Closing):
     """An smbus2.SMBus stand-in with one MPU6050 on it. See the module docstring.
 
@@ -217,23 +251,15 @@ class FakeMPU6050(Closing):
         faults: Mapping[str, int] | None = None,
         stuck: bool = False,
     ):
-        try:
-            arr = np.array(motion, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"motion must be a numeric array of shape (F, 6), got {motion!r:.80}") from None
-        if arr.ndim != 2 or arr.shape[1] != 6 or arr.shape[0] < 1:
-            raise ValueError(f"motion must have shape (F, 6) with F >= 1, got shape {arr.shape}")
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            r, c = np.argwhere(bad)[0]
-            raise ValueError(f"motion must be finite, got motion[{r}, {c}] = {float(arr[r, c])!r}")
+        arr = motion if isinstance(motion, SceneMotion) else _motion_array(motion)
         fps_f = positive_number("fps", fps)
         temp = finite_number("temp_c", temp_c)
         if clock is not None and not callable(clock):
             raise ValueError(f"clock must be callable or None, got {clock!r}")
 
         self.motion = arr
-        self.motion.setflags(write=False)
+        if isinstance(arr, np.ndarray):
+            self.motion.setflags(write=False)
         self.fps = fps_f
         self.address = whole_number("address", address, 0x00, 0x7F)
         self.who_am_i = whole_number("who_am_i", who_am_i, 0x00, 0xFF)
@@ -270,8 +296,7 @@ class FakeMPU6050(Closing):
         from .scene import Scene, load_scene
         from .simulator import Simulator
         sc = scene if isinstance(scene, Scene) else load_scene(scene)
-        sim = Simulator(sc, seed=seed)
-        return cls(sim.truth["imu"], sc.fps, **kwargs)
+        return cls(SceneMotion(Simulator(sc, seed=seed)), sc.fps, **kwargs)
 
     # ------------------------------------------------------------ test controls
     @property

@@ -19,6 +19,7 @@ from device.profile import SensorProfile
 
 SUBPIXEL = 4          # sprite phases per pixel and axis
 NOISE_BANK = 16       # pre-drawn noise frames
+DRAW_BLOCK = 256      # frames whose random draws (flicker, noise pick) are made together
 
 
 def distort_points(xy: np.ndarray, width: int, height: int, k1: float) -> np.ndarray:
@@ -29,6 +30,27 @@ def distort_points(xy: np.ndarray, width: int, height: int, k1: float) -> np.nda
     rel = (xy - c) / norm
     r2 = np.sum(rel * rel, axis=-1, keepdims=True)
     return c + rel * (1.0 + k1 * r2) * norm
+
+
+class BlockDraws:
+    """Per-frame random draws (``draws[i]``) made a block of :data:`DRAW_BLOCK` frames
+    at a time, each block from its own stream: a scene of any length holds one
+    block, and frame i's draw does not depend on the scene's length."""
+
+    def __init__(self, seed: int, name: str, n_frames: int, draw):
+        self.seed, self.name, self.n_frames, self._draw = int(seed), name, int(n_frames), draw
+        self._b, self._values = -1, None
+
+    def __getitem__(self, i: int):
+        b = int(i) // DRAW_BLOCK
+        if b != self._b:
+            n = min(DRAW_BLOCK, self.n_frames - b * DRAW_BLOCK)
+            self._values = self._draw(stream(self.seed, f"{self.name}/{b}"), max(n, 1))
+            self._b = b
+        return self._values[int(i) - b * DRAW_BLOCK]
+
+    def __len__(self) -> int:
+        return self.n_frames
 
 
 class Renderer:
@@ -59,8 +81,8 @@ class Renderer:
                              > self.dome_r)
         if "exposure_flicker" in effects:
             amp = effects["exposure_flicker"]["amplitude"]
-            g = 1.0 + amp * stream(seed, "exposure_flicker").standard_normal(n_frames)
-            self.gains = np.clip(g, 0.05, 4.0)
+            self.gains = BlockDraws(seed, "exposure_flicker", n_frames, lambda rng, n: np.clip(
+                1.0 + amp * rng.standard_normal(n), 0.05, 4.0))
         if "camera_noise" in effects:
             rng = stream(seed, "camera_noise")
             sigma = effects["camera_noise"]["sigma"]
@@ -69,7 +91,8 @@ class Renderer:
             bank = np.clip(bank, -255, 255)
             self.noise_pos = np.maximum(bank, 0).astype(np.uint8)
             self.noise_neg = np.maximum(-bank, 0).astype(np.uint8)
-            self.noise_pick = rng.integers(0, NOISE_BANK, size=n_frames)
+            self.noise_pick = BlockDraws(seed, "camera_noise/pick", n_frames,
+                                         lambda rng, n: rng.integers(0, NOISE_BANK, size=n))
 
     # -- static layers -------------------------------------------------------
     def _background(self) -> np.ndarray:

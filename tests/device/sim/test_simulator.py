@@ -85,6 +85,68 @@ def test_a_long_scene_renders_without_holding_the_whole_scene():
             _motion(sim.truth["pins_px"], i, sim.fps)))
 
 
+def _timed_scene(seconds: float, **sensor):
+    drags = []
+    left = seconds - 1.0
+    while left > 0:
+        drags.append({"action": "drag", "direction_deg": 0.0, "speed_mm_s": 5.0,
+                      "duration_s": min(left, 3600.0)})
+        left -= drags[-1]["duration_s"]
+    doc = scene_doc(timeline=[{"action": "lower", "depth_mm": 2.0, "duration_s": 1.0}, *drags],
+                    effects=["camera_noise", "exposure_flicker", "imu_noise"])
+    doc["sensor"].update(fps=120, **sensor)
+    return parse_scene(doc)
+
+
+def test_memory_does_not_grow_with_the_length_of_the_scene():
+    """Issue 21, item 14: sim:// peak memory grew with the scene (159 MB at 6 s, 231 MB
+    at 22 minutes): its ground truth was computed for every frame up front. Building
+    the camera's and the IMU's simulators and reading 600 frames of a 30-minute scene
+    (216,000 frames) takes what a 10-second one takes."""
+    import tracemalloc
+
+    from device.sim.fake_mpu6050 import FakeMPU6050
+
+    def measure(seconds):
+        sc = _timed_scene(seconds, width=64, height=48)
+        out = np.empty((48, 64), np.uint8)
+        tracemalloc.start()
+        try:
+            sim = Simulator(sc, seed=0)
+            imu = FakeMPU6050.from_scene(sc, clock=None)
+            for i in range(600):
+                sim.render(i, out)
+                sim.labels(i)
+                imu.motion[i]
+            held, peak = tracemalloc.get_traced_memory()
+        finally:
+            tracemalloc.stop()
+        return sim.n_frames, imu.n_frames, held, peak
+
+    n_short, m_short, held_short, peak_short = measure(10.0)
+    n_long, m_long, held_long, peak_long = measure(1800.0)
+    assert (n_short, m_short, n_long, m_long) == (1200, 1200, 216_000, 216_000)
+    assert peak_long < peak_short + 0.2e6, f"{peak_short / 1e6:.2f} -> {peak_long / 1e6:.2f} MB"
+    assert held_long < held_short + 0.2e6, f"{held_short / 1e6:.2f} -> {held_long / 1e6:.2f} MB"
+
+
+def test_blocks_give_the_whole_scenes_truth_and_frames():
+    """The truth read block by block (labels, the IMU rows, the frames) is the
+    whole-scene truth, however the frames are visited."""
+    sc = _timed_scene(6.0, width=64, height=48)
+    whole = Simulator(sc, seed=4)
+    imu = whole.truth["imu"]
+    sim = Simulator(sc, seed=4)
+    for i in (700, 5, 255, 256, 257, 719, 0, 512):
+        lo, t = sim.truth_block(i)
+        for k in t:
+            assert np.array_equal(t[k][i - lo], whole.truth[k][i]), (k, i)
+        assert np.array_equal(sim.render(i), whole.render(i))
+    from device.sim.fake_mpu6050 import FakeMPU6050
+    motion = FakeMPU6050.from_scene(sc, seed=4, clock=None).motion
+    assert np.array_equal(np.stack([motion[i] for i in range(whole.n_frames)]), imu)
+
+
 def _motion(pins, i, fps):
     if i == 0:
         return np.zeros(3)
