@@ -29,6 +29,7 @@ from urllib.parse import parse_qsl, urlsplit
 import cv2
 import numpy as np
 
+from device.checks import frame_rate
 from device.config import ConfigError
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL,
                               FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
@@ -469,9 +470,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     except ConfigError as exc:
         raise StartupError(str(exc)) from None
     if fps is not None:
-        if not (isinstance(fps, (int, float)) and math.isfinite(fps) and 1 <= fps <= 1000):
-            raise StartupError(f"--fps must be a number 1..1000, got {fps!r}")
-        cfg.camera.fps = float(fps)
+        # the bound every frame rate has, a source's own ?fps= too
+        cfg.camera.fps = frame_rate("--fps", fps, error=StartupError)
     try:
         load_pipeline_profile(cfg.models.profile)
     except Exception as exc:

@@ -479,3 +479,15 @@ def test_a_source_read_as_fast_as_the_loop_goes_drops_nothing(tmp_path, capsys):
     res, index, _ = _run_paced(tmp_path, capsys, "sim://walk")
     assert res["frames_dropped_behind"] == 0
     assert index == list(range(index[0], index[0] + len(index)))
+
+
+def test_fps_and_a_sources_own_rate_have_one_bound():
+    """Issue 21, item 5: --fps and a source's ?fps= are held to 1..1000 by one check,
+    each error naming the option and the value."""
+    from device.pi.runtime.loop import StartupError, build_runtime
+    with pytest.raises(StartupError, match=r"--fps must be a finite number in \[1\.0, 1000\.0\], "
+                                           r"got --fps=5000"):
+        build_runtime("sim://walk", "none", "loop://", fps=5000)
+    with pytest.raises(StartupError, match=r"--camera: fps must be a finite number in "
+                                           r"\[1\.0, 1000\.0\], got fps=0\.001"):
+        build_runtime("sim://walk?fps=0.001", "none", "loop://")
