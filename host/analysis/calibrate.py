@@ -1,25 +1,31 @@
-"""``host calibrate``: fit a pipeline profile from a no-contact clip.
+"""``host calibrate``: fit a pipeline profile from no-contact frames.
 
-It finds the dome, then searches the adaptive-threshold block and offset for
-the setting under which the blobs look most like a pin lattice: many blobs, a
-steady count from frame to frame, and nearest-neighbour distances that agree
-with each other. Blob-size limits and the pin pitch follow from the blobs
-found with that setting, and the rest pin layout (the pins found in most of the
-frames, at their median positions) from the same frames. The result is a
-``[vision]`` and a ``[layout]`` section (``device/profile.py``) that the Pi loads as
-it is and that ``host train --profile`` maps every frame onto.
+It finds the dome (or, with no round dome in view, takes the whole frame), then
+searches the adaptive-threshold block and offset for the setting under which the
+blobs look most like a pin lattice: many blobs, a steady count from frame to
+frame, and nearest-neighbour distances that agree with each other. Blob-size
+limits follow from the blobs found with that setting. The rest pin layout comes
+from :mod:`host.analysis.rest_pins`: the pins found in most of the frames at a
+steady position, with glare, duplicates and blobs cut by the region's edge
+rejected; the pitch is the layout's median nearest-neighbour distance, and
+``n_pins`` is the layout's length. The result is a ``[vision]`` and a ``[layout]``
+section (``device/profile.py``) that the Pi loads as it is and that ``host train
+--profile`` maps every frame onto. Without a dome, ``dome_px`` is the circle
+around the pins (with ``roi_shrink = 1``), so the pipeline needs no dome.
 """
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
-from device.pi.vision.matching import match_pins
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import parse_pipeline_profile
 from host.analysis.frames import nearest_neighbour_px
+from host.analysis.rest_pins import (MIN_SEEN, Region, RestPins, agreement, find_rest_pins,
+                                     merge_layouts, nn_px)
 from host.data.dataset import atomic_write_text
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
@@ -48,19 +54,14 @@ def _score(frames, params, dome):
                           "regular": float(regular), "steady": float(steady)}
 
 
-def calibrate(frames: list[np.ndarray], name: str = "calibrated") -> dict:
-    """Fit ``[vision]`` parameters from no-contact frames (gray or BGR)."""
-    grays = [to_gray(f) for f in frames]
-    if not grays:
-        raise ValueError("calibrate needs at least one frame")
-    domes = [d for d in (find_dome(g) for g in grays[:5]) if d is not None]
-    if not domes:
-        raise ValueError("no dome found in the first frames: is the sensor in view?")
-    dome = tuple(float(v) for v in np.median(np.array(domes), axis=0))
+def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, float]:
+    """The threshold block and offset under which the blobs look most like a pin
+    lattice (inside ``dome``, or the whole frame with None): (params, the fit's
+    figures, score)."""
     g0 = grays[0]
     binary_input = np.count_nonzero((g0 == 0) | (g0 == 255)) > 0.97 * g0.size
     blur = 0.0 if binary_input else 1.0
-    shrink = 1.0 if binary_input else 0.75
+    shrink = 1.0 if binary_input or dome is None else 0.75
     best = (-1.0, None, None)
     for block in BLOCKS:
         for offset in OFFSETS:
@@ -71,51 +72,97 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated") -> dict:
                 best = (s, p, info)
     score, p, info = best
     if p is None:
-        raise ValueError("no threshold setting found pins: is this a TacTip clip?")
+        where = "" if dome is not None else "no dome in view and "
+        raise ValueError(f"{where}no threshold setting found pins: is this a TacTip clip?")
+    return p, info, score
+
+
+def find_region(grays: list[np.ndarray]):
+    """The dome (cx, cy, r) px found in most of the first frames, or None when no
+    round dome is in view (the pins are then searched on the whole frame)."""
+    domes = [d for d in (find_dome(g) for g in grays[:5]) if d is not None]
+    if len(domes) * 2 <= min(5, len(grays)):
+        return None
+    return tuple(float(v) for v in np.median(np.array(domes), axis=0))
+
+
+def rest_pins(grays: list[np.ndarray], dome, params: VisionParams, info: dict
+              ) -> tuple[RestPins, Region]:
+    """The rest pins (two passes: the second with the pitch of the first's pins)."""
+    h, w = grays[0].shape
+    region = Region(w, h, None if dome is None else
+                    (dome[0], dome[1], dome[2] * params.roi_shrink))
+    pin_d = 2.0 * math.sqrt(max(info["area_px"], 1.0) / math.pi)
+    pitch = info["pitch_px"]
+    rest = find_rest_pins(grays, region, pin_d, pitch)
+    for _ in range(2):
+        nn = nn_px(rest.pins)
+        if len(nn) < 3 or not np.isfinite(np.median(nn)):
+            break
+        pitch = float(np.median(nn))
+        rest = find_rest_pins(grays, region, pin_d, pitch)
+    return rest, region
+
+
+def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0) -> dict:
+    """Fit ``[vision]`` parameters and the rest ``[layout]`` from no-contact frames
+    (gray or BGR); ``start`` is the first frame's index in its clip (recorded only).
+    The result's ``rest`` (:class:`RestPins`) and ``region`` (:class:`Region`) say
+    which blobs were kept and why the others were not."""
+    grays = [to_gray(f) for f in frames]
+    if not grays:
+        raise ValueError("calibrate needs at least one frame")
+    dome = find_region(grays)
+    p, info, score = fit_threshold(grays, dome)
+    rest, region = rest_pins(grays, dome, p, info)
+    pins = rest.pins
+    if len(pins) < 3:
+        raise ValueError(f"only {len(pins)} rest pins found: is this a TacTip clip at rest?")
+    pitch = float(np.median(nn_px(pins)))
     area = info["area_px"]
-    vision = {"block": p.block, "offset": p.offset, "blur_sigma_px": blur,
+    if dome is None:    # no dome in view: the region is the circle around the pins
+        lo, hi = pins.min(axis=0), pins.max(axis=0)
+        c = (lo + hi) / 2.0
+        dome = (float(c[0]), float(c[1]), float(np.hypot(*(hi - lo)) / 2.0 + pitch))
+    vision = {"block": p.block, "offset": p.offset, "blur_sigma_px": p.blur_sigma_px,
               "min_area_px": int(max(3, round(0.3 * area))),
               "max_area_px": int(max(round(3.0 * area), round(0.3 * area) + 1)),
-              "roi_shrink": shrink, "pitch_px": round(info["pitch_px"], 2),
-              "n_pins": int(round(info["count"])),
-              "dome_px": [round(v, 1) for v in dome]}
-    # the count with the final area limits
-    final = VisionParams(block=p.block, offset=p.offset, blur_sigma_px=blur,
-                         min_area_px=vision["min_area_px"], max_area_px=vision["max_area_px"],
-                         roi_shrink=shrink)
-    _, fin = _score(grays, final, dome)
-    if fin is not None:
-        vision["n_pins"] = int(round(fin["count"]))
-    layout = rest_layout(grays, final, dome, vision["pitch_px"])
+              "roi_shrink": p.roi_shrink, "pitch_px": round(pitch, 2),
+              "n_pins": int(len(pins)), "dome_px": [round(v, 1) for v in dome]}
+    layout = order_layout(pins, dome, pitch)
     vision.update(rest_contact(grays, vision))
     return {"name": name, "vision": vision, "layout": layout, "frames": len(grays),
+            "start": int(start), "region": region, "rest": rest,
+            "blobs": rest.counts(), "dome_in_view": region.disc is not None,
             "fit": {"score": score, "regular_fraction": info["regular"],
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
 
 
-#: a rest pin must be found in at least this share of the calibration frames
-MIN_SEEN = 0.5
-
-
-def rest_layout(grays, params: VisionParams, dome, pitch_px: float) -> list[list[float]]:
-    """The rest pin layout [[x, y], ...] px: the pins of the frame with the most
-    detections, each matched in every frame within 0.4 pitch, kept when seen in at
-    least ``MIN_SEEN`` of the frames, at its median position; sorted by angle
-    around the dome centre within rings of one pitch, so the order is stable."""
-    det = PinDetector(params, grays[0].shape, dome)
-    found = [det.detect(g)[0].astype(np.float64) for g in grays]
-    ref = max(found, key=len)
-    pos = np.full((len(found), len(ref), 2), np.nan)
-    for k, xy in enumerate(found):
-        idx = match_pins(ref, xy, 0.4 * pitch_px)
-        ok = idx >= 0
-        pos[k, ok] = xy[idx[ok]]
-    seen = np.isfinite(pos[..., 0]).mean(axis=0) >= MIN_SEEN
-    pins = np.nanmedian(pos[:, seen], axis=0) if seen.any() else np.zeros((0, 2))
+def order_layout(pins: np.ndarray, dome, pitch_px: float) -> list[list[float]]:
+    """The layout [[x, y], ...] px, sorted by angle around the region's centre within
+    rings of one pitch, so the order is stable."""
+    pins = np.asarray(pins, np.float64).reshape(-1, 2)
     d = pins - np.asarray(dome[:2], np.float64)
     ring = np.round(np.hypot(d[:, 0], d[:, 1]) / max(pitch_px, 1e-9))
     order = np.lexsort((np.arctan2(d[:, 1], d[:, 0]), ring))
     return [[round(float(x), 2), round(float(y), 2)] for x, y in pins[order]]
+
+
+def merge_results(results: list[dict]) -> dict:
+    """One profile from the calibrations of several clips of one sensor: the first
+    clip's ``[vision]`` and region, and the rest layout of the pins more than half of
+    the clips found (each clip's layout shifted onto the first's). ``agreement``
+    compares every pair of clips (:func:`agreement`)."""
+    first = results[0]
+    pitch = first["vision"]["pitch_px"]
+    lays = [np.asarray(r["layout"], np.float64).reshape(-1, 2) for r in results]
+    merged = merge_layouts(lays, pitch)
+    vision = dict(first["vision"], n_pins=int(len(merged)))
+    pairs = [dict(agreement(lays[i], lays[j], pitch), clips=[i, j])
+             for i in range(len(lays)) for j in range(i + 1, len(lays))]
+    return dict(first, vision=vision, layout=order_layout(merged, vision["dome_px"], pitch),
+                frames=sum(r["frames"] for r in results), clips_merged=len(results),
+                agreement=pairs)
 
 
 #: contact thresholds sit this far above the largest value seen on the rest frames
@@ -157,11 +204,16 @@ def profile_toml(res: dict) -> str:
     for k in ("block", "offset", "blur_sigma_px", "min_area_px", "max_area_px", "roi_shrink",
               "pitch_px", "n_pins", "grid_contact", "contact_px"):
         lines.append(f"{k} = {v[k]}")
+    if not res.get("dome_in_view", True):
+        lines.append("# no dome in view: the region is the circle around the pins")
     lines.append(f"dome_px = [{', '.join(str(x) for x in v['dome_px'])}]")
     lay = res.get("layout") or []
     if lay:
-        lines += ["", f"# the rest pin layout: {len(lay)} pins found in at least "
-                      f"{MIN_SEEN:.0%} of the frames; every model reads them in this order",
+        merged = res.get("clips_merged", 1)
+        lines += ["", f"# the rest pin layout: {len(lay)} pins, each found in at least "
+                      f"{MIN_SEEN:.0%} of the rest frames at a steady position"
+                      + (f" in more than half of {merged} clips" if merged > 1 else "")
+                      + "; every model reads them in this order",
                   "[layout]", 'kind = "points"', "pins_px = ["]
         lines += [f"  [{x}, {y}]," for x, y in lay]
         lines.append("]")

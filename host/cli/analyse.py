@@ -12,7 +12,8 @@ from device.pi.models.window import RollingWindow
 from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutError
 from device.pi.vision.pipeline import STAGES, fault_names
-from host.analysis.calibrate import calibrate, write_profile
+from host.analysis.calibrate import calibrate, merge_results, write_profile
+from host.analysis.rest_pins import write_overlay
 from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
 from host.analysis.sim2real import SIM2REAL_TRIALS, sim2real_table, sim_to_real
@@ -120,26 +121,61 @@ def cmd_plot(args):
     emit(args, res, text)
 
 
-def cmd_calibrate(args):
-    out = out_file(args.out)
-    cam = open_source(args.source)
+def _rest_frames(source: str, start: int, count: int) -> list:
+    """Frames ``start`` .. ``start + count`` of a clip (frame indices in the clip)."""
     frames = []
-    with cam:
-        for fr in read_frames(cam):
-            frames.append(fr.image.copy())
-            if len(frames) >= args.frames:
+    with open_source(source) as cam:
+        for k, fr in enumerate(read_frames(cam)):
+            if k >= start:
+                frames.append(fr.image.copy())
+            if len(frames) >= count:
                 break
     if not frames:
-        raise UserError(f"{args.source}: no frames to calibrate from")
-    try:
-        res = calibrate(frames, name=args.name or out.stem)
-    except ValueError as exc:
-        raise UserError(f"{args.source}: {exc}") from None
+        raise UserError(f"{source}: no frames to calibrate from (--start {start})")
+    return frames
+
+
+def cmd_calibrate(args):
+    out = out_file(args.out)
+    name = args.name or out.stem
+    results = []
+    for source in args.sources:
+        frames = _rest_frames(source, args.start, args.frames)
+        try:
+            res = calibrate(frames, name=name, start=args.start)
+        except ValueError as exc:
+            raise UserError(f"{source}: {exc}") from None
+        results.append((source, frames[0], res))
+    source, frame, res = results[0]
+    clips = [{"source": s, "pins": len(r["layout"]), "blobs": r["blobs"]}
+             for s, _, r in results]
+    if len(results) > 1:
+        res = merge_results([r for _, _, r in results])
+    lay = res["layout"]
     res["out"] = str(write_profile(res, out))
+    if args.overlay:
+        try:
+            res["overlay"] = str(write_overlay(args.overlay, frame, results[0][2]["rest"],
+                                               results[0][2]["region"]))
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     v = res["vision"]
-    emit(args, res, f"wrote {args.out}: dome {v['dome_px']}, block {v['block']}, offset "
-                    f"{v['offset']}, pin area {v['min_area_px']}..{v['max_area_px']} px, "
-                    f"pitch {v['pitch_px']} px, {v['n_pins']} pins")
+    text = (f"wrote {args.out}: {'dome' if res['dome_in_view'] else 'no dome in view, region'} "
+            f"{v['dome_px']}, block {v['block']}, offset {v['offset']}, pin area "
+            f"{v['min_area_px']}..{v['max_area_px']} px, pitch {v['pitch_px']} px, "
+            f"{len(lay)} pins")
+    if len(results) > 1:
+        text += "".join(f"\n  {c['source']}: {c['pins']} pins" for c in clips)
+        text += "".join(f"\n  {clips[a['clips'][0]]['source']} vs {clips[a['clips'][1]]['source']}: "
+                        f"{a['count_difference']} pins apart, {a['matched']} matched, "
+                        f"median {a['median_px']} px, max {a['max_px']} px"
+                        for a in res["agreement"])
+    if args.overlay:
+        text += f"\noverlay: {res['overlay']}"
+    res["clips"] = clips
+    for key in ("rest", "region"):
+        res.pop(key, None)
+    emit(args, res, text)
 
 
 def cmd_realism(args):
@@ -174,11 +210,19 @@ def register(sub) -> None:
     s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
     s.set_defaults(func=cmd_analyse)
 
-    s = sub.add_parser("calibrate", help="fit a pipeline profile from a no-contact clip")
-    s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
+    s = sub.add_parser("calibrate", help="fit a pipeline profile and the rest pin layout "
+                                         "from no-contact frames of one or more clips")
+    s.add_argument("sources", nargs="+", metavar="CLIP",
+                   help="clip.avi, a folder of images, or sim://SCENE; several clips of one "
+                        "sensor are merged (the pins most of them find)")
     s.add_argument("--out", required=True, help="profile .toml to write")
-    s.add_argument("--frames", type=whole(1, 100_000), default=16,
-                   help="leading frames to use (at rest); default 16")
+    s.add_argument("--start", type=whole(0, 10_000_000), default=0, metavar="K",
+                   help="first rest frame (its index in the clip); default 0")
+    s.add_argument("--frames", type=whole(1, 100_000), default=16, metavar="N",
+                   help="rest frames to use from --start (nothing touching); default 16")
+    s.add_argument("--overlay", metavar="PNG",
+                   help="also write the first rest frame (of the first clip) at twice its "
+                        "size with the pins kept and the blobs rejected, and why")
     s.add_argument("--name", help="profile name (default: the file name)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_calibrate)

@@ -38,10 +38,10 @@ def test_calibrate_on_real_clips(tmp_path):
     (folder / "image_1.png").write_bytes((data / "tactip_shear/images/image_1.png").read_bytes())
     assert main(["calibrate", str(folder), "--out", str(out2)]) == 0
     prof2 = load_pipeline_profile(out2)
-    assert prof2.n_pins == 331 and prof2.pitch_px == pytest.approx(19.2, rel=0.05)
+    assert abs(prof2.n_pins - 331) <= 3 and prof2.pitch_px == pytest.approx(19.2, rel=0.05)
 
 
-def test_calibrate_without_a_dome_is_exit_2(tmp_path, capsys):
+def test_calibrate_on_a_frame_without_pins_is_exit_2(tmp_path, capsys):
     import cv2
     import numpy as np
     folder = tmp_path / "black"
@@ -110,3 +110,79 @@ def test_a_contact_threshold_beyond_the_pin_pitch_is_refused():
                                          r"pin travel\) is beyond the pin pitch \(0\.6 px\): "
                                          r"the leading frames are not at rest"):
         rest_contact(grays, dict(vision, pitch_px=0.6))
+
+
+#: the authors' clips of the one 133-pin sensor (flatSkin is another skin)
+SENSOR_133 = ("smooth", "concrete", "lego_train", "north", "east")
+
+
+@pytest.fixture(scope="module")
+def layouts():
+    """Each 133-pin clip's rest layout from its 16 leading frames (the default)."""
+    from host.analysis.calibrate import calibrate
+    from tests.realdata import read_video, real_data_dir
+    data = real_data_dir(*(f"roboskin/{n}.avi" for n in SENSOR_133)) / "roboskin"
+    return {n: np.asarray(calibrate(read_video(data / f"{n}.avi", 0, 16))["layout"])
+            for n in SENSOR_133}
+
+
+def test_clips_of_one_sensor_give_one_layout(layouts):
+    """Every layout near 133 pins, the clips near each other, and matched pins (after
+    a shift) close: the figures measured in the issue-23 report, with a margin."""
+    from host.analysis.rest_pins import agreement
+    for name, lay in layouts.items():
+        assert abs(len(lay) - 133) <= 8, (name, len(lay))
+    names = list(layouts)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            ag = agreement(layouts[a], layouts[b], 11.7)
+            assert ag["count_difference"] <= 8, (a, b, ag)
+            assert ag["matched"] >= 0.9 * min(ag["pins"]), (a, b, ag)
+            assert ag["median_px"] <= 0.5 and ag["max_px"] <= 3.0, (a, b, ag)
+
+
+def test_the_printed_count_is_the_written_count_and_start_frames_merge(tmp_path, capsys):
+    """--start/--frames pick the rest frames; two clips merge; the printed count is the
+    written layout's; the overlay PNG is twice the frame's size."""
+    import cv2
+    from device.profile import load_layout
+    from tests.realdata import real_data_dir
+    clips = real_data_dir("roboskin/smooth.avi", "roboskin/north.avi") / "roboskin"
+    out, png = tmp_path / "two.toml", tmp_path / "two.png"
+    assert main(["calibrate", str(clips / "smooth.avi"), str(clips / "north.avi"), "--start", "2",
+                 "--frames", "6", "--out", str(out), "--overlay", str(png)]) == 0
+    text = capsys.readouterr().out
+    n = len(load_layout(out))
+    assert f"{n} pins\n" in text and load_pipeline_profile(out).n_pins == n
+    assert "smooth.avi: " in text and "north.avi: " in text and "matched" in text
+    assert cv2.imread(str(png)).shape == (960, 1280, 3)
+    assert main(["calibrate", str(clips / "smooth.avi"), "--start", "2", "--frames", "6",
+                 "--out", str(tmp_path / "one.toml"), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["start"] == 2 and res["frames"] == 6 and res["vision"]["n_pins"] == len(res["layout"])
+    assert sum(res["blobs"].values()) > res["blobs"]["kept"]          # something rejected
+    assert main(["calibrate", str(clips / "smooth.avi"), "--start", "100000", "--out",
+                 str(tmp_path / "x.toml")]) == 2
+
+
+def test_a_skin_without_a_dome_calibrates_and_runs_through_the_pipeline(tmp_path, capsys):
+    """flatSkin: no round dome in view; the region is the circle around the pins and
+    the written profile runs through the marker pipeline."""
+    import cv2
+    from tests.realdata import read_video, real_data_dir
+    video = real_data_dir("roboskin/flatSkin.avi") / "roboskin" / "flatSkin.avi"
+    clip = tmp_path / "flat"                        # its first 10 frames, kept short
+    clip.mkdir()
+    for k, f in enumerate(read_video(video, 0, 10)):
+        cv2.imwrite(str(clip / f"f{k:03d}.png"), f)
+    out = tmp_path / "flat.toml"
+    assert main(["calibrate", str(clip), "--frames", "4", "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["dome_in_view"] is False and res["vision"]["n_pins"] >= 300
+    assert "no dome in view" in out.read_text()
+    jl = tmp_path / "flat.jsonl"
+    assert main(["analyse", str(clip), "--profile", str(out), "--out", str(jl)]) == 0
+    lines = [json.loads(x) for x in jl.read_text().splitlines()]
+    frames = [d for d in lines if "frame" in d and not d.get("summary")]
+    assert frames and all("no_dome" not in d["faults"] for d in frames)
+    assert np.median([d["pins"] for d in frames]) >= 300

@@ -1,0 +1,305 @@
+"""The sensor's rest pins, found in many no-contact frames (``host calibrate``).
+
+Every frame gives candidate spots: local maxima of a white top-hat (the frame
+minus its grey opening with a disc a little wider than a pin), which keeps
+pin-sized bright spots and drops the broad LED glare that hides pins from a plain
+threshold. Spots are tracked from frame to frame (one-to-one within 0.4 pitch);
+each track is one blob at its median position. Blobs are then kept or rejected,
+and every rejection has a reason:
+
+* ``unstable``: found in fewer than ``MIN_SEEN`` of the frames, or moving by more
+  than ``MAX_SPREAD`` pitch (median distance from its median position);
+* ``edge``: within half a pitch of the region's boundary (the dome's search disc
+  or the frame) and weaker than the pins (``EDGE_STRENGTH``): cut by it, or a rim
+  glint;
+* ``duplicate``: closer than ``DUP_PITCH`` pitch to a stronger kept blob (one
+  pin found twice);
+* ``glare``: a spot far weaker than the pins (``MIN_STRENGTH`` of their
+  median), or off the lattice: no other kept blob within ``LATTICE_PITCH``
+  pitch (a glint between the rows).
+
+Nothing here knows how many pins a sensor has: the pitch and the pin size come
+from the threshold search, the thresholds from the spots' own distribution.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from device.pi.vision.matching import match_pins
+
+#: a rest pin is found in at least this share of the frames
+MIN_SEEN = 0.8
+#: ... and its median distance from its median position is at most this many pitches
+MAX_SPREAD = 0.1
+#: two blobs closer than this many pitches are one pin
+DUP_PITCH = 0.7
+#: a spot weaker than this share of the pins' median top-hat strength is glare texture
+MIN_STRENGTH = 0.1
+#: a kept pin has another within this many pitches (the lattice)
+LATTICE_PITCH = 2.2
+#: blobs within this many pitches of the region's boundary are cut by it
+EDGE_PITCH = 0.5
+#: ... and weaker than this share of the pins' median strength (a whole pin on the
+#: boundary is as strong as the others)
+EDGE_STRENGTH = 0.6
+
+REASONS = ("kept", "glare", "duplicate", "edge", "unstable")
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where pins are searched: a disc (``cx, cy, r`` px) or, with ``disc`` None,
+    the whole ``width`` x ``height`` frame."""
+    width: int
+    height: int
+    disc: tuple[float, float, float] | None = None
+
+    def mask(self) -> np.ndarray:
+        m = np.zeros((self.height, self.width), np.uint8)
+        if self.disc is None:
+            m[:] = 255
+        else:
+            cx, cy, r = self.disc
+            cv2.circle(m, (int(round(cx)), int(round(cy))), max(1, int(round(r))), 255, -1)
+        return m
+
+    def inset_px(self, xy: np.ndarray) -> np.ndarray:
+        """Distance (n,) px from each point to the region's boundary (or the frame's)."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        frame = np.minimum.reduce([xy[:, 0], xy[:, 1], self.width - 1 - xy[:, 0],
+                                   self.height - 1 - xy[:, 1]])
+        if self.disc is None:
+            return frame
+        cx, cy, r = self.disc
+        return np.minimum(frame, r - np.hypot(xy[:, 0] - cx, xy[:, 1] - cy))
+
+
+@dataclass
+class RestPins:
+    """Tracked blobs of the rest frames: median position ``xy`` (K, 2) px, the share
+    of frames ``seen`` (K,), median ``strength`` (K,) and ``reason`` (K,) from
+    :data:`REASONS`; ``pins`` are the kept ones."""
+    xy: np.ndarray
+    seen: np.ndarray
+    strength: np.ndarray
+    reason: np.ndarray
+    pitch_px: float
+    frames: int
+
+    @property
+    def pins(self) -> np.ndarray:
+        return self.xy[self.reason == "kept"]
+
+    def counts(self) -> dict:
+        return {r: int(np.count_nonzero(self.reason == r)) for r in REASONS}
+
+
+def spots(gray: np.ndarray, pin_d_px: float, pitch_px: float, mask: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate pin centres (n, 2) px (sub-pixel) and their top-hat strength (n,)."""
+    f = gray.astype(np.float32)
+    f = cv2.GaussianBlur(f, (0, 0), max(0.8, 0.3 * pin_d_px))
+    k = int(2 * round(0.75 * pin_d_px) + 1)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    hat = f - cv2.morphologyEx(f, cv2.MORPH_OPEN, disc)
+    w = int(2 * round(0.35 * pitch_px) + 1)
+    peak = (hat >= cv2.dilate(hat, np.ones((w, w), np.uint8))) & (hat > 0.5) & (mask > 0)
+    ys, xs = np.nonzero(peak)
+    # sub-pixel: the top-hat's centroid over the 3x3 around each maximum
+    h, wd = hat.shape
+    xy = np.empty((len(xs), 2), np.float64)
+    for i, (x, y) in enumerate(zip(xs, ys)):
+        x0, x1, y0, y1 = max(0, x - 1), min(wd, x + 2), max(0, y - 1), min(h, y + 2)
+        patch = hat[y0:y1, x0:x1].astype(np.float64)
+        patch = np.clip(patch - patch.min(), 0, None)
+        s = patch.sum()
+        gy, gx = np.mgrid[y0:y1, x0:x1]
+        xy[i] = ((gx * patch).sum() / s, (gy * patch).sum() / s) if s > 0 else (x, y)
+    return xy, hat[ys, xs].astype(np.float64)
+
+
+def _track(found: list[tuple[np.ndarray, np.ndarray]], gate_px: float):
+    """One track per blob over the frames: (positions (F, K, 2) NaN where unseen,
+    strengths (F, K))."""
+    tracks_xy: list[list] = []
+    tracks_s: list[list] = []
+    centre = np.zeros((0, 2))
+    for k, (xy, s) in enumerate(found):
+        taken = np.zeros(len(xy), bool)
+        if len(centre) and len(xy):
+            idx = match_pins(centre, xy, gate_px)
+            for t, j in enumerate(idx):
+                if j >= 0:
+                    tracks_xy[t].append((k, xy[j]))
+                    tracks_s[t].append(s[j])
+                    taken[j] = True
+        for j in np.flatnonzero(~taken):
+            tracks_xy.append([(k, xy[j])])
+            tracks_s.append([s[j]])
+        centre = np.array([np.mean([p for _, p in t], axis=0) for t in tracks_xy]).reshape(-1, 2)
+    pos = np.full((len(found), len(tracks_xy), 2), np.nan)
+    strength = np.full((len(found), len(tracks_xy)), np.nan)
+    for t, (tx, ts) in enumerate(zip(tracks_xy, tracks_s)):
+        for (k, p), v in zip(tx, ts):
+            pos[k, t] = p
+            strength[k, t] = v
+    return pos, strength
+
+
+def nn_px(xy: np.ndarray) -> np.ndarray:
+    """Each point's distance to its nearest other point (inf for a lone point)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    if len(xy) < 2:
+        return np.full(len(xy), np.inf)
+    d = np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1))
+    np.fill_diagonal(d, np.inf)
+    return d.min(axis=1)
+
+
+def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
+                   pitch_px: float) -> RestPins:
+    """The rest pins of no-contact gray frames (see the module's rules)."""
+    if not grays:
+        raise ValueError("find_rest_pins needs at least one frame")
+    if not (math.isfinite(pitch_px) and pitch_px > 0):
+        raise ValueError(f"pitch_px must be a positive number, got pitch_px={pitch_px!r}")
+    mask = region.mask()
+    found = [spots(g, pin_d_px, pitch_px, mask) for g in grays]
+    pos, strength = _track(found, 0.4 * pitch_px)
+    seen = np.isfinite(pos[..., 0]).mean(axis=0)
+    with np.errstate(all="ignore"):
+        xy = np.nanmedian(pos, axis=0).reshape(-1, 2)
+        spread = np.nanmedian(np.hypot(*(pos - xy[None]).transpose(2, 0, 1)), axis=0)
+        med_s = np.nanmedian(strength, axis=0)
+    reason = np.full(len(xy), "kept", dtype=object)
+    reason[(seen < MIN_SEEN) | ~(spread <= MAX_SPREAD * pitch_px)] = "unstable"
+    kept = reason == "kept"
+    typical = float(np.median(med_s[kept])) if kept.any() else 0.0
+    near = region.inset_px(xy) < EDGE_PITCH * pitch_px
+    reason[kept & near & (med_s < EDGE_STRENGTH * typical)] = "edge"
+    reason[(reason == "kept") & (med_s < MIN_STRENGTH * typical)] = "glare"
+    # one pin found twice: the stronger of two close blobs stays
+    for i in np.argsort(-np.nan_to_num(med_s)):
+        if reason[i] != "kept":
+            continue
+        d = np.hypot(*(xy - xy[i]).T)
+        reason[(reason == "kept") & (d < DUP_PITCH * pitch_px) & (np.arange(len(xy)) != i)] \
+            = "duplicate"
+    # off the lattice: no kept neighbour within LATTICE_PITCH pitches
+    kept = reason == "kept"
+    lone = nn_px(xy[kept]) > LATTICE_PITCH * pitch_px
+    reason[np.flatnonzero(kept)[lone]] = "glare"
+    return RestPins(xy=xy, seen=seen, strength=np.nan_to_num(med_s), reason=reason.astype(str),
+                    pitch_px=float(pitch_px), frames=len(grays))
+
+
+def align(a: np.ndarray, b: np.ndarray, gate_px: float, rounds: int = 5):
+    """Shift ``a`` onto ``b`` (start: their centroids; then the median offset of the
+    one-to-one nearest pairs within ``gate_px``). Returns (shift (2,), idx (len(a),)
+    the row of ``b`` each pin of ``a`` matches or -1, distances (len(a),) px, NaN
+    where unmatched)."""
+    a = np.asarray(a, np.float64).reshape(-1, 2)
+    b = np.asarray(b, np.float64).reshape(-1, 2)
+    shift = (b.mean(axis=0) - a.mean(axis=0)) if len(a) and len(b) else np.zeros(2)
+    idx = np.full(len(a), -1, np.int64)
+    for _ in range(rounds):
+        idx = match_pins(a + shift, b, gate_px)
+        ok = idx >= 0
+        if not ok.any():
+            break
+        shift = np.median(b[idx[ok]] - a[ok], axis=0)
+    idx = match_pins(a + shift, b, gate_px)
+    dist = np.full(len(a), np.nan)
+    ok = idx >= 0
+    dist[ok] = np.hypot(*(b[idx[ok]] - a[ok] - shift).T)
+    return shift, idx, dist
+
+
+def agreement(a: np.ndarray, b: np.ndarray, pitch_px: float) -> dict:
+    """How two rest layouts of one sensor agree, aligned by a shift: pins matched
+    one-to-one within 0.4 pitch, the count difference, and the matched distances."""
+    shift, idx, dist = align(a, b, 0.4 * pitch_px)
+    d = dist[np.isfinite(dist)]
+    return {"pins": [int(len(a)), int(len(b))], "count_difference": int(abs(len(a) - len(b))),
+            "matched": int(len(d)), "shift_px": [round(float(v), 2) for v in shift],
+            "median_px": round(float(np.median(d)), 3) if len(d) else None,
+            "max_px": round(float(d.max()), 3) if len(d) else None}
+
+
+def merge_layouts(layouts: list[np.ndarray], pitch_px: float) -> np.ndarray:
+    """One layout from several clips' rest layouts of one sensor, in the first one's
+    coordinates: each other layout is shifted onto it; a pin stays when more than
+    half the clips found it, at its mean position."""
+    ref = np.asarray(layouts[0], np.float64).reshape(-1, 2)
+    if len(layouts) == 1:
+        return ref.copy()
+    gate = 0.4 * pitch_px
+    pts = [ref]
+    for lay in layouts[1:]:
+        shift, _, _ = align(lay, ref, gate)
+        pts.append(np.asarray(lay, np.float64).reshape(-1, 2) + shift)
+    # union by greedy matching to a growing list of clusters
+    centre = pts[0].copy()
+    members = [[p] for p in centre]
+    for p in pts[1:]:
+        idx = match_pins(p, centre, gate)
+        for j, t in enumerate(idx):
+            if t >= 0:
+                members[t].append(p[j])
+            else:
+                members.append([p[j]])
+        centre = np.array([np.mean(m, axis=0) for m in members])
+    need = len(layouts) / 2.0
+    keep = np.array([len(m) > need for m in members])
+    return centre[keep]
+
+
+#: overlay colours (BGR) of each kind of blob
+COLOURS = {"kept": (0, 200, 0), "glare": (0, 140, 255), "duplicate": (255, 0, 255),
+           "edge": (255, 255, 0), "unstable": (0, 0, 255)}
+#: the overlay is drawn at this many times the frame's size
+OVERLAY_SCALE = 2
+
+
+def overlay_image(frame: np.ndarray, rest: RestPins, region: Region) -> np.ndarray:
+    """A BGR image ``OVERLAY_SCALE`` times the frame's size: the rest frame with the
+    search region, each kept pin (a green circle) and each rejected blob (a cross in
+    its reason's colour), and a legend with the count of each kind."""
+    s = OVERLAY_SCALE
+    img = frame if frame.ndim == 3 else cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    img = cv2.resize(img[..., :3], None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
+    if region.disc is not None:
+        cx, cy, r = region.disc
+        cv2.circle(img, (int(round(cx * s)), int(round(cy * s))), int(round(r * s)),
+                   (255, 128, 0), 1, cv2.LINE_AA)
+    rad = max(3, int(round(0.3 * rest.pitch_px * s)))
+    for (x, y), why in zip(rest.xy, rest.reason):
+        c = (int(round(x * s)), int(round(y * s)))
+        if why == "kept":
+            cv2.circle(img, c, rad, COLOURS[why], 1, cv2.LINE_AA)
+        else:
+            cv2.drawMarker(img, c, COLOURS[why], cv2.MARKER_TILTED_CROSS, 2 * rad, 1, cv2.LINE_AA)
+    counts = rest.counts()
+    lines = [(f"kept pins: {counts['kept']}", "kept")] + [
+        (f"rejected, {why}: {counts[why]}", why) for why in REASONS[1:]]
+    cv2.rectangle(img, (4, 4), (250, 10 + 20 * len(lines)), (0, 0, 0), -1)
+    for i, (text, why) in enumerate(lines):
+        y = 22 + 20 * i
+        cv2.circle(img, (16, y - 5), 6, COLOURS[why], -1)
+        cv2.putText(img, text, (30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+    return img
+
+
+def write_overlay(path, frame: np.ndarray, rest: RestPins, region: Region):
+    """Write :func:`overlay_image` as a PNG; returns the path."""
+    from pathlib import Path
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), overlay_image(frame, rest, region)):
+        raise ValueError(f"could not write the overlay PNG {path}")
+    return path
