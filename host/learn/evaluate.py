@@ -22,6 +22,7 @@ from device.pi.models.artefact import (MANIFEST, VARIANTS, ModelError, manifest_
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import encode
+from host.data.windows import NO_TOUCH
 from host.learn.inputs import model_inputs
 from host.learn.metrics import classification_metrics, regression_metrics, slip_latency
 from host.learn.tasks import label_ids
@@ -100,6 +101,16 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         raise ValueError("the model uses the IMU but the windows carry none")
     if kind != "regressor" and ws.labels is not None:
         unknown = sorted({str(x) for x in ws.labels} - {str(c) for c in pred_obj.classes})
+        if NO_TOUCH in unknown:
+            # not a wrong label: the windows without contact, which the loader labels
+            # no-touch, and a model trained on contact windows only (--contact-only)
+            raise ValueError(
+                f"the model has no {NO_TOUCH} class (its classes: {list(pred_obj.classes)}; "
+                f"it was trained on contact windows only, e.g. with --contact-only), and "
+                f"{int((ws.labels == NO_TOUCH).sum())} of the {len(ws)} windows have no "
+                f"contact: evaluate with --contact-only to drop them"
+                + (f"; the data also hold label(s) {[u for u in unknown if u != NO_TOUCH]} "
+                   f"that the model does not know" if len(unknown) > 1 else ""))
         if unknown:
             raise ValueError(f"the data hold label(s) {unknown} that the model does not know "
                              f"(its classes: {list(pred_obj.classes)}); a score over them would "

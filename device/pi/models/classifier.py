@@ -18,7 +18,9 @@ renormalised, or logits through the stable :func:`device.pi.numerics.softmax` /
 :func:`device.pi.numerics.sigmoid`). A model
 that still gives nothing usable yields the uniform distribution and sets
 :attr:`Classifier.fault`. Bad artefacts are refused at load time by
-:func:`device.pi.models.artefact.load_model` with a message that names the file.
+:func:`device.pi.models.artefact.load_model` with a message that names the file, and
+so is a manifest whose ``classes`` repeat a name or do not match the size of the
+model's output (one value per class).
 
 A rule model (``"model": "rule"`` in the manifest, no ONNX file) loads as a
 :class:`device.pi.models.rules.RuleClassifier`, which has the same ``predict``.
@@ -80,6 +82,10 @@ def _check_manifest(doc: dict, where: str) -> dict:
             or not all(isinstance(c, str) and c for c in classes)):
         raise ModelError(f"{where}: 'classes' must list at least 2 class names, got "
                          f"{classes!r}")
+    twice = sorted({c for c in classes if classes.count(c) > 1})
+    if twice:
+        raise ModelError(f"{where}: 'classes' names {twice} more than once; each output of "
+                         f"the model is one class, got {classes!r}")
     layout = doc.get("input_layout")
     if layout not in ("vectors", "grids", "frames"):
         raise ModelError(f"{where}: input_layout must be vectors, grids or frames, got "
@@ -132,6 +138,27 @@ class Classifier:
         self._x = np.zeros((1,) + self.input_shape, np.float32)
         self._runner = BoundRun(sess, model.input_name, self._x, self._out_name)
         self.fault = False
+        self._check_output_size(where)
+
+    def _check_output_size(self, where: str) -> None:
+        """ModelError naming the manifest unless the model's output holds one value
+        per class of the manifest's ``classes`` (or one for 2 classes: a sigmoid's
+        positive class). The graph's declared size, else one run on a zero window."""
+        shape = self.model.session.get_outputs()[self._out_index].shape
+        dims = list(shape[1:]) if isinstance(shape, (list, tuple)) else []
+        if dims and all(isinstance(d, int) and d > 0 for d in dims):
+            n = int(np.prod(dims))
+        else:
+            try:
+                n = int(np.asarray(self._runner()).size)
+            except Exception as exc:  # onnxruntime's own exception types
+                raise ModelError(f"{self.onnx_path}: ONNX Runtime failed on a zero window: "
+                                 f"{exc}") from None
+        C = self.n_classes
+        if n != C and not (n == 1 and C == 2):
+            raise ModelError(f"{where}: 'classes' lists {C} names {self.classes} but the model "
+                             f"{self.onnx_path.name} outputs {n} values per window "
+                             f"({self._out_name!r}); the manifest and the model do not match")
 
     @classmethod
     def load(cls, path, expect_kind: str | None = None):

@@ -198,3 +198,24 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
         assert man["classes"] == ["hard", "no-touch", "soft"]
         for m in ("manifest.json", "manifest.float.json"):
             assert load_model(out / m, expect_kind="surface") is not None
+
+
+def test_eval_without_contact_only_says_to_pass_it_not_to_fix_the_labels(tmp_path, capsys):
+    """A texture model trained on contact windows has no no-touch class; evaluated on
+    data whose windows without contact are no-touch, the fix is --contact-only."""
+    out = tmp_path / "m"
+    assert main(["train", "--task", "texture", "--window", "2", "--data",
+                 str(_texture_npz(tmp_path / "v.npz")), "--out", str(out)]) == 0
+    p = tmp_path / "ok.npz"
+    rng = np.random.default_rng(1)
+    labels = np.array(["smooth", "lego", "no-touch", "no-touch"] * 4)
+    np.savez(p, vectors=rng.normal(0, 0.3, (16, 2, 6, 2)), labels=labels,
+             contact=labels != "no-touch")
+    capsys.readouterr()
+    rc = main(["eval", str(out), "--data", str(p)])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert "the model has no no-touch class" in err and "8 of the 16 windows have no contact" in err
+    assert "evaluate with --contact-only" in err and "fix the labels" not in err
+    assert main(["eval", str(out), "--data", str(p), "--contact-only", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_windows"] == 8

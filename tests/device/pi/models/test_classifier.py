@@ -130,3 +130,63 @@ def test_each_prediction_reads_its_own_input(small_model):
         assert np.array_equal(p, want) and k == int(np.argmax(want))
         seen.add(tuple(np.round(p, 6)))
     assert len(seen) > 1                      # the inputs did give different outputs
+
+
+def _three_output_model(folder, classes, symbolic: bool = False, n_out: int = 3,
+                        op: str = "Softmax"):
+    """A model folder: a 4-input softmax over 3 (``n_out``) outputs, with a manifest
+    naming ``classes`` (``symbolic``: the graph does not declare its output size)."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from device.pi.models.artefact import sha256_file
+    w = numpy_helper.from_array(np.arange(4 * n_out, dtype=np.float32).reshape(4, n_out) / 10,
+                                "w")
+    out_dims = [None, "C"] if symbolic else [None, n_out]
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["z"]),
+         helper.make_node(op, ["z"], ["probabilities"], **({"axis": 1} if op == "Softmax"
+                                                            else {}))], "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, 4])],
+        [helper.make_tensor_value_info("probabilities", TensorProto.FLOAT, out_dims)], [w])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    model.ir_version = 8
+    folder.mkdir()
+    onnx.save(model, folder / "model.onnx")
+    (folder / "manifest.json").write_text(json.dumps({
+        "format": "tacfoot-model", "version": 1, "kind": "texture",
+        "feature_spec": FEATURE_SPEC_VERSION, "onnx": "model.onnx",
+        "sha256": {"model.onnx": sha256_file(folder / "model.onnx")},
+        "input": {"name": "x", "shape": [None, 4], "dtype": "float32"},
+        "classes": classes, "T": 1, "input_layout": "vectors"}))
+    return folder
+
+
+@pytest.mark.parametrize("symbolic", [False, True])
+def test_a_manifest_whose_classes_do_not_match_the_model_output_is_refused_at_load(
+        tmp_path, symbolic):
+    """Two classes for a 3-output model used to load and then fault every frame."""
+    good = _three_output_model(tmp_path / "good", ["a", "b", "c"], symbolic)
+    clf = Classifier.load(good)
+    k, p = clf.predict(np.ones(4))
+    assert p.shape == (3,) and not clf.fault
+    for classes in (["smooth", "lego"], ["a", "b", "c", "d"]):
+        d = _three_output_model(tmp_path / f"m{len(classes)}{symbolic}", classes, symbolic)
+        with pytest.raises(ModelError, match=rf"m{len(classes)}\w*/manifest\.json: 'classes' "
+                                             rf"lists {len(classes)} names .* outputs 3 values"):
+            Classifier.load(d)
+
+
+def test_a_manifest_naming_a_class_twice_is_refused_at_load(tmp_path):
+    d = _three_output_model(tmp_path / "m", ["smooth", "lego", "smooth"])
+    with pytest.raises(ModelError, match=r"m/manifest\.json: 'classes' names \['smooth'\] more "
+                                         r"than once"):
+        Classifier.load(d)
+
+
+def test_a_two_class_model_with_one_sigmoid_output_still_loads(tmp_path):
+    """The one-output case (2 classes, the positive class's probability) stays allowed."""
+    clf = Classifier.load(_three_output_model(tmp_path / "m", ["no-slip", "slip"], n_out=1,
+                                              op="Sigmoid"))
+    assert clf.n_classes == 2
+    assert clf.predict(np.zeros(4))[1].tolist() == [0.5, 0.5]
