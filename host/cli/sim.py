@@ -5,6 +5,7 @@ import json
 import math
 import os
 import select
+import shutil
 import subprocess
 import sys
 import time
@@ -15,7 +16,9 @@ import numpy as np
 
 from device.pi import protocol as P
 from device.pi.vision.pipeline import fault_names
-from device.sim import SURFACE_LABELS, Simulator, builtin_scenes, load_scene
+from device.pi.models.artefact import ModelError, read_manifest
+from device.pi.runtime.load import default_models_dir
+from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
                                 truth_plot)
 from host.cli.common import (SEED, UserError, dataset_folder, emit, is_recording, number,
@@ -127,8 +130,104 @@ def _gait_plan(scene, sim, stance_load_n: float = 8.0) -> list:
     return plan
 
 
+#: the simulation-trained texture model the demo uses when it is in the models folder
+SIM_TEXTURE = "texture-sim"
+
+
+def _read_texture_manifest(folder: Path) -> dict | None:
+    try:
+        return read_manifest(folder)[0] if (folder / "manifest.json").is_file() else None
+    except (ModelError, OSError, ValueError) as exc:
+        raise UserError(f"{folder / 'manifest.json'}: {exc}") from None
+
+
+def _demo_models(out: Path, models_dir: Path) -> tuple[Path, dict]:
+    """(the models folder the demo's runtime loads, its texture model). With
+    ``models_dir/texture-sim`` (trained on simulated floors) the runtime gets
+    ``out/runtime-models``: links to every model folder of ``models_dir``, with
+    texture pointing at texture-sim. Otherwise it loads ``models_dir`` itself, and
+    the texture model is ``models_dir/texture`` (the real-trained one when shipped)."""
+    if not models_dir.is_dir():
+        raise UserError(f"--models {str(models_dir)!r}: no such models folder")
+    sim_man = _read_texture_manifest(models_dir / SIM_TEXTURE)
+    run_dir = out / "runtime-models"
+    if run_dir.is_dir():
+        shutil.rmtree(run_dir)                       # a demo replaces its own files
+    if sim_man is not None:
+        run_dir.mkdir()
+        for f in sorted(models_dir.iterdir()):
+            if f.is_dir() and not f.name.startswith(".") and f.name not in ("texture",
+                                                                             SIM_TEXTURE):
+                (run_dir / f.name).symlink_to(f.resolve(), target_is_directory=True)
+        (run_dir / "texture").symlink_to((models_dir / SIM_TEXTURE).resolve(),
+                                         target_is_directory=True)
+        return run_dir, {"folder": f"{models_dir.name}/{SIM_TEXTURE}", "manifest": sim_man}
+    man = _read_texture_manifest(models_dir / "texture")
+    return models_dir, {"folder": f"{models_dir.name}/texture" if man else None,
+                        "manifest": man}
+
+
+def _texture_label(texture: dict, agreement: dict) -> list[str]:
+    """The lines that say which texture model the demo's texture column comes
+    from: a simulation-trained model by name; a real-trained one with its figures
+    on real frames (from its manifest) and its agreement on this simulated walk,
+    marked out of domain."""
+    man = texture.get("manifest")
+    if man is None:
+        return ["texture: no texture model in the models folder (column '-')"]
+    on = man.get("trained_on") or {}
+    if on.get("data") == "simulated":
+        return [f"texture: simulation-trained model ({texture['folder']})"]
+    test = (man.get("metrics") or {}).get("test") or {}
+    acc = on.get("real_accuracy", test.get("accuracy"))
+    real = (f"held-out accuracy {acc:.2f} on real frames"
+            + (f" (n={test['n']})" if test.get("n") else "")
+            + (f", {on['held_out']}" if on.get("held_out") else "")
+            if isinstance(acc, (int, float)) else "no real-frame figures in its manifest")
+    lines = [f"texture: real-trained model ({texture['folder']}, trained on "
+             f"{on.get('data', 'unrecorded')} data): {real}"]
+    if agreement.get("steps"):
+        lines.append(f"  out of domain on this simulated walk: right on {agreement['steps_right']}"
+                     f" of {agreement['steps']} textured steps, {agreement['frames_share']:.2f}"
+                     f" of their contact frames")
+    return lines
+
+
+def _texture_agreement(rows: list) -> dict:
+    """How often the texture column matches the truth on the textured steps."""
+    tex = [r for r in rows if r["texture_truth"] != "-"]
+    n = sum(r["contact_frames"] for r in tex)
+    right = sum(r["texture_frames_right"] for r in tex)
+    return {"steps": len(tex), "steps_right": sum(r["texture"] == r["texture_truth"] for r in tex),
+            "frames": n, "frames_right": right, "frames_share": round(right / n, 3) if n else None}
+
+
+def _annotate_packets(packets: list, out: Path, sim, classes: list) -> None:
+    """Give each SURFACE packet its frame, its texture decision by name (its
+    texture_id in the texture model's classes) and the simulator's true texture
+    ('-' off the floor). The runtime writes one decision line per SURFACE packet,
+    in order, so the k-th packet is the k-th line's frame."""
+    ds = [json.loads(x) for x in (out / "decisions.jsonl").read_text().splitlines()]
+    surf = [d for d in packets if d["type"] == "surface"]
+    if len(surf) != len(ds):
+        return                              # a lost log line: no frame to pair with
+    for p, d in zip(surf, ds):
+        i = int(d["index"])
+        tid = p.get("texture_id", P.TEXTURE_NONE)
+        p["frame"] = i
+        p["texture"] = classes[tid] if tid != P.TEXTURE_NONE and tid < len(classes) else "-"
+        p["texture_truth"] = _true_texture(sim, i)
+
+
+def _true_texture(sim, i: int) -> str:
+    """The simulator's texture under frame i; '-' off the floor or on none."""
+    name = TEXTURE_LABELS[int(sim.truth["texture"][i])] if sim.truth["contact"][i] else "-"
+    return "-" if name == "none" else name
+
+
 def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: bool,
-                  progress: bool) -> dict:
+                  progress: bool, models_dir: Path | None = None,
+                  texture_classes: list | None = None) -> dict:
     """Run the real runtime (``python -m device.pi run``) on simulated hardware
     with its serial port on a pty; this side plays the gait MCU: it decodes every
     packet (device.pi.protocol) and answers each SURFACE with the GAIT context."""
@@ -138,7 +237,7 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
     cmd = [sys.executable, "-m", "device.pi", "run", "--camera", f"sim://{scene_name}{q}",
            "--imu", f"sim://{scene_name}?seed={seed}", "--serial", slave_name,
            "--json-log", str(out / "decisions.jsonl"), "--status", str(out / "status.json"),
-           "--json"]
+           "--json"] + (["--models", str(models_dir)] if models_dir is not None else [])
     plan = _gait_plan(scene, sim)
     dec = P.FrameDecoder()
     packets, n_surface, seq, t0 = [], 0, 0, time.monotonic()
@@ -172,6 +271,7 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
         os.close(slave)
     if proc.returncode != 0:
         raise UserError(f"the runtime failed ({proc.returncode}): {stderr.strip()[-500:]}")
+    _annotate_packets(packets, out, sim, texture_classes or [])
     with open(out / "packets.jsonl", "w") as fh:
         for d in packets:
             fh.write(json.dumps(d) + "\n")
@@ -186,7 +286,9 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
 
 def _demo_segments(scene, sim, out: Path) -> list:
     """Per step of the scene's timeline: the true surface and what the runtime
-    reported most often over the frames in contact."""
+    reported most often over the frames in contact; the texture the runtime decided
+    most often over those frames beside the simulator's true texture ('-': the
+    floor has none, or no contact)."""
     ds = [json.loads(x) for x in (out / "decisions.jsonl").read_text().splitlines()]
     by_index = {d["index"]: d for d in ds}
     rows, t0 = [], 0.0
@@ -197,12 +299,19 @@ def _demo_segments(scene, sim, out: Path) -> list:
                if sim.truth["contact"][i] and i in by_index]
         truth = Counter(SURFACE_LABELS[int(sim.truth["surface"][i])] for i in idx)
         said = Counter(by_index[i]["class"] for i in idx)
+        tex_truth = Counter(_true_texture(sim, i) for i in idx)
+        tex = Counter(by_index[i]["texture"] or "-" for i in idx)
+        tt = tex_truth.most_common(1)[0][0] if idx else "-"
         rows.append({"t_s": round(i0 / sim.fps, 3), "action": a.kind,
                      "truth": truth.most_common(1)[0][0] if truth else "no-touch",
                      "contact_frames": len(idx),
                      "reported": said.most_common(1)[0][0] if said else "no-touch",
                      "share": round(said.most_common(1)[0][1] / len(idx), 3) if idx else None,
-                     "slip_frames": sum(bool(by_index[i]["slip"]) for i in idx)})
+                     "slip_frames": sum(bool(by_index[i]["slip"]) for i in idx),
+                     "texture_truth": tt,
+                     "texture": tex.most_common(1)[0][0] if idx else "-",
+                     "texture_frames_right": sum((by_index[i]["texture"] or "-") ==
+                                                 _true_texture(sim, i) for i in idx)})
     return rows
 
 
@@ -225,26 +334,46 @@ def cmd_demo(args):
     res = {"scene": scene.name, "frames": sim.n_frames, "preview": str(preview),
            "ground_truth_plot": str(plot), "contact_frames": int(t["contact"].sum()),
            "slip_frames": int(t["slip"].sum())}
+    models_dir = Path(args.models) if args.models else default_models_dir()
+    run_models, texture = _demo_models(out, models_dir)
+    classes = list((texture["manifest"] or {}).get("classes") or [])
     res.update(_demo_runtime(args.scene, args.seed, out, sim, scene, not args.fast,
-                             not args.json))
+                             not args.json, run_models, classes))
     res["segments"] = _demo_segments(scene, sim, out)
+    agreement = _texture_agreement(res["segments"])
+    label = _texture_label(texture, agreement)
+    res["texture"] = {"model": texture["folder"], "trained_on": (texture["manifest"] or {})
+                      .get("trained_on"), "agreement": agreement, "label": label}
+    with open(out / "steps.jsonl", "w") as fh:
+        for r in res["segments"]:
+            fh.write(json.dumps(r) + "\n")
+    res["steps_file"] = str(out / "steps.jsonl")
+    emit(args, res, demo_text(res))
+
+
+def demo_text(res: dict) -> str:
+    """The demo's printout from its JSON result: the runtime's figures, the table
+    of steps (surface and texture decisions beside the truth) and which texture
+    model decided."""
     rt = res["runtime"]
-    lines = [f"simulated {scene.name}: {sim.n_frames} frames, {res['contact_frames']} in "
+    lines = [f"simulated {res['scene']}: {res['frames']} frames, {res['contact_frames']} in "
              f"contact, {res['slip_frames']} slipping",
              f"runtime: {' '.join(res['command'].split()[2:9])} ...",
              f"  {rt['frames']} frames, {rt['packets_sent']} packets sent "
              f"({', '.join(f'{k} {v}' for k, v in sorted(res['packets'].items()))}), "
              f"{rt['packets_dropped']} dropped, latency p50 {rt['latency_ms_p50']} ms",
              f"  {'t_s':>6} {'step':<6} {'truth':<9} {'contact':>7} {'reported':<9} "
-             f"{'share':>5} {'slip':>4}"]
+             f"{'share':>5} {'slip':>4} {'texture':<9} {'tex-truth':<9}"]
     for r in res["segments"]:
         if r["contact_frames"]:
             lines.append(f"  {r['t_s']:>6.2f} {r['action']:<6} {r['truth']:<9} "
                          f"{r['contact_frames']:>7} {r['reported']:<9} {r['share']:>5.2f} "
-                         f"{r['slip_frames']:>4}")
-    lines += [f"packets:      {res['packets_file']}", f"decisions:    {res['decisions_file']}",
-              f"preview:      {preview}", f"ground truth: {plot}"]
-    emit(args, res, "\n".join(lines))
+                         f"{r['slip_frames']:>4} {r['texture']:<9} {r['texture_truth']:<9}")
+    lines += res["texture"]["label"]
+    lines += [f"steps:        {res['steps_file']}",
+              f"packets:      {res['packets_file']}", f"decisions:    {res['decisions_file']}",
+              f"preview:      {res['preview']}", f"ground truth: {res['ground_truth_plot']}"]
+    return "\n".join(lines)
 
 
 def register(sub) -> None:
@@ -279,6 +408,8 @@ def register(sub) -> None:
     s.add_argument("--out", default="out/demo")
     s.add_argument("--scene", default="walk")
     s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--models", help="models folder (default: the package's models/); its "
+                                    "texture-sim model, when there, decides the texture")
     s.add_argument("--fast", action="store_true",
                    help="do not pace the simulated camera at its frame rate (the gait "
                         "context then lags the frames)")

@@ -91,6 +91,56 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert len(drags) == 8
     assert sum(r["reported"] == r["truth"] for r in drags) >= 6
     assert sum(p["slip"] for p in surf) > 0
+    _check_demo_texture(res, packets, ds)
+
+
+def _check_demo_texture(res, packets, ds):
+    """The demo's texture column is the runtime's: each step's value is the
+    majority of the texture ids in the SURFACE packets of its contact frames (named
+    in the texture model's classes), beside the simulator's truth; the label names
+    the model that decided."""
+    from collections import Counter
+    from tests import REPO_ROOT
+    from host.cli.sim import demo_text
+    surf = [p for p in packets if p["type"] == "surface"]
+    # each SURFACE packet carries its frame, its texture by name and the truth
+    assert [p["frame"] for p in surf] == [d["index"] for d in ds]
+    assert all(p["texture"] == (d["texture"] or "-") for p, d in zip(surf, ds))
+    assert all((p["texture"] == "-") == (p["texture_id"] == 255) for p in surf)
+    assert {p["texture_truth"] for p in surf} == {"-", "smooth", "lego", "concrete"}
+    starts = [round(r["t_s"] * 120) for r in res["segments"]] + [res["frames"]]
+    rows = [r for r in res["segments"] if r["contact_frames"]]
+    for k, r in enumerate(res["segments"]):
+        mine = [p for p in surf if starts[k] <= p["frame"] < starts[k + 1]
+                and p["texture_truth"] != "-"]
+        assert len(mine) == r["contact_frames"]
+        if mine:
+            assert r["texture"] == Counter(p["texture"] for p in mine).most_common(1)[0][0]
+            assert r["texture_truth"] == Counter(p["texture_truth"] for p in mine
+                                                 ).most_common(1)[0][0]
+    # the walk's floors: Lego on one drag step of eight, concrete on one, smooth on six
+    drags = [r["texture_truth"] for r in rows if r["action"] == "drag"]
+    assert sorted(drags) == ["concrete", "lego"] + ["smooth"] * 6
+    text = demo_text(res)
+    head = next(x for x in text.splitlines() if "tex-truth" in x)
+    assert head.split()[-2:] == ["texture", "tex-truth"]
+    table = [x.split() for x in text.splitlines() if x.split()[1:2] in (["lower"], ["drag"],
+                                                                          ["lift"])]
+    assert [x[-2:] for x in table] == [[r["texture"], r["texture_truth"]] for r in rows]
+    # labelled by the model that decided
+    sim_model = (REPO_ROOT / "models" / "texture-sim" / "manifest.json").is_file()
+    label = res["texture"]["label"]
+    if sim_model:
+        assert label == ["texture: simulation-trained model (models/texture-sim)"]
+        assert res["texture"]["trained_on"]["data"] == "simulated"
+    else:
+        assert label[0].startswith("texture: real-trained model (models/texture")
+        assert "out of domain" in label[1]
+    assert all(x in text for x in label)
+    ag = res["texture"]["agreement"]
+    assert ag["steps"] == len(rows)
+    assert ag["frames_right"] == sum(p["texture"] == p["texture_truth"] for p in surf
+                                     if p["texture_truth"] != "-")
 
 
 def test_view_runs_the_pipeline_on_recordings(tmp_path, capsys):
@@ -117,3 +167,55 @@ def test_cli_bad_scene_exit_2_no_traceback(tmp_path, capsys):
     assert "surface.mu" in err and "-0.5" in err and "Traceback" not in err
     rc = main(["simulate", "no-such-scene", "--out", str(tmp_path / "o")])
     assert rc == 2 and "unknown scene" in capsys.readouterr().err
+
+
+def _manifest(folder, trained_on):
+    from tests import REPO_ROOT
+    folder.mkdir(parents=True)
+    doc = json.loads((REPO_ROOT / "models" / "texture" / "manifest.json").read_text())
+    doc["trained_on"] = trained_on
+    (folder / "manifest.json").write_text(json.dumps(doc))
+    return doc
+
+
+def test_demo_labels_a_real_texture_model_with_its_manifests_figures(tmp_path):
+    from host.cli.sim import _demo_models, _texture_label
+    models = tmp_path / "models"
+    (models / "surface").mkdir(parents=True)
+    doc = _manifest(models / "texture", {"data": "real", "real_accuracy": 0.8123,
+                                         "held_out": "a second recording"})
+    out = tmp_path / "out"
+    out.mkdir()
+    run, tex = _demo_models(out, models)
+    assert run == models and tex["folder"] == "models/texture"
+    assert not (out / "runtime-models").exists()
+    ag = {"steps": 24, "steps_right": 5, "frames": 420, "frames_right": 80, "frames_share": 0.19}
+    lines = _texture_label(tex, ag)
+    n = doc["metrics"]["test"]["n"]
+    assert lines[0] == (f"texture: real-trained model (models/texture, trained on real data): "
+                        f"held-out accuracy 0.81 on real frames (n={n}), a second recording")
+    assert lines[1] == ("  out of domain on this simulated walk: right on 5 of 24 textured "
+                        "steps, 0.19 of their contact frames")
+
+
+def test_demo_runs_a_simulation_trained_texture_model_when_there(tmp_path):
+    from host.cli.common import UserError
+    from host.cli.sim import _demo_models, _texture_label
+    models = tmp_path / "models"
+    for name in ("surface", "slip", ".texture.building"):
+        (models / name).mkdir(parents=True)
+    _manifest(models / "texture", {"data": "real", "real_accuracy": 0.9})
+    _manifest(models / "texture-sim", {"data": "simulated"})
+    out = tmp_path / "out"
+    (out / "runtime-models" / "stale").mkdir(parents=True)       # an earlier demo's
+    run, tex = _demo_models(out, models)
+    assert run == out / "runtime-models"
+    assert sorted(p.name for p in run.iterdir()) == ["slip", "surface", "texture"]
+    assert (run / "texture").resolve() == (models / "texture-sim").resolve()
+    assert (run / "surface").resolve() == (models / "surface").resolve()
+    assert _texture_label(tex, {"steps": 0}) == [
+        "texture: simulation-trained model (models/texture-sim)"]
+    assert _texture_label({"folder": None, "manifest": None}, {})[0].startswith(
+        "texture: no texture model")
+    with pytest.raises(UserError, match="no-such"):
+        _demo_models(out, tmp_path / "no-such")
