@@ -179,17 +179,22 @@ def _texture_label(texture: dict, agreement: dict) -> list[str]:
     if on.get("data") == "simulated":
         return [f"texture: simulation-trained model ({texture['folder']})"]
     test = (man.get("metrics") or {}).get("test") or {}
-    acc = on.get("real_accuracy", test.get("accuracy"))
-    real = (f"held-out accuracy {acc:.2f} on real frames"
-            + (f" (n={test['n']})" if test.get("n") else "")
-            + (f", {on['held_out']}" if on.get("held_out") else "")
-            if isinstance(acc, (int, float)) else "no real-frame figures in its manifest")
-    lines = [f"texture: real-trained model ({texture['folder']}, trained on "
-             f"{on.get('data', 'unrecorded')} data): {real}"]
+    real = on.get("data") == "real"
+    acc = on.get("real_accuracy", test.get("accuracy")) if real else test.get("accuracy")
+    fig = (f"held-out accuracy {acc:.2f}" + (" on real frames" if real else "")
+           + (f" (n={test['n']})" if test.get("n") else "")
+           + (f", {on['held_out']}" if on.get("held_out") else "")
+           if isinstance(acc, (int, float)) else "no held-out figures in its manifest")
+    if real:
+        lines = [f"texture: real-trained model ({texture['folder']}): {fig}"]
+        where = "out of domain on this simulated walk"
+    else:
+        lines = [f"texture: {texture['folder']}, whose manifest does not say whether it was "
+                 f"trained on real or simulated data: {fig}"]
+        where = "on this simulated walk"
     if agreement.get("steps"):
-        lines.append(f"  out of domain on this simulated walk: right on {agreement['steps_right']}"
-                     f" of {agreement['steps']} textured steps, {agreement['frames_share']:.2f}"
-                     f" of their contact frames")
+        lines.append(f"  {where}: right on {agreement['steps_right']} of {agreement['steps']}"
+                     f" textured steps, {agreement['frames_share']:.2f} of their contact frames")
     return lines
 
 

@@ -192,10 +192,16 @@ def test_demo_labels_a_real_texture_model_with_its_manifests_figures(tmp_path):
     ag = {"steps": 24, "steps_right": 5, "frames": 420, "frames_right": 80, "frames_share": 0.19}
     lines = _texture_label(tex, ag)
     n = doc["metrics"]["test"]["n"]
-    assert lines[0] == (f"texture: real-trained model (models/texture, trained on real data): "
+    assert lines[0] == (f"texture: real-trained model (models/texture): "
                         f"held-out accuracy 0.81 on real frames (n={n}), a second recording")
     assert lines[1] == ("  out of domain on this simulated walk: right on 5 of 24 textured "
                         "steps, 0.19 of their contact frames")
+    # a manifest that does not say what the model was trained on is not called real
+    tex["manifest"] = dict(tex["manifest"], trained_on=None)
+    lines = _texture_label(tex, ag)
+    assert "real" not in lines[0].replace("real or simulated", "")
+    assert lines[0].startswith("texture: models/texture, whose manifest does not say")
+    assert lines[1].startswith("  on this simulated walk: right on 5 of 24")
 
 
 def test_demo_runs_a_simulation_trained_texture_model_when_there(tmp_path):
