@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from device.pi.models.artefact import BoundRun, ModelError, load_model
+from device.pi.models.window import ENCODED_BOUND
 from device.pi.numerics import finite
 
 
@@ -20,8 +21,10 @@ class Regressor:
     training (stored in the manifest as ``input_clip``), so an extreme frame
     cannot push the output to infinity; an input of exactly 0 (an untracked pin)
     is left at 0 even when the training range excludes it, so it still reads as
-    untracked. A non-finite output gives the training mean instead and sets
-    :attr:`fault`.
+    untracked. :attr:`fault` is set for the call when an input was NaN/inf or larger
+    in size than any window encoding gives (``ENCODED_BOUND``: it was cleaned and
+    clipped, the output is still finite), and when the output is non-finite (the
+    training mean is given instead).
     """
 
     def __init__(self, model, kind: str = "pressure"):
@@ -59,15 +62,22 @@ class Regressor:
 
     def predict_one(self, features: np.ndarray) -> float:
         x = self._x
-        f = np.asarray(features, dtype=np.float32).reshape(-1)
+        f = np.asarray(features)
+        if f.dtype != np.float32:
+            with np.errstate(over="ignore", invalid="ignore"):   # beyond float32: inf
+                f = f.astype(np.float32)
+        f = f.reshape(-1)
         if f.size != self.n_features:
             raise ModelError(f"{self.model.path}: expects {self.n_features} features, "
                              f"got {f.size}")
         x[0] = finite(f)
+        # NaN/inf became 0 (finite); beyond ENCODED_BOUND no encoder gives it
+        bad_input = not (np.isfinite(f).all() and float(np.abs(x).max()) <= ENCODED_BOUND)
         if self._lo is not None:
             zero = x == 0
             np.clip(x, self._lo, self._hi, out=x)
             x[zero] = 0
         y = float(self._runner().reshape(-1)[0])
-        self.fault = not math.isfinite(y)
-        return self.fallback if self.fault else y
+        bad_output = not math.isfinite(y)
+        self.fault = bad_input or bad_output
+        return self.fallback if bad_output else y

@@ -41,9 +41,11 @@ def test_exported_regressor_matches_sklearn_and_stays_finite(tmp_path):
     bad[10:20] = np.inf
     bad[20:30] = -1e30
     y_bad = reg.predict_one(bad)
-    assert np.isfinite(y_bad) and not reg.fault
+    assert np.isfinite(y_bad) and reg.fault        # cleaned, clipped, and flagged
     lo, hi = y.min() - 3 * y.std(), y.max() + 3 * y.std()
     assert lo <= y_bad <= hi                       # clipping keeps it in a sane range
+    reg.predict_one(X[0])
+    assert not reg.fault                           # the next clean input clears it
 
 
 @pytest.fixture(scope="module")
