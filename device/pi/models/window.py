@@ -35,7 +35,24 @@ ENCODED_BOUND = float(max(VECTOR_CLIP_PX, IMU_CLIP.max(), 2.0))
 
 
 def _clean(a, clip) -> np.ndarray:
-    return np.clip(finite(a), -clip, clip)
+    """``a`` finite (NaN/inf -> 0) and clipped to +-clip, as float32. Wider input is
+    clipped in float64 *before* the cast: 1e39 gives the clip, never float32's inf."""
+    x = np.asarray(a)
+    if x.dtype == np.float32:
+        return np.clip(finite(x), -clip, clip)
+    return np.clip(finite(x, dtype=np.float64), -clip, clip).astype(np.float32)
+
+
+def _fit(new, buf: np.ndarray, clip) -> np.ndarray:
+    """One pushed part in the dtype of its window buffer, never wrapped or overflowed:
+    NaN/inf -> 0 and values clipped to +-``clip`` (0..255 for a uint8 frame) before
+    the cast."""
+    a = np.asarray(new)
+    if buf.dtype != np.uint8:
+        return _clean(a, clip)
+    if a.dtype == np.uint8:
+        return a
+    return np.clip(finite(a, dtype=np.float64), 0, 255).astype(np.uint8)
 
 
 def quantise_vectors(vectors) -> np.ndarray:
@@ -70,10 +87,13 @@ def encode_grids(grids: np.ndarray) -> np.ndarray:
 
 
 def encode_frames(frames: np.ndarray) -> np.ndarray:
-    """(N, T, S, S) or (T, S, S) uint8 crops -> (N, T, S, S) float32 in 0..1."""
+    """(N, T, S, S) or (T, S, S) uint8 crops -> (N, T, S, S) float32 in 0..1 (other
+    dtypes: NaN/inf -> 0, values clipped to 0..255 first)."""
     f = np.asarray(frames)
     if f.ndim == 3:
         f = f[None]
+    if f.dtype != np.uint8:      # NaN/inf -> 0 and beyond 0..255 saturated, as a camera would
+        f = np.clip(finite(f, dtype=np.float64), 0, 255)
     return np.ascontiguousarray(f, dtype=np.float32) * np.float32(1.0 / 255.0)
 
 
@@ -120,13 +140,13 @@ class RollingWindow:
         self._encoded.clear()
 
     def push(self, vectors=None, imu=None, grid=None, frame=None) -> None:
-        for buf, new in ((self.vectors, vectors), (self.imu, imu), (self.grids, grid),
-                         (self.frames, frame)):
+        for buf, new, clip in ((self.vectors, vectors, VECTOR_CLIP_PX), (self.imu, imu, IMU_CLIP),
+                               (self.grids, grid, 1.0), (self.frames, frame, 255)):
             buf[:-1] = buf[1:]
             if new is None:
                 buf[-1] = 0
             else:
-                buf[-1] = finite(new, dtype=buf.dtype).reshape(buf.shape[1:])
+                buf[-1] = _fit(new, buf, clip).reshape(buf.shape[1:])
         for buf in (self._qvectors, self._qimu):
             buf[:-1] = buf[1:]
         # the new frame as encode_vectors would give it
