@@ -1,10 +1,13 @@
 """``host report``: what accuracy costs in time.
 
-Sections: the real texture tasks on the roboskin clips (Lego vs smooth, concrete vs
-smooth; trained on the first 70 % of each clip, tested on its last 30 % after a gap
-of T frames, contact windows only), the fnn's regulariser on those tasks (L2
-against the paper's dropout 0.2, :mod:`host.bench.regularise`) and the simulated
-tasks. Every (data, kind, T, seed) is one cell of a joblib sweep
+Sections: one real section per data spec the caller gives (a CSV manifest or a
+dataset folder, as ``host train --data`` takes; each trained on the first 70 % of
+each recording, tested on its last 30 % after a gap of T frames, contact windows
+only, features with the caller's sensor profile), the fnn's regulariser on those
+tasks (L2 against the paper's dropout 0.2, :mod:`host.bench.regularise`) and the
+simulated tasks. The report names no recording of its own: the authors' clips come
+in through the default specs of :mod:`host.bench.specs`. Every spec and the profile
+are checked before the long work starts. Every (data, kind, T, seed) is one cell of a joblib sweep
 (:mod:`host.bench.sweep`); the tables give the held-out score's mean and sd over
 the seeds, and the whole per-decision cost: the vision pipeline per frame on real
 frames (:mod:`host.bench.costs`), the window encoding and the model, timed one
@@ -20,24 +23,18 @@ from host.bench import costs
 from host.bench.regularise import REGULARISERS
 from host.bench.report_doc import plot_accuracy_vs_t, render
 from host.bench.scenes import simulate_scenes
+from host.bench.specs import check_profile, check_specs, recording_frames, spec_name
 from host.bench.sweep import Cell, aggregate, run_cells, time_models
 from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.learn.tasks import TASK_MODELS
 
-__all__ = ["REAL_SETS", "REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
-           "REPORT_TRIALS", "REGULARISER_T", "models_for", "real_manifest", "Section",
+__all__ = ["REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
+           "REPORT_TRIALS", "REGULARISER_T", "models_for", "Section",
            "real_sections", "sim_sections", "split_text", "prepare", "sweep_cells", "build_report",
            "write_report"]
 
-#: the real texture tasks: key -> (clip under roboskin/ -> label, title)
-REAL_SETS = {
-    "lego-vs-smooth": ({"lego_train.avi": "lego", "smooth.avi": "smooth"},
-                       "Lego vs smooth (real roboskin clips)"),
-    "concrete-vs-smooth": ({"concrete.avi": "concrete", "smooth.avi": "smooth"},
-                           "concrete vs smooth (real roboskin clips, held-out recording)"),
-}
 REAL_WINDOWS = tuple(range(1, 11))
 SEEDS = (0, 1, 2)
 #: the simulated sections' reduced grid
@@ -76,41 +73,44 @@ class Section:
     sentence saying what was trained and tested on."""
 
     def __init__(self, key, title, task, kinds, windows, seeds, trained_on, real,
-                 train_specs, test_specs=None):
+                 train_specs, test_specs=None, profile: str = "roboskin", recordings=()):
         self.key, self.title, self.task = key, title, task
         self.kinds, self.windows, self.seeds = list(kinds), tuple(windows), tuple(seeds)
         self.trained_on, self.real = trained_on, real
         self.train_specs, self.test_specs = list(train_specs), test_specs
+        self.profile, self.recordings = profile, list(recordings)
         self.how = ""
 
 
-def real_manifest(data_dir, work: Path, clips: dict, name: str) -> Path:
-    """A CSV manifest of real roboskin clips (clip -> label)."""
-    root = Path(data_dir) / "roboskin"
-    work.mkdir(parents=True, exist_ok=True)
-    path = work / f"{name}.csv"
-    lines = ["path,label"] + [f"{(root / c).resolve()},{lab}" for c, lab in clips.items()]
-    path.write_text("\n".join(lines) + "\n")
-    return path
+def _names(items) -> str:
+    items = [f"`{x}`" for x in dict.fromkeys(items)]
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
 
 
-def real_sections(data_dir, work: Path, windows=REAL_WINDOWS, seeds=SEEDS,
-                  cnn: bool = False, kinds=None) -> list[Section]:
-    out = []
-    for key, (clips, title) in REAL_SETS.items():
-        man = real_manifest(data_dir, work, clips, key)
-        names = " and ".join(f"`{c}`" for c in clips)
-        trained = (f"Real frames. Trained on the first 70 % of {names}, tested on the last "
-                   f"30 % of each after a gap of at least T frames (the time split of "
-                   f"`host.data.splits.split_holdout`), contact windows only; the fnn "
-                   f"ignores pins that a training clip keeps losing (T >= 2, as `host "
+def real_sections(specs, windows=REAL_WINDOWS, seeds=SEEDS, cnn: bool = False, kinds=None,
+                  profile: str = "roboskin", task: str = "texture") -> list[Section]:
+    """One section per data spec (a CSV manifest or a dataset folder), its features
+    computed with ``profile``. Every file is checked first (a DataError names the
+    first missing one)."""
+    found = check_specs(specs, task)
+    out, keys = [], set()
+    for spec, recs in found.items():
+        key = spec_name(spec)
+        while key in keys:
+            key += "-2"
+        keys.add(key)
+        labels = [r.label for r in recs if r.label]
+        title = (" vs ".join(dict.fromkeys(labels)) or task) + f" (real, {Path(spec).name})"
+        trained = (f"Real frames of `{Path(spec).name}`, profile `{Path(str(profile)).name}`. "
+                   f"Trained on the first 70 % of {_names(r.name for r in recs)}, tested on "
+                   f"the last 30 % of each after a gap of at least T frames (the time split "
+                   f"of `host.data.splits.split_holdout`), contact windows only; the fnn "
+                   f"ignores pins that a training recording keeps losing (T >= 2, as `host "
                    f"train` does); the grid-fnn, which reads the contact grid, has no such "
-                   f"mask.")
-        if key == "concrete-vs-smooth":
-            trained += (" `concrete.avi`'s last 30 % stands in for a recording that was "
-                        "not trained on.")
-        out.append(Section(key, title, "texture", kinds or models_for("texture", cnn),
-                           windows, seeds, trained, True, [str(man)]))
+                   f"mask. Later frames of the same recordings are an optimistic test: a "
+                   f"separate recording is the honest one.")
+        out.append(Section(key, title, task, kinds or models_for(task, cnn), windows, seeds,
+                           trained, True, [spec], profile=profile, recordings=recs))
     return out
 
 
@@ -136,23 +136,27 @@ def split_text(how: str, T: int) -> str:
     return how.replace(f"a gap of {T} frames", "a gap of T frames")
 
 
-def prepare(sections: list[Section], regularise: bool = True) -> dict:
+def prepare(sections: list[Section], regularise: bool = True, progress: bool = False) -> dict:
     """{(section key, T): (train, test) WindowSets}, each clip's frames encoded once."""
+    from tqdm import tqdm
+
     windows = {}
-    for s in sections:
-        cache: dict = {}
-        for T in sorted(set(s.windows) | ({REGULARISER_T} if s.real and regularise else set())):
-            ws = load_specs(s.train_specs, task=s.task, window=T, contact_only=s.real,
-                            progress=False, cache=cache)
-            if s.test_specs:
-                te = load_specs(s.test_specs, task=s.task, window=T, progress=False,
-                                cache=cache, min_classes=1)
-                windows[(s.key, T)] = (ws, te)
-                continue
-            tr_idx, te_idx, how = split_holdout(ws, 0.3, 0)
-            windows[(s.key, T)] = (ws.subset(tr_idx), ws.subset(te_idx))
-            if T == min(s.windows):
-                s.how = split_text(how, T)
+    todo = [(s, T) for s in sections
+            for T in sorted(set(s.windows) | ({REGULARISER_T} if s.real and regularise else set()))]
+    caches: dict = {}
+    for s, T in tqdm(todo, desc="host report: windows", unit="set", disable=not progress):
+        cache = caches.setdefault(s.key, {})
+        ws = load_specs(s.train_specs, task=s.task, window=T, contact_only=s.real,
+                        profile=s.profile, progress=False, cache=cache)
+        if s.test_specs:
+            te = load_specs(s.test_specs, task=s.task, window=T, profile=s.profile,
+                            progress=False, cache=cache, min_classes=1)
+            windows[(s.key, T)] = (ws, te)
+            continue
+        tr_idx, te_idx, how = split_holdout(ws, 0.3, 0)
+        windows[(s.key, T)] = (ws.subset(tr_idx), ws.subset(te_idx))
+        if T == min(s.windows):
+            s.how = split_text(how, T)
     return windows
 
 
@@ -179,47 +183,56 @@ def sweep_cells(sections: list[Section], regularise: bool = True) -> list[Cell]:
     return cells
 
 
-def vision_costs(data_dir) -> dict | None:
-    """The vision pipeline per frame on every real texture clip (a fresh encoder per
-    clip), without and with the CNN's dome crop."""
-    if data_dir is None:
+def vision_costs(sections: list[Section], profile: str = "roboskin") -> dict | None:
+    """The vision pipeline per frame (``profile``) on every recording of the real
+    sections (a fresh encoder per recording), without and with the CNN's dome crop;
+    None without real frames."""
+    recs = list(dict.fromkeys(r for s in sections if s.real for r in s.recordings))
+    frames = [f for f in (recording_frames(r) for r in recs) if len(f)]
+    if not frames:
         return None
-    clips = sorted({c for clips, _ in REAL_SETS.values() for c in clips})
-    frames = [costs.read_frames(Path(data_dir) / "roboskin" / c) for c in clips]
-    return {"plain": costs.vision_cost(frames), "crop": costs.vision_cost(frames, crop_px=32),
-            "frames": sum(len(f) for f in frames), "clips": clips}
+    return {"plain": costs.vision_cost(frames, profile),
+            "crop": costs.vision_cost(frames, profile, crop_px=32),
+            "frames": sum(len(f) for f in frames),
+            "clips": list(dict.fromkeys(r.name for r in recs)), "profile": str(profile)}
 
 
-def build_report(out, work, data_dir=None, quick: bool = False, tasks=tuple(TASK_KINDS),
+def build_report(out, work, specs=None, quick: bool = False, tasks=tuple(TASK_KINDS),
                  progress: bool = True, command: str = "host report", jobs: int = 1,
                  real_windows=REAL_WINDOWS, seeds=SEEDS, sim_windows=SIM_WINDOWS,
                  sim_seeds=SIM_SEEDS, cnn: bool = False, regularise: bool = True,
-                 real_kinds=None) -> Path:
+                 real_kinds=None, profile: str = "roboskin", task: str = "texture") -> Path:
     """Run the sweep (``jobs`` joblib workers) and write the report ``out`` (markdown,
-    a JSON twin and the figures under ``img/`` beside it)."""
+    a JSON twin and the figures under ``img/`` beside it). ``specs``: the real data
+    specs (CSV manifests or dataset folders), one section each, features with
+    ``profile``; they and the profile are checked before anything is simulated or
+    trained (a DataError names the first missing file)."""
     work = Path(work)
     sections = []
-    if data_dir is not None:
-        sections += real_sections(data_dir, work, real_windows, seeds, cnn, real_kinds)
+    if specs:
+        profile = check_profile(profile)
+        sections += real_sections(specs, real_windows, seeds, cnn, real_kinds, profile, task)
     sections += sim_sections(work, quick, tasks, sim_windows, sim_seeds, progress, cnn)
     regularise = regularise and _have_torch()
-    windows = prepare(sections, regularise)
+    windows = prepare(sections, regularise, progress)
     cells = sweep_cells(sections, regularise)
     if progress:
         print(f"host report: {len(cells)} cells, {jobs} job(s)", flush=True)
     rows = run_cells(cells, windows, work / "models", jobs,
                      keep_seed=min(min(s.seeds) for s in sections) if sections else None,
-                     verbose=10 if progress else 0)
+                     progress=progress, profiles={s.key: s.profile for s in sections})
     # the times: one measurement after another, after every cell has finished
     machine = costs.machine()
-    vision = vision_costs(data_dir)
+    vision = vision_costs(sections, profile)
     timing = time_models(rows, windows, vision) if vision else {}
     doc = {"command": command, "machine": machine, "vision": vision, "jobs": jobs, "cnn": cnn,
-           "regulariser_T": REGULARISER_T,
+           "regulariser_T": REGULARISER_T, "profile": str(profile),
            "sections": [{"key": s.key, "title": s.title, "task": s.task, "kinds": s.kinds,
                          "trained_on":
                          s.trained_on, "split": s.how, "windows": list(s.windows),
-                         "seeds": list(s.seeds), "real": s.real} for s in sections],
+                         "seeds": list(s.seeds), "real": s.real,
+                         "specs": [str(x) for x in s.train_specs] if s.real else []}
+                        for s in sections],
            "cells": rows, "aggregate": aggregate(rows),
            "timing": [{"data": k[0], "kind": k[1], "T": k[2], **v} for k, v in timing.items()]}
     return write_report(doc, out)

@@ -148,7 +148,8 @@ def _header(doc: dict) -> list[str]:
            "cost below is the window encoding and the model only." if not v else
            f"The vision pipeline (`device.pi.vision.encoder.FrameEncoder`: dome, threshold, "
            f"glare removal, centroids, tracking, contact grid, layout mapping) is timed "
-           f"per frame on {v['frames']} real frames of {', '.join(v['clips'])}, one thread: "
+           f"per frame on {v['frames']} real frames of {', '.join(v['clips'])} (profile "
+           f"`{Path(str(v.get('profile', 'roboskin'))).name}`), one thread: "
            f"thread CPU time {_ms(v['plain']['cpu'])} ms (p50 / p99), wall clock "
            f"{_ms(v['plain']['wall'])} ms; with the CNN's dome crop "
            f"{_ms(v['crop']['cpu'])} ms CPU, {_ms(v['crop']['wall'])} ms wall.")
@@ -188,8 +189,8 @@ def _header(doc: dict) -> list[str]:
         "",
         "Client(\"tcp://scheduler:8786\")         # registers joblib's \"dask\" backend",
         "with parallel_config(backend=\"dask\"):   # Ray: ray.util.joblib.register_ray(), \"ray\"",
-        "    build_report(\"docs/accuracy-vs-time.md\", \"out/report\", \"../shared/data\",",
-        "                 jobs=-1)",
+        "    build_report(\"docs/accuracy-vs-time.md\", \"out/report\",",
+        "                 [\"out/specs/lego-vs-smooth.csv\"], profile=\"roboskin\", jobs=-1)",
         "```", "",
         "The cells only train and score; the timing pass runs in the calling process "
         "after they finish, so the cluster's load does not reach the times.", ""]

@@ -10,7 +10,7 @@ or Ray cluster::
     from joblib import parallel_config
     client = Client("tcp://scheduler:8786")          # registers joblib's "dask" backend
     with parallel_config(backend="dask"):
-        build_report("docs/accuracy-vs-time.md", "out/report", data_dir, jobs=-1)
+        build_report("docs/accuracy-vs-time.md", "out/report", ["my-data.csv"], jobs=-1)
 
 (Ray: ``from ray.util.joblib import register_ray; register_ray()`` and
 ``backend="ray"``.) A cell trains and scores; it measures no time. Its row is
@@ -60,9 +60,10 @@ def int8_why(fields: dict, message: str) -> str:
     return f"{INT8_FAILED}{why}; float kept"
 
 
-def train_row(task, model, tr, te, out, seed) -> str | None:
-    """Train one model into ``out`` (float, and int8 when it passes its check).
-    Returns why there is no int8 model, or None."""
+def train_row(task, model, tr, te, out, seed, profile: str = "roboskin") -> str | None:
+    """Train one model into ``out`` (float, and int8 when it passes its check), its
+    features (roughness included) with the sensor ``profile``. Returns why there is
+    no int8 model, or None."""
     from host.learn.onnx_io import INT8_NAME
     from host.learn.tasks import QuantisationError
     from host.learn.train import train_model
@@ -76,7 +77,7 @@ def train_row(task, model, tr, te, out, seed) -> str | None:
             return int8_why(exc.fields(), str(exc))
         return None
     res = train_model(task, model, tr, te, quantise="if-passes" if model != "rule" else False,
-                      seed=seed, out_dir=out, progress=False)
+                      seed=seed, out_dir=out, progress=False, profile=profile)
     failed = (res.get("int8") or {}).get("failed")
     if not failed:
         return None
@@ -124,7 +125,8 @@ def cached_row(cell: Cell, root, key: str, keep: bool) -> dict | None:
     return row
 
 
-def run_cell(cell: Cell, tr, te, root=None, keep: bool = False) -> dict:
+def run_cell(cell: Cell, tr, te, root=None, keep: bool = False,
+             profile: str = "roboskin") -> dict:
     """Train ``cell`` on windows ``tr``, score it on ``te``. With ``root`` its row is
     kept beside the model folder and reused by a later run on the same windows; with
     ``keep`` the model folder stays under ``root`` (for :func:`time_models`). Kinds: those of
@@ -149,7 +151,7 @@ def run_cell(cell: Cell, tr, te, root=None, keep: bool = False) -> dict:
             return _store(row, cell, root)
         with tempfile.TemporaryDirectory() as tmp:
             folder = cell.folder(root) if keep and root is not None else Path(tmp) / "m"
-            int8_failed = train_row(cell.task, cell.kind, tr, te, folder, cell.seed)
+            int8_failed = train_row(cell.task, cell.kind, tr, te, folder, cell.seed, profile)
             row["train_s"] = round(time.perf_counter() - t0, 2)
             row.update(_score(evaluate_model(folder, te, variant="float")["metrics"]))
             if int8_failed:
@@ -173,16 +175,24 @@ def _store(row: dict, cell: Cell, root) -> dict:
 
 
 def run_cells(cells, windows: dict, root, jobs: int = 1, keep_seed: int | None = None,
-              verbose: int = 0) -> list[dict]:
+              verbose: int = 0, progress: bool = False,
+              profiles: dict | None = None) -> list[dict]:
     """Run every cell through joblib (``jobs`` workers, the backend in force; see the
     module doc). ``windows[(data, T)]`` is the (train, test) WindowSet pair of a
-    cell; models of seed ``keep_seed`` are kept under ``root`` for timing."""
+    cell; models of seed ``keep_seed`` are kept under ``root`` for timing;
+    ``profiles[data]`` is the sensor profile of a cell's data (default roboskin).
+    ``progress``: a tqdm bar over the cells as they finish."""
     from joblib import Parallel, delayed
+    from tqdm import tqdm
 
     cells = list(cells)
-    tasks = (delayed(run_cell)(c, *windows[(c.data, c.T)], root, c.seed == keep_seed)
+    profiles = profiles or {}
+    tasks = (delayed(run_cell)(c, *windows[(c.data, c.T)], root, c.seed == keep_seed,
+                               profiles.get(c.data, "roboskin"))
              for c in cells)
-    return list(Parallel(n_jobs=jobs, verbose=verbose)(tasks))
+    rows = Parallel(n_jobs=jobs, verbose=verbose, return_as="generator")(tasks)
+    return list(tqdm(rows, total=len(cells), desc="host report: cells", unit="cell",
+                     disable=not progress))
 
 
 def mean_sd(values) -> tuple[float, float, int]:

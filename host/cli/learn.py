@@ -6,16 +6,19 @@ import os
 import sys
 from pathlib import Path
 
-from device.pi.models.artefact import MAX_T, ModelError, read_manifest
+from device.pi.models.artefact import MAX_T, ModelError, read_spec
+from device.config import ConfigError
 from host.bench.report import TASK_KINDS, build_report
-from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
-                             whole, whole_list)
+from host.cli.common import (SEED, UserError, emit, json_default, out_folder, whole,
+                             whole_list)
 from host.data.dataset import DatasetLocked, lock_folder
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.data.windows import DataError
+from host.learn.card import data_source, read_train_toml, recordings_of, write_model_docs
 from host.learn.cnn import quantise_cnn, train_cnn
 from host.learn.evaluate import evaluate_model
+from host.learn.onnx_io import models_profile
 from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
 from host.learn.train import check_classes, train_model
 
@@ -62,7 +65,60 @@ def _lock_out(args) -> int:
     return fd
 
 
+#: the settings of host train that train.toml holds (flag name -> config key)
+CONFIG_KEYS = {"task": "task", "model": "model", "window": "T", "data": "data",
+               "test": "test", "cv": "cv", "quantise": "quantise",
+               "contact_only": "contact_only", "profile": "profile", "seed": "seed"}
+
+
+def train_config(args) -> dict:
+    """The config that replays this ``host train`` (train.toml): every setting of
+    :data:`CONFIG_KEYS`, data paths made absolute."""
+    def absolute(specs):
+        return [d if "://" in d else str(Path(d).resolve()) for d in specs or []]
+    prof = args.profile
+    prof = str(Path(prof).resolve()) if prof.endswith(".toml") else prof
+    return {"task": args.task, "model": args.model, "T": args.window,
+            "data": absolute(args.data), "test": absolute(args.test), "cv": args.cv,
+            "quantise": bool(args.quantise), "contact_only": bool(args.contact_only),
+            "profile": prof, "seed": args.seed}
+
+
+def _apply_config(args) -> None:
+    """``--config FILE`` (a model's train.toml): its settings replace the defaults.
+    Given alone: a training flag beside it is an error naming the flag (only --out,
+    --force and --json go with it)."""
+    given = [f"--{k.replace('_', '-')}" for k in CONFIG_KEYS
+             if getattr(args, k) not in (None, False)]
+    if given:
+        raise UserError(f"--config {args.config} replays a config; it takes no "
+                        f"{', '.join(given)} (edit a copy of the file instead)")
+    try:
+        doc = read_train_toml(args.config)
+    except ConfigError as exc:
+        raise UserError(f"--config: {exc}") from None
+    inverse = {v: k for k, v in CONFIG_KEYS.items()}
+    unknown = sorted(set(doc) - set(inverse))
+    if unknown:
+        raise UserError(f"--config {args.config}: unknown setting(s) {unknown}; host train "
+                        f"replays {sorted(inverse)}")
+    for key, v in doc.items():
+        setattr(args, inverse[key], v)
+    if not isinstance(args.data, list) or not args.data:
+        raise UserError(f"--config {args.config}: data must be a non-empty list of data specs")
+    if args.task not in DEFAULT_MODEL:
+        raise UserError(f"--config {args.config}: task must be one of {sorted(DEFAULT_MODEL)}, "
+                        f"got {args.task!r}")
+
+
 def cmd_train(args):
+    if getattr(args, "config", None):
+        _apply_config(args)
+    elif not args.task or not args.data:
+        raise UserError("host train needs --task and --data (or --config FILE, a model's "
+                        "train.toml)")
+    args.profile = args.profile or "roboskin"
+    args.seed = 0 if args.seed is None else args.seed
     args.model = args.model or DEFAULT_MODEL[args.task]
     if args.window is None:
         args.window = DEFAULT_WINDOW[args.task]
@@ -82,18 +138,23 @@ def _train(args):
     ws = _load_windows(args, args.task, args.window, min_classes=1)
     ws_test = (_load_windows(args, args.task, args.window, min_classes=1, specs=args.test)
                if args.test else None)
+    recs = recordings_of(args.data)
+    made = {"profile": args.profile, "config": train_config(args),
+            "trained_on": {"data": data_source(recs), "recordings": recs,
+                           "test_recordings": recordings_of(args.test) if args.test else []}}
     try:
         if args.model == "cnn":
-            res = _train_cnn(args, ws, ws_test)
+            res = _train_cnn(args, ws, ws_test, made)
         else:
             res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
                               quantise=args.quantise, seed=args.seed, out_dir=args.out,
-                              progress=not args.json)
-    except (TrainError, DataError) as exc:
+                              progress=not args.json, **made)
+        write_model_docs(args.out)
+    except (TrainError, DataError, ConfigError) as exc:
         raise UserError(str(exc)) from None
     res = _jsonable(res)
     m = res.get("metrics", {})
-    m = m.get("test", m.get("held_out", m))
+    m = m.get("test") or {}
     headline = ", ".join(f"held-out {k} {m[k]:.4g}" for k in ("accuracy", "macro_f1", "mae")
                          if isinstance(m.get(k), (int, float)))
     if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
@@ -102,7 +163,7 @@ def _train(args):
                     f"{headline}; held out: {res.get('holdout')}")
 
 
-def _train_cnn(args, ws, ws_test=None):
+def _train_cnn(args, ws, ws_test=None, made=None):
     if args.task == "pressure":
         raise TrainError("the CNN classifies; use --model ridge for --task pressure")
     labels = ws.labels                     # every class of the data, before the split
@@ -112,7 +173,10 @@ def _train_cnn(args, ws, ws_test=None):
     else:
         how = "given"
     check_classes(ws, ws_test, labels)
-    res = train_cnn(ws, ws_test, seed=args.seed, out_dir=args.out, progress=not args.json)
+    made = dict(made or {})
+    made["trained_on"] = dict(made.get("trained_on") or {"data": "unknown"}, split=how)
+    res = train_cnn(ws, ws_test, seed=args.seed, out_dir=args.out, progress=not args.json,
+                    **made)
     res["holdout"] = how
     if args.quantise:                      # calibrated on the training windows
         res["int8"] = quantise_cnn(res["onnx_path"], ws, Path(args.out) / "model.int8.onnx",
@@ -122,12 +186,11 @@ def _train_cnn(args, ws, ws_test=None):
 
 def cmd_eval(args):
     try:
-        doc, _ = read_manifest(args.model_dir)
-    except ModelError as exc:
+        spec, mpath = read_spec(args.model_dir)
+        args.profile, _ = models_profile({mpath: spec}, args.profile)
+    except (ModelError, ConfigError, ValueError) as exc:
         raise UserError(str(exc)) from None
-    task = doc.get("kind")
-    T = int(doc.get("T", doc.get("window", 1)))
-    ws = _load_windows(args, task, T, min_classes=1)
+    ws = _load_windows(args, spec.kind, spec.T, min_classes=1)
     try:
         res = evaluate_model(args.model_dir, ws, variant=args.variant)
     except (ModelError, ValueError) as exc:
@@ -135,12 +198,19 @@ def cmd_eval(args):
     emit(args, res, json.dumps(res, indent=1, default=json_default))
 
 
+def _spec_hint(spec: str) -> str:
+    """A hint when the folder holding the authors' clips is given as a data spec."""
+    if (Path(spec) / "roboskin").is_dir() and not (Path(spec) / "dataset.json").is_file():
+        return (f"; for the authors' clips write their specs first: python -m "
+                f"host.bench.specs --real-data {spec} --out out/specs, then pass "
+                f"--data out/specs/lego-vs-smooth.csv --data out/specs/concrete-vs-smooth.csv")
+    return ""
+
+
 def cmd_report(args):
-    data = None
-    try:
-        data = real_data_dir(args.data)
-    except UserError:
-        print("host report: real recordings not found; simulated data only", file=sys.stderr)
+    specs = args.data or []
+    if not specs:
+        print("host report: no --data; simulated sections only", file=sys.stderr)
     if args.jobs == 0 or args.jobs < -1:
         raise UserError(f"--jobs: a number of workers >= 1 (or -1 for all cores), got "
                         f"{args.jobs}")
@@ -148,33 +218,44 @@ def cmd_report(args):
     sim_windows, sim_seeds = args.sim_windows, args.sim_seeds
     text = lambda xs: ",".join(map(str, xs))  # noqa: E731
     cmd = (f"host report --out {args.out} --work {args.work}"
-           + (f" --data {args.data}" if args.data else "")
+           + "".join(f" --data {d}" for d in specs)
+           + (f" --profile {args.profile}" if args.profile != "roboskin" else "")
            + f" --windows {text(windows)} --seeds {text(seeds)} --sim-windows "
            f"{text(sim_windows)} --sim-seeds {text(sim_seeds)} --jobs {args.jobs}"
            + (" --quick" if args.quick else "") + (" --cnn" if args.cnn else "")
            + (" --real-only" if args.real_only else ""))
-    if args.real_only and data is None:
-        raise UserError("--real-only needs the real recordings: pass --data DIR or set "
-                        "TACFOOT_REAL_DATA")
-    out = build_report(args.out, args.work, data, quick=args.quick, progress=not args.json,
-                       command=cmd, jobs=args.jobs, real_windows=windows, seeds=seeds,
-                       sim_windows=sim_windows, sim_seeds=sim_seeds, cnn=args.cnn,
-                       tasks=() if args.real_only else TASK_KINDS)
+    if args.real_only and not specs:
+        raise UserError("--real-only needs real data: pass --data SPEC (a CSV manifest or a "
+                        "dataset folder)")
+    try:
+        out = build_report(args.out, args.work, specs, quick=args.quick,
+                           progress=not args.json, command=cmd, jobs=args.jobs,
+                           real_windows=windows, seeds=seeds, sim_windows=sim_windows,
+                           sim_seeds=sim_seeds, cnn=args.cnn,
+                           tasks=() if args.real_only else TASK_KINDS, profile=args.profile,
+                           real_kinds=args.kinds)
+    except DataError as exc:
+        raise UserError(f"{exc}{''.join(_spec_hint(d) for d in specs[:1])}") from None
     emit(args, {"out": str(out)}, f"wrote {out}")
 
 
 def register(sub) -> None:
     """The sub-commands train, eval and report."""
     s = sub.add_parser("train", help="train a surface/texture/slip/pressure model")
-    s.add_argument("--task", required=True, choices=["surface", "texture", "slip", "pressure"])
+    s.add_argument("--config", metavar="FILE",
+                   help="replay a model's train.toml (the config that made it); given alone "
+                        "(with --out, --force, --json only)")
+    s.add_argument("--task", choices=["surface", "texture", "slip", "pressure"],
+                   help="required unless --config")
     s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"],
                    help="model kind (default per task: " +
                    ", ".join(f"{t} {m}" for t, m in DEFAULT_MODEL.items()) + ")")
     s.add_argument("--window", type=whole(1, MAX_T),
                    help="T, frames per window (default per task: " +
                    ", ".join(f"{t} {w}" for t, w in DEFAULT_WINDOW.items()) + ")")
-    s.add_argument("--data", action="append", required=True,
-                   help="CSV manifest, dataset folder or .npz (repeatable)")
+    s.add_argument("--data", action="append",
+                   help="CSV manifest, dataset folder or .npz (repeatable; required unless "
+                        "--config)")
     s.add_argument("--test", action="append",
                    help="held-out data spec (repeatable); default: a split of --data that "
                         "keeps every class (whole trials, else the end of each trial)")
@@ -182,8 +263,10 @@ def register(sub) -> None:
     s.add_argument("--quantise", action="store_true", help="also write an int8 model")
     s.add_argument("--contact-only", action="store_true",
                    help="drop windows without contact instead of labelling them no-touch")
-    s.add_argument("--profile", default="roboskin")
-    s.add_argument("--seed", type=SEED, default=0)
+    s.add_argument("--profile", help="sensor profile (name or .toml; default roboskin): "
+                                      "every feature is computed with it and the model "
+                                      "carries it")
+    s.add_argument("--seed", type=SEED)
     s.add_argument("--out", required=True, help="model folder to write (new or empty)")
     s.add_argument("--force", action="store_true",
                    help="write into a folder that is not empty, replacing the model in it")
@@ -195,7 +278,7 @@ def register(sub) -> None:
     s.add_argument("--data", action="append", required=True)
     s.add_argument("--variant", choices=["float", "int8"])
     s.add_argument("--contact-only", action="store_true")
-    s.add_argument("--profile", default="roboskin")
+    s.add_argument("--profile", help="default: the model's own; another is an error")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_eval)
 
@@ -204,7 +287,14 @@ def register(sub) -> None:
     s.add_argument("--work", default="out/report",
                    help="simulated data, models and finished cells, reused by a later run "
                         "on the same windows (remove it after changing the training code)")
-    s.add_argument("--data", help="real recordings folder (holding roboskin/)")
+    s.add_argument("--data", action="append", metavar="SPEC",
+                   help="real data: a CSV manifest (path,label[,...]) or a dataset folder, "
+                        "one report section each (repeatable); none: simulated only")
+    s.add_argument("--profile", default="roboskin",
+                   help="sensor profile of the real data (name or .toml; default roboskin)")
+    s.add_argument("--kinds", type=lambda v: [k for k in v.split(",") if k],
+                   help="model kinds of the real sections, comma-separated (default: the "
+                        "task's kinds)")
     s.add_argument("--windows", type=whole_list(1, MAX_T), default="1-10",
                    help="window lengths T of the real sections (1,3,10 or 1-10)")
     s.add_argument("--seeds", type=whole_list(0, 2**32 - 1), default="0,1,2",

@@ -1,70 +1,96 @@
-"""host/bench/report.py: the real sections on short slices of the real clips, end to
-end: what was trained and tested on, mean ± sd over seeds, the whole per-decision
-cost and the machine line."""
+"""host/bench/report.py: the real sections on a user's own recordings (short slices of
+the real clips under the user's names, in the user's CSV specs, with a profile
+calibrated on them), end to end: what was trained and tested on, mean ± sd over
+seeds, the whole per-decision cost and the machine line, and no built-in clip named;
+a missing file or profile stops it before any work."""
 from __future__ import annotations
 
 import json
+import time
+import tomllib
 
 import pytest
 
 from host.bench import report
+from host.data.windows import DataError
 from tests.realdata import read_video, real_data_dir
 
 SLICE = 120          # frames of each clip
 
 
+#: the clips a user of their own sensor would have: named by them, listed in their CSV
+MINE = {"my_bumpy.avi": ("lego_train.avi", "lego"), "my_flat.avi": ("smooth.avi", "smooth"),
+        "my_rough.avi": ("concrete.avi", "concrete")}
+BUILT_IN = ("lego_train.avi", "smooth.avi", "concrete.avi", "roboskin/")
+
+
 @pytest.fixture(scope="module")
-def short_clips(tmp_path_factory):
-    """The first SLICE frames of each real texture clip, as a data folder."""
+def own_data(tmp_path_factory):
+    """A user's own recordings (the first SLICE frames of each real texture clip under
+    the user's names), two CSV specs, and a profile calibrated by ``host calibrate``
+    on one of them."""
     import cv2
 
-    src = real_data_dir(*(f"roboskin/{c}" for c in report.REAL_SETS["lego-vs-smooth"][0]),
-                        "roboskin/concrete.avi") / "roboskin"
-    root = tmp_path_factory.mktemp("real")
-    (root / "roboskin").mkdir()
-    for clip in ("concrete.avi", "smooth.avi", "lego_train.avi"):
+    from host.cli import main
+
+    src = real_data_dir(*(f"roboskin/{c}" for c, _ in MINE.values())) / "roboskin"
+    root = tmp_path_factory.mktemp("mine")
+    for mine, (clip, _) in MINE.items():
         frames = read_video(src / clip, 0, SLICE)
         h, w = frames[0].shape[:2]
-        out = cv2.VideoWriter(str(root / "roboskin" / clip), cv2.VideoWriter_fourcc(*"MJPG"),
-                              30, (w, h))
+        out = cv2.VideoWriter(str(root / mine), cv2.VideoWriter_fourcc(*"MJPG"), 30, (w, h))
         for f in frames:
             out.write(f)
         out.release()
+    (root / "bumpy-vs-flat.csv").write_text(
+        "path,label\nmy_bumpy.avi,lego\nmy_flat.avi,smooth\n")
+    (root / "rough-vs-flat.csv").write_text(
+        "path,label\nmy_rough.avi,concrete\nmy_flat.avi,smooth\n")
+    assert main(["calibrate", str(root / "my_flat.avi"), "--out", str(root / "mine.toml")]) == 0
     return root
 
 
-def test_the_real_sections_say_what_was_trained_and_tested_on(short_clips, tmp_path):
-    sections = report.real_sections(short_clips, tmp_path, windows=(2,), seeds=(0,))
-    assert [s.key for s in sections] == ["lego-vs-smooth", "concrete-vs-smooth"]
+def test_the_real_sections_say_what_was_trained_and_tested_on(own_data):
+    specs = [own_data / "bumpy-vs-flat.csv", own_data / "rough-vs-flat.csv"]
+    sections = report.real_sections(specs, windows=(2,), seeds=(0,),
+                                    profile=str(own_data / "mine.toml"))
+    assert [s.key for s in sections] == ["bumpy-vs-flat", "rough-vs-flat"]
     assert all(s.real and s.kinds == ["fnn", "grid-fnn"] for s in sections)
-    assert "first 70 % of `lego_train.avi` and `smooth.avi`" in sections[0].trained_on
-    assert "stands in for a recording that was not trained on" in sections[1].trained_on
+    assert "first 70 % of `my_bumpy.avi` and `my_flat.avi`" in sections[0].trained_on
+    assert "profile `mine.toml`" in sections[0].trained_on
+    assert sections[0].title == "lego vs smooth (real, bumpy-vs-flat.csv)"
     windows = report.prepare(sections[:1], regularise=False)
-    tr, te = windows[("lego-vs-smooth", 2)]
+    tr, te = windows[("bumpy-vs-flat", 2)]
     assert sections[0].how.startswith("time split within each trial")
     for ws in (tr, te):
         assert set(ws.labels) == {"lego", "smooth"} and ws.contact.all()
+    # the features are the calibrated profile's: its pin count, not roboskin's 133
+    assert tr.vectors.shape[2] == len(tomllib.loads(
+        (own_data / "mine.toml").read_text())["layout"]["pins_px"])
     # the test windows start at least T frames after the last training frame
     for g in set(tr.groups):
         assert te.t_index[te.groups == g].min() - 1 >= tr.t_index[tr.groups == g].max() + 2
     cells = report.sweep_cells(sections, regularise=True)
-    assert {(c.kind, c.T) for c in cells if c.data == "lego-vs-smooth"} == {
+    assert {(c.kind, c.T) for c in cells if c.data == "bumpy-vs-flat"} == {
         ("fnn", 2), ("grid-fnn", 2), ("fnn", 10), ("fnn-dropout", 10)}
 
 
-def test_the_report_on_short_real_clips_has_seeds_costs_and_the_machine(short_clips,
-                                                                      tmp_path):
-    out = report.build_report(tmp_path / "doc" / "acc.md", tmp_path / "work", short_clips,
-                              tasks=(), real_windows=(2,), seeds=(0, 1), jobs=1,
-                              regularise=False, progress=False, command="host report -x",
-                              real_kinds=("grid-fnn",))
+def test_the_report_on_own_recordings_with_a_calibrated_profile_names_no_built_in_clip(
+        own_data, tmp_path):
+    out = report.build_report(tmp_path / "doc" / "acc.md", tmp_path / "work",
+                              [own_data / "bumpy-vs-flat.csv"], tasks=(), real_windows=(2,),
+                              seeds=(0, 1), jobs=1, regularise=False, progress=False,
+                              command="host report -x", real_kinds=("grid-fnn",),
+                              profile=str(own_data / "mine.toml"))
     text = out.read_text()
     doc = json.loads(out.with_suffix(".json").read_text())
     assert "Generated by `host report -x`." in text
     assert "cores, load average" in text and "about 4x slower" in text
-    assert len(doc["cells"]) == 2 * 2                     # data x seed
-    for s in ("lego-vs-smooth", "concrete-vs-smooth"):
-        assert (out.parent / "img" / f"accuracy-vs-T-{s}.png").is_file()
+    assert not [c for c in BUILT_IN if c in text]
+    assert doc["profile"].endswith("mine.toml") and "(profile `mine.toml`)" in text
+    assert len(doc["cells"]) == 2                        # data x seed
+    assert not [c for c in doc["cells"] if "error" in c]
+    assert (out.parent / "img" / "accuracy-vs-T-bumpy-vs-flat.png").is_file()
     rows = [a for a in doc["aggregate"] if a["n"]]
     assert rows and all(a["n"] == 2 and a["seeds"] == 2 for a in rows)
     assert f"{rows[0]['mean']:.4f} ± {rows[0]['sd']:.4f} (2)" in text
@@ -72,7 +98,28 @@ def test_the_report_on_short_real_clips_has_seeds_costs_and_the_machine(short_cl
     assert timed == {(a["data"], a["kind"]) for a in rows}
     t = doc["timing"][0]
     assert t["cpu"]["p50"] > t["vision"]["cpu"]["p50"] > 0   # vision + model
-    assert doc["vision"]["frames"] == 3 * SLICE
+    assert doc["vision"]["frames"] == 2 * SLICE
+    assert doc["vision"]["clips"] == ["my_bumpy.avi", "my_flat.avi"]
+
+
+def test_a_missing_recording_stops_the_report_before_any_work(tmp_path):
+    (tmp_path / "mine.csv").write_text("path,label\nhere.avi,lego\ngone.avi,smooth\n")
+    (tmp_path / "here.avi").write_bytes(b"")
+    t0 = time.perf_counter()
+    with pytest.raises(DataError, match=r"row 2 .*no such file or folder: .*gone\.avi"):
+        report.build_report(tmp_path / "a.md", tmp_path / "w", [tmp_path / "mine.csv"],
+                            progress=False)
+    assert time.perf_counter() - t0 < 1.0
+    assert not (tmp_path / "w").exists() and not (tmp_path / "a.md").exists()
+
+
+def test_a_missing_profile_stops_the_report_before_any_work(tmp_path):
+    (tmp_path / "mine.csv").write_text("path,label\nhere.avi,lego\n")
+    (tmp_path / "here.avi").write_bytes(b"")
+    with pytest.raises(DataError, match=r"--profile: no such file: .*nope\.toml"):
+        report.build_report(tmp_path / "a.md", tmp_path / "w", [tmp_path / "mine.csv"],
+                            progress=False, profile=str(tmp_path / "nope.toml"))
+    assert not (tmp_path / "w").exists()
 
 
 def test_models_for_adds_the_cnn_only_when_asked():

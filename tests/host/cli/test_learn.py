@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -219,3 +221,49 @@ def test_eval_without_contact_only_says_to_pass_it_not_to_fix_the_labels(tmp_pat
     assert "evaluate with --contact-only" in err and "fix the labels" not in err
     assert main(["eval", str(out), "--data", str(p), "--contact-only", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["n_windows"] == 8
+
+
+# -- host report on the user's own data specs and profile --
+
+def test_report_with_a_missing_recording_in_the_spec_is_one_line_and_exit_2(tmp_path, capsys):
+    (tmp_path / "mine.csv").write_text("path,label\nmine_a.avi,lego\nmine_b.avi,smooth\n")
+    (tmp_path / "mine_a.avi").write_bytes(b"")
+    t0 = time.perf_counter()
+    rc = main(["report", "--out", str(tmp_path / "a.md"), "--work", str(tmp_path / "w"),
+               "--data", str(tmp_path / "mine.csv"), "--profile", "tactip331"])
+    assert time.perf_counter() - t0 < 1.0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert "no such file or folder" in err[0] and "mine_b.avi" in err[0]
+    assert "Traceback" not in err[0]
+    assert not (tmp_path / "w").exists() and not (tmp_path / "a.md").exists()
+
+
+def test_report_given_the_folder_of_the_authors_clips_says_how_to_make_their_specs(
+        tmp_path, capsys):
+    (tmp_path / "data" / "roboskin").mkdir(parents=True)
+    rc = main(["report", "--out", str(tmp_path / "a.md"), "--work", str(tmp_path / "w"),
+               "--data", str(tmp_path / "data")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert "python -m host.bench.specs --real-data" in err[0]
+
+
+def test_report_passes_the_specs_and_the_profile_and_names_them_in_its_command(
+        tmp_path, monkeypatch, capsys):
+    import host.cli.learn as learn
+
+    seen = {}
+
+    def fake(out, work, specs, **kw):
+        seen.update(specs=specs, **kw)
+        return Path(out)
+
+    monkeypatch.setattr(learn, "build_report", fake)
+    rc = main(["report", "--out", str(tmp_path / "a.md"), "--work", str(tmp_path / "w"),
+               "--data", "a.csv", "--data", "own-folder", "--profile", "mine.toml",
+               "--windows", "2", "--seeds", "0", "--kinds", "grid-fnn", "--real-only"])
+    assert rc == 0
+    assert seen["specs"] == ["a.csv", "own-folder"] and seen["profile"] == "mine.toml"
+    assert seen["real_kinds"] == ["grid-fnn"] and seen["tasks"] == ()
+    assert "--data a.csv --data own-folder --profile mine.toml" in seen["command"]
