@@ -48,14 +48,27 @@ def cmd_bench(args):
         except ValueError as exc:
             raise UserError(f"--doc {doc}: {exc}") from None
         emit(args, res, f"wrote the real-frame tables into {doc}")
+    elif args.what == "texture-robustness":
+        from host.bench.texture_robust import format_robustness, robustness
+        from host.data.windows import DataError
+        if args.data and not Path(args.data).is_dir():
+            raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
+        try:
+            res = robustness(real_data_dir(args.data), args.work,
+                             progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+        except DataError as exc:
+            raise UserError(str(exc)) from None
+        emit(args, res, format_robustness(res))
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables"],
+    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables",
+                                    "texture-robustness"],
                    help="tables: measure on the real recordings and rewrite the "
-                        "real-frame tables of --doc")
+                        "real-frame tables of --doc; texture-robustness: texture "
+                        "accuracy on proxies for a new recording session")
     s.add_argument("--data", help="real recordings folder (pipeline, tables)")
     s.add_argument("--camera", help="runtime: a recording (path or file:// URL) "
                                     "instead of sim://walk")
@@ -66,5 +79,7 @@ def register(sub) -> None:
     s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
                    help="frames to run (runtime, tables)")
     s.add_argument("--repeats", type=whole(1, 10_000), default=20)
+    s.add_argument("--work", default="out/texture-robust",
+                   help="texture-robustness: cache of the clips' features")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

@@ -1,0 +1,373 @@
+"""Texture accuracy on proxies for a recording session the model never saw.
+
+    host bench texture-robustness --data ../shared/data [--json] [--work DIR]
+    python -m host.bench.texture_robust --data ../shared/data [--json]
+
+There is one real recording per surface (``roboskin/concrete.avi``, ``smooth.avi``,
+``lego_train.avi``), so a new session is stood in for by changing the held-out
+frames the way a new session changes them. The models are trained as ``host
+train --task texture`` trains them by default (:func:`host.learn.train.train_model`:
+the default kind, T and layer sizes), on the first 70 % of each recording, contact
+windows only; each proxy is scored on contact windows of the rest of the recording
+after a gap of T frames:
+
+``later``       the held-out frames as they are (proxy (a): later frames after a gap);
+``rate-3of5``   only 3 of every 5 frames kept (200 fps replayed as 120 fps; concrete,
+                taken at 120 fps, becomes 72 fps);
+``rate-drops``  3 of 5 kept, then 10 % of the rest dropped at random (seeded);
+``gain-0.8``, ``gain-1.25``, ``gamma-0.7``, ``gamma-1.4``, ``offset+25``: the
+                exposure of every frame changed before the marker pipeline (the rest
+                frame too, as in a session with another exposure).
+
+Three tasks, as the figures of issue 23 name them: Lego vs smooth, concrete vs
+smooth, and all three (whose per-recording recall is the share of contact frames
+right the runtime gives on the held-out frames). The identity check trains the same
+model kind to tell the first half of one recording from its second half (70 % of
+each half trained, the rest tested after a gap): far above 0.5 means the features
+can learn which part of which session they are watching.
+
+Every accuracy has a 95 % interval from a block bootstrap (blocks of T consecutive
+windows, which overlap and are not independent) and the number of windows.
+Extracted clip features are cached under ``--work``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from host.data.windows import DataError, TrialPart, WindowSet, stack_parts, window_ends
+from host.learn.tasks import DEFAULT_WINDOW, TrainError
+
+__all__ = ["Variant", "VARIANTS", "CLIPS", "TASKS", "keep_indices", "expose",
+           "clip_variant", "clip_windows", "block_bootstrap", "robustness", "main"]
+
+#: the real recordings: file under roboskin/ -> texture label
+CLIPS = {"concrete.avi": "concrete", "smooth.avi": "smooth", "lego_train.avi": "lego"}
+#: the share of each recording (its start) trained on
+TRAIN_FRAC = 0.7
+#: name -> the recordings (labels) the task classifies
+TASKS = {"lego-vs-smooth": ("lego", "smooth"), "concrete-vs-smooth": ("concrete", "smooth"),
+         "all-three": ("concrete", "lego", "smooth")}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """How a proxy session differs from the recording: which frames the camera
+    delivers (``keep``: ``all``, ``3of5``, or ``3of5+dropP`` with P percent dropped
+    at random) and the exposure (``gain``, ``offset`` in grey levels, ``gamma``)."""
+
+    name: str
+    keep: str = "all"
+    gain: float = 1.0
+    offset: float = 0.0
+    gamma: float = 1.0
+
+    @property
+    def exposed(self) -> bool:
+        return (self.gain, self.offset, self.gamma) != (1.0, 0.0, 1.0)
+
+
+VARIANTS = (Variant("later"), Variant("rate-3of5", "3of5"), Variant("rate-drops", "3of5+drop10"),
+            Variant("gain-0.8", gain=0.8), Variant("gain-1.25", gain=1.25),
+            Variant("gamma-0.7", gamma=0.7), Variant("gamma-1.4", gamma=1.4),
+            Variant("offset+25", offset=25.0))
+
+
+def keep_indices(n: int, keep: str, seed: int = 0) -> np.ndarray:
+    """The frame indices (of ``n``) a camera of rule ``keep`` delivers: ``all``;
+    ``3of5`` (frames 0, 2, 3 of every 5: 200 fps as 120 fps, evenly in time);
+    ``3of5+dropP`` (that, then P % of the rest dropped at random with ``seed``)."""
+    idx = np.arange(int(n), dtype=np.int64)
+    if keep == "all":
+        return idx
+    if keep == "3of5" or keep.startswith("3of5+drop"):
+        idx = idx[np.isin(idx % 5, (0, 2, 3))]
+        if keep == "3of5":
+            return idx
+        try:
+            p = float(keep[len("3of5+drop"):]) / 100.0
+        except ValueError:
+            p = -1.0
+        if not 0.0 <= p < 1.0:
+            raise DataError(f"keep={keep!r}: the drop share must be 0..99 percent")
+        drop = np.random.default_rng(seed).random(len(idx)) < p
+        drop[0] = False                   # the rest frame stays
+        return idx[~drop]
+    raise DataError(f"keep must be 'all', '3of5' or '3of5+dropP', got keep={keep!r}")
+
+
+def expose(image: np.ndarray, gain: float = 1.0, offset: float = 0.0,
+           gamma: float = 1.0) -> np.ndarray:
+    """``image`` (uint8) as a camera with another exposure would give it:
+    ``255 * clip((gain * x + offset) / 255, 0, 1) ** gamma``, uint8."""
+    if not (gain > 0 and gamma > 0 and np.isfinite(offset)):
+        raise DataError(f"exposure needs gain > 0, gamma > 0 and a finite offset, got "
+                        f"gain={gain!r}, gamma={gamma!r}, offset={offset!r}")
+    x = np.clip((np.asarray(image, np.float32) * np.float32(gain) + np.float32(offset))
+                / np.float32(255.0), 0.0, 1.0)
+    if gamma != 1.0:
+        x = x ** np.float32(gamma)
+    return np.round(x * 255.0).astype(np.uint8)
+
+
+def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 0,
+                 cache_dir=None):
+    """(features, frame index of each) of the recording ``path`` as ``variant``
+    delivers it: the kept frames, exposed, through the Pi's frame encoder
+    (:func:`host.data.extract.extract_features`), from the first kept frame. Cached
+    as an .npz in ``cache_dir`` when given."""
+    from device.pi.sources.camera import open_camera
+    from host.data.extract import ClipFeatures, extract_features
+
+    path = Path(path)
+    key = (f"{path.stem}-{variant.keep}-g{variant.gain}-o{variant.offset}-y{variant.gamma}"
+           f"-s{seed}-{Path(profile).stem}.npz")
+    hit = Path(cache_dir) / key if cache_dir else None
+    if hit is not None and hit.is_file():
+        z = np.load(hit)
+        return ClipFeatures(vectors=z["vectors"], lost=z["lost"], grids=z["grids"],
+                            frames=None, contact=z["contact"], ready=z["ready"],
+                            faults=z["faults"], fps=None), z["orig"]
+    with open_camera(f"file://{path.resolve()}") as cam:
+        n = cam.n_frames
+        keep = keep_indices(n, variant.keep, seed)
+        wanted = np.zeros(n, bool)
+        wanted[keep] = True
+
+        def frames():
+            for fr in cam:
+                if fr.index < n and wanted[fr.index]:
+                    yield (expose(fr.image, variant.gain, variant.offset, variant.gamma)
+                           if variant.exposed else fr.image)
+
+        clip = extract_features(frames(), profile, None, progress=False)
+    orig = keep[:clip.n_frames]
+    if hit is not None:
+        hit.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(hit, vectors=clip.vectors, lost=clip.lost, grids=clip.grids,
+                            contact=clip.contact, ready=clip.ready, faults=clip.faults,
+                            orig=orig)
+    return clip, orig
+
+
+def clip_windows(clip, orig: np.ndarray, label: str, T: int, first: int, last: int,
+                 key: str = "clip") -> WindowSet | None:
+    """Contact windows of T delivered frames of ``clip`` whose frames all lie in the
+    recording's frames ``first`` .. ``last - 1`` (``orig``: the recording's index of
+    each delivered frame), labelled ``label``; None when there are none."""
+    ends, _ = window_ends(clip.ready, 0, clip.n_frames, T, 1)
+    ends = ends[(orig[ends - T + 1] >= first) & (orig[ends] < last) & clip.contact[ends]]
+    if not len(ends):
+        return None
+    part = TrialPart(clip, ends, np.full(len(ends), label, object), None, clip.contact[ends],
+                     None, key, 0, clip.n_frames)
+    arrays = stack_parts([part], "texture", T, {key: {}})
+    arrays["t_index"] = orig[ends]             # the recording's frame, not the delivered one
+    return WindowSet(task="texture", window=T, classes=[], source={"trials": [
+        {"path": key, "group": 0}], "contact_only": True}, **arrays)
+
+
+def block_bootstrap(right: np.ndarray, block: int, n_boot: int = 1000,
+                    seed: int = 0) -> tuple[float, float]:
+    """The 95 % interval of the mean of ``right`` (0/1 per window, in time order)
+    from a circular block bootstrap: blocks of ``block`` consecutive windows (at most
+    a quarter of the windows, so a short set still has several blocks), wrapped at
+    the end, drawn until there are as many windows as in ``right``."""
+    r = np.asarray(right, np.float64).reshape(-1)
+    n = len(r)
+    if n == 0:
+        return (float("nan"), float("nan"))
+    if int(block) < 1:
+        raise DataError(f"block must be >= 1 window, got block={block!r}")
+    b = max(1, min(int(block), n // 4))
+    k = -(-n // b)
+    rng = np.random.default_rng(seed)
+    starts = rng.integers(0, n, size=(n_boot, k))
+    idx = (starts[:, :, None] + np.arange(b)[None, None, :]) % n
+    means = r[idx.reshape(n_boot, -1)[:, :n]].mean(axis=1)
+    lo, hi = np.quantile(means, [0.025, 0.975])
+    return float(lo), float(hi)
+
+
+def score(right: np.ndarray, T: int) -> dict:
+    """Accuracy, its block-bootstrap 95 % interval and the window count."""
+    right = np.asarray(right, bool)
+    if not len(right):
+        return {"accuracy": None, "ci95": None, "n": 0}
+    lo, hi = block_bootstrap(right, T)
+    return {"accuracy": round(float(right.mean()), 4), "ci95": [round(lo, 4), round(hi, 4)],
+            "n": int(len(right))}
+
+
+def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer):
+    """A predict(ws) -> class ids and the classes, from ``trainer`` (default: the
+    default texture model of ``host train``, float, written to a temporary folder)."""
+    if trainer is not None:
+        return trainer(ws_train, ws_test, seed)
+    from host.learn.inputs import model_inputs
+    from host.learn.onnx_io import FLOAT_NAME, run_onnx, session
+    from host.learn.tasks import DEFAULT_MODEL
+    from host.learn.train import train_model
+
+    with tempfile.TemporaryDirectory(prefix="tacfoot-robust-") as tmp:
+        res = train_model("texture", DEFAULT_MODEL["texture"], ws_train, ws_test,
+                          quantise=False, seed=seed, out_dir=tmp, progress=False)
+        sess = session((Path(tmp) / FLOAT_NAME).read_bytes())
+
+    def predict(ws):
+        return run_onnx(sess, model_inputs(ws, "vectors", False)).argmax(axis=1)
+    return predict, res["classes"]
+
+
+def _per_clip(predict, classes, sets: dict, T: int) -> dict:
+    out = {}
+    for label, ws in sets.items():
+        if ws is None:
+            out[label] = score(np.zeros(0, bool), T)
+            continue
+        want = classes.index(label) if label in classes else -1
+        out[label] = score(predict(ws) == want, T)
+    return out
+
+
+def _pooled(per: dict) -> dict:
+    n = sum(v["n"] for v in per.values())
+    acc = (sum(v["accuracy"] * v["n"] for v in per.values() if v["n"]) / n) if n else None
+    return {"accuracy": None if acc is None else round(acc, 4), "n": n}
+
+
+def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VARIANTS,
+               tasks=tuple(TASKS), identity: bool = True, trainer=None,
+               profile: str = "roboskin", progress=None) -> dict:
+    """The proxy figures (module doc) as a JSON-able dict: for each task and proxy,
+    the accuracy over its windows and per recording (accuracy, ci95, n); and the
+    identity check per recording. ``trainer(ws_train, ws_test, seed) -> (predict,
+    classes)`` replaces the default model (for comparisons)."""
+    T = DEFAULT_WINDOW["texture"] if T is None else int(T)
+    root = Path(data).expanduser() / "roboskin"
+    say = progress or (lambda m: None)
+    for t in tasks:
+        if t not in TASKS:
+            raise DataError(f"tasks: {t!r} is not one of {list(TASKS)}")
+    needed = {lab for t in tasks for lab in TASKS[t]} | (set(CLIPS.values()) if identity
+                                                         else set())
+    paths = {lab: root / clip for clip, lab in CLIPS.items() if lab in needed}
+    for p in paths.values():
+        if not p.is_file():
+            raise DataError(f"no such recording: {p}")
+    cache = None if work is None else Path(work)
+    base = {lab: clip_variant(p, Variant("later"), profile, seed, cache) for lab, p in
+            paths.items()}
+    n_frames = {lab: int(orig[-1]) + 1 for lab, (_, orig) in base.items()}
+    cut = {lab: int(TRAIN_FRAC * n) for lab, n in n_frames.items()}
+
+    def train_set(lab):
+        clip, orig = base[lab]
+        return clip_windows(clip, orig, lab, T, 0, cut[lab], lab)
+
+    def test_set(lab, variant):
+        clip, orig = (base[lab] if variant.name == "later" else
+                      clip_variant(paths[lab], variant, profile, seed, cache))
+        return clip_windows(clip, orig, lab, T, cut[lab] + T, n_frames[lab], lab)
+
+    tests = {}
+    for v in variants:
+        say(f"proxy {v.name}")
+        tests[v.name] = {lab: test_set(lab, v) for lab in paths}
+    out = {"T": T, "train_frac": TRAIN_FRAC, "seed": seed, "tasks": {}, "identity": {}}
+    for task in tasks:
+        labs = TASKS[task]
+        say(f"training {task}")
+        tr = WindowSet.concat([train_set(lab) for lab in labs])
+        te = WindowSet.concat([tests["later"][lab] for lab in labs
+                               if tests["later"][lab] is not None])
+        predict, classes = _train(tr, te, seed, trainer)
+        res = {"train_windows": len(tr), "proxies": {}}
+        for v in variants:
+            per = _per_clip(predict, classes, {lab: tests[v.name][lab] for lab in labs}, T)
+            res["proxies"][v.name] = {**_pooled(per), "per_recording": per}
+        out["tasks"][task] = res
+    if identity:
+        for lab in paths:
+            say(f"identity {lab}")
+            out["identity"][lab] = identity_check(base[lab], n_frames[lab], T, seed, trainer)
+    return out
+
+
+def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None) -> dict:
+    """Can the model tell the first half of a recording from its second half? Each
+    half is cut into chunks of ``4 T`` frames; the windows inside even chunks are
+    trained on, and those of odd chunks at least T frames from either chunk end are
+    tested (so no test window shares a frame with, or touches, a training one). The
+    accuracy over the test windows (0.5 is chance; near 1 means the windows carry
+    what tells one part of a session from another)."""
+    clip, orig = clip_orig
+    half, chunk = n // 2, 4 * T
+    tr, te = [], []
+    for lab, (a, b) in {"first-half": (0, half), "second-half": (half, n)}.items():
+        for i, c0 in enumerate(range(a, b, chunk)):
+            c1 = min(c0 + chunk, b)
+            got = (clip_windows(clip, orig, lab, T, c0, c1, lab) if i % 2 == 0 else
+                   clip_windows(clip, orig, lab, T, c0 + T, c1 - T, lab))
+            if got is not None:
+                (tr if i % 2 == 0 else te).append(got)
+    labs = {str(x) for s in tr for x in s.labels}
+    if len(labs) < 2 or {str(x) for s in te for x in s.labels} != labs:
+        return {"accuracy": None, "ci95": None, "n": 0,
+                "note": "a half has no contact windows to train or test on"}
+    ws_te = WindowSet.concat(te)
+    predict, classes = _train(WindowSet.concat(tr), ws_te, seed, trainer)
+    want = np.array([classes.index(str(x)) for x in ws_te.labels])
+    return score(predict(ws_te) == want, T)
+
+
+def format_robustness(res: dict) -> str:
+    lines = [f"texture on proxies for a new session (T = {res['T']}, trained on the first "
+             f"{res['train_frac']:.0%} of each recording, contact windows; acc [95 % CI] n)"]
+    for task, r in res["tasks"].items():
+        lines.append(f"{task} ({r['train_windows']} training windows)")
+        for name, p in r["proxies"].items():
+            cells = "  ".join(
+                f"{lab} {v['accuracy'] if v['n'] else '-'} "
+                f"[{v['ci95'][0] if v['n'] else '-'}, {v['ci95'][1] if v['n'] else '-'}] "
+                f"n={v['n']}" for lab, v in p["per_recording"].items())
+            lines.append(f"  {name:11s} all {p['accuracy']}  {cells}")
+    if res.get("identity"):
+        lines.append("identity check: first vs second half of one recording (0.5 = chance)")
+        for lab, r in res["identity"].items():
+            ci = r.get("ci95") or ["-", "-"]
+            lines.append(f"  {lab:9s} {r['accuracy']} [{ci[0]}, {ci[1]}] n={r['n']}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m host.bench.texture_robust",
+                                description=__doc__.split("\n\n")[0])
+    p.add_argument("--data", required=True, help="folder holding roboskin/")
+    p.add_argument("--work", default="out/texture-robust", help="cache of clip features")
+    p.add_argument("--window", type=int, default=None, help="T (default: host train's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tasks", default=",".join(TASKS))
+    p.add_argument("--no-identity", action="store_true")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    try:
+        tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
+        res = robustness(args.data, args.work, args.window, args.seed, tasks=tasks,
+                         identity=not args.no_identity,
+                         progress=lambda m: print(f"texture-robustness: {m}", file=sys.stderr))
+    except (DataError, TrainError) as exc:
+        print(f"texture-robustness: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(res, indent=1) if args.json else format_robustness(res))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
