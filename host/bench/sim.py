@@ -79,11 +79,6 @@ def format_sim(res: dict) -> str:
 
 # -- the marker pipeline ------------------------------------------------------------
 
-def _real_frames(data_dir, clip: str = "smooth.avi", limit: int = 300) -> list:
-    from pathlib import Path
-    return video_frames(Path(data_dir) / "roboskin" / clip, limit)
-
-
 def _sim_frames_truth(scene: str = "drag-45", effects=("glare", "camera_noise"), seed: int = 0):
     from device.sim import Simulator, load_scene
     sim = Simulator(load_scene(scene).with_effects(*effects), seed=seed)
@@ -132,11 +127,15 @@ class BaselineBlobTracker:
         return pins, vec
 
 
-def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin",
-                   clips: tuple[str, ...] = ("smooth.avi",), limit: int = 300) -> dict:
-    """Per-stage and total median / p99 ms per frame of the marker pipeline (video
-    decoding excluded), on real roboskin frames and on simulated frames, against
-    the SimpleBlobDetector + brute-force baseline, plus steady-state allocation."""
+def bench_pipeline(recordings=(), repeats: int = 3, profile: str = "roboskin",
+                   limit: int = 300) -> dict:
+    """Per-stage and total median / p99 ms per frame of the marker pipeline with the
+    sensor ``profile`` (video decoding excluded), on the first ``limit`` frames of
+    each of ``recordings`` (:class:`host.bench.specs.Recording`, from the caller's
+    data spec) and on simulated frames, against the SimpleBlobDetector +
+    brute-force baseline, plus steady-state allocation."""
+    from host.bench.specs import recording_frames
+
     import gc
     import tracemalloc
 
@@ -147,9 +146,10 @@ def bench_pipeline(data_dir=None, repeats: int = 3, profile: str = "roboskin",
 
     single_thread()
     sets = {}
-    if data_dir is not None:
-        for clip in clips:
-            sets[f"real {clip}"] = (_real_frames(data_dir, clip, limit), None)
+    for rec in recordings:
+        frames = recording_frames(rec, limit)
+        if frames:
+            sets[f"real {rec.name}"] = (frames, None)
     sim_frames, truth = _sim_frames_truth()
     sets["sim drag-45"] = (sim_frames, truth)
     res = {"profile": profile, "threads": 1, "sets": {},

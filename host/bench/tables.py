@@ -21,8 +21,6 @@ from host.bench.costs import PI4_FACTOR, machine, machine_line
 from host.bench.runtime import pi4_estimate
 from host.data.dataset import atomic_write_text
 
-# the recordings the tables are measured on, and the IMU file that goes with each
-REAL_CLIPS = (("smooth.avi", None), ("concrete.avi", "concrete_gyro.npy"))
 
 
 def replace_section(text: str, name: str, body: str) -> str:
@@ -114,28 +112,35 @@ def scaling_note() -> str:
             f"{PI4_FACTOR:g}x slower than this machine's). {machine_line(machine())}")
 
 
-def write_tables(doc: Path, data_dir: Path, frames: int = 600, repeats: int = 3,
-                 models: str | None = None, progress=None) -> dict:
-    """Measure the marker pipeline and the runtime on the real recordings and write
-    the tables into ``doc`` (between its ``bench:`` markers). Returns the results."""
+def write_tables(doc: Path, spec, frames: int = 600, repeats: int = 3,
+                 models: str | None = None, progress=None, profile: str = "roboskin") -> dict:
+    """Measure the marker pipeline (``profile``) and the runtime on the recordings of
+    the data ``spec`` (a CSV manifest, its ``imu`` column the IMU file of a row, or
+    a dataset folder) and write the tables into ``doc`` (between its ``bench:``
+    markers). The spec, its files and the profile are checked first. Returns the
+    results."""
     from host.bench.runtime import bench_runtime
     from host.bench.sim import bench_pipeline
+    from host.bench.specs import check_profile, recordings
 
     doc = Path(doc)
     text = doc.read_text()
     for name in ("machine", "pipeline-real", "runtime-real"):   # fail before measuring
         replace_section(text, name, "")
-    roboskin = Path(data_dir) / "roboskin"
+    recs = recordings(spec)
+    profile = check_profile(profile)
     say = progress or (lambda msg: None)
-    say("marker pipeline on " + ", ".join(c for c, _ in REAL_CLIPS))
-    pipe = bench_pipeline(data_dir, repeats=repeats, clips=tuple(c for c, _ in REAL_CLIPS),
-                          limit=min(frames, 300))
+    say("marker pipeline on " + ", ".join(r.name for r in recs))
+    pipe = bench_pipeline(recs, repeats=repeats, profile=profile, limit=min(frames, 300))
     runs = []
-    for clip, gyro in REAL_CLIPS:
-        say(f"runtime on {clip}")
-        imu = f"file://{roboskin / gyro}" if gyro else "none"
-        runs.append(bench_runtime(frames=frames, models=models,
-                                  camera=f"file://{roboskin / clip}", imu=imu))
+    for rec in recs:
+        if rec.kind != "clip":
+            say(f"runtime: {rec.name} is not a video or image folder; skipped")
+            continue
+        say(f"runtime on {rec.name}")
+        imu = f"file://{rec.imu}" if rec.imu else "none"
+        runs.append(bench_runtime(frames=frames, models=models, camera=f"file://{rec.path}",
+                                  imu=imu))
     text = replace_section(text, "machine", scaling_note())
     text = replace_section(text, "pipeline-real", pipeline_table(pipe))
     text = replace_section(text, "runtime-real", runtime_table(runs))

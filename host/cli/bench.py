@@ -16,13 +16,17 @@ def cmd_bench(args):
         res = bench_sim.bench_sim(repeats=args.repeats)
         emit(args, res, bench_sim.format_sim(res))
     elif args.what == "pipeline":
+        from host.bench.specs import check_profile, check_specs
+        from host.data.windows import DataError
         try:
-            data = real_data_dir(args.data)
-        except UserError:
-            data = None
-            print("host bench: real recordings not found; timing simulated frames only",
-                  file=sys.stderr)
-        res = bench_sim.bench_pipeline(data, repeats=max(1, min(args.repeats, 5)))
+            profile = check_profile(args.profile)
+            recs = check_specs([args.data])[args.data] if args.data else []
+        except DataError as exc:
+            raise UserError(str(exc)) from None
+        if not args.data:
+            print("host bench: no --data; timing simulated frames only", file=sys.stderr)
+        res = bench_sim.bench_pipeline(recs, repeats=max(1, min(args.repeats, 5)),
+                                       profile=profile, limit=min(args.frames, 300))
         emit(args, res, bench_sim.format_pipeline(res))
     elif args.what == "runtime":
         camera = args.camera
@@ -37,39 +41,36 @@ def cmd_bench(args):
             raise UserError(str(exc)) from None
         emit(args, res, format_runtime(res))
     elif args.what == "tables":
-        data = real_data_dir(args.data)
+        from host.data.windows import DataError
+        if not args.data:
+            raise UserError("tables: pass --data SPEC (a CSV manifest path,label[,imu] of the "
+                            "recordings; make bench writes the authors' one)")
         doc = Path(args.doc)
         if not doc.is_file():
             raise UserError(f"--doc: {doc} is not a file")
         try:
-            res = write_tables(doc, data, frames=args.frames,
+            res = write_tables(doc, args.data, frames=args.frames,
                                repeats=max(1, min(args.repeats, 5)), models=args.models,
-                               progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+                               progress=lambda m: print(f"host bench: {m}", file=sys.stderr),
+                               profile=args.profile)
+        except DataError as exc:
+            raise UserError(str(exc)) from None
         except ValueError as exc:
             raise UserError(f"--doc {doc}: {exc}") from None
         emit(args, res, f"wrote the real-frame tables into {doc}")
-    elif args.what == "texture-robustness":
-        from host.bench.texture_robust import format_robustness, robustness
-        from host.data.windows import DataError
-        if args.data and not Path(args.data).is_dir():
-            raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
-        try:
-            res = robustness(real_data_dir(args.data), args.work,
-                             progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
-        except DataError as exc:
-            raise UserError(str(exc)) from None
-        emit(args, res, format_robustness(res))
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables",
-                                    "texture-robustness"],
+    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables"],
                    help="tables: measure on the real recordings and rewrite the "
-                        "real-frame tables of --doc; texture-robustness: texture "
-                        "accuracy on proxies for a new recording session")
-    s.add_argument("--data", help="real recordings folder (pipeline, tables)")
+                        "real-frame tables of --doc")
+    s.add_argument("--data", metavar="SPEC",
+                   help="pipeline, tables: the recordings, a CSV manifest (path,label[,imu]) "
+                        "or a dataset folder (pipeline without it: simulated frames only)")
+    s.add_argument("--profile", default="roboskin",
+                   help="pipeline, tables: sensor profile of the recordings (name or .toml)")
     s.add_argument("--camera", help="runtime: a recording (path or file:// URL) "
                                     "instead of sim://walk")
     s.add_argument("--imu", help="runtime with --camera: IMU source (file://GYRO.npy "
@@ -79,7 +80,5 @@ def register(sub) -> None:
     s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
                    help="frames to run (runtime, tables)")
     s.add_argument("--repeats", type=whole(1, 10_000), default=20)
-    s.add_argument("--work", default="out/texture-robust",
-                   help="texture-robustness: cache of the clips' features")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)

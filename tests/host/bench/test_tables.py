@@ -3,10 +3,12 @@ between their markers by ``host bench tables``."""
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 
 from host.bench.costs import PI4_FACTOR, machine, machine_line
+from host.bench.specs import write_default_specs
 from host.bench.tables import (marker_names, pipeline_table, replace_section,
                                runtime_rows)
 from host.cli import main
@@ -75,9 +77,10 @@ def test_machine_line_names_cores_and_load():
 def test_host_bench_tables_rewrites_the_real_tables(tmp_path, capsys):
     data = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi",
                          "roboskin/concrete_gyro.npy")
+    spec = write_default_specs(data, tmp_path / "specs")["bench"]
     doc = tmp_path / "BENCH.md"
     doc.write_text(DOC)
-    rc = main(["bench", "tables", "--data", str(data), "--doc", str(doc),
+    rc = main(["bench", "tables", "--data", str(spec), "--doc", str(doc),
                "--frames", "40", "--repeats", "1", "--json"])
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
@@ -94,8 +97,25 @@ def test_host_bench_tables_rewrites_the_real_tables(tmp_path, capsys):
 
 def test_host_bench_tables_refuses_a_doc_without_markers(tmp_path, capsys):
     data = real_data_dir("roboskin/smooth.avi")
+    spec = tmp_path / "mine.csv"
+    spec.write_text(f"path,label\n{data / 'roboskin' / 'smooth.avi'},smooth\n")
     doc = tmp_path / "plain.md"
     doc.write_text("# nothing to fill\n")
-    assert main(["bench", "tables", "--data", str(data), "--doc", str(doc)]) == 2
+    assert main(["bench", "tables", "--data", str(spec), "--doc", str(doc)]) == 2
     assert "bench:machine" in capsys.readouterr().err
     assert doc.read_text() == "# nothing to fill\n"
+
+
+def test_host_bench_tables_with_a_missing_recording_is_one_line_and_exit_2(tmp_path, capsys):
+    (tmp_path / "mine.csv").write_text("path,label,imu\nmine.avi,smooth,mine_gyro.npy\n")
+    (tmp_path / "mine.avi").write_bytes(b"")
+    doc = tmp_path / "BENCH.md"
+    doc.write_text(DOC)
+    t0 = time.perf_counter()
+    rc = main(["bench", "tables", "--data", str(tmp_path / "mine.csv"), "--doc", str(doc)])
+    assert time.perf_counter() - t0 < 1.0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "mine_gyro.npy" in err[0]
+    assert doc.read_text() == DOC
+    assert main(["bench", "tables", "--doc", str(doc)]) == 2
+    assert "--data SPEC" in capsys.readouterr().err
