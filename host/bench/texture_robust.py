@@ -26,6 +26,11 @@ model kind to tell the first half of one recording from its second half (70 % of
 each half trained, the rest tested after a gap): far above 0.5 means the features
 can learn which part of which session they are watching.
 
+``--model DIR`` scores a model folder (e.g. the shipped ``models/texture``) on the
+all-three proxies instead of training one: its per-recording recall on the held-out
+contact windows is the runtime's share of contact frames right (the runtime feeds
+the model the same encoder's windows).
+
 Every accuracy has a 95 % interval from a block bootstrap (blocks of T consecutive
 windows, which overlap and are not independent) and the number of windows.
 Extracted clip features are cached under ``--work``.
@@ -45,7 +50,8 @@ from host.data.windows import DataError, TrialPart, WindowSet, stack_parts, wind
 from host.learn.tasks import DEFAULT_WINDOW, TrainError
 
 __all__ = ["Variant", "VARIANTS", "CLIPS", "TASKS", "keep_indices", "expose",
-           "clip_variant", "clip_windows", "block_bootstrap", "robustness", "main"]
+           "clip_variant", "clip_windows", "block_bootstrap", "model_trainer", "robustness",
+           "main"]
 
 #: the real recordings: file under roboskin/ -> texture label
 CLIPS = {"concrete.avi": "concrete", "smooth.avi": "smooth", "lego_train.avi": "lego"}
@@ -225,6 +231,33 @@ def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer):
     return predict, res["classes"]
 
 
+def model_trainer(folder):
+    """A trainer that trains nothing: the texture model in ``folder`` (e.g. the shipped
+    ``models/texture``, its default variant) classifies the windows. Returns
+    (trainer, T of the model)."""
+    from device.pi.models.artefact import read_manifest
+    from host.learn.inputs import model_inputs
+    from host.learn.onnx_io import run_onnx, session
+
+    folder = Path(folder)
+    try:
+        doc, _ = read_manifest(folder)
+    except (OSError, ValueError) as exc:
+        raise DataError(f"--model {folder}: {exc}") from None
+    if doc.get("input_layout") != "vectors" or doc.get("uses_imu"):
+        raise DataError(f"--model {folder}: a texture model reading vectors without the IMU "
+                        f"is needed, got input_layout={doc.get('input_layout')!r} "
+                        f"uses_imu={doc.get('uses_imu')!r}")
+    sess = session((folder / doc["onnx"]).read_bytes())
+    classes = [str(c) for c in doc["classes"]]
+
+    def trainer(ws_train, ws_test, seed):
+        def predict(ws):
+            return run_onnx(sess, model_inputs(ws, "vectors", False)).argmax(axis=1)
+        return predict, classes
+    return trainer, int(doc.get("T") or doc.get("window"))
+
+
 def _per_clip(predict, classes, sets: dict, T: int) -> dict:
     out = {}
     for label, ws in sets.items():
@@ -331,7 +364,8 @@ def format_robustness(res: dict) -> str:
     lines = [f"texture on proxies for a new session (T = {res['T']}, trained on the first "
              f"{res['train_frac']:.0%} of each recording, contact windows; acc [95 % CI] n)"]
     for task, r in res["tasks"].items():
-        lines.append(f"{task} ({r['train_windows']} training windows)")
+        lines.append(f"{task} (the model {res['model']}, not trained here)" if res.get("model")
+                     else f"{task} ({r['train_windows']} training windows)")
         for name, p in r["proxies"].items():
             cells = "  ".join(
                 f"{lab} {v['accuracy'] if v['n'] else '-'} "
@@ -355,16 +389,23 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--tasks", default=",".join(TASKS))
     p.add_argument("--no-identity", action="store_true")
+    p.add_argument("--model", help="score this texture model folder (e.g. models/texture) "
+                                   "on the all-three proxies instead of training")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     try:
         tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
-        res = robustness(args.data, args.work, args.window, args.seed, tasks=tasks,
-                         identity=not args.no_identity,
+        trainer, T = (None, args.window) if not args.model else model_trainer(args.model)
+        if args.model:
+            tasks = ["all-three"]
+        res = robustness(args.data, args.work, T, args.seed, tasks=tasks,
+                         identity=not args.no_identity and not args.model, trainer=trainer,
                          progress=lambda m: print(f"texture-robustness: {m}", file=sys.stderr))
     except (DataError, TrainError) as exc:
         print(f"texture-robustness: error: {exc}", file=sys.stderr)
         return 2
+    if args.model:
+        res["model"] = str(args.model)
     print(json.dumps(res, indent=1) if args.json else format_robustness(res))
     return 0
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from host.bench.texture_robust import (Variant, block_bootstrap, clip_windows, expose,
-                                       format_robustness, keep_indices, robustness)
+                                       format_robustness, keep_indices, main, model_trainer,
+                                       robustness)
 from host.data.extract import ClipFeatures
 from host.data.windows import DataError
 
@@ -89,6 +90,13 @@ def test_windows_lie_inside_the_frame_range_of_the_recording_and_end_in_contact(
 def test_an_unknown_task_is_an_error_naming_it(tmp_path):
     with pytest.raises(DataError, match="lego-vs-concrete"):
         robustness(tmp_path, tasks=("lego-vs-concrete",))
+
+
+def test_a_model_to_score_must_be_a_texture_model_of_vectors_alone(tmp_path, capsys):
+    with pytest.raises(DataError, match="manifest"):
+        model_trainer(tmp_path)
+    assert main(["--data", str(tmp_path), "--model", str(tmp_path)]) == 2
+    assert "--model" in capsys.readouterr().err
 
 
 @pytest.mark.real
