@@ -16,7 +16,14 @@ and every rejection has a reason:
   pin found twice);
 * ``glare``: a spot far weaker than the pins (``MIN_STRENGTH`` of their
   median), or off the lattice: no other kept blob within ``LATTICE_PITCH``
-  pitch (a glint between the rows).
+  pitch (a glint between the rows); or a faint spot (under ``FAINT_STRENGTH`` of
+  the pins' median) that is no lattice site: none of the sites its kept
+  neighbours predict (a row continued a step, the midpoint of two pins) lies
+  within ``SITE_PITCH`` pitch of it (:func:`lattice_error_px`).
+
+Centres are sub-pixel (:func:`centres`): the centroid of what stands above a plane
+fitted to a ring around each spot, so the glare's gradient does not shift a faint
+pin's centre.
 
 Nothing here knows how many pins a sensor has: the pitch and the pin size come
 from the threshold search, the thresholds from the spots' own distribution.
@@ -46,6 +53,11 @@ EDGE_PITCH = 0.5
 #: ... and weaker than this share of the pins' median strength (a whole pin on the
 #: boundary is as strong as the others)
 EDGE_STRENGTH = 0.6
+
+#: a spot weaker than this share of the pins' median strength must sit on a lattice site
+FAINT_STRENGTH = 0.3
+#: ... within this many pitches of where its neighbours' rows predict a pin
+SITE_PITCH = 0.2
 
 REASONS = ("kept", "glare", "duplicate", "edge", "unstable")
 
@@ -100,7 +112,8 @@ class RestPins:
 
 def spots(gray: np.ndarray, pin_d_px: float, pitch_px: float, mask: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate pin centres (n, 2) px (sub-pixel) and their top-hat strength (n,)."""
+    """Candidate pin centres (n, 2) px (sub-pixel, :func:`centres`) and their top-hat
+    strength (n,)."""
     f = gray.astype(np.float32)
     f = cv2.GaussianBlur(f, (0, 0), max(0.8, 0.3 * pin_d_px))
     k = int(2 * round(0.75 * pin_d_px) + 1)
@@ -109,17 +122,52 @@ def spots(gray: np.ndarray, pin_d_px: float, pitch_px: float, mask: np.ndarray
     w = int(2 * round(0.35 * pitch_px) + 1)
     peak = (hat >= cv2.dilate(hat, np.ones((w, w), np.uint8))) & (hat > 0.5) & (mask > 0)
     ys, xs = np.nonzero(peak)
-    # sub-pixel: the top-hat's centroid over the 3x3 around each maximum
-    h, wd = hat.shape
-    xy = np.empty((len(xs), 2), np.float64)
-    for i, (x, y) in enumerate(zip(xs, ys)):
-        x0, x1, y0, y1 = max(0, x - 1), min(wd, x + 2), max(0, y - 1), min(h, y + 2)
-        patch = hat[y0:y1, x0:x1].astype(np.float64)
-        patch = np.clip(patch - patch.min(), 0, None)
-        s = patch.sum()
-        gy, gx = np.mgrid[y0:y1, x0:x1]
-        xy[i] = ((gx * patch).sum() / s, (gy * patch).sum() / s) if s > 0 else (x, y)
-    return xy, hat[ys, xs].astype(np.float64)
+    return centres(gray, xs, ys, pin_d_px, pitch_px), hat[ys, xs].astype(np.float64)
+
+
+#: the centring window's radius, in pitches (the background ring lies just inside it)
+WINDOW_PITCH = 0.45
+#: weighted-centroid iterations
+CENTRE_ROUNDS = 4
+#: the centroid's Gaussian weight has a sigma of this many pin diameters
+WEIGHT_PIN = 0.5
+
+
+def centres(gray: np.ndarray, xs: np.ndarray, ys: np.ndarray, pin_d_px: float,
+            pitch_px: float) -> np.ndarray:
+    """Sub-pixel centres (n, 2) px of the pins whose brightest pixels are ``xs, ys``.
+
+    In a window of ``WINDOW_PITCH`` pitch around each, the background is a plane
+    fitted to the window's outer ring (where no pin is): the LED glare's gradient
+    then neither lifts one side of a faint pin nor drags its centre. The centre is
+    the centroid of what stands above that plane, weighted by a Gaussian of the
+    pin's size around the current estimate (a few rounds, starting at the peak)."""
+    n = len(xs)
+    if n == 0:
+        return np.zeros((0, 2))
+    r = max(2, int(math.ceil(WINDOW_PITCH * pitch_px)))
+    f = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 0.7).astype(np.float64)
+    pad = np.pad(f, r, mode="edge")
+    dy, dx = np.mgrid[-r:r + 1, -r:r + 1]
+    patch = pad[ys[:, None, None] + r + dy, xs[:, None, None] + r + dx]      # (n, P, P)
+    rr = np.hypot(dx, dy)
+    ring = rr >= max(r - 1.5, 0.5 * pin_d_px + 0.5)
+    a = np.column_stack([np.ones(ring.sum()), dx[ring], dy[ring]])
+    coef = patch[:, ring] @ np.linalg.pinv(a).T                               # (n, 3)
+    plane = coef[:, 0, None, None] + coef[:, 1, None, None] * dx + coef[:, 2, None, None] * dy
+    above = np.clip(patch - plane, 0.0, None)
+    above[:, rr > r] = 0.0
+    sigma = max(1.0, WEIGHT_PIN * pin_d_px)
+    off = np.zeros((n, 2))
+    for _ in range(CENTRE_ROUNDS):
+        g = np.exp(-((dx - off[:, 0, None, None]) ** 2 + (dy - off[:, 1, None, None]) ** 2)
+                   / (2.0 * sigma ** 2))
+        wgt = above * g
+        s = wgt.sum(axis=(1, 2))
+        ok = s > 0
+        new = np.column_stack([(wgt * dx).sum(axis=(1, 2)), (wgt * dy).sum(axis=(1, 2))])
+        off[ok] = np.clip(new[ok] / s[ok, None], -r / 2.0, r / 2.0)
+    return np.column_stack([xs + off[:, 0], ys + off[:, 1]]).astype(np.float64)
 
 
 def _track(found: list[tuple[np.ndarray, np.ndarray]], gate_px: float):
@@ -160,6 +208,33 @@ def nn_px(xy: np.ndarray) -> np.ndarray:
     return d.min(axis=1)
 
 
+def lattice_error_px(p: np.ndarray, others: np.ndarray, pitch_px: float) -> float:
+    """How far (px) ``p`` lies from the nearest site its neighbours predict: a row
+    continued one step (``2a - b`` for neighbours ``a`` of ``p`` and ``b`` of ``a``
+    0.6..1.6 pitch apart) or the midpoint of two neighbours more than 1.4 pitch
+    apart. Inf when no neighbour is within 1.6 pitch."""
+    others = np.asarray(others, np.float64).reshape(-1, 2)
+    p = np.asarray(p, np.float64)
+    near = others[np.hypot(*(others - p).T) < 1.6 * pitch_px]
+    if len(near) == 0:
+        return math.inf
+    best = math.inf
+    d_ab = np.hypot(*(near[:, None] - others[None]).transpose(2, 0, 1))     # (a, b)
+    step = (d_ab > 0.6 * pitch_px) & (d_ab < 1.6 * pitch_px)
+    pred = 2.0 * near[:, None] - others[None]
+    err = np.hypot(*(pred - p).transpose(2, 0, 1))
+    if step.any():
+        best = float(err[step].min())
+    if len(near) > 1:
+        d_nn = np.hypot(*(near[:, None] - near[None]).transpose(2, 0, 1))
+        mid = (near[:, None] + near[None]) / 2.0
+        e = np.hypot(*(mid - p).transpose(2, 0, 1))
+        wide = d_nn > 1.4 * pitch_px
+        if wide.any():
+            best = min(best, float(e[wide].min()))
+    return best
+
+
 def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
                    pitch_px: float) -> RestPins:
     """The rest pins of no-contact gray frames (see the module's rules)."""
@@ -193,6 +268,12 @@ def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
     kept = reason == "kept"
     lone = nn_px(xy[kept]) > LATTICE_PITCH * pitch_px
     reason[np.flatnonzero(kept)[lone]] = "glare"
+    # a faint spot is a pin only where its neighbours' lattice predicts one (weakest first)
+    faint = np.flatnonzero((reason == "kept") & (med_s < FAINT_STRENGTH * typical))
+    for i in faint[np.argsort(med_s[faint])]:
+        others = xy[(reason == "kept") & (np.arange(len(xy)) != i)]
+        if lattice_error_px(xy[i], others, pitch_px) > SITE_PITCH * pitch_px:
+            reason[i] = "glare"
     return RestPins(xy=xy, seen=seen, strength=np.nan_to_num(med_s), reason=reason.astype(str),
                     pitch_px=float(pitch_px), frames=len(grays))
 

@@ -127,18 +127,20 @@ def layouts():
 
 
 def test_clips_of_one_sensor_give_one_layout(layouts):
-    """Every layout near 133 pins, the clips near each other, and matched pins (after
-    a shift) close: the figures measured in the issue-23 report, with a margin."""
+    """Every layout near 133 pins, the clips within 3 pins of each other, and matched
+    pins (after a shift) close. Measured (issue 23, second round): 130, 130, 130, 130,
+    133 pins; 0-3 apart; median 0.06-0.25 px, max 0.8-1.6 px (the 1 px goal is not
+    met: a few faint pins under the glare)."""
     from host.analysis.rest_pins import agreement
     for name, lay in layouts.items():
-        assert abs(len(lay) - 133) <= 8, (name, len(lay))
+        assert abs(len(lay) - 133) <= 4, (name, len(lay))
     names = list(layouts)
     for i, a in enumerate(names):
         for b in names[i + 1:]:
             ag = agreement(layouts[a], layouts[b], 11.7)
-            assert ag["count_difference"] <= 8, (a, b, ag)
-            assert ag["matched"] >= 0.9 * min(ag["pins"]), (a, b, ag)
-            assert ag["median_px"] <= 0.5 and ag["max_px"] <= 3.0, (a, b, ag)
+            assert ag["count_difference"] <= 3, (a, b, ag)
+            assert ag["matched"] >= 0.92 * min(ag["pins"]), (a, b, ag)
+            assert ag["median_px"] <= 0.3 and ag["max_px"] <= 2.0, (a, b, ag)
 
 
 def test_the_printed_count_is_the_written_count_and_start_frames_merge(tmp_path, capsys):
