@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 
-from device.pi.sources.camera import CameraError
+from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, open_imu
 from host.cli.common import (SEED, UserError, dataset_folder, emit, number, open_source,
-                             out_folder, progress_bar)
+                             out_folder, progress_bar, whole)
 from host.rig.record import RecordError, record
 from host.rig.plan import load_plan, plan_summary
 from host.rig.trials import run, summary_text
@@ -30,9 +30,33 @@ def cmd_rig(args):
     return 1 if s["failed"] or s["remaining"] else 0
 
 
+def _open_range(args):
+    """The camera, opened at ``--start`` for ``--frames`` frames when given (file and
+    simulated sources only: a live camera has no frame numbers to start from)."""
+    if args.frames is not None and args.seconds is not None:
+        raise UserError(f"host record: give --seconds or --frames, not both (got --seconds "
+                        f"{args.seconds:g} and --frames {args.frames})")
+    if args.frames is None and args.seconds is None:
+        args.seconds = 30.0
+    if args.frames is None and not args.start:
+        return open_source(args.camera)
+    if args.camera.lower().startswith("v4l2://"):
+        raise UserError(f"host record: --start/--frames need a file or sim:// source; "
+                        f"{args.camera} is a live camera (use --seconds)")
+    opts = {"start_frame": args.start}
+    if args.frames is not None:
+        opts["end_frame"] = args.start + args.frames
+    try:
+        return open_camera(args.camera, **opts)
+    except CameraError as exc:
+        raise UserError(f"--camera {args.camera}: {exc}") from None
+    except ValueError as exc:
+        raise UserError(f"--camera {args.camera}: {exc}") from None
+
+
 def cmd_record(args):
     out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
-    camera = open_source(args.camera)
+    camera = _open_range(args)
     imu = None
     if args.imu:
         try:
@@ -41,12 +65,13 @@ def cmd_record(args):
             camera.close()
             raise UserError(f"--imu {args.imu}: {exc}") from None
     fps = getattr(camera, "fps", None) or 120.0
+    total = args.frames if args.frames is not None else int(round(args.seconds * fps))
     try:
-        with camera, progress_bar(int(round(args.seconds * fps)), f"record {args.label}",
-                                  not args.json) as bar:
+        with camera, progress_bar(total, f"record {args.label}", not args.json) as bar:
             entry = record(camera, imu, args.label, args.seconds, args.out,
                            camera_url=args.camera, imu_url=args.imu or "",
-                           progress=bar.update)
+                           progress=bar.update, frames=args.frames, start=args.start,
+                           profile=args.profile)
     except (RecordError, CameraError, IMUError) as exc:
         raise UserError(f"host record: {exc}; nothing was added to {args.out}") from None
     finally:
@@ -65,8 +90,16 @@ def register(sub) -> None:
                    help="v4l2:///dev/video0, a video file, a folder of images or sim://SCENE")
     s.add_argument("--imu", help="i2c://1/0x68, file://imu.npy or sim://SCENE (optional)")
     s.add_argument("--label", required=True, help="the surface or texture name, e.g. lego")
-    s.add_argument("--seconds", type=number(0, 86_400, lo_open=True), default=30.0,
-                   help="how long to record (a file source may end sooner); default 30")
+    s.add_argument("--seconds", type=number(0, 86_400, lo_open=True),
+                   help="how long to record (a file source may end sooner); default 30 "
+                        "(not with --frames)")
+    s.add_argument("--frames", type=whole(1, 10_000_000),
+                   help="record exactly N frames (file and sim:// sources; an error if the "
+                        "source ends sooner)")
+    s.add_argument("--start", type=whole(0, 10_000_000), default=0,
+                   help="the source frame to start at (file and sim:// sources); default 0")
+    s.add_argument("--profile", default="roboskin",
+                   help="the sensor profile the trial is recorded for (kept in dataset.json)")
     s.add_argument("--out", required=True, help="dataset folder to append the trial to")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_record)

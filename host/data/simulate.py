@@ -8,6 +8,7 @@ import numpy as np
 
 from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Scene, Simulator, load_scene
 from host.data.dataset import DatasetWriter
+from host.data.recordings import profile_ref, sim_recording
 
 __all__ = ["simulate_to_dataset"]
 
@@ -38,7 +39,10 @@ def simulate_to_dataset(scene_ref, out: Path, seed: int = 0, trials: int = 1,
             truth = dict(sim.truth, rest_pins_px=sim.rest_pins_px)
             info = {"scene": scene.name, "scene_file": scene.source, "seed": seed + k,
                     "fps": scene.fps, "width": sim.width, "height": sim.height,
-                    "profile": scene.profile.name, "n_pins": scene.profile.n_pins,
+                    "recording": sim_recording(scene.name, seed + k),
+                    "profile": scene.profile.name,
+                    "profile_sha256": profile_ref(scene.profile.name)["sha256"],
+                    "n_pins": scene.profile.n_pins,
                     "effects": list(scene.effect_names)}
             files.append(str(writer.add_trial(frames, truth, info)))
     return {"out": str(out), "trials": files, "frames": int(sum(

@@ -17,6 +17,7 @@ import numpy as np
 
 from device.pi.sources.camera import CameraError, open_camera
 from host.data.extract import ClipFeatures, extract_features
+from host.data.recordings import file_recording, source_recording
 from host.data.spec_npz import load_npz
 from host.data.windows import (IMU_CHANNELS, DataError, TrialPart, WindowSet, check_labels,
                                finalise, keep_contact, stack_parts, window_ends, window_labels)
@@ -252,11 +253,14 @@ def load_manifest(path: Path, task: str, T: int, stride: int, contact_only: bool
             targets = np.full(len(ends), float(r.label))
         else:
             labels = window_labels(task, np.full(len(ends), r.label, object), contact)
-        trials.setdefault(k, {"kind": r.kind, "path": r.path, "span_start": spans[k][0],
-                              "frames": spans[k][1] - spans[k][0], "fps": clip.fps, "rows": []})
+        if k not in trials:
+            rec = source_recording(k) if r.kind == "sim" else file_recording(k)
+            trials[k] = {"kind": r.kind, "path": r.path, "span_start": spans[k][0],
+                         "frames": spans[k][1] - spans[k][0], "fps": clip.fps, "rows": [],
+                         "recording": rec}
         trials[k]["rows"].append(r.line - 1)
         parts.append(TrialPart(clip, ends, labels, targets, contact, imu, k, spans[k][0],
-                           spans[k][1] - spans[k][0]))
+                               spans[k][1] - spans[k][0], trials[k]["recording"]["id"]))
     notes = []
     if dropped_ref:
         notes.append(f"{dropped_ref} windows dropped: they start before the reference frame")

@@ -9,9 +9,22 @@ import numpy as np
 
 from host.data.dataset import DatasetError, load_trial, read_index
 from host.data.extract import extract_features
+from host.data.recordings import sim_recording
 from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
                                check_labels, finalise, keep_contact, stack_parts, window_ends,
                                window_labels)
+
+
+def trial_recording(path: Path, entry: dict) -> dict:
+    """The recording a trial entry names (``recording``, written by ``host record``
+    and ``host simulate``); an older entry of a simulated run names its scene and
+    seed; any other trial is a recording of its own."""
+    rec = entry.get("recording")
+    if isinstance(rec, dict) and isinstance(rec.get("id"), str) and rec["id"]:
+        return rec
+    if entry.get("scene") is not None and entry.get("seed") is not None:
+        return sim_recording(entry["scene"], entry["seed"])
+    return {"id": f"trial:{path.resolve() / entry.get('file', '')}"}
 
 
 def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
@@ -95,10 +108,12 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
             imu = np.asarray(imu, np.float64)
             if imu.shape != (F, IMU_CHANNELS):
                 raise DataError(f"{path / fname}: imu has shape {imu.shape}, expected ({F}, 6)")
+        rec = trial_recording(path, entry)
         trials[i] = {"kind": "dataset", "path": str(path / fname), "span_start": 0,
                      "frames": F, "fps": clip.fps, "scene": entry.get("scene"),
-                     "seed": entry.get("seed")}
-        parts.append(TrialPart(clip, ends, labels, targets, contact, imu, i, 0, F))
+                     "seed": entry.get("seed"), "recording": rec}
+        parts.append(TrialPart(clip, ends, labels, targets, contact, imu, i, 0, F,
+                               rec["id"], int(rec.get("start_frame") or 0)))
     parts, cut, kept = keep_contact(parts, contact_only)
     arrays = stack_parts(parts, task, T, trials)
     notes = [f"{dropped_ref} windows dropped: they start before the reference frame"] \

@@ -47,7 +47,7 @@ class DataError(ValueError):
 # ----------------------------------------------------------------------------
 
 _PER_WINDOW = ("vectors", "lost", "imu", "grids", "frames", "contact", "labels", "targets",
-               "groups", "t_index", "trial_len")
+               "groups", "t_index", "trial_len", "recordings", "frame_index")
 
 
 @dataclass
@@ -56,7 +56,11 @@ class WindowSet:
 
     ``t_index`` is the window's last frame counted from its trial's first frame and
     ``trial_len`` the trial's length in frames; both are -1 for ``.npz`` windows,
-    which carry no time order. ``source`` says where the windows came from
+    which carry no time order. ``recordings`` holds each window's recording id
+    (:mod:`host.data.recordings`; several trials can share one, e.g. two parts of a
+    clip) and ``frame_index`` its last frame counted in that recording (-1 when
+    unknown); both are None when the loader knows no recordings, and
+    :meth:`recording_ids` then gives one recording per trial. ``source`` says where the windows came from
     (``trials``: one entry per group), how many windows were cut and kept
     (``kept_fraction``) and what was dropped.
     """
@@ -76,6 +80,15 @@ class WindowSet:
     trial_len: np.ndarray             # (N,) int64
     classes: list = field(default_factory=list)
     source: dict = field(default_factory=dict)
+    recordings: np.ndarray | None = None   # (N,) str (object) recording id
+    frame_index: np.ndarray | None = None  # (N,) int64, last frame in the recording
+
+    def recording_ids(self) -> np.ndarray:
+        """(N,) recording id of each window; without ``recordings``, one per trial
+        (``"trial:G"``)."""
+        if self.recordings is not None:
+            return self.recordings
+        return np.array([f"trial:{int(g)}" for g in self.groups], object)
 
     def __len__(self) -> int:
         return int(self.vectors.shape[0])
@@ -139,10 +152,12 @@ class WindowSet:
         for k in ("labels", "targets"):
             have = [getattr(s, k) is not None for s in sets]
             out[k] = np.concatenate([getattr(s, k) for s in sets]) if all(have) else None
-        groups, trials, offset = [], [], 0
+        groups, trials, recs, offset = [], [], [], 0
         for s in sets:
             uniq, inv = np.unique(s.groups, return_inverse=True)
             groups.append(inv.astype(np.int64) + offset)
+            recs.append(s.recordings if s.recordings is not None else
+                        np.array([f"trial:{int(g) + offset}" for g in inv], object))
             remap = {int(g): int(i) + offset for i, g in enumerate(uniq)}
             for tr in s.source.get("trials", []):
                 if tr.get("group") in remap:
@@ -166,7 +181,12 @@ class WindowSet:
                    groups=np.concatenate(groups),
                    t_index=np.concatenate([s.t_index for s in sets]),
                    trial_len=np.concatenate([s.trial_len for s in sets]),
-                   classes=classes, source=source, **out)
+                   classes=classes, source=source,
+                   recordings=(np.concatenate(recs) if any(s.recordings is not None
+                                                            for s in sets) else None),
+                   frame_index=np.concatenate([s.frame_index if s.frame_index is not None
+                                               else np.full(len(s), -1, np.int64)
+                                               for s in sets]), **out)
 
     def summary(self) -> dict:
         """A JSON-able summary (for manifests and ``--json`` output)."""
@@ -174,6 +194,8 @@ class WindowSet:
              "trials": int(len(np.unique(self.groups))), "pins": self.n_pins,
              "imu": self.imu is not None, "kept_fraction": round(self.kept_fraction, 6),
              "classes": list(self.classes)}
+        rid, counts = np.unique(self.recording_ids().astype(str), return_counts=True)
+        d["recordings"] = {str(r): int(c) for r, c in zip(rid, counts)}
         if self.labels is not None:
             names, counts = np.unique(self.labels.astype(str), return_counts=True)
             d["class_counts"] = {str(n): int(c) for n, c in zip(names, counts)}
@@ -214,9 +236,11 @@ class TrialPart:
     targets: np.ndarray | None
     contact: np.ndarray
     imu: np.ndarray | None    # (F, 6) per clip frame
-    trial: tuple              # key of the recording: one group per key
+    trial: tuple              # key of the trial: one group per key
     span_start: int
     span_len: int
+    recording: str = ""       # the recording's id ("": one per trial)
+    frame_offset: int = 0     # the clip's frame 0 is this frame of the recording
 
 
 def stack_parts(parts: list[TrialPart], task: str, T: int, trials: dict) -> dict:
@@ -224,7 +248,8 @@ def stack_parts(parts: list[TrialPart], task: str, T: int, trials: dict) -> dict
     offs = np.arange(-T + 1, 1, dtype=np.int64)
     keys = list(trials)
     out = {k: [] for k in ("vectors", "lost", "grids", "frames", "imu", "contact", "labels",
-                           "targets", "groups", "t_index", "trial_len")}
+                           "targets", "groups", "t_index", "trial_len", "recordings",
+                           "frame_index")}
     for p in parts:
         ix = p.ends[:, None] + offs[None, :]
         out["vectors"].append(p.clip.vectors[ix])
@@ -239,6 +264,9 @@ def stack_parts(parts: list[TrialPart], task: str, T: int, trials: dict) -> dict
         out["groups"].append(np.full(n, keys.index(p.trial), np.int64))
         out["t_index"].append(p.ends - p.span_start)
         out["trial_len"].append(np.full(n, p.span_len, np.int64))
+        rec = p.recording or f"trial:{keys.index(p.trial)}"
+        out["recordings"].append(np.full(n, rec, object))
+        out["frame_index"].append(p.ends.astype(np.int64) + int(p.frame_offset))
     res = {}
     for k, lst in out.items():
         if any(x is None for x in lst):

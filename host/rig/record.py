@@ -11,7 +11,14 @@ A recorded trial has no ground truth for contact or load: the dataset loader tak
 contact from the marker pipeline (as for a CSV manifest of clips), and the label is
 the surface and texture name of every contact frame. ``dataset.json`` keeps the
 labels in ``record_labels`` (the ``surface_labels`` and ``texture_labels`` of the
-folder) and each trial's ``label``, ``camera`` and ``imu``.
+folder) and each trial's ``label``, ``camera`` and ``imu``, the ``recording`` it
+came from (:func:`host.data.recordings.source_recording`: a file's name and SHA-256
+with ``start_frame``, ``simulated:SCENE seed N``, or a live session) and the
+``profile`` it was recorded for with its ``profile_sha256``.
+
+``frames=N`` (``host record --frames N --start K``, file and simulated sources)
+records exactly N frames from frame K of the source; a source that ends sooner is a
+RecordError and nothing is added.
 """
 from __future__ import annotations
 
@@ -25,6 +32,7 @@ import numpy as np
 from device.pi.sources.camera import CameraSource
 from device.pi.sources.imu import ImuSource
 from host.data.dataset import DatasetError, DatasetWriter, addable_folder, temp_prefix
+from host.data.recordings import profile_ref, source_recording
 from host.data.windows import LABEL_RE, check_label_name
 from host.rig.trials import RUN_STATE
 
@@ -48,13 +56,28 @@ def _labels(writer: DatasetWriter, label: str) -> list[str]:
 
 def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: float,
            out: Path | str, *, camera_url: str = "", imu_url: str = "",
-           progress=None) -> dict:
+           progress=None, frames: int | None = None, start: int = 0,
+           profile: str = "roboskin") -> dict:
     """Record frames from ``camera`` for ``seconds`` of stream time (or until it
-    ends), one IMU row per frame from ``imu`` when given, and append the trial to
-    the dataset folder ``out``. ``progress``: a callable taking the number of new
-    frames (a progress bar's ``update``). Returns the trial's index entry."""
+    ends), or exactly ``frames`` frames (``seconds`` None), one IMU row per frame
+    from ``imu`` when given, and append the trial to the dataset folder ``out``.
+    ``start``: the source frame ``camera`` starts at (opened with
+    ``start_frame=start``; the IMU skips as many rows), kept in the trial's
+    ``recording``. ``progress``: a callable taking the number of new frames (a
+    progress bar's ``update``). Returns the trial's index entry."""
     check_label_name(label, "--label", RecordError)     # the rule host train applies too
-    if not (isinstance(seconds, (int, float)) and np.isfinite(seconds) and seconds > 0):
+    if frames is None and seconds is None:
+        raise RecordError("give --seconds or --frames")
+    if frames is not None and seconds is not None:
+        raise RecordError(f"give --seconds or --frames, not both (got --seconds {seconds} "
+                          f"and --frames {frames})")
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, int)
+                               or frames < 1):
+        raise RecordError(f"--frames must be a whole number >= 1, got {frames!r}")
+    if isinstance(start, bool) or not isinstance(start, int) or start < 0:
+        raise RecordError(f"--start must be a whole number >= 0, got {start!r}")
+    if seconds is not None and not (isinstance(seconds, (int, float)) and np.isfinite(seconds)
+                                    and seconds > 0):
         raise RecordError(f"--seconds must be a number > 0, got {seconds!r}")
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -79,9 +102,14 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
     t_s, imu_rows, imu_faults = [], [], []
     t_wall = time.time()
     try:
+        if imu is not None:
+            for _ in range(start):          # the IMU row of the first recorded frame
+                imu.read()
         with os.fdopen(fd, "wb") as fh:
             t0 = None
             for fr in camera:
+                if frames is not None and len(t_s) >= frames:
+                    break
                 img = fr.image
                 if img.ndim == 3:
                     import cv2
@@ -93,7 +121,7 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
                     raise RecordError(f"{camera_url or camera}: frame {fr.index} is "
                                       f"{img.shape[1]}x{img.shape[0]}, the first was "
                                       f"{shape[1]}x{shape[0]}")
-                if fr.t_s - t0 >= seconds:
+                if seconds is not None and fr.t_s - t0 >= seconds:
                     break
                 fh.write(np.ascontiguousarray(img, np.uint8).tobytes())
                 t_s.append(fr.t_s - t0)
@@ -105,8 +133,13 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
                     progress(1)
         n = len(t_s)
         if n == 0:
-            raise RecordError(f"{camera_url or camera}: no frames")
-        frames = np.memmap(spool, np.uint8, "r", shape=(n, *shape))
+            raise RecordError(f"{camera_url or camera}: no frames"
+                              + (f" from frame {start}" if start else ""))
+        if frames is not None and n < frames:
+            raise RecordError(f"{camera_url or camera}: --frames {frames} from --start "
+                              f"{start}, but the source ends after {n} frames (frame "
+                              f"{start + n - 1})")
+        data = np.memmap(spool, np.uint8, "r", shape=(n, *shape))
         code = names.index(label)
         truth = {"t_s": np.asarray(t_s, np.float64),
                  "surface": np.full(n, code, np.int8), "texture": np.full(n, code, np.int8)}
@@ -116,12 +149,16 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
         fps = (n - 1) / t_s[-1] if n > 1 and t_s[-1] > 0 else None
         writer.index.update({"source": "record", "record_labels": names,
                              "surface_labels": names, "texture_labels": names})
+        rec = source_recording(camera_url, t_wall) if camera_url else {"id": f"live:{t_wall}"}
+        rec["start_frame"] = int(start)
+        prof = profile_ref(profile)
         info = {"label": label, "camera": camera_url, "imu": imu_url or None,
+                "recording": rec, "profile": prof["name"], "profile_sha256": prof["sha256"],
                 "fps": None if fps is None else round(fps, 3), "width": int(shape[1]),
                 "height": int(shape[0]), "recorded_at": round(t_wall, 3),
                 "seconds": round(float(t_s[-1]), 4)}
-        path = writer.add_trial(frames, truth, info)
-        del frames
+        path = writer.add_trial(data, truth, info)
+        del data
         return dict(writer.index["trials"][-1], path=str(path))
     finally:
         writer.close()

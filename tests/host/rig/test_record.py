@@ -109,3 +109,31 @@ def test_record_adds_to_a_folder_a_stopped_writer_left_only_temporary_files_in(t
     with open_camera("sim://press-soft") as cam:
         entry = record(cam, None, "hard", 0.05, out)
     assert entry["label"] == "hard" and is_dataset(out)
+
+
+def test_record_start_and_frames_are_frame_exact_and_exclusive_of_seconds(tmp_path, capsys):
+    """--start K --frames N records exactly frames K .. K+N-1 of the source; the
+    trial names its recording and profile; --seconds with --frames is refused, and a
+    source shorter than asked adds nothing."""
+    from device.pi.sources.camera import open_camera
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", "sim://press-soft", "--label", "soft",
+                 "--start", "7", "--frames", "13", "--out", str(out)]) == 0
+    t = load_trial(out, 0)
+    assert t["frames"].shape[0] == 13
+    with open_camera("sim://press-soft", start_frame=7, end_frame=8) as cam:
+        first = next(iter(cam)).image
+    first = cv2.cvtColor(first, cv2.COLOR_BGR2GRAY) if first.ndim == 3 else first
+    assert np.array_equal(t["frames"][0], first)
+    e = read_index(out)["trials"][0]
+    assert e["recording"]["id"] == "simulated:press-soft seed 0"
+    assert e["recording"]["start_frame"] == 7
+    assert e["profile"] == "roboskin" and len(e["profile_sha256"]) == 64
+    capsys.readouterr()
+    assert main(["record", "--camera", "sim://press-soft", "--label", "soft",
+                 "--seconds", "1", "--frames", "5", "--out", str(out)]) == 2
+    assert "not both" in capsys.readouterr().err
+    assert main(["record", "--camera", "sim://press-soft", "--label", "soft",
+                 "--start", "90", "--frames", "50", "--out", str(out)]) == 2
+    assert "ends after" in capsys.readouterr().err
+    assert len(read_index(out)["trials"]) == 1
