@@ -17,7 +17,25 @@ def test_hertz_patch_radius():
     d = t["depth_mm"]
     expect = np.sqrt(prof.dome_radius_mm * d) * prof.px_per_mm
     assert np.allclose(t["patch_radius_px"], expect)
-    assert t["load_n"].max() > 0 and np.all(np.diff(t["load_n"][d > 0]) >= -1e-9) is not None
+
+
+def test_hertz_load_follows_depth_down_and_up():
+    """N = 4/3 E* sqrt(R) d^1.5 of the depth at every frame: the load rises while the
+    foot is lowered, holds while it holds and falls while it lifts (load is a function
+    of depth, not of time), and no frame in the air carries a load."""
+    sim = Simulator(load_scene("press-hard"))
+    t, prof = sim.truth, sim.scene.profile
+    d, load = t["depth_mm"], t["load_n"]
+    hertz = 4.0 / 3.0 * prof.modulus_n_per_mm2 * np.sqrt(prof.dome_radius_mm) * d ** 1.5
+    assert np.allclose(load, np.where(d > 1e-3, hertz, 0.0))
+    assert load.max() > 5.0
+    by_depth = np.argsort(d, kind="stable")
+    assert np.all(np.diff(load[by_depth]) >= 0)
+    dd, dl = np.diff(d), np.diff(load)
+    pressed = (d[1:] > 1e-3) & (d[:-1] > 1e-3)
+    assert np.all(dl[pressed & (dd > 0)] > 0) and np.all(dl[pressed & (dd < 0)] < 0)
+    assert np.all(dl[pressed & (dd == 0)] == 0)
+    assert (pressed & (dd > 0)).sum() > 10 and (pressed & (dd < 0)).sum() > 10
 
 
 def test_press_spreads_patch_pins_radially_outward():
