@@ -42,6 +42,7 @@ CMD_REZERO = const(1)
 CMD_SET_RATE = const(2)
 CMD_REQUEST_STATUS = const(3)
 
+FAULT_FRAME = const(0x0080)         # the frame was implausible: its SURFACE says no contact
 FAULT_CAMERA = const(0x0100)
 FAULT_IMU = const(0x0200)
 FAULT_MODEL = const(0x0400)

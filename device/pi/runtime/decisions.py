@@ -8,6 +8,11 @@ a fresh gait context the rule's probabilities are blended in with the weight
 from a slip model, else from the rule's ``slippery`` probability. A texture is only
 decided in contact. Probabilities are in the SURFACE class order
 (:data:`device.pi.protocol.SURFACE_CLASSES`).
+
+A frame with the ``frame`` fault (implausible for the sensor: noise, black, white,
+bad pixel values) holds "no touch": class no-touch with all its probability, no
+contact, no slip, no texture and no pressure; no model runs on it and the runtime
+does not push it into the windows. The fault bit travels with the SURFACE packet.
 """
 from __future__ import annotations
 
@@ -125,10 +130,15 @@ class Decision:
 
 
 def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
-           expected_mag_px, expected_motion_px, gait, gait_rule_weight: float) -> Decision:
+           expected_mag_px, expected_motion_px, gait, gait_rule_weight: float,
+           frame_ok: bool = True) -> Decision:
     """One decision from the filled windows (``windows[T]`` holds T frames).
     ``contact_seen`` is the marker pipeline's contact; ``referenced`` says the
-    pipeline has a reference frame (no pressure without one)."""
+    pipeline has a reference frame (no pressure without one); ``frame_ok`` False
+    (the frame fault) gives the "no touch" decision without running a model."""
+    if not frame_ok:
+        return Decision(NO_TOUCH, no_touch_probs(), False, False, 0.0, None, None, False,
+                        None, no_touch_probs(), {})
     m = models
     model_fault = False
     rwin = windows[m.rule.T]

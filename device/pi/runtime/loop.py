@@ -31,8 +31,8 @@ import numpy as np
 
 from device.checks import frame_rate
 from device.config import ConfigError
-from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_IMU, FAULT_LINK, FAULT_MODEL,
-                              FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_FRAME, FAULT_IMU, FAULT_LINK,
+                              FAULT_MODEL, FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
 from device.pi.models.artefact import ModelError
 from device.pi.models.window import RollingWindow, WindowTail
 from device.pi import protocol as P
@@ -234,16 +234,18 @@ class LegRuntime:
         else:
             self._pins_lost = 0
         v = ef.vectors
-        self._window.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
+        frame_ok = not ff.faults & FAULT_FRAME     # an implausible frame never enters a window
+        if frame_ok:
+            self._window.push(vectors=v, imu=imu_vec, grid=ff.grid, frame=ef.crop)
         exp_mag, exp_motion, gait = expected_context(self.gait, self.clock(),
                                                      self.cfg.decision, self.fps)
         d = decide(self.models, self.windows, contact_seen=bool(ff.contact),
                    referenced=self.stream.reference is not None, expected_mag_px=exp_mag,
                    expected_motion_px=exp_motion, gait=gait,
-                   gait_rule_weight=self.cfg.decision.gait_rule_weight)
+                   gait_rule_weight=self.cfg.decision.gait_rule_weight, frame_ok=frame_ok)
         self._model_fault = d.model_fault
         contact, texture = d.contact, d.texture
-        self._auto_rezero(v, ef.lost, contact, gait)
+        self._auto_rezero(v, ef.lost, contact or not frame_ok, gait)   # garbage is not "still"
         faults = self._fault_bits()
         msg = surface_message(d.class_id, d.probs, contact, d.slip, d.slip_conf,
                               ff.direction_deg, float(ff.magnitude), d.pressure,

@@ -361,6 +361,7 @@ class PinDetector:
             raise ValueError(f"frame_shape must be positive, got frame_shape={frame_shape!r}")
         self.params = params
         self.frame_shape = (h, w)
+        self.n_blobs = 0
         self.set_dome(dome)
 
     def set_dome(self, dome: tuple[float, float, float] | None) -> None:
@@ -424,13 +425,22 @@ class PinDetector:
             np.copyto(self._smooth, crop)
         return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
 
+    @property
+    def smooth(self) -> np.ndarray:
+        """The last gray, pre-blurred dome box (view of the internal buffer)."""
+        return self._smooth
+
     def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,)."""
+        """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,).
+        :attr:`n_blobs` is the number of blobs of any size it was chosen from."""
         self.threshold(frame)
-        xy, areas = extract_pins(self._binary_even, self.params.min_area_px,
-                                 self.params.max_area_px, self._labels)
+        cents, areas = components(self._binary_even, self._labels)
+        self.n_blobs = len(areas)
+        p = self.params
+        keep = (areas >= p.min_area_px) & (areas <= p.max_area_px)
+        xy = np.ascontiguousarray(cents[keep])
         xy += self._origin
-        return xy, areas
+        return xy, areas[keep]
 
     def detect_all(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All blobs (pins, glare and noise) in frame px, for measurement."""

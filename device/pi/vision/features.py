@@ -33,6 +33,11 @@ class ContactGrid:
 
     The cell means come from an integral image; a grid larger than the image
     gives empty cells whose mean is 0, never a division by zero.
+
+    A binary image that is not uint8 (float, bool, wider ints) is converted: non-zero
+    (NaN too) is foreground, 255. :attr:`converted` counts those images, so a caller
+    handing over the wrong type is seen; one of another size gives no contact and
+    sets :attr:`bad_input` for that update.
     """
 
     def __init__(self, n: int = 8, gamma: float = 0.01, contact_threshold: float = 0.04):
@@ -48,13 +53,22 @@ class ContactGrid:
         self._ref: np.ndarray | None = None
         self._diff: np.ndarray | None = None
         self._cells = np.zeros((self.n, self.n), np.float32)
+        self.converted = 0
+        self.bad_input = False
 
     @property
     def has_reference(self) -> bool:
         return self._ref is not None
 
+    def _as_binary(self, binary) -> np.ndarray:
+        b = np.asarray(binary)
+        if b.dtype == np.uint8:
+            return b
+        self.converted += 1
+        return np.where(b != 0, 255, 0).astype(np.uint8)     # NaN != 0: foreground
+
     def set_reference(self, binary: np.ndarray) -> None:
-        self._ref = np.array(binary, dtype=np.uint8, copy=True)
+        self._ref = np.array(self._as_binary(binary), dtype=np.uint8, copy=True)
         self._diff = np.empty_like(self._ref)
         h, w = self._ref.shape
         # cell edges; an image smaller than the grid gives empty cells, whose
@@ -76,8 +90,11 @@ class ContactGrid:
         """(grid (n, n) float32 in 0..1, contact flag). Without a reference, or
         for an image of another size, the grid decays and reports no contact."""
         ref = self._ref
-        if (ref is None or binary is None or binary.shape != ref.shape or binary.size == 0
-                or binary.dtype != np.uint8):
+        if binary is not None and ref is not None:
+            binary = self._as_binary(binary)
+        self.bad_input = binary is not None and ref is not None and (
+            binary.shape != ref.shape or binary.size == 0)
+        if ref is None or binary is None or self.bad_input:
             np.subtract(self.grid, self.gamma, out=self.grid)
             np.maximum(self.grid, 0.0, out=self.grid)
             return self.grid, False

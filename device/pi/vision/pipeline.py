@@ -6,6 +6,12 @@ localiser, when one is given) -> contact grid -> average vector, magnitude sum.
 The fault bits are device.pi.faults'. Pressure is not a per-frame feature: a pressure
 model reads its own window (device.pi.models.regressor.Regressor.predict_window).
 
+A frame the sensor cannot make (device.pi.vision.plausibility: noise, black, white,
+the dome moved; or pixel values that are NaN/inf, beyond 0..255 or boolean) gets the
+``frame`` fault and no contact: its pins are counted but not tracked (every reference
+pin is reported lost, vectors 0), the contact grid fades, and it never becomes the
+reference.
+
 The Pi runtime and the host (``host analyse``, training) use this one class; no
 stage is written twice. Nothing on the per-frame path raises: a bad frame gives
 finite numbers and fault bits.
@@ -21,9 +27,11 @@ import numpy as np
 # imported with the pipeline, so no frame pays for it
 import numpy.ma  # noqa: F401
 
-from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_LOCALISER,
-                              FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME, FAULT_FRAME_SIZE_CHANGED,
+                              FAULT_LOCALISER, FAULT_NO_DOME, FAULT_NO_REFERENCE,
+                              FAULT_TOO_FEW_PINS, fault_names)
 from device.pi.vision.features import ContactGrid, shear_and_sum
+from device.pi.vision.plausibility import FramePlausibility
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
 from device.pi.vision.tracking import Tracker
@@ -65,6 +73,16 @@ class FrameFeatures:
                 "timings_ms": {k: round(v, 4) for k, v in self.timings_ms.items()}}
 
 
+def pixel_values_ok(a: np.ndarray) -> bool:
+    """A non-uint8 frame is one a camera could give: numbers (not bool), all finite
+    and within 0..255. (uint8 frames are not checked: every value is one.)"""
+    if a.dtype == np.bool_ or a.size == 0:
+        return False
+    if np.issubdtype(a.dtype, np.floating) and not np.isfinite(a).all():
+        return False
+    return bool(a.min() >= 0 and a.max() <= 255)
+
+
 class MarkerStream:
     """Per-frame features from a stream of TacTip frames.
 
@@ -84,6 +102,9 @@ class MarkerStream:
         p = self.profile
         self.tracker = Tracker(max_dist_px=p.match_gate_px, pitch_px=p.pitch_px)
         self.grid = ContactGrid(p.grid_n, p.grid_gamma, p.grid_contact)
+        self.plausibility = FramePlausibility(p.n_pins)
+        #: why the last implausible frame failed ('' while frames pass)
+        self.implausible = ""
         self.shape: tuple[int, int] | None = None
         self.detector: PinDetector | None = None
         self.dome = None
@@ -100,6 +121,7 @@ class MarkerStream:
         self.reference = None
         self._candidates.clear()
         self.grid.clear_reference()
+        self.plausibility.clear()
 
     def _reset_geometry(self, shape: tuple[int, int]) -> None:
         self.shape = shape
@@ -122,7 +144,7 @@ class MarkerStream:
         self.detector = PinDetector(self.profile.vision, self.shape, self.dome)
         return True
 
-    def _maybe_choose_reference(self, pins: np.ndarray, binary: np.ndarray) -> None:
+    def _maybe_choose_reference(self, pins: np.ndarray, binary: np.ndarray, stats) -> None:
         c = self._candidates
         if c:
             prev = c[-1][0]
@@ -132,12 +154,12 @@ class MarkerStream:
                      else np.inf)
             if not moved <= self.still_px:
                 c.clear()
-        c.append((pins.copy(), binary.copy(), self.index - 1))
+        c.append((pins.copy(), binary.copy(), self.index - 1, stats))
         if len(c) < self.warmup:
             return
         counts = np.array([len(x[0]) for x in c])
         best = int(np.argmin(np.abs(counts - np.median(counts))))
-        ref_pins, ref_binary, ref_index = c[best]
+        ref_pins, ref_binary, ref_index, ref_stats = c[best]
         if len(ref_pins) < self.profile.min_pin_fraction * self.profile.n_pins:
             c.clear()
             return
@@ -145,6 +167,7 @@ class MarkerStream:
         self.reference_index = ref_index
         self.tracker.set_reference(ref_pins)
         self.grid.set_reference(ref_binary)
+        self.plausibility.set_reference(ref_stats)
         c.clear()
 
     # -- per frame ---------------------------------------------------------------
@@ -168,6 +191,12 @@ class MarkerStream:
             if self.shape is not None:
                 faults |= FAULT_FRAME_SIZE_CHANGED
             self._reset_geometry(shape)
+        if a.dtype != np.uint8 and not pixel_values_ok(a):
+            self.implausible = "values"
+            self._candidates.clear()
+            faults |= FAULT_FRAME | (FAULT_NO_DOME if self.detector is None else 0)
+            return self._empty(i, t_s, faults | (FAULT_NO_REFERENCE if self.reference is None
+                                                 else 0), timings)
         t1 = clock()
         if self.detector is None:
             # the dome is looked for on the whole frame, once; after that only the
@@ -190,8 +219,17 @@ class MarkerStream:
         timings["detect"] = (t2 - t1b) * 1e3
         if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
             faults |= FAULT_TOO_FEW_PINS
+        stats = self.plausibility.stats(self.detector.smooth, self.detector.n_blobs)
+        self.implausible = self.plausibility.check(stats)
+        if self.implausible:
+            self._candidates.clear()
+            timings["detect"] = (t2 - t1b) * 1e3
+            ff = self._empty(i, t_s, faults | FAULT_FRAME | (
+                FAULT_NO_REFERENCE if self.reference is None else 0), timings)
+            ff.pins = pins
+            return ff
         if self.reference is None:
-            self._maybe_choose_reference(pins, binary)
+            self._maybe_choose_reference(pins, binary, stats)
         if self.reference is None:
             faults |= FAULT_NO_REFERENCE
             vectors, lost = self._empty2, np.zeros(0, bool)

@@ -10,7 +10,7 @@ from device.pi import faults as F
 
 ROOT = Path(__file__).resolve().parents[3]
 PIPELINE = (F.FAULT_NO_DOME, F.FAULT_TOO_FEW_PINS, F.FAULT_NO_REFERENCE,
-            F.FAULT_FRAME_SIZE_CHANGED, F.FAULT_BAD_FRAME, F.FAULT_LOCALISER)
+            F.FAULT_FRAME_SIZE_CHANGED, F.FAULT_BAD_FRAME, F.FAULT_LOCALISER, F.FAULT_FRAME)
 RUNTIME = (F.FAULT_CAMERA, F.FAULT_IMU, F.FAULT_MODEL, F.FAULT_PINS_LOST, F.FAULT_LINK,
            F.FAULT_CLAMPED, F.FAULT_NONFINITE)
 
@@ -41,6 +41,7 @@ def test_micropython_link_consumer_uses_the_same_values():
              re.findall(r"^(FAULT_[A-Z_]+) = const\((0x[0-9A-Fa-f]+|\d+)\)", src, re.M)}
     assert found, "surface_link.py defines no FAULT_ constants"
     found.pop("FAULT_LEN", None)          # the FAULT payload's length, not a bit
-    assert len(found) == 7
+    assert len(found) == 8
+    assert found["FAULT_FRAME"] == 0x0080    # the implausible-frame bit: the gait must see it
     for name, value in found.items():
         assert getattr(F, name) == value, name
