@@ -320,12 +320,12 @@ class _Fields:
         padded with 0 and flagged (with ``scalar_is_first`` a lone number is the
         first value, the rest 0, unflagged)."""
         if _is_seq(values):
-            v = list(values)[:n]
+            v = list(values)
         else:
             v = [values] + [0.0] * (n - 1) if scalar_is_first else []
         if len(v) != n:
             self.faults |= FAULT_NONFINITE
-            v = (v + [0.0] * n)[:n]
+            v = (v[:n] + [0.0] * n)[:n]
         return [self.num(x, scale, lo, hi) for x in v]
 
 

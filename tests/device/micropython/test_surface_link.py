@@ -14,6 +14,7 @@ import json
 import random
 from pathlib import Path
 
+import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
@@ -354,3 +355,18 @@ def test_mcu_gait_encoder_equals_the_pi_encoder_for_any_values(phase, load_n, ve
     link.tx_seq = seq
     link.send_gait(phase, load_n, vel)
     assert u.take() == P.Gait(phase, load_n, vel).encode(seq, t_ms)
+
+
+@pytest.mark.parametrize("vel", [(), (5.0,), (5.0, -6.0), (1.0, 2.0, 3.0, 4.0), 7.5, None])
+def test_mcu_gait_encoder_flags_a_velocity_of_the_wrong_length_as_the_pi_does(vel):
+    cpython_path()
+    import machine
+    import surface_link as SL
+    u = machine.UART(0, 921600)
+    link = SL.SurfaceLink(u, clock=lambda: 0)
+    link.send_gait(SL.PHASE_STANCE, 10.0, vel)
+    wire = u.take()
+    assert wire == P.Gait(P.PHASE_STANCE, 10.0, vel).encode(0, 0)
+    g = P.decode_message(P.FrameDecoder().feed(wire)[0])
+    flagged = not isinstance(vel, (int, float)) and len(vel or ()) != 3
+    assert bool(g.flags & P.GAIT_FLAG_NONFINITE) == flagged

@@ -284,3 +284,103 @@ def test_docs_quote_every_golden_vector_and_the_table_sizes():
     for t, n in P.PAYLOAD_LEN.items():
         assert f"| 0x{t:02X} | " in doc
         assert f"| {n} | {n + 12} |" in doc, (hex(t), n)
+
+
+# -- boundaries the mutation tester found untested (issue 24) ------------------------------
+
+@pytest.mark.parametrize("class_id, name", [(0, "no-touch"), (3, "slippery"), (4, "unknown"),
+                                            (P.CLASS_UNKNOWN, "unknown"), (-1, "unknown")])
+def test_class_name_of_every_class_and_of_unknown(class_id, name):
+    assert P.Surface(class_id=class_id).class_name == name
+    assert P.message_dict(P.Surface(class_id=class_id))["class_name"] == name
+
+
+@pytest.mark.parametrize("probs", [(0.5, 0.25), (0.5, 0.25, 0.1, 0.1, 0.9), 0.5, None, "abcd"])
+def test_a_wrong_length_sequence_is_padded_with_zero_and_flagged(probs):
+    s = P.Surface.unpack(P.Surface(class_id=1, probs=probs).pack())
+    assert s.faults == P.FAULT_NONFINITE
+    if isinstance(probs, tuple):
+        want = (list(probs) + [0.0] * 4)[:4]
+        assert [round(p * 255) for p in s.probs] == [round(p * 255) for p in want]
+    # a gait velocity given as one number is the x velocity, unflagged
+    g = P.Gait.unpack(P.Gait(vel_mm_s=-12.0).pack())
+    assert g.vel_mm_s == (-12.0, 0.0, 0.0) and g.flags == 0
+    g = P.Gait.unpack(P.Gait(vel_mm_s=(1.0, 2.0)).pack())
+    assert g.vel_mm_s == (1.0, 2.0, 0.0) and g.flags == P.GAIT_FLAG_NONFINITE
+
+
+def test_a_frame_of_exactly_64_bytes_is_legal_and_65_is_too_long():
+    payload = bytes(range(1, P.MAX_FRAME - P.MIN_FRAME + 1))        # 54 bytes
+    wire = P.encode_frame(0x20, payload, 7, 8)
+    d = P.FrameDecoder()
+    assert [(f.msg_type, f.seq, f.t_ms, f.payload) for f in d.feed(wire)] == [(0x20, 7, 8, payload)]
+    assert d.too_long == 0 and d.frames_ok == 1
+    with pytest.raises(ValueError, match="65-byte"):
+        P.encode_frame(0x20, payload + b"\x01", 7, 8)
+    body = P.HEADER.pack(1, 0x20, 8, 8) + payload + b"\x01"
+    d.feed(P.cobs_encode(body + P.crc16(body).to_bytes(2, "little")) + b"\x00")
+    assert (d.too_long, d.frames_ok) == (1, 1)
+    # a smaller limit counts a frame one byte over it as too long, one at it as good
+    small = P.FrameDecoder(max_frame=12)
+    assert len(small.feed(P.encode_frame(1, b"ab", 1, 0) + P.encode_frame(1, b"abc", 2, 0))) == 1
+    assert small.too_long == 1
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.binary(max_size=80), st.integers(0, 0xFFFF))
+def test_crc16_of_a_list_of_ints_equals_the_crc_of_the_bytes(data, start):
+    assert P.crc16(list(data), start) == P.crc16(data, start)
+    assert P.crc16(iter(data), start) == P.crc16(bytes(data), start)
+
+
+def test_crc16_table_path_check_value():
+    assert P.crc16(list(b"123456789")) == 0x29B1
+    assert P.crc16([0x00]) == 0xE1F0 and P.crc16([0xFF]) == 0xFF00
+
+
+# (message, field, largest value on the wire, the decoded attribute, how it reads back)
+_SATURATING = [
+    (P.Surface, "shear_px", 655.35, "shear_px"),
+    (P.Surface, "load_n", 655.35, "load_n"),
+    (P.Surface, "pins", 0xFFFF, "pins"),
+    (P.ImuSummary, "acc_peak_mg", 0xFFFF, "acc_peak_mg"),
+    (P.ImuSummary, "samples", 255, "samples"),
+    (P.Heartbeat, "rate_fps", 6553.5, "rate_fps"),
+    (P.Heartbeat, "frames_dropped", 0xFFFF, "frames_dropped"),
+    (P.Heartbeat, "uptime_s", 0xFFFFFFFF, "uptime_s"),
+    (P.Heartbeat, "temp_c", 127, "temp_c"),
+    (P.Fault, "pins_lost", 0xFFFF, "pins_lost"),
+    (P.Fault, "raised", 0xFFFF, "raised"),
+]
+
+
+@pytest.mark.parametrize("cls, field, top, attr", _SATURATING)
+def test_each_field_saturates_at_its_largest_wire_value_and_flags(cls, field, top, attr):
+    exact = cls.unpack(cls(**{field: top}).pack())
+    assert getattr(exact, attr) == pytest.approx(top)
+    assert not exact.faults
+    step = 1 if isinstance(top, int) else 0.1
+    over = cls.unpack(cls(**{field: top + step}).pack())
+    assert getattr(over, attr) == pytest.approx(top)
+    assert over.faults == P.FAULT_CLAMPED
+
+
+def test_faults_and_signed_fields_saturate_at_both_ends():
+    f = P.Fault.unpack(P.Fault(faults=0x1FFFF).pack())
+    assert f.faults == 0xFFFF
+    f = P.Fault.unpack(P.Fault(faults=0xFFFF).pack())
+    assert f.faults == 0xFFFF
+    h = P.Heartbeat.unpack(P.Heartbeat(temp_c=-500, faults=P.FAULT_IMU).pack())
+    assert h.temp_c == -128 and h.faults == P.FAULT_IMU | P.FAULT_CLAMPED
+    s = P.Surface.unpack(P.Surface(faults=1 << 20).pack())
+    assert s.faults == 0xFFFF
+    i = P.ImuSummary.unpack(P.ImuSummary(acc_mg=(40000, -40000, 32767),
+                                         gyro_dps=(3276.7, -3276.8, 5000)).pack())
+    assert i.acc_mg == (32767, -32768, 32767) and i.gyro_dps == (3276.7, -3276.8, 3276.7)
+    assert i.faults == P.FAULT_CLAMPED
+    g = P.Gait.unpack(P.Gait(load_n=6553.5, vel_mm_s=(32767, -32768, 0)).pack())
+    assert g.load_n == 6553.5 and g.flags == 0
+    g = P.Gait.unpack(P.Gait(load_n=7000.0, phase=5).pack())
+    assert g.load_n == 6553.5 and g.phase == 1 and g.flags == P.GAIT_FLAG_CLAMPED
+    c = P.Command.unpack(P.Command(P.CMD_SET_RATE, 70000).pack())
+    assert c.arg == 0xFFFF and P.Command.unpack(P.Command(P.CMD_SET_RATE, 0xFFFF).pack()).arg == 0xFFFF
