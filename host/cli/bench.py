@@ -58,14 +58,28 @@ def cmd_bench(args):
         except ValueError as exc:
             raise UserError(f"--doc {doc}: {exc}") from None
         emit(args, res, f"wrote the real-frame tables into {doc}")
+    elif args.what == "scaling":
+        from host.bench.scaling import bench_scaling, format_scaling
+        if args.data and not Path(args.data).is_dir():
+            raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/ and "
+                            "tactip_shear/)")
+        if args.flat_profile and not Path(args.flat_profile).is_file():
+            raise UserError(f"--flat-profile: no such file: {args.flat_profile}")
+        if not args.data:
+            print("host bench: no --data; timing simulated frames only", file=sys.stderr)
+        res = bench_scaling(args.data, args.flat_profile, frames=min(args.frames, 400),
+                            repeats=max(1, min(args.repeats, 3)),
+                            progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+        emit(args, res, format_scaling(res))
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables"],
+    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables", "scaling"],
                    help="tables: measure on the real recordings and rewrite the "
-                        "real-frame tables of --doc")
+                        "real-frame tables of --doc; scaling: per-frame cost against "
+                        "the pin count")
     s.add_argument("--data", metavar="SPEC",
                    help="pipeline, tables: the recordings, a CSV manifest (path,label[,imu]) "
                         "or a dataset folder (pipeline without it: simulated frames only)")
@@ -80,5 +94,7 @@ def register(sub) -> None:
     s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
                    help="frames to run (runtime, tables)")
     s.add_argument("--repeats", type=whole(1, 10_000), default=20)
+    s.add_argument("--flat-profile", metavar="TOML",
+                   help="scaling: calibrated profile of roboskin/flatSkin.avi (host calibrate)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
