@@ -190,3 +190,18 @@ def test_a_surface_class_the_link_has_no_id_for_is_a_model_fault(tmp_path, synth
     assert lava.model_fault
     assert unknown_class_wins(["hard", "lava"], [0.2, 0.8])
     assert not unknown_class_wins(["hard", "lava"], [0.8, 0.2])
+
+
+def test_a_frame_fault_holds_no_touch_without_running_a_model(tmp_path):
+    """A garbage frame's decision is no-touch, whatever the windows and the pipeline's
+    contact say: no contact, slip, texture or pressure."""
+    m = load_models(tmp_path, "int8", N_PINS, LegConfig())
+    ws = _windows(m, [np.full((N_PINS, 2), 3.0, np.float32)] * 40)
+    kw = dict(contact_seen=True, referenced=True, expected_mag_px=1.0, expected_motion_px=5.0,
+              gait=None, gait_rule_weight=0.5)
+    live = decide(m, ws, **kw)
+    assert live.contact and live.class_id != P.SURFACE_CLASSES.index("no-touch")
+    d = decide(m, ws, frame_ok=False, **kw)
+    assert d.class_id == P.SURFACE_CLASSES.index("no-touch") and d.probs[d.class_id] == 1.0
+    assert not d.contact and not d.slip and d.slip_conf == 0.0
+    assert d.texture is None and d.pressure is None and not d.model_fault

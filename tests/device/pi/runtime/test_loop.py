@@ -491,3 +491,51 @@ def test_fps_and_a_sources_own_rate_have_one_bound():
     with pytest.raises(StartupError, match=r"--camera: fps must be a finite number in "
                                            r"\[1\.0, 1000\.0\], got fps=0\.001"):
         build_runtime("sim://walk?fps=0.001", "none", "loop://")
+
+
+def _garbage_frames(base: np.ndarray) -> list:
+    rng = np.random.default_rng(0)
+    out = [np.zeros_like(base)] * 3 + [np.full_like(base, 255)] * 3
+    for _ in range(3):
+        g = base.copy()
+        g[rng.random(base.shape[:2]) < 0.1] = 255
+        g[rng.random(base.shape[:2]) < 0.1] = 0
+        out.append(g)
+    out += [rng.integers(0, 256, base.shape, dtype=np.uint8) for _ in range(3)]
+    return out
+
+
+@pytest.mark.parametrize("source", ["lego", "sim"])
+def test_run_on_an_image_folder_flags_every_garbage_frame_with_no_contact(tmp_path, source):
+    """The issue-24 experiment end to end: ``python -m device.pi run`` on a folder of 40
+    sensor frames (real Lego frames when the recordings are there, else simulated),
+    then 3 black, 3 white, 3 salt-noise and 3 random frames. Every garbage frame's
+    decision carries the frame fault and no contact; the genuine ones carry none."""
+    import json
+    import subprocess
+
+    import cv2
+    if source == "lego":
+        from tests.realdata import read_video, real_data_dir
+        clip = real_data_dir("roboskin/lego_train.avi") / "roboskin" / "lego_train.avi"
+        frames = read_video(clip, count=40)
+    else:
+        from device.sim import Simulator, load_scene
+        sim = Simulator(load_scene("walk"), seed=0)
+        frames = [sim.render(i).copy() for i in range(40)]
+    frames = frames + _garbage_frames(frames[-1])
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"f{i:03d}.png"), f)
+    log = tmp_path / "log.jsonl"
+    p = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", str(folder),
+                        "--imu", "none", "--serial", "loop://", "--json-log", str(log)],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    rows = [json.loads(x) for x in log.read_text().splitlines()]
+    assert len(rows) == 52
+    for r in rows[40:]:
+        assert "frame" in r["faults"] and r["contact"] is False, r
+        assert r["class"] == "no-touch" and r["slip"] is False
+    assert not any("frame" in r["faults"] for r in rows[:40])

@@ -99,3 +99,25 @@ def test_vector_features_are_finite_for_any_input(v):
     assert math.isfinite(direction_deg(ax, ay))
     f = vector_features(v, ~finite)
     assert f.shape == (3 * len(v),) and np.isfinite(f).all()
+
+
+@pytest.mark.parametrize("kind", ["float255", "float01", "bool", "int64", "nan"])
+def test_contact_grid_converts_a_binary_of_another_dtype_and_counts_it(kind):
+    """A float/bool binary image was silently 'no contact'; now non-zero is foreground,
+    the contact is the uint8 image's and ``converted`` says it happened."""
+    ref = np.zeros((64, 64), np.uint8)
+    cur = ref.copy()
+    cur[:16, :16] = 255                                   # one corner changed
+    want = ContactGrid(4, 0.01, 0.03)
+    want.set_reference(ref)
+    g_want, c_want = want.update(cur)
+    assert c_want
+    conv = {"float255": lambda b: b.astype(np.float32), "float01": lambda b: b / 255.0,
+            "bool": lambda b: b > 0, "int64": lambda b: b.astype(np.int64),
+            "nan": lambda b: np.where(b > 0, np.nan, 0.0)}[kind]
+    grid = ContactGrid(4, 0.01, 0.03)
+    grid.set_reference(conv(ref))
+    g, c = grid.update(conv(cur))
+    assert c and np.array_equal(g, g_want) and grid.converted == 2 and not grid.bad_input
+    g, c = grid.update(np.zeros((8, 8), np.uint8))        # another size: flagged
+    assert not c and grid.bad_input

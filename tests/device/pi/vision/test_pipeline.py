@@ -12,10 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME_SIZE_CHANGED, FAULT_LOCALISER,
-                              FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
+from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME, FAULT_FRAME_SIZE_CHANGED,
+                              FAULT_LOCALISER, FAULT_NO_DOME, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS, fault_names)
 from device.pi.vision.pipeline import MarkerStream
 from tests.realdata import read_video, real_data_dir
+from tests.simframes import referenced
 
 # -- the real clips ------------------------------------------------------------------
 
@@ -105,10 +106,18 @@ def test_bad_frames_are_flagged_not_raised(bad):
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(h=st.integers(8, 200), w=st.integers(8, 200), seed=st.integers(0, 2**31),
-       level=st.integers(0, 255), mode=st.sampled_from(["noise", "flat", "dome", "stripes"]))
-def test_any_frame_sequence_stays_finite(h, w, seed, level, mode):
+       level=st.integers(0, 255), mode=st.sampled_from(["noise", "flat", "dome", "stripes"]),
+       with_reference=st.booleans())
+def test_any_frame_sequence_stays_finite(h, w, seed, level, mode, with_reference):
+    """From a fresh stream, or one whose reference was set on simulated frames: any
+    frames give finite numbers, and a frame fault never comes with contact."""
     rng = np.random.default_rng(seed)
-    s = MarkerStream("roboskin", warmup=2)
+    if with_reference:
+        s, sim_frames = referenced()
+        assert s.reference is not None
+        h, w = (sim_frames[0].shape[:2] if mode != "dome" else (h, w))
+    else:
+        s = MarkerStream("roboskin", warmup=2)
     for k in range(4):
         if mode == "noise":
             f = rng.integers(0, 256, (h, w), dtype=np.uint8)
@@ -122,7 +131,11 @@ def test_any_frame_sequence_stays_finite(h, w, seed, level, mode):
             cv2.circle(f, (w // 2, h // 2), min(h, w) // 3, 80, -1)
             for _ in range(20):
                 cv2.circle(f, (int(rng.integers(0, w)), int(rng.integers(0, h))), 2, 220, -1)
-        _check_finite(s.process(f, t_s=float(k) if k != 2 else float("nan")))
+        out = s.process(f, t_s=float(k) if k != 2 else float("nan"))
+        _check_finite(out)
+        assert not (out.faults & FAULT_FRAME and out.contact)
+        if with_reference and mode in ("noise", "flat", "stripes") and k == 0:
+            assert out.faults & FAULT_FRAME and not out.contact      # garbage on the sensor
 
 
 class SpyLocaliser:
