@@ -188,3 +188,38 @@ def test_mutual_match_keeps_only_pairs_that_choose_each_other():
     assert mutual_match(pred, det, 0.5).tolist() == [-1, -1]          # the gate
     assert mutual_match(pred[:0], det, 5.0).tolist() == []
     assert mutual_match(pred, det[:0], 5.0).tolist() == [-1, -1]
+
+
+# -- boundaries the mutation tester found untested (issue 24) ------------------------------
+
+def test_match_with_unusable_rows_keeps_the_gate_and_the_row_numbers():
+    """The path for sets with NaN rows matches the usable rows with the same gate
+    (not a 1 px one) and reports rows of the full ``cur``, skipping the bad ones."""
+    ref = np.array([[np.nan, 0.0], [0.0, 0.0], [50.0, 0.0], [100.0, 0.0]])
+    cur = np.array([[np.nan, np.nan], [np.inf, 1.0], [104.0, 3.0], [57.0, 0.0], [0.0, 4.0]])
+    assert match_pins(ref, cur, 6.0).tolist() == [-1, 4, -1, 2]
+    assert match_pins(ref, cur, 8.0).tolist() == [-1, 4, 3, 2]
+    assert match_pins(ref, cur, 3.0).tolist() == [-1, -1, -1, -1]
+    # the same usable points without the bad rows give the same pairs
+    assert match_pins(ref[1:], cur[2:], 8.0).tolist() == [2, 1, 0]
+    # only bad rows on one side: nothing matches
+    assert match_pins(ref, cur[:2], 8.0).tolist() == [-1] * 4
+    assert match_pins(ref[:1], cur, 8.0).tolist() == [-1]
+
+
+@pytest.mark.parametrize("far, usable", [(1.0e6, True), (-1.0e6, True), (1.0e6 + 1.0, False),
+                                         (-1.0e6 - 1.0, False)])
+def test_coordinates_up_to_a_million_px_are_usable_beyond_are_not(far, usable):
+    ref = np.array([[far, 0.0], [far, 20.0]])
+    cur = np.array([[far, 0.5], [far, 20.5]])
+    want = [0, 1] if usable else [-1, -1]
+    assert match_pins(ref, cur, 2.0).tolist() == want
+    # a bad row on the other side sends both through the row-by-row path
+    assert match_pins(ref, np.vstack([cur, [[np.nan, 0.0]]]), 2.0).tolist() == want
+
+
+def test_a_pair_exactly_at_the_gate_matches():
+    assert match_pins([[0.0, 0.0]], [[3.0, 4.0]], 5.0).tolist() == [0]
+    assert match_pins([[0.0, 0.0], [np.nan, 0.0]], [[3.0, 4.0]], 5.0).tolist() == [0, -1]
+    assert mutual_match(np.array([[0.0, 0.0]]), np.array([[3.0, 4.0]]), 5.0).tolist() == [0]
+    assert mutual_match(np.array([[0.0, 0.0]]), np.array([[3.0, 4.0]]), 4.99).tolist() == [-1]
