@@ -12,7 +12,9 @@ stand-ins in ``tests/mpy`` (``fake_mpu_regs``) are on the path beside ``machine`
 from __future__ import annotations
 
 import contextlib
+import importlib
 import io
+import os
 import subprocess
 import sys
 import types
@@ -29,6 +31,11 @@ __all__ = ["run_mpy", "run_cpython", "run_both", "requires_mpy", "mpy_unavailabl
 #: test-only MicroPython stand-ins (``fake_mpu_regs``)
 TEST_LIB = REPO_ROOT / "tests" / "mpy"
 
+#: set while mutmut runs (``make mutate``): its mutated modules import mutmut, so only
+#: CPython runs them, and ``surface_link`` is imported under its package name, the
+#: name mutmut switches its mutants by
+MUTATING = "MUTANT_UNDER_TEST" in os.environ
+
 requires_mpy = pytest.mark.skipif(mpy_unavailable() is not None, reason=mpy_unavailable() or "")
 
 
@@ -36,7 +43,7 @@ def run_mpy(script, libs=(), puts=(), args=(), timeout: float = 300, heap: int =
             check: bool = False) -> subprocess.CompletedProcess:
     """:func:`device.sim.mpy.runner.run_mpy`, skipping the test where MicroPython
     cannot run; with ``check`` a failed run fails the test with its output."""
-    why = mpy_unavailable()
+    why = "mutation testing runs CPython only" if MUTATING else mpy_unavailable()
     if why:
         pytest.skip(why)
     res = runner.run_mpy(script, libs=[TEST_LIB, *libs], puts=puts, args=args, timeout=timeout, heap=heap)
@@ -50,6 +57,8 @@ def cpython_path() -> None:
     runner.cpython_path()
     if str(TEST_LIB) not in sys.path:
         sys.path.insert(0, str(TEST_LIB))
+    if MUTATING and "surface_link" not in sys.modules:
+        sys.modules["surface_link"] = importlib.import_module("device.micropython.surface_link")
 
 
 def run_cpython(src: str, args=()) -> str:
@@ -72,6 +81,8 @@ def run_both(src: str, args=(), puts=(), timeout=120) -> tuple[str, str]:
     paths)."""
     host_args = [dict((m, h) for h, m in puts).get(a, a) for a in map(str, args)]
     cp = run_cpython(src, host_args)
+    if MUTATING:
+        return cp, cp
     res = run_mpy(src, libs=[MPY_LIB], puts=puts, args=args, timeout=timeout)
     assert res.returncode == 0, res.stderr[-3000:]
     return res.stdout, cp
