@@ -8,7 +8,9 @@ window's input with :mod:`device.pi.models.window` and runs one decision per win
 reports accuracy, per-class F1 and the confusion matrix (slip: also the slip F1 and
 the detection latency in frames), or MAE for regression; the latency per decision
 (p50 / p99, single thread, one window per call, as on the Pi); the model size in
-bytes; and the fraction of windows kept when the data were cut.
+bytes; and the fraction of windows kept when the data were cut. Accuracy (or MAE)
+carries its 95 % block-bootstrap interval, the window count and the same per
+recording (``metrics.by_recording``, :func:`host.learn.metrics.add_intervals`).
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ from device.pi.models.regressor import Regressor
 from device.pi.models.window import encode
 from host.data.windows import NO_TOUCH
 from host.learn.inputs import model_inputs
-from host.learn.metrics import classification_metrics, regression_metrics, slip_latency
+from host.learn.metrics import (add_intervals, classification_metrics, regression_metrics,
+                                slip_latency)
 from host.learn.tasks import label_ids
 
 __all__ = ["evaluate_model", "load_variant", "percentiles", "VARIANTS"]
@@ -153,6 +156,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     if kind == "regressor":
         pred = np.array(outs, np.float64)
         res["metrics"] = regression_metrics(ws.targets, pred)
+        add_intervals(res["metrics"], ws, np.abs(pred - np.asarray(ws.targets, np.float64)),
+                      key="mae")
         res["faults"] = 0
     else:
         classes = list(pred_obj.classes)
@@ -163,6 +168,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         true = label_ids(ws.labels, classes)
         res["classes"] = classes
         res["metrics"] = classification_metrics(true, pred, classes, ws.labels)
+        add_intervals(res["metrics"], ws, true == pred)
         if task == "slip" and "slip" in classes:
             res["metrics"]["slip_f1"] = res["metrics"]["per_class"]["slip"]["f1"]
             res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))

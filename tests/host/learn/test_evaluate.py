@@ -71,3 +71,19 @@ def test_labels_the_model_does_not_know_are_refused(small_model, synthetic_windo
     with pytest.raises(ValueError, match=r"the data hold label\(s\) \['lava'\] that the model "
                                          r"does not know \(its classes: \['a', 'b'\]\)"):
         evaluate_model(out, ws)
+
+
+def test_evaluate_reports_each_recording_with_an_interval(surface_model, surface_sets):
+    """host eval: the accuracy has its block-bootstrap interval and window count, and
+    each recording (here each simulated scene run) its own accuracy and interval."""
+    _, out = surface_model
+    _, ws_te = surface_sets
+    m = evaluate_model(out, ws_te, variant="float")["metrics"]
+    lo, hi = m["accuracy_ci95"]
+    assert lo <= m["accuracy"] <= hi and m["n_windows"] == len(ws_te)
+    by = m["by_recording"]
+    assert set(by) == set(ws_te.recording_ids().tolist()) and len(by) == 4
+    assert all(k.startswith("simulated:") for k in by)
+    assert sum(r["n_windows"] for r in by.values()) == len(ws_te)
+    for r in by.values():
+        assert r["accuracy_ci95"][0] <= r["accuracy"] <= r["accuracy_ci95"][1]

@@ -55,3 +55,42 @@ def test_regression_metrics_give_mae_rmse_and_share_of_range():
     assert m["mae_predict_mean"] == pytest.approx(np.abs(y - y.mean()).mean())
     flat = regression_metrics(np.ones(3), np.ones(3))
     assert flat["mae_of_range"] is None and flat["mae"] == 0.0
+
+
+def test_block_bootstrap_interval_holds_the_estimate_and_widens_with_autocorrelation():
+    """The same 70 % accuracy over 2 recordings of 400 windows: errors scattered at
+    random give a narrow interval, errors in runs of 40 consecutive windows a wider
+    one (an i.i.d. bootstrap would give both the same width)."""
+    from host.learn.metrics import add_intervals
+    ws = synthetic(n_groups=2, per_group=400)
+    rng = np.random.default_rng(1)
+    iid = np.ones(800)
+    iid[rng.choice(800, 240, replace=False)] = 0
+    runs = np.ones(800)
+    for start in rng.choice(np.arange(0, 800, 40), 6, replace=False):
+        runs[start:start + 40] = 0
+    widths = []
+    for v in (iid, runs):
+        m = add_intervals({}, ws, v)
+        lo, hi = m["accuracy_ci95"]
+        assert lo <= v.mean() <= hi and m["n_windows"] == 800
+        assert set(m["by_recording"]) == {"trial:0", "trial:1"}
+        assert sum(r["n_windows"] for r in m["by_recording"].values()) == 800
+        widths.append(hi - lo)
+    assert widths[1] > 1.5 * widths[0]
+
+
+def test_class_report_carries_intervals_and_per_recording_accuracy():
+    from host.learn.metrics import class_report
+    ws = synthetic(n_groups=3, per_group=30)
+    ws.recordings = np.array(["r0"] * 30 + ["r1"] * 30 + ["r2"] * 30, object)
+    true = np.array([0 if x == "a" else 1 for x in ws.labels])
+    probs = np.zeros((90, 2))
+    probs[np.arange(90), true] = 1
+    probs[30:40] = probs[30:40, ::-1]          # ten errors in r1
+    m = class_report("surface", ws, true, probs, ["a", "b"])
+    assert m["accuracy"] == pytest.approx(80 / 90, abs=1e-6)
+    assert m["by_recording"]["r1"]["accuracy"] == pytest.approx(2 / 3, abs=1e-6)
+    assert m["by_recording"]["r0"]["accuracy_ci95"] == [1.0, 1.0]
+    lo, hi = m["by_recording"]["r1"]["accuracy_ci95"]
+    assert lo < 2 / 3 < hi and m["n_windows"] == 90
