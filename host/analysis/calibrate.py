@@ -26,10 +26,15 @@ from device.profile import parse_pipeline_profile
 from host.analysis.frames import nearest_neighbour_px
 from host.analysis.rest_pins import (MIN_SEEN, Region, RestPins, agreement, find_rest_pins,
                                      merge_layouts, nn_px)
+from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
+#: the threshold search scores every setting on this many of the frames ...
+SEARCH_FRAMES = 4
+#: ... and this many of the best on all of them
+SEARCH_KEEP = 6
 
 
 def _score(frames, params, dome):
@@ -62,14 +67,19 @@ def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, fl
     binary_input = np.count_nonzero((g0 == 0) | (g0 == 255)) > 0.97 * g0.size
     blur = 0.0 if binary_input else 1.0
     shrink = 1.0 if binary_input or dome is None else 0.75
-    best = (-1.0, None, None)
-    for block in BLOCKS:
-        for offset in OFFSETS:
-            p = VisionParams(block=block, offset=float(offset), blur_sigma_px=blur,
+    settings = [VisionParams(block=block, offset=float(offset), blur_sigma_px=blur,
                              min_area_px=3, max_area_px=5000, roi_shrink=shrink)
-            s, info = _score(grays, p, dome)
-            if s > best[0]:
-                best = (s, p, info)
+                for block in BLOCKS for offset in OFFSETS]
+    # coarse to fine: every setting on a few frames, the best few on all of them
+    few = grays[::max(1, len(grays) // SEARCH_FRAMES)][:SEARCH_FRAMES]
+    if len(few) < len(grays):
+        rough = [_score(few, p, dome)[0] for p in settings]
+        settings = [settings[i] for i in np.argsort(rough)[::-1][:SEARCH_KEEP]]
+    best = (-1.0, None, None)
+    for p in settings:
+        s, info = _score(grays, p, dome)
+        if s > best[0]:
+            best = (s, p, info)
     score, p, info = best
     if p is None:
         where = "" if dome is not None else "no dome in view and "
@@ -86,9 +96,25 @@ def find_region(grays: list[np.ndarray]):
     return tuple(float(v) for v in np.median(np.array(domes), axis=0))
 
 
+def lattice_regularity(pins: np.ndarray) -> float:
+    """The share of ``pins`` whose nearest-neighbour distance is within 25 % of their
+    local pitch (:func:`local_pitch_px`): near 1 for a lattice, lower with texture
+    or glare spots between the pins."""
+    pins = np.asarray(pins, np.float64).reshape(-1, 2)
+    if len(pins) < 3:
+        return 0.0
+    nn, lp = nn_px(pins), local_pitch_px(pins)
+    return float(np.mean(np.abs(nn - lp) <= 0.25 * lp))
+
+
 def rest_pins(grays: list[np.ndarray], dome, params: VisionParams, info: dict
-              ) -> tuple[RestPins, Region]:
-    """The rest pins (two passes: the second with the pitch of the first's pins)."""
+              ) -> tuple[RestPins, Region, str]:
+    """The rest pins (two passes: the second with the pitch of the first's pins) and
+    the spot scale used: ``"one"`` (one pin size from the threshold fit) or, with no
+    dome in view, ``"per-pin"`` (:func:`multiscale_spots`, each pin at its own size)
+    when its pins form the more regular lattice (:func:`lattice_regularity`): a
+    flat skin seen through a wide-angle lens has pins 3x larger in the middle than
+    at the rim, and one size finds the texture between the big pins."""
     h, w = grays[0].shape
     region = Region(w, h, None if dome is None else
                     (dome[0], dome[1], dome[2] * params.roi_shrink))
@@ -101,7 +127,13 @@ def rest_pins(grays: list[np.ndarray], dome, params: VisionParams, info: dict
             break
         pitch = float(np.median(nn))
         rest = find_rest_pins(grays, region, pin_d, pitch)
-    return rest, region
+    if dome is not None:
+        return rest, region, "one"
+    multi = find_rest_pins(grays, region, pin_d, float(np.percentile(nn_px(rest.pins), 10))
+                           if len(rest.pins) >= 3 else pitch, multiscale=True)
+    if lattice_regularity(multi.pins) > lattice_regularity(rest.pins):
+        return multi, region, "per-pin"
+    return rest, region, "one"
 
 
 def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0) -> dict:
@@ -114,7 +146,7 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
         raise ValueError("calibrate needs at least one frame")
     dome = find_region(grays)
     p, info, score = fit_threshold(grays, dome)
-    rest, region = rest_pins(grays, dome, p, info)
+    rest, region, scale = rest_pins(grays, dome, p, info)
     pins = rest.pins
     if len(pins) < 3:
         raise ValueError(f"only {len(pins)} rest pins found: is this a TacTip clip at rest?")
@@ -134,6 +166,7 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
     return {"name": name, "vision": vision, "layout": layout, "frames": len(grays),
             "start": int(start), "region": region, "rest": rest,
             "blobs": rest.counts(), "dome_in_view": region.disc is not None,
+            "spot_scale": scale, "lattice_regularity": round(lattice_regularity(pins), 3),
             "fit": {"score": score, "regular_fraction": info["regular"],
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
 

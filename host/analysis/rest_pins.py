@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from device.pi.vision.matching import match_pins
+from host.analysis.spot_scale import local_pitch_px, multiscale_spots
 
 #: a rest pin is found in at least this share of the frames
 MIN_SEEN = 0.8
@@ -236,25 +237,39 @@ def lattice_error_px(p: np.ndarray, others: np.ndarray, pitch_px: float) -> floa
 
 
 def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
-                   pitch_px: float) -> RestPins:
-    """The rest pins of no-contact gray frames (see the module's rules)."""
+                   pitch_px: float, multiscale: bool = False) -> RestPins:
+    """The rest pins of no-contact gray frames (see the module's rules).
+
+    With ``multiscale`` the spots come from :func:`multiscale_spots` (each pin at
+    its own size) and every rule's pitch is the blob's local pitch
+    (:func:`local_pitch_px` of the steady blobs); ``pin_d_px`` is then unused and
+    ``pitch_px`` only sets the tracking gate."""
     if not grays:
         raise ValueError("find_rest_pins needs at least one frame")
     if not (math.isfinite(pitch_px) and pitch_px > 0):
         raise ValueError(f"pitch_px must be a positive number, got pitch_px={pitch_px!r}")
     mask = region.mask()
-    found = [spots(g, pin_d_px, pitch_px, mask) for g in grays]
+    if multiscale:
+        found = [multiscale_spots(g, mask)[:2] for g in grays]
+    else:
+        found = [spots(g, pin_d_px, pitch_px, mask) for g in grays]
     pos, strength = _track(found, 0.4 * pitch_px)
     seen = np.isfinite(pos[..., 0]).mean(axis=0)
     with np.errstate(all="ignore"):
         xy = np.nanmedian(pos, axis=0).reshape(-1, 2)
         spread = np.nanmedian(np.hypot(*(pos - xy[None]).transpose(2, 0, 1)), axis=0)
         med_s = np.nanmedian(strength, axis=0)
+    pitch = np.full(len(xy), float(pitch_px))
+    steady = seen >= MIN_SEEN
+    if multiscale and steady.sum() >= 3:
+        local = local_pitch_px(xy[steady])
+        nearest = match_nearest(xy, xy[steady])
+        pitch = local[nearest]
     reason = np.full(len(xy), "kept", dtype=object)
-    reason[(seen < MIN_SEEN) | ~(spread <= MAX_SPREAD * pitch_px)] = "unstable"
+    reason[~steady | ~(spread <= MAX_SPREAD * pitch)] = "unstable"
     kept = reason == "kept"
     typical = float(np.median(med_s[kept])) if kept.any() else 0.0
-    near = region.inset_px(xy) < EDGE_PITCH * pitch_px
+    near = region.inset_px(xy) < EDGE_PITCH * pitch
     reason[kept & near & (med_s < EDGE_STRENGTH * typical)] = "edge"
     reason[(reason == "kept") & (med_s < MIN_STRENGTH * typical)] = "glare"
     # one pin found twice: the stronger of two close blobs stays
@@ -262,20 +277,27 @@ def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
         if reason[i] != "kept":
             continue
         d = np.hypot(*(xy - xy[i]).T)
-        reason[(reason == "kept") & (d < DUP_PITCH * pitch_px) & (np.arange(len(xy)) != i)] \
+        reason[(reason == "kept") & (d < DUP_PITCH * pitch[i]) & (np.arange(len(xy)) != i)] \
             = "duplicate"
     # off the lattice: no kept neighbour within LATTICE_PITCH pitches
     kept = reason == "kept"
-    lone = nn_px(xy[kept]) > LATTICE_PITCH * pitch_px
+    lone = nn_px(xy[kept]) > LATTICE_PITCH * pitch[kept]
     reason[np.flatnonzero(kept)[lone]] = "glare"
     # a faint spot is a pin only where its neighbours' lattice predicts one (weakest first)
     faint = np.flatnonzero((reason == "kept") & (med_s < FAINT_STRENGTH * typical))
     for i in faint[np.argsort(med_s[faint])]:
         others = xy[(reason == "kept") & (np.arange(len(xy)) != i)]
-        if lattice_error_px(xy[i], others, pitch_px) > SITE_PITCH * pitch_px:
+        if lattice_error_px(xy[i], others, pitch[i]) > SITE_PITCH * pitch[i]:
             reason[i] = "glare"
+    kept = reason == "kept"
+    typical_pitch = float(np.median(pitch[kept])) if kept.any() else float(pitch_px)
     return RestPins(xy=xy, seen=seen, strength=np.nan_to_num(med_s), reason=reason.astype(str),
-                    pitch_px=float(pitch_px), frames=len(grays))
+                    pitch_px=typical_pitch, frames=len(grays))
+
+
+def match_nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each point of ``a`` the row of its nearest point in ``b``."""
+    return np.argmin(np.hypot(*(a[:, None] - b[None]).transpose(2, 0, 1)), axis=1)
 
 
 def align(a: np.ndarray, b: np.ndarray, gate_px: float, rounds: int = 5):
