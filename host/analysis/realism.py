@@ -22,18 +22,22 @@ from typing import Iterable
 import cv2
 import numpy as np
 
-from device.pi.vision.extract import ROBOSKIN_PARAMS, PinDetector, VisionParams, to_gray
+from device.pi.vision.extract import (ROBOSKIN_PARAMS, PinDetector, VisionParams, dome_mask,
+                                      to_gray)
 from device.sim import Simulator, load_scene
 from host.analysis.drag import measure_drag_displacement
 from host.analysis.frames import finite, frame_list, locate_dome, nearest_neighbour_px, stat
 from host.analysis.glare import measure_glare
-from host.localiser.labels import read_clip
 
 __all__ = [
     "pin_appearance",
     "measure_static",
     "REALISM_FIGURES",
-    "roboskin_realism",
+    "REST_THRESHOLD_GRAY",
+    "rest_frame_count",
+    "fit_glare",
+    "recording_realism",
+    "spec_realism",
     "realism_table",
     "side_by_side_png",
 ]
@@ -180,24 +184,17 @@ def measure_static(
 
 
 # --------------------------------------------------------------------------
-# The roboskin realism check: simulator against the real clips, measured alike
+# The realism check: the simulator against the user's recordings, measured alike
 # --------------------------------------------------------------------------
 
-#: leading frames of each real clip that are at rest (no contact), measured as a
-#: mean difference from frame 0 below 4.5 gray levels (MPEG noise alone gives ~3)
-REAL_REST_FRAMES = {"smooth.avi": 16, "concrete.avi": 14}
-
-#: the LED ring was driven differently in the two recordings: strong, tight glare
-#: blobs in smooth.avi, weak and broad ones in concrete.avi
-REAL_GLARE = {"smooth.avi": {"name": "glare"},
-              "concrete.avi": {"name": "glare", "peak": 80.0, "sigma_px": 20.0}}
-
-#: figures not held to 20%, with the reason (reported all the same)
-NOT_COMPARED = {
-    ("concrete.avi", "glare blob area [px^2]"):
-        "concrete.avi's glare is a weak, broad haze whose half-amplitude regions merge "
-        "into one; the simulator draws separate Gaussian blobs",
-}
+#: a leading frame is at rest (no contact) while its mean absolute difference from
+#: frame 0 inside the dome stays below this (MPEG noise alone gives ~3 grey levels)
+REST_THRESHOLD_GRAY = 4.5
+#: simulated rest frames (the ``no-touch`` scene) measured against the real rest
+SIM_REST_FRAMES = 16
+#: the simulator's glare blobs: sigma fitted within these bounds [px]; a real glare
+#: broader than the upper bound is a haze whose area is reported, not compared
+GLARE_SIGMA_BOUNDS_PX = (6.0, 20.0)
 
 #: (label, where in the result, key) of each figure compared; all within 20%
 REALISM_FIGURES = [
@@ -214,45 +211,138 @@ REALISM_FIGURES = [
 ]
 
 
-def _sim_frames(scene_name: str, effects: tuple, seed: int) -> list[np.ndarray]:
+def rest_frame_count(frames, dome=None, threshold_gray: float = REST_THRESHOLD_GRAY) -> int:
+    """How many leading frames are at rest: the run from frame 0 whose mean absolute
+    difference from frame 0, inside the dome (the whole frame without one), stays below
+    ``threshold_gray``. At least 1 for a non-empty clip, 0 for an empty one."""
+    fl = list(frames)
+    if not fl:
+        return 0
+    if dome is None:
+        dome = locate_dome(fl[:5])
+    g0 = to_gray(fl[0]).astype(np.float32)
+    mask = (dome_mask(g0.shape, dome) > 0) if dome is not None else np.ones(g0.shape, bool)
+    if not mask.any():
+        mask[:] = True
+    n = 1
+    for f in fl[1:]:
+        if float(np.mean(np.abs(to_gray(f).astype(np.float32) - g0)[mask])) >= threshold_gray:
+            break
+        n += 1
+    return n
+
+
+def _sim_frames(scene_name: str, effects: tuple, seed: int,
+                limit: int | None = None) -> list[np.ndarray]:
     sim = Simulator(load_scene(scene_name).with_effects(*effects), seed=seed)
-    return [sim.render(i) for i in range(sim.n_frames)]
+    n = sim.n_frames if limit is None else min(limit, sim.n_frames)
+    return [sim.render(i) for i in range(n)]
 
 
-def _measure_set(rest: list, drag: list, params: VisionParams) -> dict:
+def fit_glare(real_glare: dict, seed: int = 0, rounds: int = 3, frames: int = 4) -> dict:
+    """The simulator's ``glare`` effect fitted to a real glare measurement (from
+    :func:`host.analysis.glare.measure_glare` on the real rest frames): ``peak``
+    scaled until the simulated blob amplitude matches, ``sigma_px`` until the blob
+    area at half amplitude matches, within :data:`GLARE_SIGMA_BOUNDS_PX`. Starts from
+    the simulated profile's own glare. Returns {"effect": dict or None (no glare
+    seen), "sigma_at_bound": bool}."""
+    amp = float(real_glare.get("glare_amplitude_gray_median", 0.0))
+    area = float(real_glare.get("glare_half_amplitude_area_px2_median", 0.0))
+    if amp <= 0 or area <= 0:
+        return {"effect": None, "sigma_at_bound": False}
+    g = load_scene("no-touch").profile.glare
+    peak, sigma = float(g.peak or 70.0), float(g.sigma_px or 15.0)
+    lo, hi = GLARE_SIGMA_BOUNDS_PX
+    at_bound = False
+    for _ in range(rounds):
+        eff = {"name": "glare", "peak": round(peak, 1), "sigma_px": round(sigma, 1)}
+        rest = _sim_frames("no-touch", (eff, "camera_noise"), seed, frames)
+        m = measure_glare(rest, locate_dome(rest))
+        s_amp = float(m.get("glare_amplitude_gray_median", 0.0))
+        s_area = float(m.get("glare_half_amplitude_area_px2_median", 0.0))
+        if s_amp > 0:
+            peak = float(np.clip(peak * amp / s_amp, 1.0, 255.0))
+        if s_area > 0:
+            want = sigma * math.sqrt(area / s_area)
+            at_bound = want > hi
+            sigma = float(np.clip(want, lo, hi))
+    return {"effect": {"name": "glare", "peak": round(peak, 1), "sigma_px": round(sigma, 1)},
+            "sigma_at_bound": at_bound}
+
+
+def _measure_set(rest: list, drag: list | None, params: VisionParams) -> dict:
     dome = locate_dome(rest)
     return {"static": measure_static(rest, params, dome),
             "glare": measure_glare(rest, dome),
-            "drag": measure_drag_displacement(drag, params, dome)}
+            "drag": measure_drag_displacement(drag, params, dome) if drag else {}}
 
 
-def roboskin_realism(data_dir, seed: int = 0, params: VisionParams | None = None) -> dict:
-    """Measure the real roboskin clips and the simulator's ``roboskin`` profile
-    the same way, and compare each figure (ratio sim / real, within 20%?).
+def drag_scene(label: str) -> str | None:
+    """The simulator's ``{label}-drag`` scene, or None when it has none."""
+    name = f"{label}-drag"
+    try:
+        load_scene(name)
+    except Exception:       # an unknown scene name: the simulator's own error
+        return None
+    return name
 
-    Real: rest = the leading still frames of smooth.avi, drag = all of it (and the
-    same for concrete.avi). Simulated: ``no-touch`` and ``smooth-drag`` /
-    ``concrete-drag`` with the effects a camera shows (glare, noise)."""
+
+def recording_realism(name: str, label: str, frames: list, params: VisionParams,
+                      seed: int = 0) -> dict:
+    """One recording against the simulator, measured alike: rest figures from its
+    leading rest frames (:func:`rest_frame_count`) against :data:`SIM_REST_FRAMES`
+    frames of ``no-touch`` with the glare fitted to them (:func:`fit_glare`) and
+    camera noise; drag displacement over the whole recording against the
+    ``{label}-drag`` scene (left out, with a note, when the simulator has none)."""
+    notes: list[str] = []
+    n_rest = rest_frame_count(frames)
+    if n_rest < 2:
+        notes.append(f"only {n_rest} rest frame(s) before contact (mean difference from "
+                     f"frame 0 >= {REST_THRESHOLD_GRAY} grey levels); rest figures are rough")
+    rest = frames[:n_rest]
+    scene = drag_scene(label)
+    if scene is None:
+        notes.append(f"no simulated scene {label}-drag (device/sim/scenes/{label}-drag.toml): "
+                     f"drag displacement not compared")
+    real = _measure_set(rest, frames if scene else None, params)
+    glare = fit_glare(real["glare"], seed)
+    effects = tuple(e for e in (glare["effect"], "camera_noise") if e)
+    sim_rest = _sim_frames("no-touch", effects, seed, SIM_REST_FRAMES)
+    sim = _measure_set(sim_rest, _sim_frames(scene, effects, seed) if scene else None, params)
+    rows = []
+    for fig, part, key in REALISM_FIGURES:
+        if key not in real[part]:
+            continue
+        r, s = float(real[part][key]), float(sim[part].get(key, 0.0))
+        ratio = s / r if r else (1.0 if s == 0 else float("inf"))
+        row = {"figure": fig, "real": r, "sim": s, "ratio": finite(ratio, 0.0),
+               "within_20pct": bool(abs(ratio - 1.0) <= 0.2)}
+        if key == "glare_half_amplitude_area_px2_median" and glare["sigma_at_bound"]:
+            row["not_compared"] = (f"the real glare is a broad haze (half-amplitude area "
+                                   f"{r:.0f} px^2); the simulator's separate Gaussian blobs "
+                                   f"reach sigma {GLARE_SIGMA_BOUNDS_PX[1]:.0f} px at most")
+        rows.append(row)
+    return {"recording": name, "label": label, "rest_frames": n_rest, "frames": len(frames),
+            "sim_scene": scene, "sim_effects": list(effects), "rows": rows, "notes": notes}
+
+
+def spec_realism(recordings, params: VisionParams | None = None, seed: int = 0,
+                 progress: bool = False) -> dict:
+    """:func:`recording_realism` of each of ``recordings``: (name, label, frames or a
+    function returning them), e.g. the rows of a user's data spec. ``all_within_20pct``
+    is over every compared figure."""
+    from tqdm import tqdm
+
     params = params or ROBOSKIN_PARAMS
-    root = Path(data_dir) / "roboskin"
     out = {"pairs": []}
-    for clip, scene in (("smooth.avi", "smooth-drag"), ("concrete.avi", "concrete-drag")):
-        effects = (REAL_GLARE[clip], "camera_noise")
-        sim_rest = _sim_frames("no-touch", effects, seed)[:16]
-        frames = read_clip(root / clip)
-        real = _measure_set(frames[:REAL_REST_FRAMES[clip]], frames, params)
-        sim = _measure_set(sim_rest, _sim_frames(scene, effects, seed), params)
-        rows = []
-        for label, part, key in REALISM_FIGURES:
-            r, s = float(real[part][key]), float(sim[part][key])
-            ratio = s / r if r else (1.0 if s == 0 else float("inf"))
-            row = {"figure": label, "real": r, "sim": s, "ratio": ratio,
-                   "within_20pct": bool(abs(ratio - 1.0) <= 0.2)}
-            if (clip, label) in NOT_COMPARED:
-                row["not_compared"] = NOT_COMPARED[(clip, label)]
-            rows.append(row)
-        out["pairs"].append({"real_clip": clip, "sim_scene": scene, "sim_effects": effects,
-                             "rows": rows})
+    for name, label, frames in tqdm(list(recordings), desc="realism", unit="recording",
+                                    disable=not progress or None, leave=False):
+        fl = [to_gray(f) for f in (frames() if callable(frames) else frames)]
+        if not fl:
+            out["pairs"].append({"recording": name, "label": label, "rows": [],
+                                 "notes": ["no frames (not a video, image folder or trial)"]})
+            continue
+        out["pairs"].append(recording_realism(name, label, fl, params, seed))
     out["all_within_20pct"] = all(r["within_20pct"] for p in out["pairs"] for r in p["rows"]
                                   if "not_compared" not in r)
     return out
@@ -261,7 +351,13 @@ def roboskin_realism(data_dir, seed: int = 0, params: VisionParams | None = None
 def realism_table(res: dict) -> str:
     lines = []
     for p in res["pairs"]:
-        lines.append(f"real {p['real_clip']} vs simulated {p['sim_scene']} (+ no-touch rest)")
+        lines.append(f"real {p['recording']} ({p['label']}) vs simulated "
+                     f"{p.get('sim_scene') or 'no drag scene'} (+ no-touch rest, "
+                     f"{p.get('rest_frames', 0)} real rest frames)")
+        lines += [f"note: {n}" for n in p.get("notes", [])]
+        if not p["rows"]:
+            lines.append("")
+            continue
         lines.append(f"| figure | real | simulated | sim/real | within 20% |")
         lines.append("|---|---:|---:|---:|:-:|")
         for r in p["rows"]:
@@ -274,14 +370,20 @@ def realism_table(res: dict) -> str:
     return "\n".join(lines)
 
 
-def side_by_side_png(data_dir, out_path, seed: int = 0) -> str:
-    """One real and one simulated roboskin frame next to each other (dome crop)."""
-    real = read_clip(Path(data_dir) / "roboskin" / "smooth.avi", limit=1)[0]
-    sim = _sim_frames("no-touch", ("glare", "camera_noise"), seed)[0]
-    crop = (slice(60, 380), slice(165, 485))
-    pair = np.hstack([real[crop], np.full((320, 8), 255, np.uint8), sim[crop]])
+def side_by_side_png(frame: np.ndarray, name: str, out_path, seed: int = 0) -> str:
+    """A real frame (``name``: what it is) and a simulated ``no-touch`` frame next to
+    each other, each cropped to its dome."""
+    sim = _sim_frames("no-touch", ("glare", "camera_noise"), seed, 1)[0]
+    tiles = []
+    for img in (to_gray(frame), to_gray(sim)):
+        d = locate_dome([img]) or (img.shape[1] / 2, img.shape[0] / 2, min(img.shape) / 2)
+        r = int(max(8, d[2] * 1.1))
+        x0, y0 = max(0, int(d[0]) - r), max(0, int(d[1]) - r)
+        tile = img[y0:y0 + 2 * r, x0:x0 + 2 * r]
+        tiles.append(cv2.resize(tile, (320, 320), interpolation=cv2.INTER_AREA))
+    pair = np.hstack([tiles[0], np.full((320, 8), 255, np.uint8), tiles[1]])
     pair = cv2.cvtColor(pair, cv2.COLOR_GRAY2BGR)
-    for text, x in (("real: smooth.avi frame 0", 6), ("simulated: roboskin no-touch", 334)):
+    for text, x in ((f"real: {name}"[:40], 6), ("simulated: roboskin no-touch", 334)):
         cv2.putText(pair, text, (x, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 200), 1,
                     cv2.LINE_AA)
     Path(out_path).parent.mkdir(parents=True, exist_ok=True)

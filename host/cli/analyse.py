@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -15,11 +16,11 @@ from device.pi.vision.pipeline import STAGES, fault_names
 from host.analysis.calibrate import calibrate, merge_results, write_profile
 from host.analysis.rest_pins import write_overlay
 from host.analysis.plots import load_comparison, load_directions, plot_directions
-from host.analysis.realism import realism_table, roboskin_realism, side_by_side_png
-from host.analysis.sim2real import SIM2REAL_TRIALS, sim2real_table, sim_to_real
+from host.analysis.realism import realism_table, side_by_side_png, spec_realism
+from host.analysis.sim2real import (SIM2REAL_TRIALS, real_texture_manifest, sim2real_table,
+                                    sim_to_real, stroke_scene)
 from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
-                             open_stream, out_file, progress_bar, read_frames, real_data_dir,
-                             whole)
+                             open_stream, out_file, progress_bar, read_frames, whole)
 
 
 def _open_pipeline(args):
@@ -178,22 +179,81 @@ def cmd_calibrate(args):
     emit(args, res, text)
 
 
+REALISM_NO_DATA = ("host realism needs --data SPEC (a CSV manifest path,label[,start_frame,"
+                   "end_frame] of your recordings, or a dataset folder); for the authors' "
+                   "clips: python -m host.bench.specs --real-data DIR --out out/specs, then "
+                   "--data out/specs/realism.csv")
+
+
+def _frames_of(rec):
+    """A loader of a recording's frames (grey for a video)."""
+    from host.bench.specs import recording_frames
+    from host.data.video import video_frames
+
+    if rec.kind == "clip" and not Path(rec.path).is_dir():
+        return lambda: video_frames(rec.path, rec.end, gray=True)[rec.start:]
+    return lambda: recording_frames(rec)
+
+
+def _sim2real(args, found: dict, profile: str, work: str) -> tuple[dict | None, str]:
+    """Sim-to-real on the specs' recordings (clips cut to --real-frames), or None and
+    the one-line reason it was skipped."""
+    labels = sorted({r.label for recs in found.values() for r in recs})
+    for label in labels:
+        try:
+            stroke_scene(label, np.random.default_rng(0))
+        except ValueError:
+            return None, (f"sim-to-real skipped: label {label!r} is not a simulator surface "
+                          f"(device/sim/scene.py PRESETS)")
+    if len(labels) < 2:
+        return None, f"sim-to-real skipped: it needs two or more labels, the data has {labels}"
+    rows = [(r.path, r.label, r.start, r.end) for recs in found.values() for r in recs
+            if r.kind == "clip"]
+    specs = [s for s, recs in found.items() if any(r.kind == "trial" for r in recs)]
+    if rows:
+        specs.append(str(real_texture_manifest(rows, Path(work) / "real", args.real_frames)))
+    res = sim_to_real(specs, work, n_per_texture=args.sim2real_trials, seed=args.seed,
+                      calibrated=not args.uncalibrated, randomise=not args.uncalibrated,
+                      real_frames=args.real_frames, progress=not args.json, profile=profile)
+    return res, sim2real_table(res)
+
+
 def cmd_realism(args):
-    data = real_data_dir(args.data)
+    from host.bench.specs import check_profile, check_specs
+    from host.data.windows import DataError
+    from host.localiser.samples import vision_params_for
+
+    if not args.data:
+        raise UserError(REALISM_NO_DATA)
     if args.real_frames is not None and args.real_frames < 20:     # windows of T = 10 need room
         raise UserError(f"--real-frames must be at least 20, got {args.real_frames}")
-    res = roboskin_realism(data, seed=args.seed)
-    if args.png:
-        res["png"] = side_by_side_png(data, args.png, seed=args.seed)
+    try:                             # every file checked before any long work
+        profile = check_profile(args.profile)
+        found = check_specs(args.data)
+    except DataError as exc:
+        raise UserError(str(exc)) from None
+    recs = [r for rs in found.values() for r in rs]
+    items = [(r.name, r.label, _frames_of(r)) for r in recs]
+    try:
+        res = spec_realism(items, vision_params_for(profile), seed=args.seed,
+                           progress=not args.json)
+        if args.png:
+            first = next((f for f in (_frames_of(r)() for r in recs) if len(f)), None)
+            if first is None:
+                raise UserError("--png: no recording of --data has frames")
+            res["png"] = side_by_side_png(first[0], recs[0].name, args.png, seed=args.seed)
+    except (DataError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    res.update(data=[str(d) for d in args.data], profile=str(profile))
     text = realism_table(res) + ("\nall compared figures within 20%: "
                                  f"{'yes' if res['all_within_20pct'] else 'NO'}")
     if args.sim2real_trials:
         with tempfile.TemporaryDirectory(prefix="tacfoot-sim2real-") as tmp:
-            res["sim_to_real"] = sim_to_real(
-                data, args.work or tmp, n_per_texture=args.sim2real_trials, seed=args.seed,
-                calibrated=not args.uncalibrated, randomise=not args.uncalibrated,
-                real_frames=args.real_frames, progress=not args.json)
-        text += "\n\n" + sim2real_table(res["sim_to_real"])
+            try:
+                res["sim_to_real"], more = _sim2real(args, found, profile, args.work or tmp)
+            except (DataError, ValueError) as exc:
+                raise UserError(f"sim-to-real: {exc}") from None
+        text += "\n\n" + more
     emit(args, res, text)
     return 0 if res["all_within_20pct"] else 1
 
@@ -239,16 +299,21 @@ def register(sub) -> None:
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_plot)
 
-    s = sub.add_parser("realism", help="simulated roboskin against the real clips")
-    s.add_argument("--data", help="real recordings folder (default $TACFOOT_REAL_DATA or "
-                                  "../shared/data)")
+    s = sub.add_parser("realism", help="the simulator against your recordings, measured "
+                                       "alike; and a sim-trained texture model on them")
+    s.add_argument("--data", action="append", metavar="SPEC",
+                   help="a CSV manifest (path,label[,start_frame,end_frame]) or a dataset "
+                        "folder; repeatable; each label picks the simulator's LABEL-drag "
+                        "scene (required; python -m host.bench.specs writes the authors')")
+    s.add_argument("--profile", default="roboskin",
+                   help="sensor profile name or .toml the frames are measured with")
     s.add_argument("--png", help="also write a real | simulated side-by-side PNG here")
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--sim2real-trials", type=whole(0, 1000), default=SIM2REAL_TRIALS, metavar="N",
                    help="sim-to-real: simulated stroke trials per texture the texture model "
                         f"trains on (default {SIM2REAL_TRIALS}; 0 skips it)")
     s.add_argument("--real-frames", type=whole(1), metavar="F",
-                   help="sim-to-real: score only the first F frames of each real clip")
+                   help="sim-to-real: score only the first F frames of each real video")
     s.add_argument("--uncalibrated", action="store_true",
                    help="sim-to-real with the generic smooth and concrete surfaces and no "
                         "randomisation (the simulator before calibration)")

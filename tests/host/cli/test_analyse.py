@@ -122,3 +122,50 @@ def test_a_calibrated_profile_reads_the_rest_frames_of_its_clip_as_rest(tmp_path
 
     default, calibrated = rest_contact("roboskin"), rest_contact(str(prof))
     assert default <= 1 and calibrated <= default
+
+
+def test_realism_on_the_users_own_spec_and_profile_names_no_built_in_clip(tmp_path, capsys):
+    """``host realism --data my.csv --profile my-sensor.toml`` on renamed slices of the
+    real clips: every row measured, a label with no simulated drag scene said so in
+    one note, and no built-in clip named anywhere in the output."""
+    import shutil
+    root = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi") / "roboskin"
+    (tmp_path / "my_floor.avi").symlink_to(root / "smooth.avi")
+    (tmp_path / "my_grit.avi").symlink_to(root / "concrete.avi")
+    spec = tmp_path / "my.csv"
+    spec.write_text("path,label,start_frame,end_frame\n"
+                    f"{tmp_path / 'my_floor.avi'},smooth,0,120\n"
+                    f"{tmp_path / 'my_grit.avi'},felt,0,60\n")
+    prof = tmp_path / "my-sensor.toml"
+    shutil.copy(REPO_ROOT / "device" / "profiles" / "roboskin.toml", prof)
+    main(["realism", "--data", str(spec), "--profile", str(prof), "--sim2real-trials", "0",
+          "--json"])
+    res = json.loads(capsys.readouterr().out)
+    assert [(p["recording"], p["label"], p["frames"]) for p in res["pairs"]] == [
+        ("my_floor.avi", "smooth", 120), ("my_grit.avi", "felt", 60)]
+    floor, grit = res["pairs"]
+    assert floor["sim_scene"] == "smooth-drag" and floor["rest_frames"] == 15
+    assert [r["figure"] for r in floor["rows"]][-1] == "drag displacement p90 [px]"
+    assert grit["sim_scene"] is None and "no simulated scene felt-drag" in grit["notes"][0]
+    assert all("drag" not in r["figure"] for r in grit["rows"])
+    assert res["profile"] == str(prof)
+    text = json.dumps(res)
+    for clip in ("smooth.avi", "concrete.avi", "lego_train.avi", "roboskin/"):
+        assert clip not in text
+
+
+def test_realism_with_a_missing_file_or_no_data_is_one_line_and_exit_2(tmp_path, capsys):
+    import time
+    spec = tmp_path / "my.csv"
+    spec.write_text(f"path,label\n{tmp_path / 'gone.avi'},smooth\n")
+    t0 = time.perf_counter()
+    assert main(["realism", "--data", str(spec)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert time.perf_counter() - t0 < 5
+    assert len(err.splitlines()) == 1 and "gone.avi" in err
+    assert main(["realism", "--data", str(spec), "--profile", str(tmp_path / "no.toml")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no.toml" in err
+    assert main(["realism"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "python -m host.bench.specs --real-data" in err
