@@ -33,8 +33,7 @@ def test_fault_message_keeps_sixteen_bits():
 def test_heartbeat_and_imu_clamp_counts():
     hb = heartbeat_message(12.7, 120.0, 10 ** 6, FAULT_CAMERA)
     assert hb.uptime_s == 12 and hb.frames_dropped == 0xFFFF and hb.faults == FAULT_CAMERA
-    t = cpu_temp_c()
-    assert t == TEMP_UNKNOWN_C or -40 <= t <= 150
+    assert P.Heartbeat.unpack(hb.pack()) == hb
     imu = imu_message(np.array([0.0, 0.0, 1.0, 1.0, 2.0, 3.0]), 1.5, 1000, 0)
     assert imu.acc_mg == pytest.approx((0.0, 0.0, 1000.0)) and imu.samples == 255
     assert imu.gyro_dps == pytest.approx((1.0, 2.0, 3.0)) and imu.acc_peak_mg == 1500.0
@@ -45,3 +44,16 @@ def test_command_opcodes():
     assert command_op(P.Command(P.CMD_SET_RATE, 60)) == "rate"
     assert command_op(P.Command(P.CMD_REQUEST_STATUS)) == "status"
     assert command_op(P.Command(200)) == "unknown"
+
+
+@pytest.mark.parametrize("text, want", [("45678\n", 46), ("-5200", -5), ("0", 0),
+                                        ("warm", TEMP_UNKNOWN_C), ("", TEMP_UNKNOWN_C)])
+def test_cpu_temperature_is_the_thermal_zone_in_degrees_or_unknown(tmp_path, monkeypatch,
+                                                                   text, want):
+    from device.pi.runtime import messages
+    zone = tmp_path / "temp"
+    zone.write_text(text)
+    monkeypatch.setattr(messages, "THERMAL_ZONE", str(zone))
+    assert cpu_temp_c() == want
+    monkeypatch.setattr(messages, "THERMAL_ZONE", str(tmp_path / "missing"))
+    assert cpu_temp_c() == TEMP_UNKNOWN_C
