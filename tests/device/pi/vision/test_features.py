@@ -93,8 +93,13 @@ def test_average_vector_direction_and_magnitude_sum():
 def test_vector_features_are_finite_for_any_input(v):
     ax, ay = average_vector(v)
     s = magnitude_sum(v)
-    assert shear_and_sum(v) == (ax, ay, s)          # one pass, the same numbers
     finite = np.isfinite(v).all(axis=1)
+    used = np.clip(v[finite], -1e6, 1e6)           # an independent oracle, float64
+    if len(used):
+        assert (ax, ay) == pytest.approx(tuple(used.mean(axis=0)), rel=1e-9, abs=1e-9)
+        assert s == pytest.approx(np.hypot(used[:, 0], used[:, 1]).sum(), rel=1e-9)
+    else:
+        assert (ax, ay, s) == (0.0, 0.0, 0.0)
     assert math.isfinite(ax) and math.isfinite(ay) and math.isfinite(s)
     assert math.isfinite(direction_deg(ax, ay))
     f = vector_features(v, ~finite)
@@ -121,3 +126,57 @@ def test_contact_grid_converts_a_binary_of_another_dtype_and_counts_it(kind):
     assert c and np.array_equal(g, g_want) and grid.converted == 2 and not grid.bad_input
     g, c = grid.update(np.zeros((8, 8), np.uint8))        # another size: flagged
     assert not c and grid.bad_input
+
+
+# -- behaviour the mutation tester found unasserted (issue 24) ------------------------------
+
+def test_shear_and_sum_equal_an_independent_computation():
+    v = np.array([[3.0, 4.0], [-1.0, 0.0], [np.nan, 1.0], [0.0, -2.0], [2e6, 0.0]])
+    valid = np.array([True, True, True, False, True])
+    # rows 0, 1 and the clipped 1e6 one are used; NaN and the invalid row are not
+    ax, ay, s = shear_and_sum(v, valid)
+    assert (ax, ay) == pytest.approx(((3.0 - 1.0 + 1e6) / 3, 4.0 / 3))
+    assert s == pytest.approx(5.0 + 1.0 + 1e6)
+    assert average_vector(v) == pytest.approx(((3.0 - 1.0 + 1e6) / 4, (4.0 - 2.0) / 4))
+    assert magnitude_sum(v) == pytest.approx(5.0 + 1.0 + 2.0 + 1e6)
+
+
+@pytest.mark.parametrize("v, valid", [(np.full((4, 2), np.nan), None),
+                                      (np.ones((3, 2)), np.zeros(3, bool)),
+                                      (np.zeros((0, 2)), None)])
+def test_zeros_when_no_pin_is_valid(v, valid):
+    assert shear_and_sum(v, valid) == (0.0, 0.0, 0.0)
+    assert average_vector(v, valid) == (0.0, 0.0) and magnitude_sum(v, valid) == 0.0
+
+
+@pytest.mark.parametrize("dx, dy, deg", [(1.0, 0.0, 0.0), (0.0, 1.0, 90.0), (-1.0, 0.0, 180.0),
+                                         (0.0, -1.0, 270.0), (1.0, -1.0, 315.0),
+                                         (-1.0, -1.0, 225.0), (0.0, 0.0, 0.0),
+                                         (np.nan, 1.0, 0.0), (1.0, np.inf, 0.0)])
+def test_direction_of_negative_and_degenerate_vectors(dx, dy, deg):
+    assert direction_deg(dx, dy) == pytest.approx(deg)
+
+
+def test_vector_features_are_the_vectors_then_the_lost_flags():
+    v = np.array([[1.5, -2.0], [np.nan, np.inf], [-np.inf, 3e7]])
+    lost = np.array([False, True, True])
+    f = vector_features(v, lost)
+    assert f.dtype == np.float32
+    np.testing.assert_array_equal(f, [1.5, -2.0, 0.0, 0.0, 0.0, 1e6, 0.0, 1.0, 1.0])
+
+
+def test_contact_is_the_cell_change_minus_gamma_above_the_threshold():
+    """One quadrant of a 2x2 grid changes fully: its cell minus the global mean is
+    0.75; minus gamma 0.1 that is 0.65, so a 0.6 threshold sees contact, 0.7 not."""
+    ref = np.zeros((4, 4), np.uint8)
+    cur = ref.copy()
+    cur[:2, :2] = 255
+    for threshold, contact in ((0.6, True), (0.7, False)):
+        g = ContactGrid(n=2, gamma=0.1, contact_threshold=threshold)
+        g.set_reference(ref)
+        grid, got = g.update(cur)
+        assert got is contact
+        np.testing.assert_allclose(grid, [[0.65, 0.0], [0.0, 0.0]], atol=1e-6)
+    grid, got = g.update(ref)                    # lifted: no contact, the trace fades
+    assert got is False
+    np.testing.assert_allclose(grid, [[0.55, 0.0], [0.0, 0.0]], atol=1e-6)
