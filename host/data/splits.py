@@ -1,7 +1,11 @@
 """Splits that never leak: whole trials to one side (:func:`split_grouped`,
 :func:`group_kfold`) or, within each trial, earlier frames to train and later ones to
 test with a gap (:func:`split_time`). Each returns index arrays into a WindowSet.
-:func:`split_holdout` picks between the two so that no class is lost."""
+:func:`split_holdout` picks between the two so that no class is lost, and says which
+protocol it used (:data:`LEAVE_RECORDINGS_OUT` or :data:`LATER_FRAMES`): whole
+*recordings* (:meth:`WindowSet.recording_ids`) are held out where every class has
+two or more of them; otherwise the later frames of the same recordings, which is
+optimistic, since the test windows share the training windows' session."""
 from __future__ import annotations
 
 from typing import Iterator
@@ -23,13 +27,19 @@ def _group_labels(ws: WindowSet, uniq: np.ndarray, inv: np.ndarray) -> np.ndarra
     return np.array(out, object)
 
 
-def split_grouped(ws: WindowSet, test_frac: float = 0.3, seed: int = 0
+#: the held-out protocols of :func:`split_holdout` (a model's ``metrics.test.protocol``)
+LEAVE_RECORDINGS_OUT = "leave-recordings-out"
+LATER_FRAMES = "later-frames-same-recordings (optimistic)"
+
+
+def split_grouped(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, keys=None
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(train_idx, test_idx): whole trials to one side, about ``test_frac`` of the
-    trials to test, spread over the trials' majority labels."""
+    """(train_idx, test_idx): whole trials (or whole ``keys``, e.g. recording ids) to
+    one side, about ``test_frac`` of them to test, spread over their majority labels."""
     if not (isinstance(test_frac, (int, float)) and 0.0 < test_frac < 1.0):
         raise DataError(f"test_frac must be between 0 and 1, got test_frac={test_frac!r}")
-    uniq, inv = np.unique(ws.groups, return_inverse=True)
+    uniq, inv = np.unique(ws.groups if keys is None else np.asarray(keys).astype(str),
+                          return_inverse=True)
     n = len(uniq)
     if n < 2:
         raise DataError(f"split_grouped needs at least 2 groups (trials), the data have {n}; "
@@ -81,28 +91,82 @@ def missing_classes(ws: WindowSet, idx: np.ndarray, classes) -> list[str]:
     return sorted(str(c) for c in classes if str(c) not in have)
 
 
+def recordings_per_class(ws: WindowSet) -> dict[str, int]:
+    """How many recordings carry windows of each class."""
+    if ws.labels is None:
+        return {}
+    rec = ws.recording_ids().astype(str)
+    lab = ws.labels.astype(str)
+    return {c: int(len(np.unique(rec[lab == c]))) for c in sorted(set(lab.tolist()))}
+
+
+def _pick_recordings(ws: WindowSet, rec: np.ndarray, frac: float, seed: int) -> np.ndarray:
+    """Test windows: of each class's recordings (by their most common label other than
+    no-touch), ``frac`` rounded, at least one and never all."""
+    from host.data.windows import NO_TOUCH
+    rng = np.random.default_rng(seed)
+    lab = ws.labels.astype(str) if ws.labels is not None else np.full(len(ws), "", object)
+    ids = np.unique(rec)
+    major = {}
+    for r in ids:
+        names, counts = np.unique(lab[rec == r], return_counts=True)
+        keep = names != NO_TOUCH
+        if keep.any():
+            names, counts = names[keep], counts[keep]
+        major[r] = names[np.argmax(counts)]
+    test = []
+    for c in sorted(set(major.values())):
+        mine = rng.permutation([r for r in ids if major[r] == c])
+        if len(mine) >= 2:
+            test += list(mine[:min(len(mine) - 1, max(1, int(round(frac * len(mine)))))])
+    return np.flatnonzero(np.isin(rec, test))
+
+
+def holdout_protocol(how: str) -> str:
+    """The protocol (:data:`LEAVE_RECORDINGS_OUT`, :data:`LATER_FRAMES`, ``given``
+    or ``none``) that a :func:`split_holdout` account ``how`` names."""
+    if how.startswith("grouped split"):
+        return LEAVE_RECORDINGS_OUT
+    if how.startswith("time split"):
+        return LATER_FRAMES
+    return how.split(":", 1)[0]
+
+
 def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: int = 32,
                   grouped_frac: float = 0.25) -> tuple[np.ndarray, np.ndarray, str]:
     """(train_idx, test_idx, how): a held-out split that keeps every class on both
     sides.
 
-    Whole trials go to one side (:func:`split_grouped` holding out ``grouped_frac`` of
-    the trials; up to ``tries`` seeds from ``seed``) when that keeps every class in train and test. Otherwise, as with one
-    recording per class, each trial is split in time (:func:`split_time`): its first
-    ``1 - test_frac`` to train, its last ``test_frac`` to test, with a gap of T frames.
-    ``how`` says which, and why. A DataError names the classes that no split keeps.
+    Where every class has two or more recordings, whole recordings go to one side
+    (:func:`split_grouped` on the recording ids, holding out ``grouped_frac`` of
+    them; up to ``tries`` seeds from ``seed``) when that keeps every class in train
+    and test: ``how`` starts with "grouped split" and names :data:`LEAVE_RECORDINGS_OUT`. Otherwise, as with
+    one recording per class, each trial is split in time (:func:`split_time`): its
+    first ``1 - test_frac`` to train, its last ``test_frac`` to test, with a gap of T
+    frames; ``how`` starts with "time split within each trial", names
+    :data:`LATER_FRAMES` and says "same recordings: optimistic". ``how`` says why (:func:`holdout_protocol` reads the protocol back).
+    A DataError names the classes that no split keeps.
     """
     classes = [] if ws.labels is None else sorted({str(x) for x in ws.labels})
-    n_groups = len(np.unique(ws.groups))
-    why = f"{n_groups} trial(s)"
-    if n_groups >= 2:
+    rec = ws.recording_ids().astype(str)
+    n_rec = len(np.unique(rec))
+    per_class = recordings_per_class(ws)
+    few = sorted(c for c, n in per_class.items() if n < 2)
+    why = f"{n_rec} recording(s)"
+    if few:
+        why = (f"class(es) {few} have only one recording each "
+               f"({', '.join(f'{c}: {per_class[c]}' for c in few[:5])})")
+    elif n_rec >= 2:
+        lost: list = []
         for k in range(tries):
-            tr, te = split_grouped(ws, grouped_frac, seed + k)
+            te = _pick_recordings(ws, rec, grouped_frac, seed + k)
+            tr = np.setdiff1d(np.arange(len(ws)), te)
             lost = missing_classes(ws, tr, classes) + missing_classes(ws, te, classes)
             if not lost:
-                return tr, te, (f"grouped split: {len(np.unique(ws.groups[te]))} of "
-                                f"{n_groups} trials held out")
-        why = (f"no split of whole trials keeps every class on both sides "
+                return tr, te, (f"grouped split ({LEAVE_RECORDINGS_OUT}): "
+                                f"{len(np.unique(rec[te]))} of {n_rec} recordings held out "
+                                f"whole")
+        why = (f"no split of whole recordings keeps every class on both sides "
                f"(e.g. {sorted(set(lost))} would be lost)")
     try:
         tr, te = split_time(ws, 1.0 - test_frac)
@@ -114,8 +178,10 @@ def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: i
                         f"leaves class(es) {sorted(set(lost_tr + lost_te))} without "
                         f"{'training' if lost_tr else 'test'} windows (too few frames for "
                         f"T={ws.window}); record more of them or give --test")
-    return tr, te, (f"time split within each trial: last {test_frac:.0%} held out after a "
-                    f"gap of {ws.window} frames, because {why}")
+    return tr, te, (f"time split within each trial ({LATER_FRAMES}): last {test_frac:.0%} "
+                    f"held out after a gap of {ws.window} frames, because {why}; same recordings: "
+                    f"optimistic (the test windows share the training windows' session: "
+                    f"give --test with another recording for a fair score)")
 
 
 def group_kfold(ws: WindowSet, k: int, seed: int = 0

@@ -136,3 +136,28 @@ def test_split_holdout_names_a_class_no_split_can_keep():
 def test_missing_classes_lists_absent_ones():
     ws = synthetic([10, 10], 2)
     assert missing_classes(ws, np.flatnonzero(ws.groups == 0), ["a", "b", "z"]) == ["b", "z"]
+
+
+def test_split_holdout_leaves_whole_recordings_out_never_a_part_of_one():
+    """8 trials that are parts of 4 recordings (two per class): whole recordings go
+    to one side, so no recording's windows are trained and tested on."""
+    from host.data.splits import LEAVE_RECORDINGS_OUT, holdout_protocol
+    ws = synthetic([40] * 8, 3)                 # trial k has label a (even) or b (odd)
+    ws.recordings = np.array([f"rec{g % 4}" for g in ws.groups], object)  # 0,2: a; 1,3: b
+    for seed in range(6):
+        tr, te, how = split_holdout(ws, 0.3, seed=seed)
+        assert holdout_protocol(how) == LEAVE_RECORDINGS_OUT and "recordings held out" in how
+        assert set(ws.recordings[tr]).isdisjoint(ws.recordings[te])
+        assert set(ws.labels[tr]) == set(ws.labels[te]) == {"a", "b"}
+        assert len(tr) + len(te) == len(ws)
+
+
+def test_split_holdout_with_one_recording_of_a_class_says_optimistic():
+    """Class b has one recording (split into two trials): the split is by time
+    within the recordings, and says so: 'same recordings: optimistic'."""
+    from host.data.splits import LATER_FRAMES, holdout_protocol
+    ws = synthetic([40] * 4, 3)
+    ws.recordings = np.array(["a1", "b1", "a2", "b1"], object)[ws.groups]
+    tr, te, how = split_holdout(ws, 0.3, seed=0)
+    assert holdout_protocol(how) == LATER_FRAMES and "same recordings: optimistic" in how
+    assert "['b'] have only one recording" in how
