@@ -247,7 +247,7 @@ def register(sub) -> None:
                         "(with --out, --force, --json only)")
     s.add_argument("--task", choices=["surface", "texture", "slip", "pressure"],
                    help="required unless --config")
-    s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "cnn"],
+    s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "gbt", "cnn"],
                    help="model kind (default per task: " +
                    ", ".join(f"{t} {m}" for t, m in DEFAULT_MODEL.items()) + ")")
     s.add_argument("--window", type=whole(1, MAX_T),

@@ -12,9 +12,14 @@ from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hy
                                    rule_probs)
 from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.metrics import class_report, regression_metrics
+from host.learn.pressure import bootstrap_mae
 from host.learn.tasks import LAYOUT, TrainError, check_int, label_ids
 
-__all__ = ["cross_validate_model"]
+__all__ = ["cross_validate_model", "CI_OVER_TRIALS"]
+
+#: how a regressor's CV interval is made: the held-out windows of a trial share its
+#: presses, so whole trials are resampled (:func:`host.learn.pressure.bootstrap_mae`)
+CI_OVER_TRIALS = "bootstrap over trials (groups), 2000 resamples, percentile 95 %"
 
 
 def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
@@ -22,7 +27,8 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
                          classes: list[str] | None = None, augment: int = 0,
                          profile: str = "roboskin", **hp) -> dict:
     """Grouped K-fold CV (whole trials per fold, :func:`host.data.splits.group_kfold`):
-    pooled held-out metrics plus each fold's accuracy (or MAE). ``augment``
+    pooled held-out metrics plus each fold's accuracy (or MAE; a regressor's pooled
+    MAE also gets ``mae_ci95``, its 95 % interval resampling whole trials). ``augment``
     rotated copies are added to each fold's training part only."""
     from tqdm import tqdm
 
@@ -80,6 +86,9 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
     if regression:
         res = regression_metrics(y, pooled)
         res["fold_mae"] = [round(x, 6) for x in per_fold]
+        res["mae_ci95"] = bootstrap_mae(np.abs(pooled - y), ws.groups, seed=seed)
+        res["ci_method"] = CI_OVER_TRIALS
+        res["trials"] = int(len(np.unique(ws.groups)))
     else:
         res = class_report(task, ws, y, pooled, classes)
         res["fold_accuracy"] = [round(x, 6) for x in per_fold]

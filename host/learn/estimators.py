@@ -1,5 +1,6 @@
 """The trainable models: the MLP pipelines of ``fnn`` and ``grid-fnn`` ([temporal
-layer ->] clipped scaling -> MLP), Ridge for pressure, their ONNX export, and the
+layer ->] clipped scaling -> MLP), Ridge and gradient-boosted trees
+(:mod:`host.learn.pressure`) for pressure, their ONNX export, and the
 rule model's thresholds fitted to training windows.
 """
 from __future__ import annotations
@@ -25,7 +26,20 @@ def default_uses_imu(model: str, ws) -> bool:
     return model == "fnn" and ws.imu is not None
 
 
-def hyperparameters(model: str, hidden=None, alpha=None, epochs=None, temporal=None) -> dict:
+def hyperparameters(model: str, hidden=None, alpha=None, epochs=None, temporal=None,
+                    window=None, n_pins=None) -> dict:
+    """The settings :func:`fit_estimator` reads. ``gbt`` (scikit-learn's
+    GradientBoostingRegressor with its default settings) takes no hidden, alpha or
+    epochs; it needs the windows' ``window`` (T) and ``n_pins`` (M) for its
+    :class:`host.learn.pressure.TrackedPins` layer."""
+    if model == "gbt":
+        given = {k: v for k, v in (("hidden", hidden), ("alpha", alpha), ("epochs", epochs))
+                 if v is not None}
+        if given:
+            raise TrainError(f"model gbt uses GradientBoostingRegressor's default settings; "
+                             f"it takes no {sorted(given)}, got {given}")
+        return {"temporal": None, "window": check_int("window", window, 1),
+                "n_pins": check_int("n_pins", n_pins, 1)}
     hidden = tuple(DEFAULT_HIDDEN if hidden is None else hidden)
     if len(hidden) != 2 or not all(isinstance(h, (int, np.integer)) and h >= 1 for h in hidden):
         raise TrainError(f"hidden must be two layer sizes >= 1, got hidden={hidden!r}")
@@ -107,6 +121,12 @@ def fit_estimator(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes
     t0 = time.perf_counter()
     if model == "ridge":
         pipe = ridge_pipeline(hp["alpha"]).fit(X, y)
+        info = {}
+    elif model == "gbt":
+        from host.learn.pressure import fit_pressure
+        if task != "pressure":
+            raise TrainError(f"model gbt regresses pressure, got task={task!r}")
+        pipe, _ = fit_pressure("gbt", X, y, None, hp["window"], hp["n_pins"], seed)
         info = {}
     else:
         pipe, epochs, loss = fit_mlp(task, X, y, n_classes, hp["hidden"], hp["alpha"], seed,

@@ -26,7 +26,13 @@ Models (``kind``):
 prints the grouped (by trial) K-fold CV MAE with a 95 % bootstrap interval over
 trials, beside the MAE of the former model (Ridge alpha 150 on the raw vectors);
 ``--out DIR`` also writes the model fitted on all trials (ONNX + manifest), checked
-against scikit-learn through ONNX Runtime.
+against scikit-learn through ONNX Runtime. ``--npz FILE`` writes the set as an
+``.npz`` data spec instead (groups = trials), for the command users run::
+
+    host train --task pressure --data hard_plate.npz --cv 5 --json --out DIR
+
+which trains the default pressure model, ``gbt``, and reports the grouped CV MAE
+with its interval over trials (``metrics.cv``).
 """
 from __future__ import annotations
 
@@ -39,7 +45,8 @@ import numpy as np
 from host.learn.tasks import TrainError
 
 __all__ = ["KINDS", "tracked_class", "pressure_pipeline", "nested_alpha", "fit_pressure",
-           "cross_validate_pressure", "bootstrap_mae", "export_pressure", "hard_plate",
+           "cross_validate_pressure", "bootstrap_mae", "checked_onnx", "export_pressure",
+           "hard_plate", "hard_plate_npz",
            "main"]
 
 KINDS = ("gbt", "ridge", "ridge150-raw")
@@ -278,26 +285,38 @@ def cross_validate_pressure(X, y, groups, kind: str = "gbt", T: int = 1,
     return res
 
 
+def checked_onnx(pipe, X, y):
+    """(ONNX model, parity record) of the fitted pipeline ``pipe``, after checking
+    that ONNX Runtime gives its predictions on ``X`` within ``PARITY_OF_RANGE`` of
+    the range of the targets ``y`` (TrainError otherwise)."""
+    from host.learn.onnx_io import run_onnx, session, sklearn_to_onnx
+
+    X = np.asarray(X, np.float32)
+    y = np.asarray(y, np.float64).reshape(-1)
+    model = sklearn_to_onnx(pipe, X.shape[1])
+    got = run_onnx(session(model.SerializeToString()), X).reshape(-1)
+    want = pipe.predict(X)
+    rng = float(y.max() - y.min()) or 1.0
+    diff = float(np.abs(got - want).max()) if len(X) else 0.0
+    parity = {"max_abs_diff": diff, "of_range": diff / rng, "n": int(len(X))}
+    if not diff <= PARITY_OF_RANGE * rng:
+        raise TrainError(f"the ONNX pressure model differs from scikit-learn by {diff:g} "
+                         f"(more than {PARITY_OF_RANGE:g} of the target range {rng:g})")
+    return model, parity
+
+
 def export_pressure(X, y, groups, out_dir, kind: str = "gbt", T: int = 1,
                     n_pins: int | None = None, seed: int = 0, extra: dict | None = None):
     """Fit ``kind`` on all windows and write ONNX + manifest (kind ``pressure``,
     ``input_layout`` vectors, T) to ``out_dir``, after checking that ONNX Runtime
     gives scikit-learn's predictions within ``PARITY_OF_RANGE`` of the target
     range (TrainError otherwise). Returns (folder, pipeline, parity record)."""
-    from host.learn.onnx_io import run_onnx, session, sklearn_to_onnx, write_model
+    from host.learn.onnx_io import write_model
 
     X, y, groups = _check_xy(X, y, groups)
     n_pins = n_pins or X.shape[1] // (2 * T)
     pipe, info = fit_pressure(kind, X, y, groups, T, n_pins, seed)
-    model = sklearn_to_onnx(pipe, X.shape[1])
-    got = run_onnx(session(model.SerializeToString()), X).reshape(-1)
-    want = pipe.predict(X)
-    rng = float(y.max() - y.min()) or 1.0
-    diff = float(np.abs(got - want).max())
-    parity = {"max_abs_diff": diff, "of_range": diff / rng, "n": int(len(X))}
-    if not diff <= PARITY_OF_RANGE * rng:
-        raise TrainError(f"the ONNX pressure model differs from scikit-learn by {diff:g} "
-                         f"(more than {PARITY_OF_RANGE:g} of the target range {rng:g})")
+    model, parity = checked_onnx(pipe, X, y)
     # the runtime clips inputs to this range: 0 (an untracked pin) stays inside it
     lo = np.minimum(X.min(axis=0), 0.0)
     hi = np.maximum(X.max(axis=0), 0.0)
@@ -330,6 +349,31 @@ def hard_plate(vectors_path, pressures_path):
     return X, y, np.repeat(np.arange(n_trials), n_depths), int(M)
 
 
+def hard_plate_npz(vectors_path, pressures_path, out_path) -> dict:
+    """Write a pressing set as an ``.npz`` data spec for ``host train --task pressure``
+    (:mod:`host.data.spec_npz`): ``vectors`` (N, 1, M, 2), ``targets`` (N,) the
+    load-cell reading, ``groups`` (N,) the trial and ``lost`` (N, 1, M) the pins at
+    exactly (0, 0). Returns a summary (path, windows, trials, pins)."""
+    from pathlib import Path
+
+    v = np.load(vectors_path, allow_pickle=False)
+    p = np.load(pressures_path, allow_pickle=False)
+    if v.ndim != 4 or v.shape[-1] != 2:
+        raise TrainError(f"{vectors_path}: vectors must be (trials, depths, M, 2), got {v.shape}")
+    if p.shape != (v.shape[0], 2, v.shape[1]):
+        raise TrainError(f"{pressures_path}: loads must be ({v.shape[0]}, 2, {v.shape[1]}), "
+                         f"got {p.shape}")
+    n_trials, n_depths, M = v.shape[:3]
+    vec = v.reshape(n_trials * n_depths, 1, M, 2).astype(np.float32)
+    out = Path(out_path)
+    out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")
+    np.savez_compressed(out, vectors=vec, targets=p[:, 1, :].reshape(-1).astype(np.float64),
+                        groups=np.repeat(np.arange(n_trials), n_depths),
+                        lost=(vec == 0).all(axis=3))
+    return {"path": str(out), "windows": int(len(vec)), "trials": int(n_trials),
+            "n_pins": int(M)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m host.learn.pressure",
                                  description=__doc__.split("\n\n")[0])
@@ -341,9 +385,16 @@ def main(argv=None) -> int:
     ap.add_argument("--no-baseline", action="store_true",
                     help="skip the former model's figure (ridge150-raw)")
     ap.add_argument("--out", help="also write the model fitted on all trials here")
+    ap.add_argument("--npz", help="only write the set as an .npz data spec for "
+                                   "host train --task pressure (no CV)")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     try:
+        if a.npz:
+            res = hard_plate_npz(a.vectors, a.pressures, a.npz)
+            print(json.dumps(res) if a.json else f"wrote {res['path']}: {res['windows']} "
+                  f"windows of {res['trials']} trials, {res['n_pins']} pins")
+            return 0
         X, y, groups, M = hard_plate(a.vectors, a.pressures)
         res = {"data": {"vectors": a.vectors, "pressures": a.pressures, "n_pins": M,
                         "windows": int(len(y))},

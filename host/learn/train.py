@@ -49,6 +49,7 @@ from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.metrics import class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
                                 write_manifest, write_model, write_variants)
+from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
 from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
@@ -222,7 +223,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                if tspec and tspec["pin_mask"] else [])
     if hidden is None:
         hidden = TASK_HIDDEN.get(task)
-    hp = hyperparameters(model, hidden, alpha, epochs, tspec) if model != "rule" else {}
+    hp = (hyperparameters(model, hidden, alpha, epochs, tspec, window=T,
+                          n_pins=ws_train.n_pins) if model != "rule" else {})
     regression = task == "pressure"
 
     augment = check_int("augment", augment, 0)
@@ -286,7 +288,10 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
 
     pipe, fit_info = fit_estimator(task, model, X, y, len(classes), hp, seed, progress,
                                    f"{task} {model} T={T}")
-    onnx_model = pipeline_to_onnx(pipe, X.shape[1], task)
+    if model == "gbt":      # trees: ONNX of the pipeline, checked against sklearn
+        onnx_model, fit_info["onnx_parity"] = checked_onnx(pipe, X, y)
+    else:
+        onnx_model = pipeline_to_onnx(pipe, X.shape[1], task)
     fbytes = onnx_model.SerializeToString()
     sess = session(fbytes)
     n0 = len(ws_train)                     # the original windows come first in X
@@ -304,7 +309,10 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     # -- int8 ------------------------------------------------------------------
     int8 = None
     qbytes = None
-    if quantise:
+    if quantise and model == "gbt":
+        int8 = {"skipped": "a tree ensemble has no weights to quantise; the float model "
+                           "is the default"}
+    elif quantise:
         rng = np.random.default_rng(seed)
         n_cal = min(len(X), check_int("calibration_windows", calibration_windows, 1))
         cal = X[np.sort(rng.choice(len(X), n_cal, replace=False))]
