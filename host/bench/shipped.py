@@ -13,8 +13,9 @@ windows only; their rest is its held-out test). The other models, and texture
 without real data, are trained on simulated trials of the roboskin sensor (surface
 parameters drawn from the training ranges of :data:`host.bench.scenes.SURFACE_RANGES`,
 fixed seeds), exported to ONNX with the scaler folded in, quantised to int8 and
-checked against float, and written as ``models/<name>/`` (manifest.json,
-model.onnx, model.int8.onnx). The surface model must pass the int8 check; for the
+checked against float, and written as ``models/<name>/`` (manifest.json, a model
+spec (:mod:`device.pi.models.spec`); model.onnx, model.int8.onnx; README.md, the
+model card, and train.toml, the config: :mod:`host.learn.card`). The surface model must pass the int8 check; for the
 others a failed check ships the float model alone (the texture FNN's first layer
 reads frame-to-frame changes of ~0.1 px, finer than its int8 input step). The model settings are the simulated benchmark's
 (:data:`host.bench.benchmarks.BENCH_MODELS`), so the figures in docs/accuracy-vs-time.md and
@@ -44,11 +45,12 @@ import sys
 import time
 from pathlib import Path
 
-from device.pi.models.artefact import read_manifest
+from device.pi.models.artefact import read_manifest, read_spec, sha256_file
 from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
-from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_manifest, write_variants
+from host.learn.card import write_model_docs
+from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_spec, write_variants
 from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
 from host.learn.train import train_model
 
@@ -89,8 +91,10 @@ def build_model(name: str, out_root, work, seed: int = 0, progress: bool = True,
                       seed=seed, out_dir=tmp, progress=progress, **hp)
     # the runtime loads the float model when the int8 copy failed its check
     int8_failed = (res.get("int8") or {}).get("failed")
-    mark_trained_on(tmp, {"data": "simulated", "scenes": kinds, "trials_per_kind": n,
-                          "real_accuracy": None})
+    mark_trained_on(tmp, {"data": "simulated", "recordings": [],
+                          "split": res.get("holdout"), "scenes": kinds, "trials_per_kind": n,
+                          "real_accuracy": None},
+                    shipped_config(name, task, model, T, seed, trials_per_kind=n, **hp))
     size = _check_size(tmp, name)
     _install(tmp, out_root / name)
     test = res["metrics"].get("test", {})
@@ -154,12 +158,18 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
     t0 = time.perf_counter()
     res = train_model("texture", model, ws, wt, quantise="if-passes", seed=seed, out_dir=tmp,
                       progress=progress)
-    trained_on = {"data": "real", "recordings": [f"roboskin/{c} frames 0..{REAL_TRAIN_FRAC:.0%}"
-                                                 for c in REAL_TEXTURE],
-                  "held_out": f"the rest of each recording after a gap of {T} frames, "
-                              f"contact windows only",
+    root = Path(real_data).resolve()
+    trained_on = {"data": "real",
+                  "recordings": [{"path": f"roboskin/{c}",
+                                  "sha256": sha256_file(root / "roboskin" / c),
+                                  "frames": f"0..{REAL_TRAIN_FRAC:.0%}"} for c in REAL_TEXTURE],
+                  "split": f"the rest of each recording after a gap of {T} frames, "
+                           f"contact windows only",
                   "real_accuracy": res["metrics"]["test"].get("accuracy")}
-    mark_trained_on(tmp, trained_on)
+    mark_trained_on(tmp, trained_on,
+                    shipped_config("texture", "texture", model, T, seed,
+                                   real_data=str(Path(real_data)),
+                                   train_fraction=REAL_TRAIN_FRAC, contact_only=True))
     size = _check_size(tmp, "texture")
     _install(tmp, out_root / "texture")
     test = res["metrics"]["test"]
@@ -217,14 +227,30 @@ def regraph(folder, seed: int = 0) -> dict:
     return out
 
 
-def mark_trained_on(folder: Path, trained_on: dict) -> None:
-    """Record in each manifest of ``folder`` what the model was trained on (real or
-    simulated data) and, where real data exist, its accuracy on real frames."""
+def shipped_config(name: str, task: str, model: str, T: int, seed: int, **more) -> dict:
+    """The config (the spec's ``config``, written as train.toml) of a shipped model:
+    the command that rebuilds it and its settings."""
+    real = more.get("real_data")
+    cmd = (f"python -m host.bench.shipped --only {name} --seed {seed}"
+           + (f" --real-data {real}" if real else ""))
+    return {"module": "host.bench.shipped", "command": cmd, "name": name, "task": task,
+            "model": model, "T": T, "seed": seed, "profile": "roboskin",
+            **{k: (list(v) if isinstance(v, tuple) else v) for k, v in more.items()}}
+
+
+def mark_trained_on(folder: Path, trained_on: dict, config: dict | None = None) -> None:
+    """Record in each manifest of ``folder`` (through the model spec) what the model
+    was trained on: ``data`` (real or simulated), ``recordings`` (path, sha256,
+    frames), ``split`` and, where real data exist, its accuracy on real frames; and
+    ``config``, the settings that rebuild it. Then the model card and train.toml."""
     for name in ("manifest.json", "manifest.float.json"):
         if (Path(folder) / name).is_file():
-            doc, _ = read_manifest(Path(folder) / name)
-            doc["trained_on"] = trained_on
-            write_manifest(folder, doc, name=name)
+            spec, _ = read_spec(Path(folder) / name)
+            spec.trained_on = dict(trained_on)
+            if config is not None:
+                spec.config = dict(config)
+            write_spec(folder, spec, name=name)
+    write_model_docs(folder)
 
 
 def _check_size(tmp: Path, name: str) -> int:

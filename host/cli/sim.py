@@ -183,7 +183,7 @@ def _texture_label(texture: dict, agreement: dict) -> list[str]:
     acc = on.get("real_accuracy", test.get("accuracy")) if real else test.get("accuracy")
     fig = (f"held-out accuracy {acc:.2f}" + (" on real frames" if real else "")
            + (f" (n={test['n']})" if test.get("n") else "")
-           + (f", {on['held_out']}" if on.get("held_out") else "")
+           + (f", {on['split']}" if on.get("split") else "")
            if isinstance(acc, (int, float)) else "no held-out figures in its manifest")
     if real:
         lines = [f"texture: real-trained model ({texture['folder']}): {fig}"]

@@ -331,19 +331,22 @@ def _check_rows(n: int, k: int, seed: int) -> np.ndarray:
 
 def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
               out_dir: Path | str | None = None, progress: bool = True,
-              check_windows: int = 64, **params) -> dict:
+              check_windows: int = 64, profile=None, trained_on: dict | None = None,
+              config: dict | None = None, **params) -> dict:
     """Train the CNN on ``ws_train`` (a :class:`host.data.windows.WindowSet` of a
     classification task, with frames) and export it.
 
     ``ws_test``: held-out windows (e.g. from :func:`host.data.splits.split_grouped`); their
     metrics come from ONNX Runtime running the exported model, as on the Pi.
     ``params`` go to :class:`FrameCNN` (``hidden``, ``filters``, ``lr``, ...).
-    ``out_dir``: write model.onnx + manifest.json there (kind = the task).
+    ``out_dir``: write model.onnx + manifest.json there (kind = the task), a model
+    spec carrying ``profile`` (the sensor profile: name, path or record; default
+    roboskin), ``trained_on`` and ``config`` (:mod:`device.pi.models.spec`).
 
-    Returns a dict: ``task``, ``classes``, ``window``, ``frame_size``, ``params``,
+    Returns a dict: ``task``, ``classes``, ``T``, ``frame_size``, ``params``,
     ``n_params``, ``size_bytes`` (the ONNX), ``train_s``, ``loss`` (per epoch),
-    ``metrics`` (``train`` and ``heldout``: accuracy, per-class F1, confusion
-    matrix; ``onnx_vs_torch_max_abs``), ``out_dir`` / ``onnx_path`` (None without
+    ``metrics`` (``train`` and ``test``: accuracy, per-class F1, confusion
+    matrix; ``cv`` None), ``onnx_vs_torch_max_abs``, ``out_dir`` / ``onnx_path`` (None without
     ``out_dir``), ``onnx`` (the onnx.ModelProto) and ``estimator`` (the FrameCNN).
     Raises ValueError if ONNX Runtime and torch differ by more than ``ONNX_ATOL``.
     """
@@ -383,39 +386,40 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
                              f"{X.shape[1:]}; use the same T and frame_size")
         p_test = run_onnx(sess, Xt)
         yt = ws_test.labels.astype(str)
-        metrics["heldout"] = label_metrics(yt, p_test.argmax(1), classes)
+        metrics["test"] = label_metrics(yt, p_test.argmax(1), classes)
         unseen = sorted(set(yt.tolist()) - set(classes))
         if unseen:
-            metrics["heldout"]["classes_not_in_training"] = unseen
+            metrics["test"]["classes_not_in_training"] = unseen
         rows_t = _check_rows(len(Xt), check_windows, seed + 1)
         if len(rows_t):
             diff = max(diff, float(np.abs(p_test[rows_t] - est.predict_proba(Xt[rows_t])).max()))
-    metrics["onnx_vs_torch_max_abs"] = diff
     if not diff <= ONNX_ATOL:
         raise ValueError(f"exported ONNX model differs from torch by {diff:.3g} "
                          f"(> {ONNX_ATOL}) in probability; the export is broken")
 
     train_s = round(time.perf_counter() - t0, 2)
-    result = {"task": task, "model": MODEL, "classes": list(classes), "window": T,
+    metrics.setdefault("test", None)
+    metrics["cv"] = None
+    result = {"task": task, "model": MODEL, "classes": list(classes), "T": T,
               "frame_size": S, "params": est.get_params(), "n_params": est.n_params_,
               "size_bytes": int(size_bytes), "train_s": train_s, "fit_s": round(fit_s, 2),
               "loss": [round(v, 6) for v in est.loss_], "metrics": metrics,
+              "onnx_vs_torch_max_abs": diff,
               "out_dir": None, "onnx_path": None, "onnx": onx, "estimator": est}
     if out_dir is not None:
         extra = {
-            "task": task, "model": MODEL, "classes": list(classes), "window": T, "T": T,
-            "frame_size": S, "input_layout": "frames", "uses_imu": False,
-            "output_kind": "probabilities", "variant": "float",
-            "input": {"name": INPUT_NAME, "shape": [None, T, S, S], "dtype": "float32"},
-            "outputs": [OUTPUT_NAME],
-            "output": f"{OUTPUT_NAME} (N, {len(classes)}): softmax over classes",
-            "opset": OPSET, "params": est.get_params(), "n_params": est.n_params_,
-            "seed": seed, "train_s": train_s, "metrics": metrics,
-            "training_data": ws_train.summary(),
+            "task": task, "model": MODEL, "classes": list(classes), "T": T,
+            "crop_size": S, "input_layout": "frames", "uses_imu": False,
+            "output": OUTPUT_NAME, "output_kind": "probabilities", "variant": "float",
+            "output_doc": f"{OUTPUT_NAME} (N, {len(classes)}): softmax over classes",
+            "frame_size": S, "opset": OPSET, "cnn_params": est.get_params(),
+            "n_params": est.n_params_, "onnx_vs_torch_max_abs": diff, "metrics": metrics,
+            "profile": profile, "trained_on": trained_on, "config": config or {},
+            "training": {"data": ws_train.summary(), "seed": seed, "train_s": train_s,
+                         "test_data": None if ws_test is None else ws_test.summary()},
         }
-        if ws_test is not None:
-            extra["test_data"] = ws_test.summary()
-        out = write_model(onx, out_dir, kind=task, n_features=T * S * S, extra=extra)
+        out = write_model(onx, out_dir, kind=task, n_features=T * S * S, extra=extra,
+                          input_name=INPUT_NAME, input_dims=[T, S, S])
         result["out_dir"] = str(out)
         result["onnx_path"] = str(Path(out) / "model.onnx")
     return result

@@ -13,12 +13,21 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST,
-                                      VERSION, ort_session, sha256_file)
+                                      ort_session, sha256_file)
+from device.pi.models.spec import (METRIC_KEYS, ModelSpec, SpecError, check_same_profiles,
+                                   profile_record)
+from device.profile import PROFILE_DIR
 from host.data.dataset import atomic_write, atomic_write_text
 
 __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
-           "new_manifest", "write_manifest", "write_model", "write_variants", "model_bytes",
-           "session", "run_onnx", "is_classifier"]
+           "new_spec", "new_manifest", "write_manifest", "write_spec", "write_model",
+           "write_variants", "model_bytes", "session", "run_onnx", "is_classifier",
+           "spec_profile", "profile_source", "models_profile"]
+
+#: the fields of :class:`ModelSpec` a writer's ``keys`` may set (the rest are params)
+_SPEC_KEYS = ("task", "model", "classes", "T", "input_layout", "output", "output_kind",
+              "uses_imu", "crop_size", "metrics", "int8", "trained_on", "config", "training",
+              "files", "variants", "variant")
 
 FLOAT_NAME = "model.onnx"
 INT8_NAME = "model.int8.onnx"
@@ -44,35 +53,127 @@ def sklearn_to_onnx(estimator, n_features: int, input_name: str = "x"):
         [None, n_features]))], target_opset=17)
 
 
+def spec_profile(profile) -> dict:
+    """The spec's profile record of ``profile``: a built-in name or ``.toml`` path,
+    a record already (``profile_record``), or None for the built-in roboskin."""
+    if isinstance(profile, dict):
+        rec = profile
+    else:
+        rec = profile_record(profile if profile is not None else "roboskin")
+    return {k: rec[k] for k in ("name", "n_pins", "sha256", "toml")}
+
+
+def profile_source(profile: dict) -> str:
+    """A profile name or ``.toml`` path that loads the spec's ``profile`` record: the
+    built-in of that name when its content is the same (same hash), else the
+    record's text written once to a file named by its hash under the temp folder."""
+    import tempfile
+
+    name = str(profile["name"])
+    if (PROFILE_DIR / f"{name}.toml").is_file() and \
+            profile_record(name)["sha256"] == profile["sha256"]:
+        return name
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "profile"
+    path = Path(tempfile.gettempdir()) / "tacfoot-profiles" / profile["sha256"][:16] / \
+        f"{safe}.toml"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, profile["toml"])
+    return str(path)
+
+
+def models_profile(specs: dict, given=None) -> tuple[str, dict]:
+    """(profile name or path, record) of the models ``specs`` ({manifest path: ModelSpec
+    or profile record}): the one profile they carry. ``given`` (a profile the user
+    named, or None) must be that profile: SpecError naming both files and hashes if
+    not, as when two models carry different profiles."""
+    recs = {w: (s.profile if isinstance(s, ModelSpec) else s) for w, s in specs.items()}
+    rec = check_same_profiles(recs, profile_record(given) if given is not None else None)
+    if rec is None:
+        rec = profile_record("roboskin")
+    return profile_source(rec), rec
+
+
+def _plain(v):
+    """``v`` as plain JSON types (numpy scalars and arrays, paths converted)."""
+    return json.loads(json.dumps(v, default=json_default))
+
+
+def training_record(training: dict) -> dict:
+    """A run record for the spec's ``training``: the data summaries' ``window`` named
+    ``T`` as everywhere in the spec."""
+    out = dict(training)
+    for k in ("data", "test_data"):
+        if isinstance(out.get(k), dict) and "window" in out[k]:
+            out[k] = {("T" if kk == "window" else kk): v for kk, v in out[k].items()}
+    return out
+
+
+def new_spec(n_features: int, keys: dict, onnx: str | None = None,
+             sha256: str | None = None, size_bytes: int = 0,
+             input_name: str = "x", input_dims: list | None = None) -> ModelSpec:
+    """A :class:`ModelSpec` from a writer's ``keys``: ``kind`` and the spec's fields
+    (task, model, classes, T, metrics (missing ones of train/test/cv null), profile (a
+    name, path or record; default roboskin), trained_on, config, ...); any other key
+    is a kind-specific parameter. The ONNX file ``onnx`` with its checksum, a float32
+    input of ``n_features``; no ONNX file for a rule."""
+    keys = _plain(dict(keys))
+    kind = keys.pop("kind")
+    metrics = keys.pop("metrics", None) or {}
+    bad = sorted(set(metrics) - set(METRIC_KEYS))
+    if bad:
+        raise SpecError(f"metrics: keys {bad} are not among {list(METRIC_KEYS)}")
+    kw = {k: keys.pop(k) for k in _SPEC_KEYS if k in keys}
+    kw = {k: v for k, v in kw.items() if v is not None}     # None: the spec's default
+    if "training" in kw:
+        kw["training"] = training_record(kw["training"])
+    kw.setdefault("task", kind)
+    kw.setdefault("model", keys.get("model", kind))
+    kw.setdefault("classes", [])
+    kw.setdefault("T", 1)
+    kw.setdefault("input_layout", "vectors")
+    profile = spec_profile(keys.pop("profile", None))
+    return ModelSpec(kind=kind, n_inputs=int(n_features), profile=profile, input_name=input_name,
+                     input_dims=list(input_dims) if input_dims else None,
+                     metrics={k: metrics.get(k) for k in METRIC_KEYS}, params=keys,
+                     onnx=onnx, sha256={onnx: sha256} if onnx else {},
+                     size_bytes=int(size_bytes), feature_spec=FEATURE_SPEC_VERSION, **kw)
+
+
 def new_manifest(n_features: int, keys: dict, onnx: str | None = None,
-                 sha256: str | None = None, size_bytes: int = 0, input_name: str = "x") -> dict:
-    """A manifest: the keys :func:`device.pi.models.artefact.read_manifest` needs (format,
-    version, feature spec, the ONNX file and its checksum, a float32 input of
-    ``n_features``; no ONNX file for a rule), updated with ``keys``."""
-    return {"format": FORMAT, "version": VERSION, "feature_spec": FEATURE_SPEC_VERSION,
-            "onnx": onnx, "sha256": {onnx: sha256} if onnx else {}, "size_bytes": size_bytes,
-            "input": {"name": input_name, "shape": [None, int(n_features)], "dtype": "float32"},
-            **keys}
+                 sha256: str | None = None, size_bytes: int = 0, input_name: str = "x",
+                 input_dims: list | None = None) -> dict:
+    """The manifest of :func:`new_spec` (the model spec, version 2)."""
+    return new_spec(n_features, keys, onnx, sha256, size_bytes, input_name,
+                    input_dims).to_manifest(FORMAT)
 
 
 def write_manifest(folder: Path | str, doc: dict, name: str = MANIFEST) -> Path:
-    """Write ``doc`` as ``folder/name`` atomically; returns the path."""
+    """Write ``doc`` as ``folder/name`` atomically, after checking it follows the
+    model spec (SpecError naming the file and field if not); returns the path."""
     path = Path(folder) / name
+    ModelSpec.from_manifest(_plain(doc), path)
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, json.dumps(doc, indent=1, default=json_default))
     return path
 
 
+def write_spec(folder: Path | str, spec: ModelSpec, name: str = MANIFEST) -> Path:
+    """Write ``spec`` as the manifest ``folder/name``."""
+    return write_manifest(folder, spec.to_manifest(FORMAT), name)
+
+
 def write_model(onnx_model, out_dir: Path | str, kind: str, n_features: int,
                 extra: dict | None = None, onnx_name: str = FLOAT_NAME,
-                input_name: str = "x") -> Path:
+                input_name: str = "x", input_dims: list | None = None) -> Path:
     """Write ``onnx_model`` (an onnx.ModelProto) and its manifest atomically."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = onnx_model.SerializeToString()
     atomic_write(out / onnx_name, lambda fh: fh.write(data))
     write_manifest(out, new_manifest(n_features, {"kind": kind, **(extra or {})}, onnx_name,
-                                     sha256_file(out / onnx_name), len(data), input_name))
+                                     sha256_file(out / onnx_name), len(data), input_name,
+                                     input_dims))
     return out
 
 
@@ -90,7 +191,7 @@ def write_variants(folder: Path | str, int8: bool, updates: dict | None = None) 
                  "sha256": sha256_file(folder / n)} for n, v in names.items()}
     default = INT8_NAME if int8 else FLOAT_NAME
     doc = json.loads((folder / MANIFEST).read_text())
-    doc.update(updates or {})
+    doc.update(_plain(updates or {}))
     doc.update({"sha256": {n: f["sha256"] for n, f in files.items()}, "files": files,
                 "variants": {f["variant"]: n for n, f in files.items()},
                 "onnx": default, "variant": names[default],

@@ -385,6 +385,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-baseline", action="store_true",
                     help="skip the former model's figure (ridge150-raw)")
     ap.add_argument("--out", help="also write the model fitted on all trials here")
+    ap.add_argument("--profile", default="roboskin",
+                    help="the sensor profile the model's spec carries (name or .toml; "
+                         "default roboskin)")
     ap.add_argument("--npz", help="only write the set as an .npz data spec for "
                                    "host train --task pressure (no CV)")
     ap.add_argument("--json", action="store_true")
@@ -403,8 +406,18 @@ def main(argv=None) -> int:
             res["baseline"] = cross_validate_pressure(X, y, groups, "ridge150-raw", 1, M,
                                                       a.cv, a.seed)
         if a.out:
+            from device.pi.models.artefact import sha256_file
+            recs = [{"path": str(f), "sha256": sha256_file(f), "frames": int(len(y))}
+                    for f in (a.vectors, a.pressures)]
+            spec = {"metrics": {"cv": res["cv"]}, "profile": a.profile,
+                    "trained_on": {"data": "real", "recordings": recs,
+                                   "split": f"grouped {a.cv}-fold CV over pressing trials "
+                                            f"(metrics.cv); the model is fitted on all"},
+                    "config": {"module": "host.learn.pressure", "vectors": str(a.vectors),
+                               "pressures": str(a.pressures), "model": a.model,
+                               "cv": a.cv, "seed": a.seed, "profile": a.profile}}
             out, _, parity = export_pressure(X, y, groups, a.out, a.model, 1, M, a.seed,
-                                             {"metrics": {"cv": res["cv"]}})
+                                             spec)
             res["model"] = {"out": str(out), "onnx_parity": parity}
     except (TrainError, OSError, ValueError) as exc:
         msg = " ".join(str(exc).split())

@@ -215,7 +215,7 @@ def quantise_model(float_onnx, calibration_inputs, out_path, check_inputs=None,
     report = compare_int8(fbytes, qbytes, Xh, check_targets, min_agreement=min_agreement)
     report["checked_on"] = "calibration windows" if check_inputs is None else "held-out windows"
     report["saturation"] = {"calibration": int8_saturation(fbytes, qbytes, Xc),
-                            "held_out": int8_saturation(fbytes, qbytes, Xh)}
+                            "test": int8_saturation(fbytes, qbytes, Xh)}
     report.update({"calibration_windows": int(len(Xc)), "calibrate_method": calibrate_method,
                    "format": "QDQ u8 activations / s8 weights" + (" per channel"
                                                                    if per_channel else ""),

@@ -48,7 +48,7 @@ from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hy
 from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.metrics import class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
-                                write_manifest, write_model, write_variants)
+                                spec_profile, write_manifest, write_model, write_variants)
 from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
 from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS, TASKS,
@@ -149,7 +149,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 progress: bool = True,
                 *, uses_imu: bool | None = None, hidden=None, alpha: float | None = None,
                 epochs: int | None = None, temporal: bool | None = None, augment: int = 0,
-                profile: str = "roboskin",
+                profile: str = "roboskin", trained_on: dict | None = None,
+                config: dict | None = None,
                 calibration_windows: int = 2000, calibrate_method: str = "minmax",
                 min_agreement: float = MIN_AGREEMENT) -> dict:
     """Train ``model`` for ``task`` on ``ws_train``; evaluate on ``ws_test`` (or a
@@ -174,6 +175,12 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     :class:`QuantisationError`), except with ``quantise="if-passes"``: then a failed
     int8 check keeps the float model as the default and records why in
     ``result["int8"]["failed"]`` (the manifest's ``int8``).
+
+    The manifest is a model spec (:mod:`device.pi.models.spec`): it carries the
+    sensor ``profile`` (every feature, the texture roughness neighbours included,
+    is computed with it), ``trained_on`` (data real/simulated, recordings with
+    checksums; ``split`` is filled with the held-out protocol) and ``config`` (the
+    training config that made it, see ``host train --config``).
     """
     if quantise not in (True, False, "if-passes"):
         raise TrainError(f"quantise must be True, False or 'if-passes', got {quantise!r}")
@@ -254,6 +261,9 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                              f"classes, the data hold {len(classes)}: {classes}")
         y = label_ids(ws_fit.labels, classes)
         yt = None if ws_test is None else label_ids(ws_test.labels, classes)
+    spec_keys = {"profile": spec_profile(profile), "config": dict(config or {}),
+                 "trained_on": dict({"data": "unknown", "recordings": []}, **(trained_on or {}),
+                                    split=(trained_on or {}).get("split") or holdout)}
     result = {"task": task, "model": model, "T": T, "input_layout": layout,
               "ignored_pins": ignored,
               "uses_imu": bool(uses_imu), "temporal_features": bool(temporal),
@@ -280,7 +290,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         result["int8"] = ({"skipped": "a rule has no weights to quantise"} if quantise
                           else None)
         write_manifest(out, new_manifest(X.shape[1], {
-            **rc.to_manifest(), "metrics": metrics,
+            **rc.to_manifest(), "metrics": metrics, **spec_keys,
             "training": _training_info(ws_train, ws_test, holdout, seed, {})}))
         result["files"] = {MANIFEST: {"size_bytes": (out / MANIFEST).stat().st_size}}
         result["train_s"] = round(time.perf_counter() - t_start, 3)
@@ -352,7 +362,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
              "output": "variable" if regression else "probabilities",
              "output_kind": "value" if regression else "probabilities",
              "variant": "int8" if qbytes is not None else "float",
-             "metrics": metrics, "int8": int8,
+             "metrics": metrics, "int8": int8, **spec_keys,
              "training": _training_info(ws_train, ws_test, holdout, seed,
                                         dict(hp, **fit_info, augment=augment,
                                              augmented_deg=ws_fit.source.get("augmented_deg"),

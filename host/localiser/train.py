@@ -204,17 +204,34 @@ def train_localiser(
         "rejected": real["rejected"],
     }
     train_s = round(time.perf_counter() - t0, 1)
+    recs = [{"path": str(c), "sha256": _clip_sha256(real_data, c), "frames": v.get("frames")}
+            for c, v in real["labelled"].items()]
+    source = ("real+simulated" if recs and n_sim_scenes else "real" if recs
+              else "simulated")
     extra = {
+        "task": KIND, "model": KIND, "T": 1, "input_layout": "image", "crop_size": size,
+        "output": "y", "output_kind": "pins",
         "profile": profile, "n_pins": n_pins, "size": size, "crop_factor": crop_factor,
-        "output": "y (1, 2N): u0, v0, u1, v1, ... with u = (x - cx) / r, v = (y - cy) / r "
-                  "for the effective dome of the crop",
+        "output_doc": "y (1, 2N): u0, v0, u1, v1, ... with u = (x - cx) / r, "
+                      "v = (y - cy) / r for the effective dome of the crop",
         "weights_dtype": weights_dtype,
         "mean_layout_norm": np.round(mean_layout.reshape(-1, 2), 6).tolist(),
         "fill_range": [round(v, 6) for v in fill_range], "fill_grid": grid,
         "fill_cells_range": cells_range, "max_dev_norm": round(max_dev_norm, 6),
         "alpha": float(alpha), "vision_params": {k: getattr(params, k) for k in (
             "block", "offset", "blur_sigma_px", "min_area_px", "max_area_px", "roi_shrink")},
-        "seed": seed, "train_s": train_s, "training": training, "metrics": metrics,
+        "seed": seed, "train_s": train_s, "training": training,
+        "metrics": {"train": {"fit": metrics["train_fit"]}, "cv": None,
+                    "test": {k: v for k, v in metrics.items() if k != "train_fit"}},
+        "trained_on": {"data": source, "recordings": recs, "scenes": n_sim_scenes,
+                       "split": f"simulated: unseen seeds from {seed + 100000}, presses up "
+                                f"to {TEST_MAX_DEPTH_MM} mm; real: "
+                                f"{training['real_holdout']}"},
+        "config": {"module": "host.localiser.train", "profile": str(profile), "seed": seed,
+                   "size": size, "crop_factor": crop_factor, "alpha": float(alpha),
+                   "sim_scenes": n_sim_scenes, "frames_per_scene": frames_per_scene,
+                   "max_depth_mm": max_depth_mm, "real_weight": float(real_weight),
+                   "real_clips": [str(c) for c in real_clips]},
     }
     out = write_model(onx, out_dir, KIND, size * size, extra=extra)
     size_bytes = (Path(out) / "model.onnx").stat().st_size
@@ -222,6 +239,19 @@ def train_localiser(
             "train_s": train_s, "stage_s": stage_s, "n_pins": n_pins, "size": size,
             "crop_factor": crop_factor, "alpha": float(alpha), "training": training,
             "metrics": metrics, "estimator": model}
+
+
+def _clip_sha256(real_data, clip) -> str | None:
+    """SHA-256 of a real clip's file, where it is one (None for frames given in memory)."""
+    from device.pi.models.artefact import sha256_file
+    cands = [Path(str(clip))]
+    if real_data is not None and not isinstance(real_data, Mapping):
+        cands = [Path(real_data) / "roboskin" / f"{clip}.avi", Path(real_data) / f"{clip}.avi",
+                 *cands]
+    for c in cands:
+        if c.is_file():
+            return sha256_file(c)
+    return None
 
 
 # --------------------------------------------------------------------------

@@ -7,12 +7,16 @@ match, whose files are missing, truncated or corrupt, or whose manifest names a 
 that resolves outside the model folder (an absolute path, ``..``, or a link leading
 out), with a message that names the file.
 
-manifest.json (keys the loader needs; writers add more, e.g. metrics)::
+manifest.json follows the model spec (:mod:`device.pi.models.spec`, version 2):
+:func:`read_manifest` parses it with :meth:`ModelSpec.from_manifest` and refuses an
+older manifest or a field out of the schema, naming the file and the field::
 
-    {"format": "tacfoot-model", "version": 1, "kind": "localiser",
+    {"format": "tacfoot-model", "version": 2, "kind": "texture", "task": "texture",
      "feature_spec": 1, "onnx": "model.onnx", "sha256": {"model.onnx": "..."},
-     "input": {"name": "x", "shape": [null, 1200], "dtype": "float32"},
-     "outputs": ["y"], ...}
+     "input": {"name": "x", "shape": [null, 3990], "dtype": "float32"}, "T": 15,
+     "metrics": {"train": {...}, "test": {...}, "cv": null},
+     "profile": {"name": "roboskin", "n_pins": 133, "sha256": "...", "toml": "..."},
+     "trained_on": {...}, "config": {...}, ...}
 """
 from __future__ import annotations
 
@@ -23,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from device.jsondoc import read_json_doc
+from device.pi.models.spec import SPEC_VERSION, ModelSpec, SpecError
 
 FORMAT = "tacfoot-model"
-VERSION = 1
+VERSION = SPEC_VERSION
 #: bump when the feature code changes what a model sees
 FEATURE_SPEC_VERSION = 1
 MANIFEST = "manifest.json"
@@ -37,7 +42,7 @@ VARIANTS = ("int8", "float")
 MAX_T = 1000
 
 
-class ModelError(ValueError):
+class ModelError(SpecError):
     """A model artefact cannot be used; the message names the file."""
 
 
@@ -87,13 +92,30 @@ def checked_model_file(folder: Path, name, sha256: dict, where) -> Path:
 
 
 def read_manifest(path: Path | str) -> tuple[dict, Path]:
-    """(manifest, folder) from a model folder or a manifest path."""
+    """(manifest, folder) from a model folder or a manifest path; the manifest
+    follows the model spec (:func:`read_spec`)."""
     doc, mpath = read_json_doc(path, MANIFEST, FORMAT, VERSION, "model", "manifest", ModelError)
     for key in ("onnx", "sha256", "feature_spec", "input"):
         if key not in doc:
             raise ModelError(f"{mpath}: manifest lacks {key!r}")
     check_manifest_types(doc, mpath)
+    try:
+        ModelSpec.from_manifest(doc, mpath)
+    except SpecError as exc:
+        raise ModelError(str(exc)) from None
     return doc, mpath.parent
+
+
+def read_spec(path: Path | str) -> tuple[ModelSpec, Path]:
+    """(spec, manifest file) of a model folder or a manifest path; ModelError naming
+    the file and the field when it does not follow the model spec."""
+    doc, mpath = read_json_doc(path, MANIFEST, FORMAT, VERSION, "model", "manifest", ModelError)
+    check_manifest_types(doc, mpath) if all(k in doc for k in ("onnx", "sha256",
+                                                               "feature_spec", "input")) else None
+    try:
+        return ModelSpec.from_manifest(doc, mpath), mpath
+    except SpecError as exc:
+        raise ModelError(str(exc)) from None
 
 
 def _whole(v, lo: int, hi: int) -> bool:
@@ -203,6 +225,10 @@ class Model:
     path: Path
     session: object
     input_name: str
+
+    @property
+    def spec(self) -> ModelSpec:
+        return ModelSpec.from_manifest(self.manifest, self.path / MANIFEST)
 
     def run(self, x: np.ndarray) -> list[np.ndarray]:
         return self.session.run(None, {self.input_name: x})

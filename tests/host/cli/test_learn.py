@@ -269,6 +269,59 @@ def test_report_passes_the_specs_and_the_profile_and_names_them_in_its_command(
     assert "--data a.csv --data own-folder --profile mine.toml" in seen["command"]
 
 
+# -- a model carries its sensor: host train --profile, host eval, --config --
+
+def test_train_computes_every_feature_with_its_profile_and_the_model_carries_it(
+        tmp_path, capsys):
+    """host train --profile tactip331 (331 pins, not 133): the texture roughness
+    features use that layout (cmd_train used to drop the profile, so the neighbour
+    list came from the 133-pin default and roughness was silently off)."""
+    from device.pi.models.classifier import Classifier
+    from device.pi.models.window import RollingWindow
+    data = _texture_npz(tmp_path / "v.npz", n=16, M=331)
+    out = tmp_path / "m"
+    assert main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+                 "--profile", "tactip331", "--out", str(out), "--json"]) == 0
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["roughness"] is True
+    assert man["profile"]["name"] == "tactip331" and man["profile"]["n_pins"] == 331
+    assert "[vision]" in man["profile"]["toml"]
+    clf = Classifier.load(out)
+    assert clf.n_features == man["input"]["shape"][1] == \
+        RollingWindow(2, 331).encode("vectors").size
+    assert man["trained_on"]["recordings"][0]["sha256"] and man["config"]["profile"] == \
+        "tactip331"
+    assert (out / "README.md").is_file() and "331 pins" in (out / "README.md").read_text()
+    # eval takes the profile from the model; another profile is an error naming both
+    capsys.readouterr()
+    assert main(["eval", str(out), "--data", str(data), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_windows"] > 0
+    rc = main(["eval", str(out), "--data", str(data), "--profile", "roboskin"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1
+    assert "roboskin.toml (roboskin, 133 pins" in err and "(tactip331, 331 pins" in err
+
+
+def test_train_config_replays_the_model_and_refuses_flags_beside_it(tmp_path, capsys):
+    data = _texture_npz(tmp_path / "v.npz")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+                 "--seed", "3", "--out", str(a), "--json"]) == 0
+    toml = (a / "train.toml").read_text()
+    assert 'task = "texture"' in toml and "T = 2" in toml and "seed = 3" in toml
+    assert main(["train", "--config", str(a / "train.toml"), "--out", str(b), "--json"]) == 0
+    ma, mb = (json.loads((d / "manifest.json").read_text()) for d in (a, b))
+    assert ma["config"] == mb["config"] and ma["metrics"] == mb["metrics"]
+    assert (b / "train.toml").read_text() == toml
+    capsys.readouterr()
+    rc = main(["train", "--config", str(a / "train.toml"), "--task", "surface",
+               "--out", str(tmp_path / "c")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "takes no --task" in err
+    rc = main(["train", "--task", "texture", "--out", str(tmp_path / "d")])
+    assert rc == 2 and "needs --task and --data" in capsys.readouterr().err
+
+
 @pytest.mark.real
 @pytest.mark.slow
 def test_train_pressure_default_reports_grouped_cv_mae_at_most_180_on_the_hard_plate(

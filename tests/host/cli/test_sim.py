@@ -183,7 +183,7 @@ def test_demo_labels_a_real_texture_model_with_its_manifests_figures(tmp_path):
     models = tmp_path / "models"
     (models / "surface").mkdir(parents=True)
     doc = _manifest(models / "texture", {"data": "real", "real_accuracy": 0.8123,
-                                         "held_out": "a second recording"})
+                                         "split": "a second recording"})
     out = tmp_path / "out"
     out.mkdir()
     run, tex = _demo_models(out, models)

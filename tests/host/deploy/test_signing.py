@@ -44,9 +44,9 @@ def test_default_key_path_follows_the_environment(monkeypatch, tmp_path):
 def _model(folder, onnx="model.onnx", data=b"x"):
     folder.mkdir(parents=True)
     (folder / "model.onnx").write_bytes(data)
-    (folder / "manifest.json").write_text(json.dumps({
-        "format": "tacfoot-model", "version": 1, "onnx": onnx, "feature_spec": 1,
-        "input": {"shape": [None, 4]}, "sha256": {onnx: sha256_file(folder / "model.onnx")}}))
+    from host.learn.onnx_io import new_manifest
+    (folder / "manifest.json").write_text(json.dumps(new_manifest(
+        4, {"kind": "surface"}, onnx, sha256_file(folder / "model.onnx"))))
 
 
 def test_sign_models_signs_checked_manifests_only(tmp_path):
@@ -56,9 +56,9 @@ def test_sign_models_signs_checked_manifests_only(tmp_path):
     assert [p.parent.name for p in done] == ["surface"]
     assert check_manifest(done[0], key.public_key, allow_unsigned=False)
     # a manifest naming a file outside its folder is never signed
-    (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps({
-        "format": "tacfoot-model", "version": 1, "onnx": "/etc/hostname", "feature_spec": 1,
-        "input": {"shape": [None, 4]}, "sha256": {"/etc/hostname": "0"}}))
+    from host.learn.onnx_io import new_manifest
+    (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps(new_manifest(
+        4, {"kind": "surface"}, "/etc/hostname", "0")))
     with pytest.raises(DeployInputError, match="outside the model folder"):
         sign_models(tmp_path / "models", key)
     # nor one whose file does not match its hash

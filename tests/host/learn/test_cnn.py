@@ -81,7 +81,7 @@ def test_cnn_learns_surfaces_it_never_saw(data, trained):
     ws_train, ws_test = data
     res, _ = trained
     assert res["classes"] == ["hard", "no-touch", "slippery", "soft"]
-    held = res["metrics"]["heldout"]
+    held = res["metrics"]["test"]
     chance = max(np.unique(ws_test.labels, return_counts=True)[1]) / len(ws_test)
     assert held["n"] == len(ws_test)
     assert held["accuracy"] >= 0.8 > chance + 0.4, held
@@ -91,7 +91,7 @@ def test_cnn_learns_surfaces_it_never_saw(data, trained):
     assert cm.sum() == len(ws_test) and np.trace(cm) / cm.sum() == pytest.approx(
         held["accuracy"])
     assert res["loss"][-1] < res["loss"][0]
-    assert res["window"] == T and res["frame_size"] == ws_train.frames.shape[-1]
+    assert res["T"] == T and res["frame_size"] == ws_train.frames.shape[-1]
 
 
 def test_onnx_runtime_equals_torch_and_the_pi_loads_it(data, trained):
@@ -105,7 +105,7 @@ def test_onnx_runtime_equals_torch_and_the_pi_loads_it(data, trained):
     assert p_onnx.shape == (len(X), 4) and p_onnx.dtype == np.float32
     np.testing.assert_allclose(p_onnx, p_torch, atol=ONNX_ATOL, rtol=0)
     np.testing.assert_allclose(p_onnx.sum(axis=1), 1.0, atol=1e-5)
-    assert res["metrics"]["onnx_vs_torch_max_abs"] <= ONNX_ATOL
+    assert res["onnx_vs_torch_max_abs"] <= ONNX_ATOL
     # dynamic batch: one window at a time, as on the Pi, gives the same numbers
     one = model.run(encode_frames(ws_test.frames[0]))[0]
     np.testing.assert_allclose(one[0], p_onnx[0], atol=ONNX_ATOL, rtol=0)
@@ -123,14 +123,16 @@ def test_manifest_fields(data, trained):
     assert doc["kind"] == doc["task"] == "surface"
     assert doc["model"] == "cnn"
     assert doc["classes"] == res["classes"]
-    assert doc["window"] == T and doc["frame_size"] == S
+    assert doc["T"] == T and doc["frame_size"] == doc["crop_size"] == S
+    assert "window" not in doc and set(doc["metrics"]) == {"train", "test", "cv"}
     assert doc["input_layout"] == "frames"
     assert doc["input"] == {"name": "x", "shape": [None, T, S, S], "dtype": "float32"}
-    assert doc["outputs"] == [OUTPUT_NAME]
-    assert doc["metrics"]["heldout"]["accuracy"] == res["metrics"]["heldout"]["accuracy"]
-    assert doc["params"]["hidden"] == 1000 and doc["params"]["kernel"] == 8
-    assert doc["params"]["dropout"] == 0.2
-    assert doc["training_data"]["windows"] == len(ws_train)
+    assert doc["output"] == OUTPUT_NAME
+    assert doc["metrics"]["test"]["accuracy"] == res["metrics"]["test"]["accuracy"]
+    assert doc["cnn_params"]["hidden"] == 1000 and doc["cnn_params"]["kernel"] == 8
+    assert doc["cnn_params"]["dropout"] == 0.2
+    assert doc["training"]["data"]["windows"] == len(ws_train)
+    assert doc["profile"]["name"] == "roboskin" and doc["profile"]["n_pins"] == 133
     size = (out / doc["onnx"]).stat().st_size
     assert doc["size_bytes"] == size == res["size_bytes"]
     assert size < 1_000_000            # the full 1000-unit layer fits in 1 MB

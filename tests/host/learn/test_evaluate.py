@@ -31,12 +31,10 @@ def test_evaluate_reports_metrics_latency_size_and_kept_fraction(surface_model, 
 
 
 def _manifest(folder, variant, name="manifest.json"):
-    from host.learn.onnx_io import write_manifest
+    from host.learn.onnx_io import new_manifest, write_manifest
     onnx = "model.int8.onnx" if variant == "int8" else "model.onnx"
-    write_manifest(folder, {"format": "tacfoot-model", "version": 1, "kind": "surface",
-                            "feature_spec": 1, "onnx": onnx, "sha256": {}, "variant": variant,
-                            "input": {"name": "x", "shape": [None, 4], "dtype": "float32"}},
-                   name)
+    write_manifest(folder, new_manifest(4, {"kind": "surface", "variant": variant}, onnx,
+                                        "0" * 64), name)
 
 
 def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkeypatch):

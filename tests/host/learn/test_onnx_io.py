@@ -24,7 +24,9 @@ def test_json_default_writes_numpy_values_and_paths_and_refuses_the_rest():
 def test_write_variants_records_both_files_and_makes_int8_the_default(tmp_path):
     (tmp_path / FLOAT_NAME).write_bytes(b"float model")
     (tmp_path / INT8_NAME).write_bytes(b"int8")
-    write_manifest(tmp_path, {"kind": "surface", "onnx": FLOAT_NAME, "n": np.int32(3)})
+    from host.learn.onnx_io import new_manifest
+    write_manifest(tmp_path, new_manifest(4, {"kind": "surface", "n": np.int32(3)}, FLOAT_NAME,
+                                          "0" * 64, 11))
     files = write_variants(tmp_path, int8=True, updates={"int8": {"agreement": 1.0}})
     doc = json.loads((tmp_path / MANIFEST).read_text())
     fdoc = json.loads((tmp_path / FLOAT_MANIFEST).read_text())
@@ -74,3 +76,22 @@ def test_new_manifest_is_what_the_pi_reads_for_onnx_and_for_rule_models(tmp_path
     for name, doc in (("o", onnx), ("r", rule)):
         read, _ = read_manifest(write_manifest(tmp_path / name, doc))
         assert read == doc
+
+
+def test_a_free_form_manifest_is_refused_by_the_writer_naming_the_field(tmp_path):
+    """The writer checks every manifest against the model spec: a dict without the
+    spec's fields, an old key variant, or a metrics key other than train/test/cv."""
+    from device.pi.models.spec import SpecError
+    from host.learn.onnx_io import new_manifest, new_spec
+
+    with pytest.raises(SpecError, match=r"manifest\.json: manifest version None"):
+        write_manifest(tmp_path, {"kind": "surface", "onnx": FLOAT_NAME})
+    doc = new_manifest(4, {"kind": "surface", "T": 3}, FLOAT_NAME, "0" * 64, 11)
+    with pytest.raises(SpecError, match=r"manifest\.json: window: an old key.*'T'"):
+        write_manifest(tmp_path, dict(doc, window=3))
+    with pytest.raises(SpecError, match=r"metrics: keys \['heldout'\] are not among"):
+        new_spec(4, {"kind": "surface", "metrics": {"train": {}, "heldout": {}}}, FLOAT_NAME)
+    assert not (tmp_path / MANIFEST).exists()
+    spec = new_spec(4, {"kind": "surface", "metrics": {"test": {"accuracy": 0.5}}}, FLOAT_NAME)
+    assert spec.metrics == {"train": None, "test": {"accuracy": 0.5}, "cv": None}
+    assert spec.profile["name"] == "roboskin" and spec.profile["n_pins"] == 133

@@ -41,7 +41,7 @@ def test_fnn_surface_held_out_on_unseen_seeds_and_int8_agrees(surface_model, sur
     assert 0.0 <= q["max_prob_diff"] < 1.0
     sat = q["saturation"]
     assert sat["calibration"]["tensors"] >= 3 and sat["calibration"]["share_outside"] == 0.0
-    assert 0.0 <= sat["held_out"]["share_outside"] < 0.01
+    assert 0.0 <= sat["test"]["share_outside"] < 0.01
     assert q["int8_bytes"] < q["float_bytes"]
 
 
@@ -61,8 +61,11 @@ def test_manifest_lists_everything_and_the_pi_loads_both_variants(surface_model,
     assert doc["size_bytes"] == (out / "model.int8.onnx").stat().st_size
     assert doc["int8"]["agreement"] >= 0.99
     assert doc["metrics"]["test"]["accuracy"] == res["metrics"]["test"]["accuracy"]
-    assert doc["training"]["data"] == ws_tr.summary()
-    assert doc["training"]["test_data"] == ws_te.summary()
+    from host.learn.onnx_io import training_record
+    assert doc["training"]["data"] == training_record({"data": ws_tr.summary()})["data"]
+    assert doc["training"]["test_data"]["T"] == ws_te.summary()["window"]
+    assert set(doc["metrics"]) == {"train", "test", "cv"} and "window" not in doc
+    assert doc["profile"]["name"] == "roboskin" and doc["trained_on"]["split"] == res["holdout"]
     assert doc["training"]["seed"] == 0 and doc["training"]["hidden"] == [64, 32]
     fdoc = json.loads((out / "manifest.float.json").read_text())
     assert fdoc["onnx"] == "model.onnx" and fdoc["sha256"] == doc["sha256"]
@@ -252,3 +255,22 @@ def test_a_model_cannot_tell_two_recordings_of_one_surface_apart(tmp_path):
     assert res["metrics"]["test"]["accuracy"] < 0.7
     man = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert man["ignored_pins"] == [0, 1, 2, 3, 4]
+
+
+def test_texture_on_a_non_133_pin_profile_gets_every_feature_and_carries_its_profile(tmp_path):
+    """Trained with tactip331 (331 pins), the texture fnn's roughness neighbours come
+    from that layout (none would come from the 133-pin default), the input size is
+    the runtime's window over 331 pins, and the manifest carries the profile."""
+    from device.pi.models.spec import profile_record
+    ws = synthetic(n_groups=4, per_group=10, n_pins=331, Tn=2, classes=("lego", "smooth"),
+                   imu=False)
+    ws.task = "texture"
+    res = train_model("texture", "fnn", ws, out_dir=tmp_path / "m", progress=False,
+                      hidden=(8, 4), epochs=20, profile="tactip331")
+    assert res["roughness"] is True
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert man["roughness"] is True and man["training"]["temporal"]["neighbours"]
+    assert man["profile"]["sha256"] == profile_record("tactip331")["sha256"]
+    assert man["profile"]["n_pins"] == 331
+    assert man["input"]["shape"][1] == RollingWindow(2, 331).encode("vectors").size
+    assert Classifier.load(tmp_path / "m").n_features == man["input"]["shape"][1]

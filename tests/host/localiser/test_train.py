@@ -41,7 +41,10 @@ def test_artefact_manifest_and_size(trained):
     for key in ("sim_frames", "real_frames", "rejected"):
         assert key in m["training"]
     for key in ("median_px", "p90_px"):
-        assert key in m["metrics"]["sim_heldout"]
+        assert key in m["metrics"]["test"]["sim_heldout"]
+    assert set(m["metrics"]) == {"train", "test", "cv"} and m["crop_size"] == m["size"]
+    assert m["profile"]["n_pins"] == N_PINS and m["trained_on"]["data"] in (
+        "simulated", "real", "real+simulated")
     # under 1 MB (float16 weights, cast once by onnxruntime)
     assert trained["res"]["size_bytes"] < 1_000_000
     assert (trained["dir"] / "model.onnx").stat().st_size == trained["res"]["size_bytes"]

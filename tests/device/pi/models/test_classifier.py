@@ -153,12 +153,12 @@ def _three_output_model(folder, classes, symbolic: bool = False, n_out: int = 3,
     model.ir_version = 8
     folder.mkdir()
     onnx.save(model, folder / "model.onnx")
-    (folder / "manifest.json").write_text(json.dumps({
-        "format": "tacfoot-model", "version": 1, "kind": "texture",
-        "feature_spec": FEATURE_SPEC_VERSION, "onnx": "model.onnx",
-        "sha256": {"model.onnx": sha256_file(folder / "model.onnx")},
-        "input": {"name": "x", "shape": [None, 4], "dtype": "float32"},
-        "classes": classes, "T": 1, "input_layout": "vectors"}))
+    from device.pi.models.spec import ModelSpec, profile_record
+    spec = ModelSpec(kind="texture", task="texture", model="fnn", classes=classes, T=1,
+                     input_layout="vectors", n_inputs=4, profile=profile_record("roboskin"),
+                     onnx="model.onnx", feature_spec=FEATURE_SPEC_VERSION,
+                     sha256={"model.onnx": sha256_file(folder / "model.onnx")})
+    (folder / "manifest.json").write_text(json.dumps(spec.to_manifest()))
     return folder
 
 

@@ -1,0 +1,76 @@
+"""host/learn/card.py: the model card and train.toml written from a model spec, and
+the recordings of data specs with their checksums."""
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import pytest
+
+from device.config import ConfigError
+from device.pi.models.artefact import read_spec
+from host.learn.card import (card_text, data_source, read_train_toml, recordings_of,
+                             toml_text, write_model_docs, write_train_toml)
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def test_the_card_of_the_shipped_texture_model_says_what_the_issue_asks(tmp_path):
+    spec, _ = read_spec(ROOT / "models" / "texture")
+    text = card_text(spec, "texture")
+    for want in ("texture while the foot is in contact", "`concrete`, `lego`, `smooth`",
+                 "profile `roboskin`, 133 pins, sha256 `" + spec.profile["sha256"][:16],
+                 "- real data", "| roboskin/concrete.avi |", "## Protocol",
+                 "after a gap of 15 frames", "held-out test: accuracy 0.957", "n=211",
+                 "argmax agreement 1.0000", "`model.int8.onnx`: 201481 bytes (loaded by default)",
+                 "cost per decision"):
+        assert want in text, want
+    # an interval and a count where the metrics carry them; a same-recordings warning
+    spec.metrics["test"] = dict(spec.metrics["test"], accuracy_ci95=[0.9, 0.98],
+                                n_windows=211, same_recordings=True)
+    text = card_text(spec, "texture")
+    assert "accuracy 0.957 [0.900, 0.980] (95 % interval), n=211" in text
+    assert "optimistic" in text
+
+
+def test_model_docs_write_the_card_and_a_train_toml_that_reads_back(tmp_path):
+    folder = tmp_path / "surface"
+    shutil.copytree(ROOT / "models" / "surface", folder)
+    (folder / "README.md").unlink()
+    (folder / "train.toml").unlink()
+    out = write_model_docs(folder)
+    assert set(out) == {"README.md", "train.toml"}
+    spec, _ = read_spec(folder)
+    assert read_train_toml(folder / "train.toml") == spec.config
+    assert "python -m host.bench.shipped --only surface" in (folder / "train.toml").read_text()
+    assert (folder / "README.md").read_text() == card_text(spec, "surface")
+
+
+def test_toml_text_round_trips_and_refuses_what_toml_cannot_hold(tmp_path):
+    cfg = {"task": "texture", "T": 15, "alpha": 0.001, "quantise": True, "data": ["a b", "c"],
+           "cv": None, "extra": {"k": 1}}
+    write_train_toml(tmp_path, cfg)
+    assert read_train_toml(tmp_path / "train.toml") == {k: v for k, v in cfg.items()
+                                                        if v is not None}
+    with pytest.raises(ValueError, match="train.toml: alpha must be a finite number"):
+        toml_text({"alpha": float("nan")})
+    with pytest.raises(ValueError, match="train.toml: x must be a string"):
+        toml_text({"x": object()})
+    (tmp_path / "bad.toml").write_text("task = ")
+    with pytest.raises(ConfigError, match="bad.toml: not valid TOML"):
+        read_train_toml(tmp_path / "bad.toml")
+
+
+def test_recordings_of_data_specs_carry_checksums_and_frame_ranges(tmp_path):
+    (tmp_path / "a.avi").write_bytes(b"clip a")
+    (tmp_path / "m.csv").write_text("path,label,start_frame,end_frame\n"
+                                    "a.avi,lego,0,100\nsim://walk?seed=1,smooth,,\n")
+    (tmp_path / "v.npz").write_bytes(b"npz")
+    recs = recordings_of([str(tmp_path / "m.csv"), str(tmp_path / "v.npz")])
+    assert recs[0] == {"path": str(tmp_path / "a.avi"),
+                       "sha256": hashlib.sha256(b"clip a").hexdigest(), "frames": "0..100"}
+    assert recs[1] == {"path": "sim://walk?seed=1", "sha256": None, "frames": None}
+    assert recs[2]["sha256"] == hashlib.sha256(b"npz").hexdigest()
+    assert data_source(recs[:1]) == "real" and data_source(recs[1:2]) == "simulated"
+    assert data_source(recs[:2]) == "real+simulated" and data_source(recs[2:]) == "unknown"
