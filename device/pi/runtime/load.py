@@ -4,13 +4,19 @@ checked against the config's ``[signing]`` key before its model is loaded
 (:func:`device.pi.models.signature.check_manifest`), and, when signatures are
 required, the folder as a whole against its signed ``models-set.json``
 (:func:`device.pi.models.signature.check_model_set`): a signed model missing,
-emptied or changed, or an unsigned one added, and the leg refuses to start."""
+emptied or changed, or an unsigned one added, and the leg refuses to start.
+
+Every model carries the sensor profile it was trained for (its model spec,
+:mod:`device.pi.models.spec`): models of one folder that carry different profiles,
+or a config whose ``models.profile`` is not the models' profile, are refused,
+naming both files and hashes; :attr:`Models.profile` is the models' profile."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-from device.pi.models.artefact import ModelError, manifest_for
+from device.pi.models.artefact import MANIFEST, ModelError, manifest_for
+from device.pi.models.spec import ModelSpec, SpecError, check_same_profiles, profile_record
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
@@ -32,6 +38,7 @@ class Models:
     localiser: object | None = None     # only with models.localiser = true
     rule: object | None = None          # the rule classifier (always present)
     loaded: tuple = ()
+    profile: dict | None = None         # the models' sensor profile record (None: none loaded)
 
 
 def default_models_dir() -> Path:
@@ -54,6 +61,34 @@ def _pick_localiser(folder: Path, profile: str) -> Path | None:
     if not locs:
         return None
     return next((p for p in locs if p.name == f"localiser-{profile}"), locs[0])
+
+
+def _manifests(m: Models) -> dict:
+    """{manifest path: manifest} of every model loaded from a folder."""
+    out = {}
+    for name in ("surface", "texture", "slip", "pressure", "localiser"):
+        mod = getattr(m, name)
+        if mod is None:
+            continue
+        inner = getattr(mod, "model", None)
+        doc = getattr(inner, "manifest", None) or getattr(mod, "manifest", None)
+        folder = getattr(inner, "path", None) or getattr(mod, "path", None)
+        if doc and folder is not None:
+            out[str(Path(folder) / MANIFEST)] = doc
+    return out
+
+
+def check_profiles(m: Models, profile: str | None) -> dict | None:
+    """The one sensor profile of the loaded models; ModelError naming both files and
+    hashes when two models carry different profiles, or when ``profile`` (the
+    config's ``models.profile``) is another one."""
+    try:
+        recs = {w: ModelSpec.from_manifest(doc, w).profile for w, doc in _manifests(m).items()}
+        given = profile_record(profile) if profile is not None and recs else None
+        return check_same_profiles(recs, given) if recs else None
+    except (SpecError, ValueError) as exc:
+        raise ModelError(str(exc).replace("drop --profile", "set models.profile to the "
+                                                            "models' profile")) from None
 
 
 def _check_inputs(m: Models, n_pins: int) -> None:
@@ -79,7 +114,8 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
                 cfg: LegConfig) -> Models:
     """Every model present in ``models_dir`` (surface, texture, slip, pressure, and
     the localiser when ``cfg.models.localiser``), loaded once. Raises ModelError
-    naming the file for a bad one."""
+    naming the file for a bad one, and naming both when the models carry different
+    sensor profiles or ``cfg.models.profile`` is not theirs."""
     m = Models()
     loaded = []
     d = Path(models_dir) if models_dir is not None else default_models_dir()
@@ -118,6 +154,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
                                             manifest=s.manifest, path=s.path)
     else:
         m.rule = rule_from_config(cfg, profile_n_pins)
+    m.profile = check_profiles(m, cfg.models.profile)
     _check_inputs(m, profile_n_pins)
     m.loaded = tuple(loaded)
     return m

@@ -229,3 +229,34 @@ def test_signing_config_is_checked():
     with pytest.raises(ConfigError, match="signing.allow_unsigned"):
         parse_leg_config({"signing": {"allow_unsigned": False}})
     assert LegConfig().signing.allow_unsigned is True
+
+
+def _with_profile(src, dst, profile: str):
+    """A copy of the model folder ``src`` whose manifests carry ``profile``."""
+    from device.pi.models.spec import ModelSpec, profile_record
+    shutil.copytree(src, dst)
+    for mf in dst.glob("manifest*.json"):
+        spec = ModelSpec.from_manifest(json.loads(mf.read_text()), mf)
+        spec.profile = {k: v for k, v in profile_record(profile).items() if k != "path"}
+        mf.write_text(json.dumps(spec.to_manifest()))
+
+
+def test_models_carrying_different_profiles_or_another_than_the_configs_are_refused(
+        model_dir, tmp_path):
+    cfg = LegConfig()
+    m = load_models(model_dir, "int8", 133, cfg)
+    assert m.profile["name"] == "roboskin" and m.profile["n_pins"] == 133
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    shutil.copytree(model_dir / "surface", mixed / "surface")
+    _with_profile(model_dir / "pressure", mixed / "pressure", "tactip331")
+    with pytest.raises(ModelError, match=r"different sensor profiles: .*surface/manifest\.json "
+                                         r"\(roboskin, 133 pins.* vs .*pressure/manifest\.json "
+                                         r"\(tactip331, 331 pins"):
+        load_models(mixed, "int8", 133, cfg)
+    other = tmp_path / "other"
+    other.mkdir()
+    _with_profile(model_dir / "pressure", other / "pressure", "tactip331")
+    with pytest.raises(ModelError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not the "
+                                         r"model's: .*pressure/manifest\.json \(tactip331"):
+        load_models(other, "int8", 133, cfg)
