@@ -67,12 +67,45 @@ class RunRefused(Exception):
     use: exit 2); the message is its own one-line reason."""
 
 
-def _child(camera: str, imu: str, frames: int, models: str | None) -> dict:
+def runtime_config(models: str | None, profile: str | None, folder) -> str | None:
+    """A leg config for the runtime under test whose ``models.profile`` is the
+    models' own sensor profile (their model specs), written into ``folder``; None
+    when the default config's profile is already theirs. ``profile`` (given by the
+    user, or None) must be the models' profile: ValueError naming both if not, as
+    when two models carry different profiles."""
+    from pathlib import Path
+
+    from device.config import read_toml
+    from device.pi.models.artefact import read_spec
+    from device.pi.models.spec import profile_record
+    from device.pi.runtime.config import DEFAULT_CONFIG, load_leg_config
+    from device.pi.runtime.load import default_models_dir
+    from host.learn.card import toml_text
+    from host.learn.onnx_io import models_profile
+
+    root = Path(models) if models else default_models_dir()
+    specs = {str(mf): read_spec(mf)[0] for mf in sorted(root.glob("*/manifest.json"))}
+    source, rec = models_profile(specs, profile)
+    if rec["sha256"] == profile_record(load_leg_config().models.profile)["sha256"]:
+        return None
+    doc = read_toml(DEFAULT_CONFIG)
+    doc.setdefault("models", {})["profile"] = (str(Path(source).resolve())
+                                               if source.endswith(".toml") else source)
+    path = Path(folder) / "leg.toml"
+    path.write_text(toml_text(doc, f"the default leg config with the models' profile "
+                                   f"{rec['name']} ({rec['n_pins']} pins)"))
+    return str(path)
+
+
+def _child(camera: str, imu: str, frames: int, models: str | None,
+           config: str | None = None) -> dict:
     load_before = os.getloadavg()[0]
     cmd = [sys.executable, "-m", "device.pi", "run", "--camera", camera, "--imu", imu,
            "--serial", "loop://", "--frames", str(frames), "--json"]
     if models:
         cmd += ["--models", models]
+    if config:
+        cmd += ["--config", config]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     if r.returncode == EXIT_BAD_INPUT:
@@ -104,26 +137,39 @@ def _recording(scene: str, frames: int, folder) -> tuple[str, str]:
 
 
 def bench_runtime(frames: int = 600, scene: str = "walk", models: str | None = None,
-                  camera: str | None = None, imu: str | None = None) -> dict:
+                  camera: str | None = None, imu: str | None = None,
+                  profile: str | None = None) -> dict:
     """The runtime on ``sim://scene`` (three runs, see the module docstring) or, with
-    ``camera``, on that recording (two runs: paced at 120 fps, and unpaced)."""
+    ``camera``, on that recording (two runs: paced at 120 fps, and unpaced). The
+    runtime's sensor profile is the models' own (:func:`runtime_config`); a
+    ``profile`` given that is not theirs is a ValueError naming both."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="tacfoot-bench-cfg-") as cfg_dir:
+        config = runtime_config(models, profile, cfg_dir)
+        return _bench_runs(frames, scene, models, camera, imu,
+                           lambda cam, imu_, n, mods: _child(cam, imu_, n, mods, config))
+
+
+def _bench_runs(frames, scene, models, camera, imu, child) -> dict:
+    """The runs of :func:`bench_runtime`, each by ``child`` (:func:`_child`)."""
     import tempfile
 
     from device.pi import protocol as P
 
     if camera is not None:
         imu = imu or "none"
-        paced = _child(with_option(camera, f"fps={PACED_FPS:g}&realtime=1"), imu, frames, models)
-        fast = files = _child(camera, imu, frames, models)
+        paced = child(with_option(camera, f"fps={PACED_FPS:g}&realtime=1"), imu, frames, models)
+        fast = files = child(camera, imu, frames, models)
         command = (f"python -m device.pi run --camera {camera}[?fps={PACED_FPS:g}&realtime=1] "
                    f"--imu {imu} --serial loop:// --frames {frames} --json")
         source = camera
     else:
-        paced = _child(f"sim://{scene}?realtime=1", f"sim://{scene}", frames, models)
-        fast = _child(f"sim://{scene}", f"sim://{scene}", frames, models)
+        paced = child(f"sim://{scene}?realtime=1", f"sim://{scene}", frames, models)
+        fast = child(f"sim://{scene}", f"sim://{scene}", frames, models)
         with tempfile.TemporaryDirectory(prefix="tacfoot-bench-") as tmp:
             clip, imu_file = _recording(scene, frames, tmp)
-            files = _child(f"file://{clip}", f"file://{imu_file}", frames, models)
+            files = child(f"file://{clip}", f"file://{imu_file}", frames, models)
         command = (f"python -m device.pi run --camera sim://{scene}[?realtime=1] --imu "
                    f"sim://{scene} --serial loop:// --frames {frames} --json")
         source = f"sim://{scene}"

@@ -12,6 +12,8 @@ from host.cli.common import UserError, emit, real_data_dir, whole
 
 
 def cmd_bench(args):
+    if args.what != "runtime":
+        args.profile = args.profile or "roboskin"
     if args.what == "sim":
         res = bench_sim.bench_sim(repeats=args.repeats)
         emit(args, res, bench_sim.format_sim(res))
@@ -36,9 +38,9 @@ def cmd_bench(args):
             raise UserError("--imu goes with --camera (sim://walk brings its own IMU)")
         try:
             res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
-                                imu=args.imu)
-        except RunRefused as exc:               # the runtime's own one-line reason
-            raise UserError(str(exc)) from None
+                                imu=args.imu, profile=args.profile)
+        except (RunRefused, ValueError) as exc:  # the runtime's one-line reason, or a
+            raise UserError(str(exc)) from None  # --profile that is not the models' own
         emit(args, res, format_runtime(res))
     elif args.what == "tables":
         from host.data.windows import DataError
@@ -83,8 +85,10 @@ def register(sub) -> None:
     s.add_argument("--data", metavar="SPEC",
                    help="pipeline, tables: the recordings, a CSV manifest (path,label[,imu]) "
                         "or a dataset folder (pipeline without it: simulated frames only)")
-    s.add_argument("--profile", default="roboskin",
-                   help="pipeline, tables: sensor profile of the recordings (name or .toml)")
+    s.add_argument("--profile",
+                   help="pipeline, tables: sensor profile of the recordings (name or .toml; "
+                        "default roboskin); runtime: default the models' own, another is "
+                        "an error")
     s.add_argument("--camera", help="runtime: a recording (path or file:// URL) "
                                     "instead of sim://walk")
     s.add_argument("--imu", help="runtime with --camera: IMU source (file://GYRO.npy "

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from host.cli import main
 
 
@@ -71,3 +73,35 @@ def test_host_bench_runtime_an_empty_imu_recording_is_one_line_naming_it(tmp_pat
                  "--frames", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--imu" in err[0] and "empty.npy" in err[0], err
+
+
+def _tactip_models(tmp_path):
+    """A models folder whose one model (a copy of the shipped pressure model) carries
+    the tactip331 profile in its spec."""
+    import json
+    import shutil
+
+    from device.pi.models.spec import ModelSpec, profile_record
+    from tests import REPO_ROOT
+    d = tmp_path / "models"
+    shutil.copytree(REPO_ROOT / "models" / "pressure", d / "pressure")
+    for mf in (d / "pressure").glob("manifest*.json"):
+        spec = ModelSpec.from_manifest(json.loads(mf.read_text()), mf)
+        spec.profile = {k: v for k, v in profile_record("tactip331").items() if k != "path"}
+        mf.write_text(json.dumps(spec.to_manifest()))
+    return d
+
+
+def test_the_runtime_under_test_gets_the_models_profile_and_refuses_another(tmp_path, capsys):
+    from device.pi.runtime.config import load_leg_config
+    from host.bench.runtime import runtime_config
+    assert runtime_config(None, None, tmp_path) is None          # shipped: roboskin
+    models = _tactip_models(tmp_path)
+    cfg = runtime_config(str(models), None, tmp_path)
+    assert load_leg_config(cfg).models.profile == "tactip331"
+    with pytest.raises(ValueError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not the "
+                                         r"model's: .*pressure/manifest\.json \(tactip331"):
+        runtime_config(str(models), "roboskin", tmp_path)
+    rc = main(["bench", "runtime", "--models", str(models), "--profile", "roboskin"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "(tactip331, 331 pins" in err
