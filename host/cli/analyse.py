@@ -23,11 +23,33 @@ from host.cli.common import (SEED, UserError, emit, load_localiser, load_regress
                              open_stream, out_file, progress_bar, read_frames, whole)
 
 
+def _profile_from_models(args) -> None:
+    """``args.profile``: the models' own sensor profile (their specs) when
+    ``--localiser`` or ``--pressure`` is given, else ``--profile`` (default roboskin).
+    A ``--profile`` other than the models', or two models carrying different
+    profiles, is a UserError naming both."""
+    from device.pi.models.artefact import ModelError, read_spec
+    from host.learn.onnx_io import models_profile
+
+    specs = {}
+    try:
+        for folder in (args.localiser, args.pressure):
+            if folder:
+                spec, mpath = read_spec(folder)
+                specs[str(mpath)] = spec
+        if specs:
+            args.profile, _ = models_profile(specs, args.profile)
+    except (ModelError, ValueError) as exc:
+        raise UserError(str(exc)) from None
+    args.profile = args.profile or "roboskin"
+
+
 def _open_pipeline(args):
     """(marker stream, frame encoder or None, window or None, pressure model or None).
 
     With ``--pressure`` the frames go through the runtime's frame encoder into a
     rolling window of the model's T frames, encoded as the model was trained."""
+    _profile_from_models(args)
     localiser = load_localiser(args.localiser)
     reg = load_regressor(args.pressure)
     if reg is None:
@@ -263,7 +285,9 @@ def register(sub) -> None:
     s = sub.add_parser("analyse", help="run the marker pipeline over a video, image folder "
                                        "or sim://SCENE; one JSON line per frame")
     s.add_argument("source", help="clip.avi, a folder of images, or sim://SCENE")
-    s.add_argument("--profile", default="roboskin", help="sensor profile name or .toml")
+    s.add_argument("--profile", help="sensor profile name or .toml (default roboskin; with "
+                                      "--localiser or --pressure the models' own, another "
+                                      "is an error)")
     s.add_argument("--localiser", help="localiser model folder (ONNX + manifest)")
     s.add_argument("--pressure", help="pressure regressor model folder")
     s.add_argument("--out", help="write the JSON lines here instead of stdout")

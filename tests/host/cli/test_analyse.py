@@ -169,3 +169,18 @@ def test_realism_with_a_missing_file_or_no_data_is_one_line_and_exit_2(tmp_path,
     assert main(["realism"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "python -m host.bench.specs --real-data" in err
+
+
+def test_analyse_takes_the_profile_from_its_models_and_refuses_another(tmp_path, capsys):
+    """With --pressure the pipeline runs with the model's own profile; a --profile
+    that is not the model's is exit 2 naming both (files, pin counts, hashes)."""
+    out = tmp_path / "a.jsonl"
+    assert main(["analyse", "sim://drag-90?end_frame=12", "--pressure", str(PRESSURE),
+                 "--out", str(out)]) == 0
+    assert _lines(out)[-1]["profile"] == "roboskin"
+    rc = main(["analyse", "sim://drag-90?end_frame=12", "--pressure", str(PRESSURE),
+               "--profile", "tactip331", "--out", str(tmp_path / "b.jsonl")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1
+    assert "tactip331.toml (tactip331, 331 pins" in err and "pressure/manifest.json" in err
+    assert "(roboskin, 133 pins" in err
