@@ -121,8 +121,14 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     X = model_inputs(ws, layout, uses_imu)
     shape = [int(d) for d in doc["input"]["shape"][1:]]
     if int(np.prod(X.shape[1:])) != int(np.prod(shape)):
+        prof = doc.get("profile") if isinstance(doc.get("profile"), dict) else {}
+        pins = (f"; the windows have {ws.n_pins} pins, the model's sensor profile "
+                f"{prof.get('name')!r} has {prof.get('n_pins')}: load the data with the "
+                f"model's profile (host eval does, unless --profile says otherwise)"
+                if prof and ws.n_pins != prof.get("n_pins") else "")
         raise ValueError(f"the windows encode to {tuple(X.shape[1:])} inputs, the model "
-                         f"expects {tuple(shape)} (pin count, grid or frame size differs)")
+                         f"expects {tuple(shape)} (pin count, grid or frame size differs)"
+                         + pins)
 
     # -- one decision per window, timed as on the Pi --------------------------
     if kind == "regressor":

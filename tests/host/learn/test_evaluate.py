@@ -85,3 +85,18 @@ def test_evaluate_reports_each_recording_with_an_interval(surface_model, surface
     assert sum(r["n_windows"] for r in by.values()) == len(ws_te)
     for r in by.values():
         assert r["accuracy_ci95"][0] <= r["accuracy"] <= r["accuracy_ci95"][1]
+
+
+def test_windows_of_another_pin_count_name_the_models_profile_as_the_fix(tmp_path):
+    """The input-size error says which profile the model was trained for."""
+    from host.learn.train import train_model
+    from tests.windows import synthetic
+    ws = synthetic(n_groups=4, per_group=10, n_pins=133, Tn=1, imu=False, targets=True)
+    ws.task = "pressure"
+    train_model("pressure", "ridge", ws, out_dir=tmp_path / "m", progress=False)
+    other = synthetic(n_groups=2, per_group=5, n_pins=6, Tn=1, imu=False, targets=True)
+    other.task = "pressure"
+    with pytest.raises(ValueError, match=r"the windows have 6 pins, the model's sensor profile "
+                                         r"'roboskin' has 133: load the data with the model's "
+                                         r"profile"):
+        evaluate_model(tmp_path / "m", other)
