@@ -16,7 +16,7 @@ $(PY):
 	$(PIP) install --upgrade pip
 
 $(VENV)/.installed: $(PY) pyproject.toml
-	$(PIP) install -e '.[host]'
+	$(PIP) install -e '.[host,viz]'
 	touch $@
 
 $(VENV)/.installed-test: $(VENV)/.installed pyproject.toml

@@ -41,6 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="load the float ONNX models instead of int8")
     r.add_argument("--json-log", help="write one JSON line per decision to FILE")
     r.add_argument("--status", help="rewrite FILE atomically with a JSON health summary")
+    r.add_argument("--mcap", help="write an MCAP log to FILE for Foxglove (docs/viewing.md; "
+                                  "needs pip install .[viz])")
+    r.add_argument("--mcap-max-mb", type=float, default=256.0,
+                   help="start the next MCAP file (FILE-0001.mcap, ...) at this size, "
+                        "MB (default 256)")
     r.add_argument("--frames", type=int, help="stop after N frames (tests, benchmarks)")
     r.add_argument("--json", action="store_true",
                    help="print a JSON summary on stdout when the runtime stops")
@@ -52,6 +57,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is not None and args.frames < 1:
         print(f"device.pi run: error: --frames must be >= 1, got {args.frames}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    if args.mcap:
+        err = _check_mcap(args)
+        if err:
+            print(f"device.pi run: error: {err}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     try:
         rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
                            config=args.config, fps=args.fps, json_log=args.json_log,
@@ -61,6 +71,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"device.pi run: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
+    if args.mcap:
+        from device.pi.runtime.mcaplog import McapLog, McapLogError
+        try:
+            rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock)
+        except McapLogError as exc:
+            print(f"device.pi run: error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
     guard: list[threading.Timer] = []
 
     def stop(signum, frame):
@@ -94,6 +111,24 @@ def main(argv: list[str] | None = None) -> int:
               f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}",
               file=sys.stderr)
     return rc
+
+
+def _check_mcap(args) -> str | None:
+    """Why ``--mcap`` cannot work (checked before the sources open), or None."""
+    if not args.mcap_max_mb > 0:
+        return f"--mcap-max-mb must be > 0, got {args.mcap_max_mb}"
+    try:
+        import mcap  # noqa: F401
+    except ImportError:
+        from device.pi.runtime.mcaplog import INSTALL_HINT
+        return f"--mcap: {INSTALL_HINT}"
+    d = os.path.dirname(os.path.abspath(args.mcap))
+    if os.path.isdir(args.mcap):
+        return f"--mcap {args.mcap!r} is a folder; give a file, e.g. " \
+               f"{os.path.join(args.mcap, 'run.mcap')}"
+    if not os.path.isdir(d):
+        return f"--mcap {args.mcap!r}: the folder {d} does not exist"
+    return None
 
 
 def _force_exit(signum: int) -> None:

@@ -243,6 +243,9 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
            "--imu", f"sim://{scene_name}?seed={seed}", "--serial", slave_name,
            "--json-log", str(out / "decisions.jsonl"), "--status", str(out / "status.json"),
            "--json"] + (["--models", str(models_dir)] if models_dir is not None else [])
+    mcap_file = out / "run.mcap" if _has_mcap() else None      # the viz extra
+    if mcap_file is not None:
+        cmd += ["--mcap", str(mcap_file)]
     plan = _gait_plan(scene, sim)
     dec = P.FrameDecoder()
     packets, n_surface, seq, t0 = [], 0, 0, time.monotonic()
@@ -286,7 +289,13 @@ def _demo_runtime(scene_name: str, seed: int, out: Path, sim, scene, realtime: b
         counts[d["type"]] = counts.get(d["type"], 0) + 1
     return {"command": " ".join(cmd), "packets_file": str(out / "packets.jsonl"),
             "decisions_file": str(out / "decisions.jsonl"), "packets": counts,
-            "decoder": dict(dec.counters), "runtime": status}
+            "decoder": dict(dec.counters), "runtime": status,
+            "mcap_file": None if mcap_file is None else str(mcap_file)}
+
+
+def _has_mcap() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("mcap") is not None
 
 
 def _demo_segments(scene, sim, out: Path) -> list:
@@ -377,6 +386,7 @@ def demo_text(res: dict) -> str:
     lines += res["texture"]["label"]
     lines += [f"steps:        {res['steps_file']}",
               f"packets:      {res['packets_file']}", f"decisions:    {res['decisions_file']}",
+              f"mcap log:     {res.get('mcap_file') or 'none (pip install .[viz])'}",
               f"preview:      {res['preview']}", f"ground truth: {res['ground_truth_plot']}"]
     return "\n".join(lines)
 

@@ -24,6 +24,11 @@ Sections and keys (units in the names)::
                when a learned surface model is loaded and GAIT is fresh)
     [rezero]   auto (bool), still_px, still_frames, min_interval_s
     [status]   interval_s (how often --status FILE is rewritten)
+    [mcap]     the ``--mcap FILE`` log (docs/viewing.md): image_every (log every Nth
+               camera frame, with its pin annotations), image_width (px, the logged
+               JPEG's width; the height keeps the aspect), jpeg_quality (1..100),
+               vector_scale (the pin vectors drawn this many times their length),
+               chunk_kb (MCAP chunk size: a crash loses at most the last chunk)
     [signing]  public_key (base64 Ed25519 public key that model manifests must be
                signed with; ``host deploy`` fills it in), allow_unsigned (bool: load
                models that carry no signature; true by default, for development,
@@ -97,6 +102,15 @@ class StatusConfig:
 
 
 @dataclass
+class McapConfig:
+    image_every: int = 4
+    image_width: int = 320
+    jpeg_quality: int = 75
+    vector_scale: float = 3.0
+    chunk_kb: int = 1024
+
+
+@dataclass
 class SigningConfig:
     public_key: str = ""
     allow_unsigned: bool = True
@@ -113,6 +127,7 @@ class LegConfig:
     status: StatusConfig = field(default_factory=StatusConfig)
     source: str = ""
     signing: SigningConfig = field(default_factory=SigningConfig)
+    mcap: McapConfig = field(default_factory=McapConfig)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -194,6 +209,15 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
                                             max=1.0))
     st.done()
 
+    x = top.sub("mcap", {})
+    mc = McapConfig(
+        image_every=x.integer("image_every", d.mcap.image_every, min=1, max=10_000),
+        image_width=x.integer("image_width", d.mcap.image_width, min=16, max=8192),
+        jpeg_quality=x.integer("jpeg_quality", d.mcap.jpeg_quality, min=1, max=100),
+        vector_scale=x.number("vector_scale", d.mcap.vector_scale, min=0.0, max=1000.0),
+        chunk_kb=x.integer("chunk_kb", d.mcap.chunk_kb, min=1, max=1_048_576))
+    x.done()
+
     k = top.sub("signing", {})
     sig = SigningConfig(public_key=k.string("public_key", d.signing.public_key).strip(),
                         allow_unsigned=k.boolean("allow_unsigned", d.signing.allow_unsigned))
@@ -207,7 +231,7 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
         k.fail("signing.allow_unsigned", False, "needs signing.public_key to check "
                "signatures with")
     top.done()
-    return LegConfig(cam, imu, ser, mod, dec, rz, stc, source=source, signing=sig)
+    return LegConfig(cam, imu, ser, mod, dec, rz, stc, source=source, signing=sig, mcap=mc)
 
 
 def load_leg_config(path: Path | str | None = None) -> LegConfig:

@@ -115,6 +115,7 @@ class LegRuntime:
                                reopen_max_s=cfg.camera.reopen_max_s, first=first_camera,
                                clock=clock)
         self.json_log = None if json_log is None else JsonLog(json_log)
+        self.mcap = None          # an McapLog (device/pi/runtime/mcaplog.py), set by --mcap
         self.status_path = status_path
         self.max_frames = max_frames
         self.notify = notify
@@ -162,8 +163,10 @@ class LegRuntime:
         return s
 
     def _send(self, kind: str, msg) -> None:
-        frame = msg.encode(self._next_seq(), self._t_ms())
-        self.writer.send(kind, msg.msg_type, frame)
+        seq, t_ms = self._next_seq(), self._t_ms()
+        self.writer.send(kind, msg.msg_type, msg.encode(seq, t_ms))
+        if self.mcap is not None:
+            self.mcap.packet("out", msg, self.clock(), seq, t_ms)
 
     # -- the loop --------------------------------------------------------------
     def start(self) -> None:
@@ -260,7 +263,7 @@ class LegRuntime:
         if self.writer.packets_sent > before and self.writer.pending == 0:
             lat = (t_done - t_avail) * 1e3
             self.latency_ms.add(lat)
-        if self.json_log is None:
+        if self.json_log is None and self.mcap is None:
             return
         # the decision log line, built after the packet went out
         meas = d.measures
@@ -282,7 +285,11 @@ class LegRuntime:
         if d.model_probs is not None:
             dec["model_probs"] = [round(float(x), 4) for x in d.model_probs]
             dec["rule_probs"] = [round(float(x), 4) for x in d.rule_probs]
-        self.json_log.write(dec)
+        if self.json_log is not None:
+            self.json_log.write(dec)
+        if self.mcap is not None:      # after the packet: its cost is off the latency
+            self.mcap.frame(dec, d, frame, ef, imu_vec, faults, t_avail, t_done,
+                            self.stream.reference)
 
     def _auto_rezero(self, v, lost, contact: bool, gait) -> None:
         rz = self.cfg.rezero
@@ -394,6 +401,8 @@ class LegRuntime:
         self._send("imu", msg)
 
     def _handle(self, msg, t_sent: float) -> None:
+        if self.mcap is not None:
+            self.mcap.packet("in", msg, self.clock())
         if isinstance(msg, P.Gait):
             self.gait_packets += 1
             self.gait = gait_from_message(msg, t_sent)
@@ -427,7 +436,8 @@ class LegRuntime:
                 "models": list(self.models.loaded), "fps": self.fps,
                 "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
                 "link_write_errors": w.write_errors, "json_log_lines_lost":
-                    0 if self.json_log is None else self.json_log.lines_lost}
+                    0 if self.json_log is None else self.json_log.lines_lost,
+                **({} if self.mcap is None else self.mcap.status())}
 
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:
@@ -449,6 +459,8 @@ class LegRuntime:
         self._notify("STOPPING=1")
         if self.json_log is not None:
             self.json_log.flush()
+        if self.mcap is not None:
+            self.mcap.close()
 
     def _heartbeat(self) -> P.Heartbeat:
         return heartbeat_message(self.clock() - self._t0, self.fps,

@@ -255,3 +255,32 @@ def test_status_naming_a_folder_refuses_to_start(tmp_path, capsys):
     assert rc == 2
     line, = err.strip().splitlines()
     assert f"--status {str(tmp_path)!r} is a folder" in line
+
+
+def test_mcap_without_the_viz_extra_is_one_line_naming_it_and_exit_2(monkeypatch, capsys,
+                                                                     tmp_path):
+    monkeypatch.setitem(sys.modules, "mcap", None)        # import mcap fails
+    rc, err = _run_main(["--camera", "sim://press-hard", "--mcap", str(tmp_path / "r.mcap")],
+                        capsys)
+    assert rc == 2
+    line, = err.strip().splitlines()
+    assert "pip install .[viz]" in line and "--mcap" in line
+    assert not (tmp_path / "r.mcap").exists()
+
+
+def test_mcap_in_a_missing_folder_or_a_bad_size_refuses_to_start(tmp_path, capsys):
+    pytest.importorskip("mcap")
+    rc, err = _run_main(["--camera", "sim://press-hard", "--mcap",
+                         str(tmp_path / "nope" / "r.mcap")], capsys)
+    assert rc == 2 and "nope" in err and "does not exist" in err
+    rc, err = _run_main(["--camera", "sim://press-hard", "--mcap", str(tmp_path / "r.mcap"),
+                         "--mcap-max-mb", "0"], capsys)
+    assert rc == 2 and "--mcap-max-mb" in err
+
+
+def test_the_runtime_imports_without_mcap():
+    code = ("import sys; sys.modules['mcap'] = None\n"
+            "import device.pi.__main__, device.pi.runtime.loop, device.pi.runtime.mcaplog\n"
+            "print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr

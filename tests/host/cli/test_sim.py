@@ -92,6 +92,16 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert sum(r["reported"] == r["truth"] for r in drags) >= 6
     assert sum(p["slip"] for p in surf) > 0
     _check_demo_texture(res, packets, ds)
+    # make demo writes out/demo/run.mcap beside the GIF and PNG (with the viz extra)
+    from device.pi.runtime.mcaplog import read_log
+    assert res["mcap_file"] == str(tmp_path / "run.mcap")
+    msgs, complete = read_log(tmp_path / "run.mcap")
+    assert complete
+    dec = [m for m in msgs if m["topic"] == "/tacfoot/decision"]
+    assert [m["data"]["frame"] for m in dec] == [d["frame"] for d in ds]
+    gait_in = [m for m in msgs if m["topic"] == "/tacfoot/packets/in"
+               and m["data"]["type"] == "gait"]
+    assert len(gait_in) == res["runtime"]["gait_packets"]
 
 
 def _check_demo_texture(res, packets, ds):

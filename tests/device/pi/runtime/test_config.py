@@ -41,6 +41,10 @@ def test_empty_file_takes_defaults_and_values_are_read(tmp_path):
     ("[rezero]\nauto = 1\n", "rezero.auto", "1"),
     ('[models]\nlocaliser = "yes"\n', "models.localiser", "yes"),
     ("[status]\ninterval_s = 5\n", "status.interval_s", "5"),
+    ("[mcap]\nimage_every = 0\n", "mcap.image_every", "0"),
+    ("[mcap]\nimage_width = 4\n", "mcap.image_width", "4"),
+    ("[mcap]\njpeg_quality = 101\n", "mcap.jpeg_quality", "101"),
+    ("[mcap]\nchunk_kb = 0\n", "mcap.chunk_kb", "0"),
     ("[camera]\nfsp = 120\n", "camera.fsp", "120"),           # a typo is not ignored
     ("[cameras]\nfps = 120\n", "cameras", "fps"),
     ("camera = 3\n", "camera", "3"),
@@ -65,7 +69,7 @@ def test_broken_toml_and_missing_file_are_clear(tmp_path):
 
 @settings(max_examples=80, deadline=None)
 @given(section=st.sampled_from(["camera", "imu", "serial", "models", "decision", "rezero",
-                                "status"]),
+                                "status", "mcap"]),
        value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(),
                        st.text(max_size=5), st.booleans()))
 def test_any_value_is_accepted_or_refused_with_its_key(section, value):

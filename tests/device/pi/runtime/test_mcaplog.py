@@ -1,0 +1,249 @@
+"""device/pi/runtime/mcaplog.py: ``python -m device.pi run --mcap FILE`` writes an
+MCAP log that mcap's own reader reads back: the channels with Foxglove's schemas,
+one message per frame where there should be one, timestamps and decisions that
+match the JSON log; files roll over by size; a killed run leaves a readable prefix;
+a failed write is a count and one warning, never an exception into the loop."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+mcap = pytest.importorskip("mcap")
+
+from mcap.reader import make_reader  # noqa: E402
+
+from device.pi import protocol as P  # noqa: E402
+from device.pi.runtime import mcaplog  # noqa: E402
+from device.pi.runtime.config import McapConfig  # noqa: E402
+from device.pi.runtime.mcaplog import CHANNELS, McapLog, read_log, recover, roll_name  # noqa
+
+FRAMES = 60
+
+
+def _run(tmp_path, *extra, frames=FRAMES, config=None):
+    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", "sim://walk", "--imu",
+           "sim://walk", "--serial", "loop://", "--json"]
+    if frames:
+        cmd += ["--frames", str(frames)]
+    if config:
+        cfg = tmp_path / "leg.toml"
+        cfg.write_text(config)
+        cmd += ["--config", str(cfg)]
+    return cmd + [str(x) for x in extra]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("mcap")
+    f, j = d / "run.mcap", d / "run.jsonl"
+    r = subprocess.run(_run(d, "--mcap", f, "--json-log", j), capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = [json.loads(x) for x in j.read_text().splitlines()]
+    return SimpleNamespace(file=f, status=json.loads(r.stdout), decisions=lines)
+
+
+def _by_topic(path):
+    out = {}
+    with open(path, "rb") as fh:
+        for schema, channel, msg in make_reader(fh).iter_messages(log_time_order=False):
+            out.setdefault(channel.topic, []).append(
+                (schema.name, schema.encoding, channel.message_encoding, msg.log_time,
+                 json.loads(msg.data)))
+    return out
+
+
+def test_the_channels_exist_with_their_schemas(run):
+    with open(run.file, "rb") as fh:
+        summary = make_reader(fh).get_summary()       # a complete file: footer + summary
+    schemas = {s.id: s for s in summary.schemas.values()}
+    got = {c.topic: schemas[c.schema_id].name for c in summary.channels.values()}
+    assert got == {t: s["title"] for t, s in CHANNELS.items()}
+    assert got["/tacfoot/image"] == "foxglove.CompressedImage"
+    assert got["/tacfoot/pins"] == "foxglove.ImageAnnotations"
+    assert {s.encoding for s in schemas.values()} == {"jsonschema"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"json"}
+    for s in schemas.values():                        # each schema is JSON naming itself
+        assert json.loads(s.data)["title"] == s.name
+
+
+def test_one_message_per_frame_and_an_image_every_nth(run):
+    m = _by_topic(run.file)
+    for topic in ("/tacfoot/decision", "/tacfoot/grid", "/tacfoot/imu", "/tacfoot/latency"):
+        assert len(m[topic]) == FRAMES, topic
+        assert [x[4]["frame"] for x in m[topic]] == list(range(FRAMES))
+    every = McapConfig().image_every
+    n_img = -(-FRAMES // every)
+    assert len(m["/tacfoot/image"]) == len(m["/tacfoot/pins"]) == n_img
+    # the images are the frames 0, N, 2N ...: same times as those decisions
+    dec_t = [x[3] for x in m["/tacfoot/decision"]]
+    assert [x[3] for x in m["/tacfoot/image"]] == dec_t[::every]
+    assert [x[3] for x in m["/tacfoot/pins"]] == dec_t[::every]
+    # every packet the runtime sent (loop:// drops none), the SURFACEs one per frame
+    out = [x[4] for x in m["/tacfoot/packets/out"]]
+    assert len(out) == run.status["packets_sent"] and run.status["packets_dropped"] == 0
+    assert sum(p["type"] == "surface" for p in out) == FRAMES
+    assert [p["seq"] for p in out] == list(range(len(out)))      # in the order sent
+    t_out = [x[3] for x in m["/tacfoot/packets/out"]]
+    assert t_out[0] == 0 and t_out[-1] <= dec_t[-1] + 10**9      # on the frames' time line
+    assert len(m["/tacfoot/packets/in"]) > 0                  # loop:// echoes them back
+    faults_out = [p for p in out if p["type"] == "fault"]
+    assert len(m["/tacfoot/faults"]) == len(faults_out) >= 1
+    assert run.status["mcap_messages_lost"] == 0
+    assert run.status["mcap_messages_written"] == sum(len(v) for v in m.values())
+
+
+def test_decisions_and_timestamps_match_the_json_log(run):
+    m = _by_topic(run.file)
+    decs = m["/tacfoot/decision"]
+    assert len(decs) == len(run.decisions) == FRAMES
+    for (_, _, _, t_ns, d), line in zip(decs, run.decisions):
+        assert abs(t_ns - line["t_s"] * 1e9) <= 1e3           # the frame's own time, ns
+        extra = {k: d.pop(k) for k in ("surface_conf", "texture_conf")}
+        assert d == line                                       # the same decision line
+        assert extra["surface_conf"] == round(max(line["probs"]), 4)
+        assert (extra["texture_conf"] is None) == (line["texture"] is None)
+    assert [x[3] for x in decs] == sorted(x[3] for x in decs)
+    lat = [x[4]["latency_ms"] for x in m["/tacfoot/latency"]]
+    assert lat == [line["latency_ms"] for line in run.decisions]
+    assert all(x[4]["pipeline_ms"] > 0 for x in m["/tacfoot/latency"])
+    imu = m["/tacfoot/imu"][0][4]
+    assert len(imu["acc_g"]) == 3 and len(imu["gyro_dps"]) == 3
+    assert 0.5 < float(np.linalg.norm(imu["acc_g"])) < 1.5        # gravity, in g
+
+
+def test_images_are_jpegs_of_the_configured_width_and_pins_one_point_each(run):
+    import base64
+
+    import cv2
+    m = _by_topic(run.file)
+    decs = {x[3]: x[4] for x in m["/tacfoot/decision"]}
+    for (_, _, _, t, img), (_, _, _, t2, ann) in zip(m["/tacfoot/image"], m["/tacfoot/pins"]):
+        assert t == t2 and img["format"] == "jpeg" and img["frame_id"] == mcaplog.FRAME_ID
+        assert img["timestamp"] == {"sec": t // 10**9, "nsec": t % 10**9}
+        pic = cv2.imdecode(np.frombuffer(base64.b64decode(img["data"]), np.uint8),
+                           cv2.IMREAD_UNCHANGED)
+        assert pic is not None and pic.shape[1] == McapConfig().image_width
+        pts, segs = ann["points"]
+        assert pts["type"] == mcaplog.POINTS and segs["type"] == mcaplog.LINE_LIST
+        assert len(pts["points"]) == decs[t]["pins"]         # one point per tracked pin
+        assert len(segs["points"]) % 2 == 0
+        h, w = pic.shape[:2]
+        for p in pts["points"] + segs["points"][::2]:
+            assert -1 <= p["x"] <= w + 1 and -1 <= p["y"] <= h + 1
+    assert any(len(a[4]["points"][1]["points"]) for a in m["/tacfoot/pins"])   # vectors
+
+
+def test_files_roll_over_by_size_and_each_reads_back(tmp_path):
+    f = tmp_path / "roll.mcap"
+    r = subprocess.run(_run(tmp_path, "--mcap", f, "--mcap-max-mb", "0.03", frames=30,
+                            config="[mcap]\nchunk_kb = 8\nimage_every = 1\n"),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    files = json.loads(r.stdout)["mcap_files"]
+    assert len(files) >= 3 and files[0] == str(f) and files[1] == str(roll_name(f, 1))
+    assert str(roll_name(f, 1)).endswith("roll-0001.mcap")
+    frames = []
+    for p in files:
+        msgs, complete = read_log(p)
+        assert complete, p
+        with open(p, "rb") as fh:                 # and mcap's own seeking reader
+            summary = make_reader(fh).get_summary()
+        assert len(summary.channels) == len(CHANNELS)
+        frames += [x["data"]["frame"] for x in msgs if x["topic"] == "/tacfoot/decision"]
+    assert frames == list(range(30))              # nothing lost, nothing twice
+
+
+def test_a_killed_run_leaves_a_readable_prefix(tmp_path):
+    f = tmp_path / "killed.mcap"
+    cmd = _run(tmp_path, "--mcap", f, frames=None,
+               config="[mcap]\nchunk_kb = 4\nimage_every = 1\n")
+    cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and (not f.exists() or f.stat().st_size < 80_000):
+            assert proc.poll() is None, "the runtime ended before it was killed"
+            time.sleep(0.02)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+    msgs, complete = read_log(f)
+    assert not complete                           # no footer: cut short
+    frames = [x["data"]["frame"] for x in msgs if x["topic"] == "/tacfoot/decision"]
+    assert len(frames) >= 3 and frames == list(range(len(frames)))   # a whole prefix
+    # recover(): the prefix as a well-formed file mcap's seeking reader opens
+    fixed = tmp_path / "fixed.mcap"
+    assert recover(f, fixed) == len(msgs)
+    with open(fixed, "rb") as fh:
+        n = sum(1 for _ in make_reader(fh).iter_messages())
+    assert n == len(msgs)
+
+
+def _frame_args(k=0, t_s=0.01):
+    ff = SimpleNamespace(pins=np.array([[10.0, 20.0], [30.0, 40.0]]),
+                         vectors=np.array([[1.0, 0.0], [0.0, 2.0]], np.float32),
+                         lost=np.array([False, True]), grid=np.zeros((3, 3)), contact=False)
+    dec = {"frame": k, "t_s": t_s, "probs": [0.2, 0.8], "texture": None, "pins": 2,
+           "latency_ms": 1.0}
+    frame = SimpleNamespace(t_s=t_s, image=np.zeros((48, 64), np.uint8))
+    return (dec, SimpleNamespace(texture=None), frame, SimpleNamespace(features=ff),
+            np.zeros(6), 0, 1.0, 1.002, np.array([[10.0, 20.0], [30.0, 40.0]]))
+
+
+def test_a_failed_write_is_a_count_and_one_warning_then_the_next_file(tmp_path, capsys,
+                                                                      monkeypatch):
+    now, full = [0.0], [False]
+    real = mcaplog._CountingFile.write
+
+    def write(self, data):
+        if full[0]:
+            raise OSError(28, "No space left on device")
+        return real(self, data)
+    monkeypatch.setattr(mcaplog._CountingFile, "write", write)
+    log = McapLog(tmp_path / "w.mcap", McapConfig(image_every=1, image_width=32, chunk_kb=1),
+                  clock=lambda: now[0])
+    log.frame(*_frame_args(0))
+    assert log.messages_written == 6 and log.messages_lost == 0   # image, pins + 4
+    full[0] = True                                # the disk fills
+    for k in range(1, 6):                         # a chunk is written within a few frames
+        log.frame(*_frame_args(k))                # never an exception into the loop
+        log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), now[0], k, 10)
+    assert log.messages_lost > 0
+    err = capsys.readouterr().err
+    assert err.count("--mcap") == 1 and "No space left" in err and "mcap_messages_lost" in err
+    lost = log.messages_lost
+    log.frame(*_frame_args(6))                    # before RETRY_S: dropped and counted
+    assert log.messages_lost == lost + 6 and len(log.files) == 1
+    full[0] = False
+    now[0] = 10.0                                 # later: the next file is opened
+    log.frame(*_frame_args(7))
+    log.close()
+    assert log.files == [str(tmp_path / "w.mcap"), str(tmp_path / "w-0001.mcap")]
+    msgs, complete = read_log(log.files[-1])
+    assert complete and len(msgs) == 6
+    assert {m["data"].get("frame", 7) for m in msgs} == {7}
+    assert log.status()["mcap_messages_lost"] == log.messages_lost
+
+
+def test_annotations_skip_lost_pins_and_scale_with_the_image():
+    dec, _, _, ef, *_rest, ref = _frame_args()
+    a = mcaplog.annotations({"sec": 0, "nsec": 0}, ef.features, ref, 0.5, 3.0)
+    pts, segs = a["points"]
+    assert pts["points"] == [{"x": 5.0, "y": 10.0}, {"x": 15.0, "y": 20.0}]
+    # pin 1 is lost: one segment, from pin 0's place along 3x its vector, halved
+    assert segs["points"] == [{"x": 5.0, "y": 10.0}, {"x": 6.5, "y": 10.0}]
+
+
+def test_a_bad_path_is_an_error_naming_it(tmp_path):
+    with pytest.raises(mcaplog.McapLogError, match="does not exist"):
+        McapLog(tmp_path / "nope" / "x.mcap", McapConfig())
+    with pytest.raises(mcaplog.McapLogError, match="is a folder"):
+        McapLog(tmp_path, McapConfig())
