@@ -11,11 +11,11 @@ import argparse
 import sys
 
 from device.config import ConfigError
-from host.cli import analyse, bench, deploy, learn, localiser, monitor, rig, sim
+from host.cli import analyse, bench, deploy, export, learn, localiser, monitor, rig, sim
 from host.cli.common import EXIT_BAD_INPUT, Parser, UserError
 from host.data.dataset import DatasetError
 
-GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor)
+GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor, export)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -180,8 +180,10 @@ class McapLog:
     ``clock`` the runtime's. The runtime calls :meth:`frame` once per frame,
     :meth:`packet` for every packet and :meth:`close` at the end."""
 
-    def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None):
+    def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None):
         self._writer_mod = _mcap()
+        #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
+        self.channels = {**CHANNELS, **(channels or {})}
         self.path = Path(path)
         folder = self.path.resolve().parent
         if self.path.is_dir():
@@ -222,7 +224,7 @@ class McapLog:
         w.start(profile="", library="tacfoot")
         schemas: dict[str, int] = {}
         self._ids = {}
-        for topic, schema in CHANNELS.items():
+        for topic, schema in self.channels.items():
             name = schema["title"]
             if name not in schemas:
                 schemas[name] = w.register_schema(name, "jsonschema",
@@ -245,6 +247,17 @@ class McapLog:
             self._fh.close()
 
     # -- writing ---------------------------------------------------------------
+    def write(self, topic: str, t_ns: int, doc: dict) -> None:
+        """One message on ``topic`` at ``t_ns``; a failure is counted, never raised."""
+        self._write(topic, int(t_ns), doc)
+
+    def image(self, t_ns: int, image, ff, reference=None) -> None:
+        """The frame on ``/tacfoot/image`` and its pins on ``/tacfoot/pins``."""
+        try:
+            self._image(int(t_ns), image, ff, reference)
+        except Exception as exc:
+            self._fail(exc)
+
     def _write(self, topic: str, t_ns: int, doc: dict) -> None:
         if self._w is None:
             now = self._now()
@@ -437,11 +450,13 @@ def recover(src, dst) -> int:
     well-formed MCAP file ``dst``; the number of messages kept."""
     W = _mcap()
     msgs, _ = read_log(src)
+    topics = {**CHANNELS, **{m["topic"]: {"title": m["schema"]} for m in msgs
+                             if m["topic"] not in CHANNELS}}
     with open(dst, "wb") as fh:
         w = W.Writer(fh, compression=W.CompressionType.ZSTD)
         w.start(profile="", library="tacfoot")
         sids, cids = {}, {}
-        for topic, schema in CHANNELS.items():
+        for topic, schema in topics.items():
             name = schema["title"]
             if name not in sids:
                 sids[name] = w.register_schema(name, "jsonschema", json.dumps(schema).encode())
