@@ -148,19 +148,33 @@ def _train(args):
         else:
             res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
                               quantise=args.quantise, seed=args.seed, out_dir=args.out,
-                              progress=not args.json, **made)
+                              progress=not args.json,
+                              identity=not getattr(args, "no_identity_check", False), **made)
         write_model_docs(args.out)
     except (TrainError, DataError, ConfigError) as exc:
         raise UserError(str(exc)) from None
     res = _jsonable(res)
     m = res.get("metrics", {})
     m = m.get("test") or {}
-    headline = ", ".join(f"held-out {k} {m[k]:.4g}" for k in ("accuracy", "macro_f1", "mae")
+    headline = ", ".join(f"held-out {k} {m[k]:.4g}" + _interval(m, k)
+                         for k in ("accuracy", "macro_f1", "mae")
                          if isinstance(m.get(k), (int, float)))
+    warning = (res.get("identity_check") or {}).get("warning")
+    if warning and not args.json:
+        print(f"host train: warning: {warning} (host eval --identity shows the figures)",
+              file=sys.stderr)
     if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
         headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
     emit(args, res, f"wrote {args.out} ({args.task} {args.model}, T={args.window}): "
                     f"{headline}; held out: {res.get('holdout')}")
+
+
+def _interval(m: dict, key: str) -> str:
+    """' [lo, hi] (95 %), n=N windows' for a metric that has its interval."""
+    ci = m.get(f"{key}_ci95")
+    if not (isinstance(ci, list) and len(ci) == 2):
+        return ""
+    return f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %), n={m.get('n_windows')} windows"
 
 
 def _train_cnn(args, ws, ws_test=None, made=None):
@@ -193,9 +207,30 @@ def cmd_eval(args):
     ws = _load_windows(args, spec.kind, spec.T, min_classes=1)
     try:
         res = evaluate_model(args.model_dir, ws, variant=args.variant)
-    except (ModelError, ValueError) as exc:
+        if args.identity:
+            res["identity_check"] = _identity(spec, ws, args)
+    except (ModelError, ValueError, TrainError) as exc:
         raise UserError(str(exc)) from None
     emit(args, res, json.dumps(res, indent=1, default=json_default))
+
+
+def _identity(spec, ws, args) -> dict:
+    """host eval --identity: the recording-identity check (host.learn.identity) of
+    the model's kind on the evaluation windows."""
+    from host.learn.estimators import hyperparameters
+    from host.learn.identity import identity_check
+    from host.learn.tasks import TASK_HIDDEN
+    from host.learn.train import fnn_temporal_spec
+    model = spec.model
+    if model not in ("fnn", "grid-fnn", "ridge"):
+        return {"skipped": f"model {model}: host eval --identity checks fnn, grid-fnn or "
+                           f"ridge models", "flagged": False, "warning": None}
+    uses_imu = bool(spec.uses_imu) and ws.imu is not None
+    tspec = (fnn_temporal_spec(spec.kind, ws, ws.window, uses_imu, args.profile)
+             if model == "fnn" and ws.window >= 2 else None)
+    hp = hyperparameters(model, TASK_HIDDEN.get(spec.kind) if model != "ridge" else None,
+                         None, None, tspec)
+    return identity_check(ws, spec.kind, model, hp, uses_imu, 0)
 
 
 def _spec_hint(spec: str) -> str:
@@ -260,6 +295,9 @@ def register(sub) -> None:
                    help="held-out data spec (repeatable); default: a split of --data that "
                         "keeps every class (whole trials, else the end of each trial)")
     s.add_argument("--cv", type=whole(2, 100), help="also report grouped K-fold CV metrics")
+    s.add_argument("--no-identity-check", action="store_true",
+                   help="skip the recording-identity check (can the model kind tell the "
+                        "recordings of one class apart? host.learn.identity), for speed")
     s.add_argument("--quantise", action="store_true", help="also write an int8 model")
     s.add_argument("--contact-only", action="store_true",
                    help="drop windows without contact instead of labelling them no-touch")
@@ -278,6 +316,9 @@ def register(sub) -> None:
     s.add_argument("--data", action="append", required=True)
     s.add_argument("--variant", choices=["float", "int8"])
     s.add_argument("--contact-only", action="store_true")
+    s.add_argument("--identity", action="store_true",
+                   help="also run the recording-identity check on the data: can the "
+                        "model's kind tell apart the recordings of one class?")
     s.add_argument("--profile", help="default: the model's own; another is an error")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_eval)

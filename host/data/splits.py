@@ -159,8 +159,12 @@ def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: i
     elif n_rec >= 2:
         lost: list = []
         for k in range(tries):
-            te = _pick_recordings(ws, rec, grouped_frac, seed + k)
-            tr = np.setdiff1d(np.arange(len(ws)), te)
+            if ws.labels is None:           # regression: a share of all recordings
+                tr, te = split_grouped(ws, grouped_frac, seed + k,
+                                       keys=None if ws.recordings is None else rec)
+            else:
+                te = _pick_recordings(ws, rec, grouped_frac, seed + k)
+                tr = np.setdiff1d(np.arange(len(ws)), te)
             lost = missing_classes(ws, tr, classes) + missing_classes(ws, te, classes)
             if not lost:
                 return tr, te, (f"grouped split ({LEAVE_RECORDINGS_OUT}): "

@@ -2,7 +2,8 @@
 
 A model that scores well on windows of the recordings it was trained on may have
 learnt the recording (its exposure, frame rate, lost pins, the session) rather than
-the surface. :func:`identity_check` trains the same model kind, on the same inputs,
+the surface. :func:`identity_check` trains the same model kind, on the same inputs
+(its MLP stopped after at most 100 epochs, for speed),
 to tell apart the recordings of one class (where a class has two or more), or the
 two halves of its one recording (split at the middle frame, with a gap of T frames
 between the halves). Within each recording (or half), the earlier 70 % of windows
@@ -32,7 +33,9 @@ WARNING = "the model may learn the recording, not the surface"
 #: how far above chance the interval's lower bound must be to flag
 MARGIN = 0.2
 #: fewest windows a recording (or half) needs on each side of its time split
-MIN_WINDOWS = 8
+MIN_WINDOWS = 5
+#: most training epochs of the check's MLP (the model's own setting when lower)
+MAX_EPOCHS = 100
 
 
 def _position(ws, idx: np.ndarray) -> np.ndarray:
@@ -83,7 +86,9 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
                           else "regression: recordings are not classes")
         return out
     T = ws.window
-    hp = hyperparameters(model) if hp is None else hp
+    hp = dict(hyperparameters(model) if hp is None else hp)
+    if hp.get("epochs"):
+        hp["epochs"] = min(int(hp["epochs"]), MAX_EPOCHS)
     labels = ws.labels.astype(str)
     rng = np.random.default_rng(seed)
     for c in sorted(set(labels.tolist()) - {NO_TOUCH}):

@@ -40,13 +40,14 @@ from device.pi.models.artefact import MANIFEST
 from host.data.dataset import atomic_write
 from device.pi.vision.neighbours import layout_neighbours
 from host.data.extract import layout_for_profile
-from host.data.splits import split_holdout
+from host.data.splits import LATER_FRAMES, holdout_protocol, split_holdout
 from host.data.windows import DataError, WindowSet
 from host.learn.cv import cross_validate_model
 from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hyperparameters,
                                    pipeline_to_onnx, rule_probs)
 from host.learn.inputs import augment_rotations, model_inputs
-from host.learn.metrics import class_report, regression_metrics
+from host.learn.identity import identity_check
+from host.learn.metrics import add_intervals, class_report, regression_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
                                 spec_profile, write_manifest, write_model, write_variants)
 from host.learn.pressure import checked_onnx
@@ -152,7 +153,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 profile: str = "roboskin", trained_on: dict | None = None,
                 config: dict | None = None,
                 calibration_windows: int = 2000, calibrate_method: str = "minmax",
-                min_agreement: float = MIN_AGREEMENT) -> dict:
+                min_agreement: float = MIN_AGREEMENT, identity: bool = False) -> dict:
     """Train ``model`` for ``task`` on ``ws_train``; evaluate on ``ws_test`` (or a
     held-out part of ``ws_train``, see the module doc); write the model folder
     ``out_dir`` (ONNX + manifest.json, + int8 when ``quantise``). Returns the
@@ -349,6 +350,13 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
             else:
                 int8["metrics"] = class_report(task, ws_test if Xt is not None else ws_train,
                                                check_y, q_out, classes)
+    _finish_metrics(metrics, result, holdout, ws_train, ws_test, regression, y[:n0], out_train,
+                    yt, out_test)
+    if identity:        # host train --no-identity-check skips it (host.learn.identity)
+        result["identity_check"] = identity_check(ws_train, task, model, hp, uses_imu, seed)
+        if result["identity_check"]["warning"]:
+            metrics.setdefault("test", {})["identity_warning"] = \
+                result["identity_check"]["warning"]
     result["metrics"] = metrics
     result["int8"] = int8
     result["fit"] = fit_info
@@ -384,6 +392,21 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     result["default"] = default
     result["train_s"] = round(time.perf_counter() - t_start, 3)
     return result
+
+
+def _finish_metrics(metrics, result, holdout, ws_train, ws_test, regression, y, out_train,
+                    yt, out_test) -> None:
+    """The held-out protocol (``metrics.test.protocol``, ``same_recordings``) and, for
+    a regressor, the MAE's intervals (a classifier's come from class_report)."""
+    if regression:
+        add_intervals(metrics["train"], ws_train, np.abs(np.asarray(out_train).reshape(-1) - y),
+                      key="mae")
+        if "test" in metrics:
+            add_intervals(metrics["test"], ws_test,
+                          np.abs(np.asarray(out_test).reshape(-1) - yt), key="mae")
+    if "test" in metrics:
+        metrics["test"]["protocol"] = holdout_protocol(holdout)
+        metrics["test"]["same_recordings"] = metrics["test"]["protocol"] == LATER_FRAMES
 
 
 def _training_info(ws_train, ws_test, holdout: str, seed: int, hp: dict) -> dict:

@@ -188,7 +188,8 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
     # a small, short training (the command's own defaults take minutes)
     monkeypatch.setattr(learn, "train_cnn",
                         functools.partial(train_cnn, epochs=2, hidden=16, filters=2))
-    for extra, holdout in (([], "time split"), (["--test", str(ds)], "given")):
+    # two simulated runs (recordings) per class: whole recordings are held out
+    for extra, holdout in (([], "grouped split"), (["--test", str(ds)], "given")):
         out = tmp_path / f"m{len(extra)}"
         rc = main(["train", "--task", "surface", "--model", "cnn", "--window", "2",
                    "--data", str(ds), *extra, "--quantise", "--out", str(out), "--json"])
