@@ -247,3 +247,17 @@ def test_a_bad_path_is_an_error_naming_it(tmp_path):
         McapLog(tmp_path / "nope" / "x.mcap", McapConfig())
     with pytest.raises(mcaplog.McapLogError, match="is a folder"):
         McapLog(tmp_path, McapConfig())
+
+
+def test_the_foxglove_layout_names_only_logged_topics_and_fields():
+    import re
+
+    from tests import REPO_ROOT
+    text = (REPO_ROOT / "docs" / "foxglove-layout.json").read_text()
+    json.loads(text)
+    refs = re.findall(r'"(/tacfoot/[a-z/]+)(?:\.(\w+))?', text)
+    assert {"/tacfoot/image", "/tacfoot/pins", "/tacfoot/imu"} <= {t for t, _ in refs}
+    for topic, fld in refs:
+        assert topic in CHANNELS, topic
+        if fld:
+            assert fld in CHANNELS[topic]["properties"], f"{topic}.{fld}"
