@@ -12,7 +12,8 @@ accuracy on the test windows (the mean of the per-recording accuracies) with its
 95 % block-bootstrap interval (:func:`host.learn.metrics.block_bootstrap`).
 
 When the interval's lower bound exceeds chance (1/k for k recordings) by more than
-``margin`` (default 0.2) for any class, the check is ``flagged`` and its
+``margin`` (default 0.2) for any class whose every recording (or half) has at least
+2T test windows (fewer: ``inconclusive``, not flagged), the check is ``flagged`` and its
 ``warning`` reads :data:`WARNING`: ``host train`` puts it in its result and the
 manifest, and the model card shows it. Windows without contact (``no-touch``) are
 not checked: they show no surface.
@@ -127,13 +128,17 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
         boot = (sums / counts[None, :]).mean(axis=1)
         lo, hi = np.percentile(boot, [2.5, 97.5])
         chance = 1.0 / len(ids)
-        flagged = bool(lo > chance + margin)
+        few = int(counts.min()) < 2 * T          # under two window lengths of test
+        flagged = bool(lo > chance + margin) and not few
         entry.update({"balanced_accuracy": round(bal, 4),
                       "balanced_accuracy_ci95": [round(float(lo), 4), round(float(hi), 4)],
                       "chance": round(chance, 4), "per_recording": {
                           r: round(v, 4) for r, v in per.items()},
                       "n_windows": int(len(te_idx)), "n_train_windows": int(train.sum()),
                       "flagged": flagged})
+        if few:
+            entry["inconclusive"] = (f"a recording has {int(counts.min())} test windows, "
+                                     f"under 2T = {2 * T}: not flagged")
         out["classes"][c] = entry
         out["flagged"] |= flagged
     if out["flagged"]:

@@ -49,3 +49,13 @@ def test_a_drifting_single_recording_is_flagged_through_its_halves():
     res = identity_check(ws, "surface", "fnn", HP)
     assert res["classes"]["a"]["mode"] == "halves" and res["flagged"]
     assert "skipped" in identity_check(ws, "surface", "rule")
+
+
+def test_too_few_test_windows_are_inconclusive_not_flagged():
+    """Recordings that differ, but with fewer than 2T test windows each: the check
+    says inconclusive rather than flag on a handful of windows."""
+    ws = synthetic(n_groups=3, per_group=30, classes=("a", "a", "b"), imu=False, Tn=3)
+    ws.recordings = np.array(["r0", "r1", "r2"], object)[ws.groups]
+    ws.vectors[ws.groups == 1] += np.float32(1.0)
+    a = identity_check(ws, "surface", "fnn", HP)["classes"]["a"]
+    assert a["n_windows"] < 12 and "inconclusive" in a and not a["flagged"]
