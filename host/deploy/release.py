@@ -71,6 +71,50 @@ def config_profile_file(cfg: Path) -> Path | None:
         raise ConfigError(f"{cfg}: models.profile {prof!r}: no such file {path}")
     return path
 
+def check_models_profile(models: Path | None, cfg: Path | None) -> dict | None:
+    """The one sensor profile the models of a release carry (their specs), checked
+    against the profile the leg will run with (the config's ``models.profile``, or
+    the default config's): DeployInputError naming both files and hashes when they
+    differ or when two models carry different profiles (the leg would refuse to
+    start). None without models."""
+    from device.pi.models.artefact import ModelError, read_spec
+    from host.learn.onnx_io import models_profile
+
+    if models is None:
+        return None
+    try:
+        specs = {str(mf): read_spec(mf)[0] for mf in sorted(Path(models).glob("*/manifest.json"))}
+        if not specs:
+            return None
+        leg = _leg_profile(cfg)
+        return models_profile(specs, leg)[1]
+    except (ModelError, ConfigError, ValueError) as exc:
+        raise DeployInputError(f"{cfg or 'the default leg config'}: models.profile: "
+                               + str(exc).replace("drop --profile", "set models.profile to "
+                                                                    "the models' profile")
+                               ) from None
+
+
+def _leg_profile(cfg: Path | None) -> str:
+    """The ``models.profile`` the leg will run with: the config's (a relative .toml
+    beside it), else the default config's. Only this key is read here; the leg
+    checks the rest of the config."""
+    from device.pi.runtime.config import DEFAULT_CONFIG, LegConfig
+
+    path = cfg if cfg is not None else DEFAULT_CONFIG
+    try:
+        doc = read_toml(path)
+    except ConfigError:
+        doc = {}
+    models = doc.get("models") if isinstance(doc, dict) else None
+    prof = models.get("profile") if isinstance(models, dict) else None
+    if not isinstance(prof, str) or not prof.strip():
+        return LegConfig().models.profile
+    if prof.endswith(".toml") and not Path(prof).is_absolute():
+        return str(Path(path).parent / prof)
+    return prof
+
+
 def new_release_name() -> str:
     """VERSION-UTCSTAMP-RAND: a release folder name that sorts by time."""
     return (f"{project_version()}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-"
@@ -168,6 +212,7 @@ class Deployer(SshSession):
         st = out_dir / "stage"
         models, cfg = o.models_dir(), o.config_file()
         prof = config_profile_file(cfg) if cfg is not None else None
+        check_models_profile(models, cfg)
         self.record("stage", "local", f"stage {wheel.name}"
                     + (f", models {models}" if models else "")
                     + (f", config {cfg}" if cfg else "")

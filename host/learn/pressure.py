@@ -328,6 +328,8 @@ def export_pressure(X, y, groups, out_dir, kind: str = "gbt", T: int = 1,
            "input_clip": [lo.tolist(), hi.tolist()], "onnx_parity": parity, **info,
            **(extra or {})}
     out = write_model(model, out_dir, kind="pressure", n_features=X.shape[1], extra=doc)
+    from host.learn.card import write_model_docs
+    write_model_docs(out)                  # README.md (the model card) and train.toml
     return out, pipe, parity
 
 

@@ -48,6 +48,7 @@ import numpy as np
 from device.checks import finite_number, positive_number, whole_number
 from device.pi.models.localiser import DEFAULT_CROP_FACTOR, KIND, effective_dome
 from device.profile import has_sim_geometry
+from host.learn.card import write_model_docs
 from host.learn.onnx_io import json_default, write_model
 from host.localiser.evaluate import error_stats, evaluate, evaluate_perturbed, pin_errors_px
 from host.localiser.fit import DEFAULT_ALPHA, fit_ridge, onnx_vs_sklearn, ridge_to_onnx
@@ -234,6 +235,7 @@ def train_localiser(
                    "real_clips": [str(c) for c in real_clips]},
     }
     out = write_model(onx, out_dir, KIND, size * size, extra=extra)
+    write_model_docs(out)                  # README.md (the model card) and train.toml
     size_bytes = (Path(out) / "model.onnx").stat().st_size
     return {"out_dir": str(out), "size_bytes": int(size_bytes), "weights_dtype": weights_dtype,
             "train_s": train_s, "stage_s": stage_s, "n_pins": n_pins, "size": size,

@@ -396,3 +396,29 @@ def test_unreachable_pi_and_nothing_to_roll_back_give_clear_errors(pi, tmp_path)
     res = run(pi.opts(prefix=str(tmp_path / "empty")), rollback=True, log=_quiet)
     assert not res["ok"] and "no previous release under" in res["error"]
     assert not (tmp_path / "empty").exists()
+
+
+def test_a_release_whose_models_carry_another_profile_than_its_config_is_refused(tmp_path):
+    """The leg would refuse such models at start; deploy says so before staging,
+    naming both profiles (files, pin counts, hashes)."""
+    import json
+    import shutil
+
+    from device.pi.models.spec import ModelSpec, profile_record
+    from host.deploy.options import DeployInputError
+    from host.deploy.release import check_models_profile
+    from tests import REPO_ROOT
+    models = tmp_path / "models"
+    shutil.copytree(REPO_ROOT / "models" / "pressure", models / "pressure")
+    assert check_models_profile(models, None)["name"] == "roboskin"
+    for mf in (models / "pressure").glob("manifest*.json"):
+        spec = ModelSpec.from_manifest(json.loads(mf.read_text()), mf)
+        spec.profile = {k: v for k, v in profile_record("tactip331").items() if k != "path"}
+        mf.write_text(json.dumps(spec.to_manifest()))
+    with pytest.raises(DeployInputError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not "
+                                               r"the model's: .*pressure/manifest\.json "
+                                               r"\(tactip331, 331 pins.*set models\.profile"):
+        check_models_profile(models, None)
+    cfg = tmp_path / "leg.toml"
+    cfg.write_text('[models]\nprofile = "tactip331"\n')
+    assert check_models_profile(models, cfg)["n_pins"] == 331

@@ -77,6 +77,9 @@ def test_onnx_through_the_regressor_matches_sklearn(tmp_path, kind):
     assert reg.predict_window(w) == pytest.approx(float(pipe.predict(w.encode("vectors"))[0]),
                                                   abs=0.1)
     assert parity["of_range"] < 1e-4
+    # the folder says what it is: a model card written from its spec
+    card = (out / "README.md").read_text()
+    assert "contact pressure" in card and "profile `roboskin`" in card
 
 
 def test_bootstrap_interval_brackets_the_mae_and_cv_errors_are_clear():
