@@ -46,6 +46,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--mcap-max-mb", type=float, default=256.0,
                    help="start the next MCAP file (FILE-0001.mcap, ...) at this size, "
                         "MB (default 256)")
+    r.add_argument("--foxglove", metavar="[HOST:]PORT",
+                   help="serve the same channels live to Foxglove over WebSocket "
+                        "(default host 127.0.0.1; 0.0.0.0:8765 for the network; "
+                        "needs pip install .[viz])")
     r.add_argument("--frames", type=int, help="stop after N frames (tests, benchmarks)")
     r.add_argument("--json", action="store_true",
                    help="print a JSON summary on stdout when the runtime stops")
@@ -57,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is not None and args.frames < 1:
         print(f"device.pi run: error: --frames must be >= 1, got {args.frames}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    if args.mcap:
+    if args.mcap or args.foxglove:
         err = _check_mcap(args)
         if err:
             print(f"device.pi run: error: {err}", file=sys.stderr)
@@ -71,13 +75,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"device.pi run: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
-    if args.mcap:
-        from device.pi.runtime.mcaplog import McapLog, McapLogError
+    if args.mcap or args.foxglove:
+        from device.pi.runtime.mcaplog import LiveView, McapLog, McapLogError, parse_hostport
         try:
-            rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock)
-        except McapLogError as exc:
+            live = LiveView(*parse_hostport(args.foxglove)) if args.foxglove else None
+            rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
+                              live=live)
+        except (McapLogError, ValueError) as exc:
             print(f"device.pi run: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
+        if live is not None:
+            print(f"device.pi run: Foxglove live view on ws://{live.host}:{live.port}",
+                  file=sys.stderr, flush=True)
     guard: list[threading.Timer] = []
 
     def stop(signum, frame):
@@ -114,13 +123,24 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _check_mcap(args) -> str | None:
-    """Why ``--mcap`` cannot work (checked before the sources open), or None."""
+    """Why ``--mcap`` or ``--foxglove`` cannot work (checked before the sources open),
+    or None."""
+    from device.pi.runtime.mcaplog import INSTALL_HINT, parse_hostport
     if not args.mcap_max_mb > 0:
         return f"--mcap-max-mb must be > 0, got {args.mcap_max_mb}"
+    if args.foxglove:
+        try:
+            parse_hostport(args.foxglove)
+            import foxglove  # noqa: F401
+        except ValueError as exc:
+            return str(exc)
+        except ImportError:
+            return f"--foxglove: {INSTALL_HINT.replace('MCAP logging', 'the live view')}"
+    if not args.mcap:
+        return None
     try:
         import mcap  # noqa: F401
     except ImportError:
-        from device.pi.runtime.mcaplog import INSTALL_HINT
         return f"--mcap: {INSTALL_HINT}"
     d = os.path.dirname(os.path.abspath(args.mcap))
     if os.path.isdir(args.mcap):

@@ -35,8 +35,13 @@ write (a full disk, a vanished mount, a bad frame) is counted in ``messages_lost
 (the status file's ``mcap_messages_lost``) and warned about once; the broken file
 is dropped and the next one is tried after :data:`RETRY_S`.
 
-The ``mcap`` package is an extra (``pip install .[viz]``): this module imports it
-only when a log is opened, so the base install runs without it.
+``--foxglove [HOST:]PORT`` serves the same channels live (:class:`LiveView`, over
+``foxglove-sdk``'s WebSocket server): the runtime's one hook, ``LegRuntime.mcap``,
+is an :class:`McapLog` with a file, a live view, or both.
+
+The ``mcap`` and ``foxglove-sdk`` packages are the ``viz`` extra (``pip install
+.[viz]``): this module imports them only when a log or a view is opened, so the
+base install runs without them.
 """
 from __future__ import annotations
 
@@ -53,6 +58,8 @@ from device.pi.faults import fault_names
 
 #: after a failed write, the next file is tried this much later (runtime clock, s)
 RETRY_S = 1.0
+#: messages the live server queues per viewer before it drops the oldest
+LIVE_BACKLOG = 256
 #: the frame id the images and annotations share
 FRAME_ID = "tactip"
 INSTALL_HINT = "MCAP logging needs the viz extra: pip install .[viz]"
@@ -181,11 +188,26 @@ class McapLog:
     ``clock`` the runtime's. The runtime calls :meth:`frame` once per frame,
     :meth:`packet` for every packet and :meth:`close` at the end."""
 
-    def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None):
-        self._writer_mod = _mcap()
+    def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None,
+                 live=None):
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
         self.channels = {**CHANNELS, **(channels or {})}
-        self.path = Path(path)
+        self.live = live             # a LiveView (--foxglove), or None
+        self.cfg = cfg
+        self.clock = clock
+        self.files: list[str] = []
+        self.messages_written = 0
+        self.messages_lost = 0
+        self.warned = False
+        self._w = None
+        self._retry_at = None
+        self._offset_s = None        # frame time - runtime clock, at the last frame
+        self._frames = 0
+        self.path = None if path is None else Path(path)
+        self._file_on = path is not None
+        if path is None:             # the live view alone
+            return
+        self._writer_mod = _mcap()
         folder = self.path.resolve().parent
         if self.path.is_dir():
             raise McapLogError(f"--mcap {str(path)!r} is a folder; give a file, e.g. "
@@ -194,20 +216,10 @@ class McapLog:
             raise McapLogError(f"--mcap {str(path)!r}: the folder {folder} does not exist")
         if not max_mb > 0:
             raise McapLogError(f"--mcap-max-mb must be > 0, got {max_mb}")
-        self.cfg = cfg
         self.max_bytes = int(max_mb * 1024 * 1024)
-        self.clock = clock
-        self.files: list[str] = []
-        self.messages_written = 0
-        self.messages_lost = 0
-        self.warned = False
         self._n = 0                  # the next file's number
-        self._w = None
         self._fh = None
         self._ids: dict[str, int] = {}
-        self._retry_at = None
-        self._offset_s = None        # frame time - runtime clock, at the last frame
-        self._frames = 0
         try:
             self._open()
         except OSError as exc:
@@ -259,7 +271,18 @@ class McapLog:
         except Exception as exc:
             self._fail(exc)
 
+    def _on(self, topic: str) -> bool:
+        """Whether a message on ``topic`` goes anywhere (the file, or a live viewer
+        subscribed to it): nothing is built for a topic no one takes."""
+        return self._file_on or (self.live is not None and self.live.wants(topic))
+
     def _write(self, topic: str, t_ns: int, doc: dict) -> None:
+        data = None
+        if self.live is not None and self.live.wants(topic):
+            data = json.dumps(doc, separators=(",", ":")).encode()
+            self.live.publish(topic, t_ns, data)
+        if not self._file_on:
+            return
         if self._w is None:
             now = self._now()
             if self._retry_at is None or now < self._retry_at:
@@ -271,8 +294,9 @@ class McapLog:
             except Exception as exc:
                 return self._fail(exc)
         try:
-            self._w.add_message(self._ids[topic], log_time=t_ns, publish_time=t_ns,
-                                data=json.dumps(doc, separators=(",", ":")).encode())
+            if data is None:
+                data = json.dumps(doc, separators=(",", ":")).encode()
+            self._w.add_message(self._ids[topic], log_time=t_ns, publish_time=t_ns, data=data)
             self.messages_written += 1
             if self._fh.size >= self.max_bytes:
                 self._finish()
@@ -307,6 +331,10 @@ class McapLog:
         :class:`~device.pi.runtime.decisions.Decision`, the camera frame and its
         encoding ``ef``, the IMU vector (acc g, gyro dps), the fault bits, when the
         frame came and when its packet went (runtime clock, s) and the reference pins."""
+        if not self._file_on and not self.live.any():     # no file, no viewer: nothing
+            self._offset_s = float(frame.t_s) - t_avail
+            self._frames += 1
+            return
         try:
             tex = getattr(decision, "texture", None)
             self._frame(dict(dec, texture_conf=None if not tex else _r(tex[1])), frame, ef,
@@ -320,7 +348,8 @@ class McapLog:
         t = max(0, int(round(t_s * 1e9)))
         k = int(dec["frame"])
         ff = ef.features
-        if self._frames % self.cfg.image_every == 0:
+        if self._frames % self.cfg.image_every == 0 and (
+                self._on("/tacfoot/image") or self._on("/tacfoot/pins")):
             self._image(t, frame.image, ff, reference)
         self._frames += 1
         g = np.asarray(ff.grid, np.float64)
@@ -356,11 +385,14 @@ class McapLog:
     def packet(self, direction: str, msg, clock_s: float, seq=None, t_ms=None) -> None:
         """A packet sent (``direction`` "out") or received ("in"), decoded; a FAULT
         sent is also logged on ``/tacfoot/faults``."""
+        topic = f"/tacfoot/packets/{direction}"
+        if not (self._on(topic) or self._on("/tacfoot/faults")):
+            return
         try:
             t = self._t_ns(clock_s)
             d = P.message_dict(msg)
             d.update(seq=seq, t_ms=t_ms)
-            self._write(f"/tacfoot/packets/{direction}", t, d)
+            self._write(topic, t, d)
             if direction == "out" and isinstance(msg, P.Fault):
                 self._write("/tacfoot/faults", t, {
                     "faults": int(msg.faults), "names": fault_names(msg.faults),
@@ -369,6 +401,8 @@ class McapLog:
             self._fail(exc)
 
     def close(self) -> None:
+        if self.live is not None:
+            self.live.close()
         if self._w is None:
             return
         try:
@@ -377,8 +411,79 @@ class McapLog:
             self._fail(exc)
 
     def status(self) -> dict:
-        return {"mcap_messages_written": self.messages_written,
-                "mcap_messages_lost": self.messages_lost, "mcap_files": list(self.files)}
+        st = {"mcap_messages_written": self.messages_written,
+              "mcap_messages_lost": self.messages_lost, "mcap_files": list(self.files)}
+        if self.live is not None:
+            st.update(self.live.status())
+        return st
+
+
+class LiveView:
+    """``--foxglove [HOST:]PORT``: the same channels served live over Foxglove's
+    WebSocket protocol (``foxglove-sdk``, its own context). A channel no viewer is
+    subscribed to costs one check per message (:meth:`wants`); with no viewer at
+    all, :meth:`McapLog.frame` builds nothing. A message is handed to the server's
+    queue and never waited for: for a viewer that falls behind, the server drops
+    messages beyond :data:`LIVE_BACKLOG` queued ones rather than slow the loop."""
+
+    def __init__(self, host: str, port: int, channels=None, backlog: int | None = None):
+        try:
+            import foxglove
+        except ImportError:
+            raise McapLogError(INSTALL_HINT.replace("MCAP logging", "--foxglove")) from None
+        self._ctx = foxglove.Context()
+        try:
+            self.server = foxglove.start_server(
+                name="tacfoot", host=host, port=int(port), context=self._ctx,
+                message_backlog_size=backlog or LIVE_BACKLOG)
+        except Exception as exc:
+            raise McapLogError(f"--foxglove {host}:{port}: cannot serve ({exc})") from None
+        self.host, self.port = host, int(self.server.port)
+        self._ch = {}
+        for topic, schema in (channels or CHANNELS).items():
+            sch = foxglove.Schema(name=schema["title"], encoding="jsonschema",
+                                  data=json.dumps(schema).encode())
+            self._ch[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json",
+                                               context=self._ctx)
+        self.messages_sent = 0
+        self.errors = 0
+
+    def wants(self, topic: str) -> bool:
+        ch = self._ch.get(topic)
+        return ch is not None and ch.has_sinks()
+
+    def any(self) -> bool:
+        return any(ch.has_sinks() for ch in self._ch.values())
+
+    def publish(self, topic: str, t_ns: int, data: bytes) -> None:
+        try:
+            self._ch[topic].log(data, log_time=int(t_ns))
+            self.messages_sent += 1
+        except Exception:
+            self.errors += 1
+
+    def close(self) -> None:
+        try:
+            self.server.stop()
+        except Exception:
+            pass
+
+    def status(self) -> dict:
+        return {"foxglove_port": self.port, "foxglove_messages_sent": self.messages_sent,
+                "foxglove_errors": self.errors}
+
+
+def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
+    """``[HOST:]PORT`` -> (host, port); ValueError naming the text."""
+    host, _, port = str(text).rpartition(":")
+    try:
+        p = int(port)
+    except ValueError:
+        p = -1
+    if not 0 <= p <= 65535:
+        raise ValueError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
+                         f"(e.g. 8765 or 0.0.0.0:8765)")
+    return (host or default_host), p
 
 
 def annotations(stamp: dict, ff, reference, scale: float, vector_scale: float) -> dict:

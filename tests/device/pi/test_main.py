@@ -284,3 +284,13 @@ def test_the_runtime_imports_without_mcap():
             "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+def test_foxglove_without_the_viz_extra_or_with_a_bad_port_refuses_to_start(monkeypatch,
+                                                                           capsys):
+    rc, err = _run_main(["--camera", "sim://press-hard", "--foxglove", "host:99999"], capsys)
+    assert rc == 2 and "'host:99999'" in err and "[HOST:]PORT" in err
+    monkeypatch.setitem(sys.modules, "foxglove", None)    # import foxglove fails
+    rc, err = _run_main(["--camera", "sim://press-hard", "--foxglove", "8765"], capsys)
+    line, = err.strip().splitlines()
+    assert rc == 2 and "--foxglove" in line and "pip install .[viz]" in line

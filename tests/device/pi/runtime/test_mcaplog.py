@@ -6,6 +6,7 @@ a failed write is a count and one warning, never an exception into the loop."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -261,3 +262,99 @@ def test_the_foxglove_layout_names_only_logged_topics_and_fields():
         assert topic in CHANNELS, topic
         if fld:
             assert fld in CHANNELS[topic]["properties"], f"{topic}.{fld}"
+
+
+class _FakeLive:
+    def __init__(self, topics=()):
+        self.topics, self.got = set(topics), []
+
+    def wants(self, topic):
+        return topic in self.topics
+
+    def any(self):
+        return bool(self.topics)
+
+    def publish(self, topic, t_ns, data):
+        self.got.append((topic, t_ns, json.loads(data)))
+
+    def close(self):
+        pass
+
+    def status(self):
+        return {}
+
+
+def test_the_live_view_alone_builds_only_what_a_viewer_subscribed_to(monkeypatch):
+    built = []
+    monkeypatch.setattr(McapLog, "_image", lambda self, *a: built.append(a))
+    idle = _FakeLive()
+    log = McapLog(None, McapConfig(image_every=1), live=idle, clock=lambda: 0.0)
+    log.frame(*_frame_args(0))
+    log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), 0.5, 1, 2)
+    assert idle.got == [] and built == [] and log.files == []     # no viewer: nothing
+    one = _FakeLive({"/tacfoot/decision", "/tacfoot/faults"})
+    log = McapLog(None, McapConfig(image_every=1), live=one, clock=lambda: 0.0)
+    log.frame(*_frame_args(3, t_s=0.25))
+    log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), 0.5, 1, 2)
+    assert [g[0] for g in one.got] == ["/tacfoot/decision", "/tacfoot/faults"]
+    assert one.got[0][1] == 250_000_000 and one.got[0][2]["frame"] == 3
+    assert built == []                                 # the image is not built either
+    assert log.messages_lost == 0
+
+
+@pytest.mark.parametrize("text,want", [("8765", ("127.0.0.1", 8765)),
+                                       ("0.0.0.0:9000", ("0.0.0.0", 9000)),
+                                       (":0", ("127.0.0.1", 0))])
+def test_parse_hostport(text, want):
+    assert mcaplog.parse_hostport(text) == want
+
+
+@pytest.mark.parametrize("text", ["x", "host:", "1:70000", "-1"])
+def test_parse_hostport_refuses_a_bad_port_naming_it(text):
+    with pytest.raises(ValueError, match=re.escape(repr(text))):
+        mcaplog.parse_hostport(text)
+
+
+def test_a_websocket_client_receives_the_live_channels(tmp_path):
+    """--foxglove: a Foxglove WebSocket client connects to the running leg, sees the
+    channels advertised with their schemas, subscribes and receives messages."""
+    pytest.importorskip("foxglove")
+    websockets = pytest.importorskip("websockets")
+    import asyncio
+    cmd = _run(tmp_path, "--foxglove", "127.0.0.1:0", frames=None)
+    cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()
+        m = re.search(r"ws://([\d.]+):(\d+)", line)
+        assert m, line
+
+        async def client():
+            async with websockets.connect(f"ws://{m[1]}:{m[2]}",
+                                          subprotocols=["foxglove.sdk.v1"]) as ws:
+                chans, got = {}, []
+                while len(got) < 10:
+                    msg = await asyncio.wait_for(ws.recv(), 10)
+                    if isinstance(msg, str):
+                        d = json.loads(msg)
+                        if d["op"] == "advertise":
+                            chans.update({c["id"]: c for c in d["channels"]})
+                            subs = [{"id": i, "channelId": cid} for i, cid in enumerate(
+                                c["id"] for c in d["channels"]
+                                if c["topic"] in ("/tacfoot/decision", "/tacfoot/image"))]
+                            await ws.send(json.dumps({"op": "subscribe",
+                                                      "subscriptions": subs}))
+                    elif msg[0] == 1:                 # messageData
+                        got.append(msg)
+                return chans, got
+        chans, got = asyncio.run(client())
+        topics = {c["topic"]: c["schemaName"] for c in chans.values()}
+        assert topics == {t: s["title"] for t, s in CHANNELS.items()}
+        payloads = [json.loads(bytes(g[1 + 4 + 8:])) for g in got]   # op, sub id, time
+        assert any("class" in p and "surface_conf" in p for p in payloads)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 0, err
+    st = json.loads(out)
+    assert st["foxglove_messages_sent"] >= 10 and st["mcap_files"] == []
