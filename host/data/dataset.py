@@ -23,6 +23,16 @@ takes it on its ``--out`` folder too.)
 An index that lists a trial file twice, or a trial file that is not in the folder,
 is refused when read (and so when a writer opens it to append), naming the entries.
 
+Frames are stored as ``frames`` (F, H, W) uint8 in the compressed npz, or, for a
+trial recorded from a video file that covers at least half of the file's frames
+(``host record`` of a file), as the file's own bytes (``video``, ``video_suffix``,
+``video_range`` = [start, end) frame numbers; the entry's ``frames_codec`` is
+``source-video``): lossless with respect to the frames the recorder read, since
+the writer decodes the stored bytes and keeps them only when they give exactly
+those frames (else it stores ``frames``), and the size of the source video
+(roboskin/smooth.avi: 4.0 MB, where the compressed frame array takes 52.6 MB).
+:func:`load_trial` gives ``frames`` either way.
+
 Each trial entry records its ``source`` (``simulator``, ``rig``, ``record``); the
 index's ``source`` is the one they share, or ``"mixed"`` with the list in
 ``sources``.
@@ -186,7 +196,11 @@ class DatasetWriter(Closing):
             self.index["source"] = "mixed"
             self.index["sources"] = sources
 
-    def add_trial(self, frames: np.ndarray, truth: dict, info: dict) -> Path:
+    def add_trial(self, frames: np.ndarray, truth: dict, info: dict,
+                  video: Path | str | None = None, video_start: int = 0) -> Path:
+        """Write a trial; ``video``: the video file the frames were read from, from
+        frame ``video_start`` on (stored instead of the frames when it decodes to
+        exactly them and the frames are at least half of the file's)."""
         if self._lock_fd is None:
             raise DatasetError(f"{self.dir}: the writer is closed")
         listed = {t["file"] for t in self.index["trials"]}
@@ -194,17 +208,61 @@ class DatasetWriter(Closing):
         while f"trial_{k:04d}.npz" in listed or (self.dir / f"trial_{k:04d}.npz").exists():
             k += 1                       # never a listed name, nor a file left in the folder
         name = f"trial_{k:04d}.npz"
-        arrays = {"frames": np.ascontiguousarray(frames)}
+        arrays = _video_arrays(video, video_start, frames) if video is not None else None
+        codec = "source-video" if arrays else "npz"
+        arrays = arrays or {"frames": np.ascontiguousarray(frames)}
         for k, v in truth.items():
             arrays[k] = np.asarray(v)
         atomic_write(self.dir / name, lambda fh: np.savez_compressed(fh, **arrays))
-        entry = {"file": name, "frames": int(frames.shape[0]), **info}
+        entry = {"file": name, "frames": int(frames.shape[0]), "frames_codec": codec,
+                 "bytes": int((self.dir / name).stat().st_size), **info}
         if self.source and "source" not in entry:
             entry["source"] = self.source
         self.index["trials"].append(entry)
         self._update_sources()
         atomic_write_text(self.dir / INDEX, json.dumps(self.index, indent=1))
         return self.dir / name
+
+
+def _grey(img: np.ndarray) -> np.ndarray:
+    if img.ndim == 3:
+        import cv2
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(img, np.uint8)
+
+
+def decode_video(data: bytes, suffix: str, start: int, end: int) -> np.ndarray:
+    """Frames ``start`` .. ``end - 1`` (grey, uint8) of a video file's bytes, read as
+    ``host record`` reads a file source."""
+    from device.pi.sources.camera import open_camera
+    with tempfile.TemporaryDirectory(prefix="tacfoot-video-") as d:
+        p = Path(d) / f"video{suffix}"
+        p.write_bytes(data)
+        with open_camera(str(p), start_frame=int(start), end_frame=int(end)) as cam:
+            out = [_grey(fr.image) for fr in cam]
+    return np.stack(out) if out else np.zeros((0, 0, 0), np.uint8)
+
+
+def _video_arrays(video, start: int, frames: np.ndarray) -> dict | None:
+    """The ``video`` arrays of a trial when the file's bytes decode to exactly
+    ``frames`` from ``start`` and the frames are at least half of the file's."""
+    from device.pi.sources.camera import CameraError
+    data = Path(video).read_bytes()
+    n = int(frames.shape[0])
+    import cv2
+    cap = cv2.VideoCapture(str(video))
+    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    cap.release()
+    if 2 * n < total:
+        return None
+    try:
+        got = decode_video(data, Path(video).suffix, start, start + n)
+    except (CameraError, OSError, ValueError):
+        return None
+    if got.shape != frames.shape or not np.array_equal(got, frames):
+        return None
+    return {"video": np.frombuffer(data, np.uint8), "video_suffix": np.array(Path(video).suffix),
+            "video_range": np.array([start, start + n], np.int64)}
 
 
 def read_index(path: Path | str, check_files: bool = True) -> dict:
@@ -260,7 +318,14 @@ def load_trial(dataset_dir: Path | str, i: int) -> dict:
     file = Path(dataset_dir) / entry["file"]
     try:
         with np.load(file, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files} | {"info": entry}
+            out = {k: z[k] for k in z.files if not k.startswith("video")}
+            if "frames" not in out and "video" in z.files:
+                a, b = (int(x) for x in z["video_range"])
+                out["frames"] = decode_video(z["video"].tobytes(), str(z["video_suffix"]), a, b)
+                if out["frames"].shape[0] != b - a:
+                    raise DatasetError(f"{file}: the stored video gives "
+                                       f"{out['frames'].shape[0]} frames, not {b - a}")
+            return out | {"info": entry}
     except FileNotFoundError:
         raise DatasetError(f"{file}: trial file missing") from None
     except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError) as exc:

@@ -54,6 +54,14 @@ def _labels(writer: DatasetWriter, label: str) -> list[str]:
     return names
 
 
+def _video_file(url: str) -> Path | None:
+    """The video file behind a camera source string, if it is one."""
+    from device.pi.sources.camera import VIDEO_SUFFIXES
+    s = url[len("file://"):] if url.startswith("file://") else url
+    p = Path(s)
+    return p if "://" not in s and p.suffix.lower() in VIDEO_SUFFIXES and p.is_file() else None
+
+
 def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: float,
            out: Path | str, *, camera_url: str = "", imu_url: str = "",
            progress=None, frames: int | None = None, start: int = 0,
@@ -157,7 +165,8 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
                 "fps": None if fps is None else round(fps, 3), "width": int(shape[1]),
                 "height": int(shape[0]), "recorded_at": round(t_wall, 3),
                 "seconds": round(float(t_s[-1]), 4)}
-        path = writer.add_trial(data, truth, info)
+        path = writer.add_trial(data, truth, info, video=_video_file(camera_url),
+                                video_start=int(start))
         del data
         return dict(writer.index["trials"][-1], path=str(path))
     finally:

@@ -137,3 +137,28 @@ def test_record_start_and_frames_are_frame_exact_and_exclusive_of_seconds(tmp_pa
                  "--start", "90", "--frames", "50", "--out", str(out)]) == 2
     assert "ends after" in capsys.readouterr().err
     assert len(read_index(out)["trials"]) == 1
+
+
+def test_a_recorded_clip_is_stored_compactly_and_loads_frame_exact(tmp_path):
+    """A trial of most of a real clip stores the clip's own bytes: at most 2x the
+    source's size (the frame array took 13x), and it loads as exactly the frames read
+    from the source; a short part stores the frame array."""
+    from device.pi.sources.camera import open_camera
+    clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "100",
+                 "--frames", "300", "--out", str(out)]) == 0
+    assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "5",
+                 "--frames", "4", "--out", str(out)]) == 0
+    e = read_index(out)["trials"]
+    assert e[0]["frames_codec"] == "source-video" and e[1]["frames_codec"] == "npz"
+    size = (out / e[0]["file"]).stat().st_size
+    assert size == e[0]["bytes"] <= 2 * clip.stat().st_size
+    t = load_trial(out, 0)["frames"]
+    assert t.shape[0] == 300
+    with open_camera(str(clip), start_frame=100, end_frame=101) as cam:
+        first = cv2.cvtColor(next(iter(cam)).image, cv2.COLOR_BGR2GRAY)
+    assert np.array_equal(t[0], first)
+    with open_camera(str(clip), start_frame=5, end_frame=9) as cam:
+        want = np.stack([cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) for f in cam])
+    assert np.array_equal(load_trial(out, 1)["frames"], want)
