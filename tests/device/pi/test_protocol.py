@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -384,3 +385,83 @@ def test_faults_and_signed_fields_saturate_at_both_ends():
     assert g.load_n == 6553.5 and g.phase == 1 and g.flags == P.GAIT_FLAG_CLAMPED
     c = P.Command.unpack(P.Command(P.CMD_SET_RATE, 70000).pack())
     assert c.arg == 0xFFFF and P.Command.unpack(P.Command(P.CMD_SET_RATE, 0xFFFF).pack()).arg == 0xFFFF
+
+
+def test_message_dict_holds_every_field_and_the_names_of_type_class_command_and_faults():
+    """The JSON dict of a message: its type's name, every field (tuples as lists), the
+    class and command names, and the fault bits also by name."""
+    s = P.Surface(class_id=1, probs=(0.1, 0.7, 0.2, 0.0), contact=True, slip=False,
+                  slip_conf=0.25, shear_dir_deg=90.0, shear_px=1.5, load_n=3.0, pins=133,
+                  faults=P.FAULT_CLAMPED, texture_id=2)
+    assert P.message_dict(s) == {
+        "type": "surface", "class_id": 1, "probs": [0.1, 0.7, 0.2, 0.0], "contact": True,
+        "slip": False, "slip_conf": 0.25, "shear_dir_deg": 90.0, "shear_px": 1.5,
+        "load_n": 3.0, "pins": 133, "faults": P.FAULT_CLAMPED, "texture_id": 2,
+        "class_name": "hard", "faults_names": ["clamped"]}
+    f = P.Fault(faults=P.FAULT_CLAMPED | P.FAULT_CAMERA, raised=P.FAULT_CAMERA, pins_lost=3)
+    assert P.message_dict(f) == {
+        "type": "fault", "faults": P.FAULT_CLAMPED | P.FAULT_CAMERA, "raised": P.FAULT_CAMERA,
+        "pins_lost": 3, "faults_names": ["camera", "clamped"], "raised_names": ["camera"]}
+    assert P.message_dict(P.Command(P.CMD_SET_RATE, 90)) == {
+        "type": "command", "command": P.CMD_SET_RATE, "arg": 90, "command_name": "set_rate"}
+    assert P.message_dict(P.Command(9))["command_name"] == "unknown"
+    assert P.message_dict(P.Gait(P.PHASE_SWING, 2.5, (1.0, -2.0, 0.0), 0)) == {
+        "type": "gait", "phase": P.PHASE_SWING, "load_n": 2.5, "vel_mm_s": [1.0, -2.0, 0.0],
+        "flags": 0}
+
+    @dataclass
+    class Other:                  # a message type the table does not name
+        x: tuple = (1, 2)
+        msg_type = 0x7E
+    assert P.message_dict(Other()) == {"type": "0x7e", "x": [1, 2]}
+
+
+@pytest.mark.parametrize("command, arg, want", [
+    (P.CMD_REZERO, 0, (P.CMD_REZERO, 0)), (255, 0xFFFF, (255, 0xFFFF)),
+    (0, 0, (0, 0)), (-1, -1, (0, 0)), (256, 1 << 20, (255, 0xFFFF)),
+    ("x", None, (0, 0)), (float("nan"), float("inf"), (0, 0))])
+def test_a_command_packs_its_fields_saturated_and_a_bad_value_as_zero(command, arg, want):
+    """COMMAND's command is one byte and its argument two: values outside them
+    saturate, a value that is not a number is sent as 0; the payload is 3 bytes."""
+    p = P.Command(command, arg).pack()
+    assert len(p) == 3
+    c = P.Command.unpack(p)
+    assert (c.command, c.arg) == want
+
+
+def test_cobs_decode_says_which_zero_byte_it_met():
+    """A zero where a block code belongs and a zero inside a block are told apart, with
+    the offset of the block."""
+    with pytest.raises(ValueError, match=r"^cobs: zero byte at offset 2$"):
+        P.cobs_decode(b"\x02\x07\x00")
+    with pytest.raises(ValueError, match=r"^cobs: zero byte inside the block at offset 0$"):
+        P.cobs_decode(b"\x03\x00\x01")
+
+
+def test_the_decoder_counts_every_good_and_every_bad_frame():
+    """The counters add up: two good frames are 2, two frames with a bad CRC are 2."""
+    d = P.FrameDecoder()
+    good = P.Surface().encode(1, 0) + P.Surface().encode(2, 0)
+    body = bytearray(P.HEADER.pack(P.VERSION, P.MSG_SURFACE, 3, 0) + P.Surface().pack())
+    bad = P.cobs_encode(bytes(body) + ((P.crc16(bytes(body)) ^ 1).to_bytes(2, "little"))) + b"\x00"
+    assert len(d.feed(good + bad + bad)) == 2
+    assert (d.frames_ok, d.crc_errors) == (2, 2)
+
+
+def test_a_sequence_gap_of_exactly_max_gap_is_drops_and_one_more_is_a_restart():
+    d = P.FrameDecoder(max_gap=5)
+    wire = b"".join(P.Surface().encode(s, 0) for s in (0, 6, 13))   # gaps of 5, then 6
+    assert len(d.feed(wire)) == 3
+    assert (d.drops, d.restarts) == (5, 1)
+
+
+def test_non_numbers_in_id_fields_are_sent_as_unknown_and_an_array_is_a_sequence():
+    """A class or texture id that is not a number goes out as 'unknown' (255), not
+    as class 0 (no-touch) or texture 0, flagged; probabilities given as a numpy
+    array (the runtime's) are sent like a tuple, without a fault."""
+    import numpy as np
+    s = P.Surface.unpack(P.Surface(class_id="x", texture_id=None).pack())
+    assert (s.class_id, s.texture_id) == (P.CLASS_UNKNOWN, P.TEXTURE_NONE)
+    assert s.faults & P.FAULT_NONFINITE
+    a = P.Surface.unpack(P.Surface(class_id=1, probs=np.array([0.0, 1.0, 0.0, 0.0])).pack())
+    assert a.probs == (0.0, 1.0, 0.0, 0.0) and a.faults == 0

@@ -121,3 +121,22 @@ def test_a_tail_reads_as_a_window_of_its_own_T():
         tail.push(vectors=np.zeros((4, 2)))
     with pytest.raises(ValueError, match=r"1\.\.5"):
         WindowTail(long, 6)
+
+
+def test_encode_by_layout_name_passes_the_imu_and_the_frames():
+    """encode(layout, ...) is the encoder of that layout with all its parts (the IMU
+    rows of the vectors layout too), and a window encodes its frames crops."""
+    from device.pi.models.window import encode
+    v, m = np.full((2, 3, 2), 1.0), np.full((2, 6), 0.5)
+    np.testing.assert_array_equal(encode("vectors", vectors=v, imu=m),
+                                  [[1.0] * 12 + [0.5] * 12])
+    assert encode("vectors", vectors=v).shape == (1, 12)
+    frames = np.zeros((2, 4, 4), np.uint8)
+    frames[1] = 255
+    np.testing.assert_array_equal(encode("frames", frames=frames), frames[None] / 255.0)
+    with pytest.raises(ValueError, match="'nope'"):
+        encode("nope")
+    w = RollingWindow(2, 3, frame_size=4)
+    w.push(frame=frames[0])
+    w.push(frame=frames[1])
+    np.testing.assert_array_equal(w.encode("frames"), frames[None] / 255.0)

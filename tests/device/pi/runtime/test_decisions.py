@@ -205,3 +205,102 @@ def test_a_frame_fault_holds_no_touch_without_running_a_model(tmp_path):
     assert d.class_id == P.SURFACE_CLASSES.index("no-touch") and d.probs[d.class_id] == 1.0
     assert not d.contact and not d.slip and d.slip_conf == 0.0
     assert d.texture is None and d.pressure is None and not d.model_fault
+    assert d.measures == {} and d.model_probs is None
+
+
+RULE_T = LegConfig().models.window_T
+
+
+class _Stub:
+    """A stand-in learned model: fixed probabilities (or a fixed pressure value), a
+    fault flag, and the context it was called with."""
+
+    def __init__(self, T, classes=(), probs=(), fault=False, value=None):
+        self.T, self.classes, self.fault, self.value = T, list(classes), fault, value
+        self.probs = np.asarray(probs, np.float64)
+        self.calls: list = []
+
+    def predict_window(self, window, **context):
+        self.calls.append(context)
+        if self.value is not None or not self.classes:
+            return self.value
+        return int(np.argmax(self.probs)), self.probs
+
+
+def _pressed(tmp_path, **models):
+    """The default models (rule only) with ``models`` put in, and full windows of a
+    hard press the rule calls hard (contact)."""
+    from dataclasses import replace
+    m = replace(load_models(tmp_path, "int8", N_PINS, LegConfig()), **models)
+    return m, _windows(m, [np.full((N_PINS, 2), 2.0, np.float32)] * m.rule.T)
+
+
+_KW = dict(referenced=True, expected_mag_px=1.0, expected_motion_px=0.0, gait=None,
+           gait_rule_weight=0.5)
+
+
+@pytest.mark.parametrize("name", ["texture", "slip", "pressure"])
+def test_a_fault_of_the_texture_slip_or_pressure_model_reaches_the_decision(tmp_path, name):
+    """Each model's fault flag sets the decision's model_fault; a model without a
+    fault leaves it clear."""
+    def model(fault):
+        return {"texture": _Stub(RULE_T, ["smooth", "lego"], [0.3, 0.7], fault),
+                "slip": _Stub(RULE_T, ["no-slip", "slip"], [0.8, 0.2], fault),
+                "pressure": _Stub(RULE_T, fault=fault, value=12.5)}[name]
+    for fault in (False, True):
+        m, ws = _pressed(tmp_path, **{name: model(fault)})
+        d = decide(m, ws, contact_seen=True, **_KW)
+        assert d.model_fault is fault, (name, fault)
+        assert d.contact and P.SURFACE_CLASSES[d.class_id] == "hard"
+
+
+def test_texture_and_pressure_values_and_when_they_are_left_out(tmp_path):
+    """The texture is (name, confidence, id) of the texture model's best class, in
+    contact only; pressure is the pressure model's value once a reference frame is
+    set, None (and no model run, no stale fault) before."""
+    tex, prs = _Stub(RULE_T, ["smooth", "lego"], [0.3, 0.7]), _Stub(RULE_T, value=12.5)
+    m, ws = _pressed(tmp_path, texture=tex, pressure=prs)
+    d = decide(m, ws, contact_seen=True, **_KW)
+    assert d.texture == ("lego", pytest.approx(0.7), 1) and d.pressure == 12.5
+    assert decide(m, ws, contact_seen=False, **_KW).texture is None
+    prs.fault = True
+    no_ref = decide(m, ws, contact_seen=True, **{**_KW, "referenced": False})
+    assert no_ref.pressure is None and not no_ref.model_fault and len(prs.calls) == 2
+    # a pressure model whose window is not yet full returns None: no pressure, no fault
+    m2, ws2 = _pressed(tmp_path, pressure=_Stub(RULE_T, fault=True, value=None))
+    d2 = decide(m2, ws2, contact_seen=True, **_KW)
+    assert d2.pressure is None and not d2.model_fault
+
+
+def test_slip_confidence_is_the_slip_class_and_the_flag_starts_at_the_threshold(tmp_path):
+    """A slip model's confidence is its ``slip`` class (not its best class); the flag
+    is set in contact from SLIP_THRESHOLD on (a confidence equal to it slips); a model
+    without a ``slip`` class gives its best class's confidence."""
+    def slip(probs, classes=("no-slip", "slip")):
+        m, ws = _pressed(tmp_path, slip=_Stub(RULE_T, classes, probs))
+        return decide(m, ws, contact_seen=True, **_KW)
+    low = slip([0.7, 0.3])
+    assert low.slip_conf == pytest.approx(0.3) and not low.slip
+    at = slip([1.0 - SLIP_THRESHOLD, SLIP_THRESHOLD])
+    assert at.slip_conf == SLIP_THRESHOLD and at.slip
+    below = slip([1.0 - np.nextafter(SLIP_THRESHOLD, 0.0), np.nextafter(SLIP_THRESHOLD, 0.0)])
+    assert not below.slip
+    assert slip([0.35, 0.65], classes=("dry", "wet")).slip_conf == pytest.approx(0.65)
+    m, ws = _pressed(tmp_path, slip=_Stub(RULE_T, ["no-slip", "slip"], [0.0, 1.0]))
+    assert not decide(m, ws, contact_seen=False, **_KW).slip
+
+
+def test_a_rule_slip_model_sees_the_gait_context_and_a_learned_one_does_not(tmp_path):
+    """A rule slip model is given the expected load and motion (motion the pins do
+    not show is slip); a learned slip model is called without them."""
+    from device.pi.models.rules import RuleClassifier
+    m0, _ = _pressed(tmp_path)
+    rule_slip = RuleClassifier(m0.rule.rule, ["no-slip", "slip"], m0.rule.T, N_PINS, task="slip")
+    m, ws = _pressed(tmp_path, slip=rule_slip)
+    still = decide(m, ws, contact_seen=True, **_KW)
+    moving = decide(m, ws, contact_seen=True, **{**_KW, "expected_motion_px": 5.0})
+    assert still.slip_conf < 0.1 and moving.slip_conf > 0.9 and moving.slip
+    learned = _Stub(RULE_T, ["no-slip", "slip"], [0.8, 0.2])
+    m, ws = _pressed(tmp_path, slip=learned)
+    decide(m, ws, contact_seen=True, **{**_KW, "expected_motion_px": 5.0})
+    assert learned.calls == [{}]

@@ -180,3 +180,10 @@ def test_contact_is_the_cell_change_minus_gamma_above_the_threshold():
     grid, got = g.update(ref)                    # lifted: no contact, the trace fades
     assert got is False
     np.testing.assert_allclose(grid, [[0.55, 0.0], [0.0, 0.0]], atol=1e-6)
+
+
+def test_the_contact_grid_is_1_to_256_cells_a_side():
+    assert ContactGrid(256).grid.shape == (256, 256) and ContactGrid(1).grid.shape == (1, 1)
+    for bad in (0, 257, 8.0, True + 0.5):
+        with pytest.raises(ValueError, match="1..256"):
+            ContactGrid(bad)

@@ -223,3 +223,13 @@ def test_a_pair_exactly_at_the_gate_matches():
     assert match_pins([[0.0, 0.0], [np.nan, 0.0]], [[3.0, 4.0]], 5.0).tolist() == [0, -1]
     assert mutual_match(np.array([[0.0, 0.0]]), np.array([[3.0, 4.0]]), 5.0).tolist() == [0]
     assert mutual_match(np.array([[0.0, 0.0]]), np.array([[3.0, 4.0]]), 4.99).tolist() == [-1]
+
+
+def test_a_bad_point_set_is_named_and_the_result_is_int64():
+    with pytest.raises(ValueError, match=r"^cur must be an \(n, 2\) array.*cur\.shape=\(3,\)"):
+        match_pins(np.zeros((2, 2)), np.zeros(3), 2.0)
+    with pytest.raises(ValueError, match=r"^ref must"):
+        match_pins(np.zeros((2, 3)), np.zeros((2, 2)), 2.0)
+    for cur in (np.zeros((0, 2)), np.array([[0.5, 0.0]]), np.array([[np.nan, 0.0], [0.5, 0]])):
+        idx = match_pins(np.zeros((2, 2)), cur, 2.0)
+        assert idx.dtype == np.int64 and idx.shape == (2,)
