@@ -3,11 +3,14 @@ each named one changes what it may touch, an unnamed one leaves no trace and bui
 nothing."""
 from __future__ import annotations
 
+import tracemalloc
+
 import cv2
 import numpy as np
 import pytest
 
 from device.sim import EFFECTS, Simulator, load_scene, parse_scene
+from device.sim.render import NOISE_BANK
 from tests.device.sim.scene_docs import all_frames, scene_doc, small
 
 
@@ -91,12 +94,31 @@ def test_unnamed_effect_leaves_no_trace(effect, base_outputs):
             assert np.array_equal(with_e[key], without[key])
 
 
-@pytest.mark.parametrize("effect,attr", [("camera_noise", "noise_pos"), ("glare", "glare"),
-                                         ("exposure_flicker", "gains")])
-def test_unnamed_effect_builds_no_layer(effect, attr):
-    r = Simulator(small("no-touch")).renderer
-    assert not hasattr(r, attr)
-    assert hasattr(Simulator(small("no-touch").with_effects(effect)).renderer, attr)
+def _kept_bytes(scene) -> tuple[int, int]:
+    """(bytes a renderer of ``scene`` keeps, as tracemalloc counts numpy's buffers,
+    width * height of its frames)."""
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        r = Simulator(scene).renderer
+        kept = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    return kept, r.width * r.height
+
+
+@pytest.mark.parametrize("effect,frames_of_memory", [("camera_noise", 2 * NOISE_BANK),
+                                                    ("glare", 1), ("motion_blur", 1)])
+def test_an_unnamed_effect_costs_no_memory(effect, frames_of_memory):
+    """A named effect keeps its layer (the noise bank, the glare image, the dome
+    mask: at least that many frames of bytes, on top of the other effects'); left
+    unnamed, it is not built."""
+    _kept_bytes(small("no-touch"))                       # warm the caches
+    _, frame = _kept_bytes(small("no-touch"))
+    others = [e for e in ("camera_noise", "glare", "motion_blur") if e != effect]
+    without, _ = _kept_bytes(small("no-touch").with_effects(*others))
+    with_e, _ = _kept_bytes(small("no-touch").with_effects(*others, effect))
+    assert with_e - without >= 0.9 * frames_of_memory * frame
 
 
 def test_motion_blur_acts_inside_the_dome_only():
