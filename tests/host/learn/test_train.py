@@ -198,9 +198,13 @@ def test_fnn_regressor_and_slip_rule_and_fnn_on_synthetic_windows(tmp_path):
     f = train_model("slip", "fnn", slip, out_dir=tmp_path / "f", progress=False,
                     hidden=(8, 4), epochs=60)
     m = f["metrics"]["test"]
-    assert m["slip_f1"] == m["per_class"]["slip"]["f1"] and m["latency"]["onsets"] >= 0
+    assert m["slip_f1"] == m["per_class"]["slip"]["f1"]
+    # the synthetic classes are far apart (mean displacement 0 against 2 px): learnable
+    assert m["slip_f1"] > 0.9
+    # every synthetic trial holds one class, so no window starts a slip within a trial
+    assert m["latency"]["onsets"] == 0 and m["latency"]["detected"] == 0
     ev = evaluate_model(tmp_path / "f", slip)
-    assert "latency" in ev["metrics"] and ev["metrics"]["slip_f1"] >= 0.0
+    assert ev["metrics"]["latency"]["onsets"] == 0 and ev["metrics"]["slip_f1"] > 0.9
 
 
 def res_n_inputs(model_dir) -> int:
