@@ -30,10 +30,10 @@ from host.learn.metrics import (add_intervals, classification_metrics, regressio
                                 slip_latency)
 from host.learn.tasks import label_ids
 
-__all__ = ["evaluate_model", "load_variant", "percentiles", "VARIANTS"]
+__all__ = ["evaluate_model", "load_variant", "percentiles", "variant_manifest", "VARIANTS"]
 
 
-def _manifest_for(model_dir, variant: str | None) -> Path:
+def variant_manifest(model_dir, variant: str | None) -> Path:
     """The manifest file that loads ``variant`` (None: the default), picked by the
     Pi's :func:`device.pi.models.artefact.manifest_for`. Unlike the Pi, which runs
     the model it has, an evaluation refuses a folder without the variant asked for."""
@@ -53,7 +53,7 @@ def _manifest_for(model_dir, variant: str | None) -> Path:
 def load_variant(model_dir, variant: str | None = None):
     """(predictor, manifest, kind) for a model folder: a Classifier, RuleClassifier
     or Regressor, loaded with the Pi's code."""
-    mpath = _manifest_for(model_dir, variant)
+    mpath = variant_manifest(model_dir, variant)
     doc, _ = read_manifest(mpath)
     if doc.get("model") == "rule":
         return Classifier.load(mpath), doc, "rule"

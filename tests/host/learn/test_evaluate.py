@@ -50,15 +50,15 @@ def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkey
     _manifest(q, "int8")
     _manifest(q, "float", "manifest.float.json")
     _manifest(f, "float")
-    assert evaluate._manifest_for(q, None) == q / "manifest.json"
-    assert evaluate._manifest_for(q, "int8") == q / "manifest.json"
-    assert evaluate._manifest_for(q, "float") == q / "manifest.float.json"
-    assert evaluate._manifest_for(f, "float") == f / "manifest.json"
+    assert evaluate.variant_manifest(q, None) == q / "manifest.json"
+    assert evaluate.variant_manifest(q, "int8") == q / "manifest.json"
+    assert evaluate.variant_manifest(q, "float") == q / "manifest.float.json"
+    assert evaluate.variant_manifest(f, "float") == f / "manifest.json"
     assert picks == ["int8", "float", "float"]
     with pytest.raises(artefact.ModelError, match="no int8 model .train with --quantise"):
-        evaluate._manifest_for(f, "int8")
+        evaluate.variant_manifest(f, "int8")
     with pytest.raises(ValueError, match="variant must be one of"):
-        evaluate._manifest_for(q, "int4")
+        evaluate.variant_manifest(q, "int4")
 
 
 def test_labels_the_model_does_not_know_are_refused(small_model, synthetic_windows):
