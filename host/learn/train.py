@@ -52,7 +52,9 @@ from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, s
                                 spec_profile, write_manifest, write_model, write_variants)
 from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
-from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS, TASKS,
+from host.learn.rates import augment_rates
+from host.learn.tasks import (LAYOUT, MIN_AGREEMENT, MODELS, TASK_HIDDEN, TASK_MODELS,
+                              TASK_RATES, TASKS,
                               QuantisationError, TrainError, check_choice, check_int,
                               label_ids)
 
@@ -150,7 +152,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 progress: bool = True,
                 *, uses_imu: bool | None = None, hidden=None, alpha: float | None = None,
                 epochs: int | None = None, temporal: bool | None = None, augment: int = 0,
-                profile: str = "roboskin", trained_on: dict | None = None,
+                rates=None, profile: str = "roboskin", trained_on: dict | None = None,
                 config: dict | None = None,
                 calibration_windows: int = 2000, calibrate_method: str = "minmax",
                 min_agreement: float = MIN_AGREEMENT, identity: bool = False) -> dict:
@@ -169,9 +171,13 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     ``augment``: add this many rotated copies of the training
     windows (:func:`augment_rotations`, rotations that map the ``profile``'s pin
     layout onto itself), so a model need not see every drag direction; ``vectors``
-    layout only. ``calibration_windows`` training windows (a seeded random
-    choice) calibrate the int8 model with ``calibrate_method`` (minmax, percentile
-    or entropy); ``min_agreement`` is the argmax agreement it must reach on the
+    layout only. ``rates``: frame-keeping rules (:mod:`host.learn.rates`) whose
+    re-cut copies of the training windows are added, so the model sees several
+    frame intervals; None = :data:`host.learn.tasks.TASK_RATES` for the fnn
+    (texture: 3 of 5 frames, and that with 10 % dropped). ``calibration_windows``
+    training windows (a seeded random choice) calibrate the int8 model with
+    ``calibrate_method`` (minmax, percentile or entropy); ``min_agreement`` is the
+    argmax agreement it must reach on the
     held-out windows. Nothing is written when a check fails (:class:`TrainError`,
     :class:`QuantisationError`), except with ``quantise="if-passes"``: then a failed
     int8 check keeps the float model as the default and records why in
@@ -240,7 +246,11 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         raise TrainError(f"augment={augment} rotates pin vectors; {model} reads {layout}")
     if augment and model == "rule":
         raise TrainError("augment: the rule has nothing to learn from rotated copies")
-    ws_fit = augment_rotations(ws_train, augment, profile) if augment else ws_train
+    if rates is None:
+        rates = TASK_RATES.get(task, ()) if model == "fnn" else ()
+    rates = tuple(rates)
+    ws_fit = augment_rates(ws_train, rates, seed) if rates else ws_train
+    ws_fit = augment_rotations(ws_fit, augment, profile) if augment else ws_fit
     X = model_inputs(ws_fit, layout, uses_imu)
     Xt = model_inputs(ws_test, layout, uses_imu) if ws_test is not None else None
     if not np.isfinite(X).all():
@@ -373,6 +383,7 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
              "metrics": metrics, "int8": int8, **spec_keys,
              "training": _training_info(ws_train, ws_test, holdout, seed,
                                         dict(hp, **fit_info, augment=augment,
+                                             rates=list(rates),
                                              augmented_deg=ws_fit.source.get("augmented_deg"),
                                              fit_windows=int(len(X))))}
     if regression:
