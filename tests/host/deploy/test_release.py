@@ -175,9 +175,10 @@ def test_killed_copy_leaves_the_old_release_running(pi):
         d.deploy()
     assert killed
     steps = [s["step"] for s in d.steps]
-    assert steps[-1] == "copy" and "switch" not in steps, steps
+    # the half-copied release is discarded: nothing was switched, nothing is left
+    assert steps[-2:] == ["copy", "discard"] and "switch" not in steps, steps
     assert pi.link("current") == "releases/r2" and pi.pid() == pid and pi.packets_flow(pid)
-    assert not (pi.prefix / "releases" / "r4" / ".complete").exists()
+    assert not (pi.prefix / "releases" / "r4").exists()
 
 
 class _ChangedInTransit(Deployer):
