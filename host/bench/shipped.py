@@ -51,7 +51,8 @@ from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
 from host.learn.card import write_model_docs
 from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_spec, write_variants
-from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
+from host.learn.tasks import (DEFAULT_ALPHA, DEFAULT_EPOCHS, DEFAULT_MODEL, DEFAULT_WINDOW,
+                              TASK_HIDDEN, TASK_RATES, TrainError)
 from host.learn.train import train_model
 
 __all__ = ["DEFAULTS", "build_model", "build_defaults", "regraph", "main"]
@@ -169,9 +170,13 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
     mark_trained_on(tmp, trained_on,
                     shipped_config("texture", "texture", model, T, seed,
                                    real_data=str(Path(real_data)),
-                                   train_fraction=REAL_TRAIN_FRAC, contact_only=True))
+                                   train_fraction=REAL_TRAIN_FRAC, contact_only=True,
+                                   hidden=TASK_HIDDEN["texture"], alpha=DEFAULT_ALPHA[model],
+                                   epochs=DEFAULT_EPOCHS, augment=0,
+                                   rates=TASK_RATES.get("texture", ())))
     size = _check_size(tmp, "texture")
     _install(tmp, out_root / "texture")
+    write_model_docs(out_root / "texture")      # the card named after its folder
     test = res["metrics"]["test"]
     return {"name": "texture", "task": "texture", "model": model, "T": T, "data": "real",
             "clips": sorted(REAL_TEXTURE), "windows": len(ws), "test_windows": len(wt),

@@ -211,9 +211,10 @@ def score(right: np.ndarray, T: int) -> dict:
             "n": int(len(right))}
 
 
-def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer):
+def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer, rates=None):
     """A predict(ws) -> class ids and the classes, from ``trainer`` (default: the
-    default texture model of ``host train``, float, written to a temporary folder)."""
+    default texture model of ``host train``, float, written to a temporary folder;
+    ``rates``: its frame-rate copies, None = host train's)."""
     if trainer is not None:
         return trainer(ws_train, ws_test, seed)
     from host.learn.inputs import model_inputs
@@ -223,7 +224,8 @@ def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer):
 
     with tempfile.TemporaryDirectory(prefix="tacfoot-robust-") as tmp:
         res = train_model("texture", DEFAULT_MODEL["texture"], ws_train, ws_test,
-                          quantise=False, seed=seed, out_dir=tmp, progress=False)
+                          quantise=False, seed=seed, out_dir=tmp, progress=False,
+                          rates=rates)
         sess = session((Path(tmp) / FLOAT_NAME).read_bytes())
 
     def predict(ws):
@@ -277,11 +279,13 @@ def _pooled(per: dict) -> dict:
 
 def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VARIANTS,
                tasks=tuple(TASKS), identity: bool = True, trainer=None,
-               profile: str = "roboskin", progress=None) -> dict:
+               profile: str = "roboskin", progress=None, rates=None) -> dict:
     """The proxy figures (module doc) as a JSON-able dict: for each task and proxy,
     the accuracy over its windows and per recording (accuracy, ci95, n); and the
     identity check per recording. ``trainer(ws_train, ws_test, seed) -> (predict,
-    classes)`` replaces the default model (for comparisons)."""
+    classes)`` replaces the default model (for comparisons); ``rates`` the default
+    model's frame-rate copies (:mod:`host.learn.rates`; None = host train's, () =
+    none, as before they were added)."""
     T = DEFAULT_WINDOW["texture"] if T is None else int(T)
     root = Path(data).expanduser() / "roboskin"
     say = progress or (lambda m: None)
@@ -320,7 +324,7 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
         tr = WindowSet.concat([train_set(lab) for lab in labs])
         te = WindowSet.concat([tests["later"][lab] for lab in labs
                                if tests["later"][lab] is not None])
-        predict, classes = _train(tr, te, seed, trainer)
+        predict, classes = _train(tr, te, seed, trainer, rates)
         res = {"train_windows": len(tr), "proxies": {}}
         for v in variants:
             per = _per_clip(predict, classes, {lab: tests[v.name][lab] for lab in labs}, T)
@@ -329,11 +333,13 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
     if identity:
         for lab in paths:
             say(f"identity {lab}")
-            out["identity"][lab] = identity_check(base[lab], n_frames[lab], T, seed, trainer)
+            out["identity"][lab] = identity_check(base[lab], n_frames[lab], T, seed, trainer,
+                                                  rates)
     return out
 
 
-def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None) -> dict:
+def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None,
+                   rates=None) -> dict:
     """Can the model tell the first half of a recording from its second half? Each
     half is cut into chunks of ``4 T`` frames; the windows inside even chunks are
     trained on, and those of odd chunks at least T frames from either chunk end are
@@ -355,7 +361,7 @@ def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None) -> di
         return {"accuracy": None, "ci95": None, "n": 0,
                 "note": "a half has no contact windows to train or test on"}
     ws_te = WindowSet.concat(te)
-    predict, classes = _train(WindowSet.concat(tr), ws_te, seed, trainer)
+    predict, classes = _train(WindowSet.concat(tr), ws_te, seed, trainer, rates)
     want = np.array([classes.index(str(x)) for x in ws_te.labels])
     return score(predict(ws_te) == want, T)
 
@@ -391,6 +397,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-identity", action="store_true")
     p.add_argument("--model", help="score this texture model folder (e.g. models/texture) "
                                    "on the all-three proxies instead of training")
+    p.add_argument("--rates", default=None,
+                   help="frame-rate copies the trained model fits, comma-separated "
+                        "(e.g. 3of5,3of5+drop10); 'none' for none (default: host train's)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -398,7 +407,9 @@ def main(argv=None) -> int:
         trainer, T = (None, args.window) if not args.model else model_trainer(args.model)
         if args.model:
             tasks = ["all-three"]
-        res = robustness(args.data, args.work, T, args.seed, tasks=tasks,
+        rates = (None if args.rates is None else () if args.rates.strip() == "none" else
+                 tuple(r.strip() for r in args.rates.split(",") if r.strip()))
+        res = robustness(args.data, args.work, T, args.seed, tasks=tasks, rates=rates,
                          identity=not args.no_identity and not args.model, trainer=trainer,
                          progress=lambda m: print(f"texture-robustness: {m}", file=sys.stderr))
     except (DataError, TrainError) as exc:

@@ -43,10 +43,11 @@ DEFAULT_HIDDEN = (64, 32)
 #: tasks whose MLP has other hidden layers by default: texture reads T = 15 frames
 #: (about 8000 inputs with its temporal layer); (16, 16) keeps it under 1 MB and fast
 TASK_HIDDEN = {"texture": (16, 16)}
-#: tasks whose fnn trains on copies of its windows re-cut at other frame rates
-#: (:func:`host.learn.rates.augment_rates`): texture's frame-to-frame changes are
-#: per frame, and recordings come at 120 or 200 fps with dropped frames
-TASK_RATES = {"texture": ("3of5", "3of5+drop10")}
+#: tasks whose fnn trains by default on copies of its windows re-cut at other frame
+#: rates (:func:`host.learn.rates.augment_rates`, e.g. ``("3of5", "3of5+drop10")``).
+#: None yet: for texture the copies raise later frames and 3-of-5 replays but lower
+#: the exposure proxies (``python -m host.bench.texture_robust --rates ...``)
+TASK_RATES: dict = {}
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
 DEFAULT_EPOCHS = 300
 MIN_AGREEMENT = 0.99

@@ -173,8 +173,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     layout onto itself), so a model need not see every drag direction; ``vectors``
     layout only. ``rates``: frame-keeping rules (:mod:`host.learn.rates`) whose
     re-cut copies of the training windows are added, so the model sees several
-    frame intervals; None = :data:`host.learn.tasks.TASK_RATES` for the fnn
-    (texture: 3 of 5 frames, and that with 10 % dropped). ``calibration_windows``
+    frame intervals (e.g. ``("3of5", "3of5+drop10")``); None =
+    :data:`host.learn.tasks.TASK_RATES` for the fnn (none). ``calibration_windows``
     training windows (a seeded random choice) calibrate the int8 model with
     ``calibrate_method`` (minmax, percentile or entropy); ``min_agreement`` is the
     argmax agreement it must reach on the

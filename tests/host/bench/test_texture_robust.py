@@ -129,3 +129,19 @@ def test_robustness_on_the_real_clips_reports_each_proxy_with_counts_and_interva
         assert lo <= later[lab]["accuracy"] <= hi
     assert "rate-3of5" in format_robustness(res)
     assert any(p.suffix == ".npz" for p in tmp_path.iterdir())     # features cached
+
+
+def test_the_rates_option_reaches_the_trained_model(monkeypatch, capsys):
+    """--rates names the frame-rate copies the trained model fits ('none': none);
+    without it host train's default (None) is used."""
+    import host.bench.texture_robust as tr
+    seen = []
+
+    def fake(*a, **kw):
+        seen.append(kw["rates"])
+        return {"T": 15, "train_frac": 0.7, "tasks": {}, "identity": {}}
+    monkeypatch.setattr(tr, "robustness", fake)
+    for arg, want in ((["--rates", "none"], ()), (["--rates", "3of5,3of5+drop10"],
+                                                  ("3of5", "3of5+drop10")), ([], None)):
+        assert main(["--data", "x", "--no-identity", *arg]) == 0
+        assert seen[-1] == want

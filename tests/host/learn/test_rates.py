@@ -72,3 +72,28 @@ def test_windows_without_time_order_are_kept_but_not_re_cut():
     ws = _trial_windows()
     ws.t_index[:] = -1
     assert len(augment_rates(ws)) == len(ws)
+
+
+@pytest.mark.real
+@pytest.mark.slow
+def test_re_cut_windows_are_close_to_the_recording_replayed_3_of_5(tmp_path):
+    """On a real clip, the windows re-cut with 3 of 5 frames kept are close to those
+    the marker pipeline gives when the camera delivers only those frames (pins are
+    matched frame to frame, so they are not identical): under 0.5 px apart on the
+    pins both track, and under 10 % of the lost flags differ."""
+    from host.bench.texture_robust import Variant, clip_variant, clip_windows
+    from tests.realdata import real_data_dir
+    path = real_data_dir("roboskin/lego_train.avi") / "roboskin" / "lego_train.avi"
+    c, o = clip_variant(path, Variant("later"), cache_dir=tmp_path)
+    ws = clip_windows(c, o, "lego", 15, 0, len(o), "lego")
+    aug = augment_rates(ws, ("3of5",))
+    new = aug.subset(np.arange(len(ws), len(aug)))
+    c3, o3 = clip_variant(path, Variant("rate-3of5", "3of5"), cache_dir=tmp_path)
+    w3 = clip_windows(c3, o3, "lego", 15, 0, len(o), "lego")
+    at = {int(t): j for j, t in enumerate(w3.t_index)}
+    pairs = [(i, at[int(t)]) for i, t in enumerate(new.t_index) if int(t) in at]
+    assert len(pairs) >= 0.8 * len(new) >= 40
+    px = [np.linalg.norm(new.vectors[i] - w3.vectors[j], axis=2)[~new.lost[i] & ~w3.lost[j]]
+          .mean() for i, j in pairs]
+    flags = [(new.lost[i] != w3.lost[j]).mean() for i, j in pairs]
+    assert np.mean(px) < 0.5 and np.mean(flags) < 0.1

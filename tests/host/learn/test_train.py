@@ -280,19 +280,19 @@ def test_texture_on_a_non_133_pin_profile_gets_every_feature_and_carries_its_pro
     assert Classifier.load(tmp_path / "m").n_features == man["input"]["shape"][1]
 
 
-def test_texture_trains_on_copies_re_cut_at_other_frame_rates_by_default(tmp_path):
-    """The texture fnn also fits windows re-cut with 3 of 5 frames kept (and some
-    dropped), so it sees several frame intervals; the manifest records the rules.
-    rates=() trains on the windows as given."""
+def test_texture_trains_on_copies_re_cut_at_other_frame_rates_when_asked(tmp_path):
+    """With rates, the texture fnn also fits windows re-cut with 3 of 5 frames kept
+    (and some dropped), so it sees several frame intervals; the manifest records the
+    rules. By default (TASK_RATES) it trains on the windows as given."""
     ws = synthetic(n_groups=4, per_group=30, n_pins=20, classes=("lego", "smooth"), imu=False)
     ws.task = "texture"
     assert (ws.t_index >= 0).all()
     train_model("texture", "fnn", ws, out_dir=tmp_path / "m", progress=False,
-                hidden=(8, 4), epochs=5)
+                hidden=(8, 4), epochs=5, rates=("3of5", "3of5+drop10"))
     man = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert man["training"]["rates"] == ["3of5", "3of5+drop10"]
     train_model("texture", "fnn", ws, out_dir=tmp_path / "p", progress=False,
-                hidden=(8, 4), epochs=5, rates=())
+                hidden=(8, 4), epochs=5)
     plain = json.loads((tmp_path / "p" / "manifest.json").read_text())
     assert plain["training"]["rates"] == []
     assert man["training"]["fit_windows"] > plain["training"]["fit_windows"]
