@@ -73,15 +73,28 @@ def cmd_bench(args):
                             repeats=max(1, min(args.repeats, 3)),
                             progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
         emit(args, res, format_scaling(res))
+    elif args.what == "texture-robustness":
+        from host.bench.texture_robust import format_robustness, robustness
+        from host.data.windows import DataError
+        if args.data and not Path(args.data).is_dir():
+            raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
+        try:
+            res = robustness(real_data_dir(args.data), args.work,
+                             progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+        except DataError as exc:
+            raise UserError(str(exc)) from None
+        emit(args, res, format_robustness(res))
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
-    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables", "scaling"],
+    s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables",
+                                    "texture-robustness", "scaling"],
                    help="tables: measure on the real recordings and rewrite the "
-                        "real-frame tables of --doc; scaling: per-frame cost against "
-                        "the pin count")
+                        "real-frame tables of --doc; texture-robustness: texture "
+                        "accuracy on proxies for a new recording session; scaling: "
+                        "per-frame cost against the pin count")
     s.add_argument("--data", metavar="SPEC",
                    help="pipeline, tables: the recordings, a CSV manifest (path,label[,imu]) "
                         "or a dataset folder (pipeline without it: simulated frames only)")
@@ -98,6 +111,8 @@ def register(sub) -> None:
     s.add_argument("--frames", type=whole(1, 1_000_000), default=600,
                    help="frames to run (runtime, tables)")
     s.add_argument("--repeats", type=whole(1, 10_000), default=20)
+    s.add_argument("--work", default="out/texture-robust",
+                   help="texture-robustness: cache of the clips' features")
     s.add_argument("--flat-profile", metavar="TOML",
                    help="scaling: calibrated profile of roboskin/flatSkin.avi (host calibrate)")
     s.add_argument("--json", action="store_true")
