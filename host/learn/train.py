@@ -416,8 +416,19 @@ def _finish_metrics(metrics, result, holdout, ws_train, ws_test, regression, y, 
             add_intervals(metrics["test"], ws_test,
                           np.abs(np.asarray(out_test).reshape(-1) - yt), key="mae")
     if "test" in metrics:
-        metrics["test"]["protocol"] = holdout_protocol(holdout)
-        metrics["test"]["same_recordings"] = metrics["test"]["protocol"] == LATER_FRAMES
+        protocol = holdout_protocol(holdout)
+        if protocol == "given" and _shares_recordings(ws_train, ws_test):
+            protocol = LATER_FRAMES         # a given test set cut from the same recordings
+        metrics["test"]["protocol"] = protocol
+        metrics["test"]["same_recordings"] = protocol == LATER_FRAMES
+
+
+def _shares_recordings(ws_train, ws_test) -> bool:
+    """Whether a given test set holds windows of a recording the training set holds
+    (both must name their recordings; trial numbers of two sets are not comparable)."""
+    if ws_test is None or ws_train.recordings is None or ws_test.recordings is None:
+        return False
+    return bool(set(map(str, ws_train.recordings)) & set(map(str, ws_test.recordings)))
 
 
 def _training_info(ws_train, ws_test, holdout: str, seed: int, hp: dict) -> dict:

@@ -296,3 +296,19 @@ def test_texture_trains_on_copies_re_cut_at_other_frame_rates_when_asked(tmp_pat
     plain = json.loads((tmp_path / "p" / "manifest.json").read_text())
     assert plain["training"]["rates"] == []
     assert man["training"]["fit_windows"] > plain["training"]["fit_windows"]
+
+
+def test_a_given_test_set_from_the_training_recordings_is_marked_optimistic(tmp_path):
+    """A --test set cut from the recordings trained on (later frames of the same
+    clips, as the shipped texture model's) is not 'given' but optimistic; one from
+    other recordings stays 'given'."""
+    ws = synthetic(targets=True, imu=False, n_groups=6)
+    ws.recordings = np.array([f"clip{g % 3}.avi sha256:0" for g in ws.groups], object)
+    tr, te = ws.subset(ws.groups < 4), ws.subset(ws.groups >= 4)
+    same = train_model("pressure", "ridge", tr, te, out_dir=tmp_path / "same",
+                       progress=False)["metrics"]["test"]
+    assert same["same_recordings"] is True and "optimistic" in same["protocol"]
+    te.recordings = np.array([f"other{g}.avi sha256:1" for g in te.groups], object)
+    other = train_model("pressure", "ridge", tr, te, out_dir=tmp_path / "other",
+                        progress=False)["metrics"]["test"]
+    assert other["same_recordings"] is False and other["protocol"] == "given"
