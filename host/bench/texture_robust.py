@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from host.data.windows import DataError, TrialPart, WindowSet, stack_parts, window_ends
+from host.learn.rates import kept_frames
 from host.learn.tasks import DEFAULT_WINDOW, TrainError
 
 __all__ = ["Variant", "VARIANTS", "CLIPS", "TASKS", "keep_indices", "expose",
@@ -86,26 +87,16 @@ VARIANTS = (Variant("later"), Variant("rate-3of5", "3of5"), Variant("rate-drops"
 
 
 def keep_indices(n: int, keep: str, seed: int = 0) -> np.ndarray:
-    """The frame indices (of ``n``) a camera of rule ``keep`` delivers: ``all``;
-    ``3of5`` (frames 0, 2, 3 of every 5: 200 fps as 120 fps, evenly in time);
-    ``3of5+dropP`` (that, then P % of the rest dropped at random with ``seed``)."""
-    idx = np.arange(int(n), dtype=np.int64)
-    if keep == "all":
-        return idx
-    if keep == "3of5" or keep.startswith("3of5+drop"):
-        idx = idx[np.isin(idx % 5, (0, 2, 3))]
-        if keep == "3of5":
-            return idx
-        try:
-            p = float(keep[len("3of5+drop"):]) / 100.0
-        except ValueError:
-            p = -1.0
-        if not 0.0 <= p < 1.0:
-            raise DataError(f"keep={keep!r}: the drop share must be 0..99 percent")
-        drop = np.random.default_rng(seed).random(len(idx)) < p
-        drop[0] = False                   # the rest frame stays
-        return idx[~drop]
-    raise DataError(f"keep must be 'all', '3of5' or '3of5+dropP', got keep={keep!r}")
+    """The frame indices (of ``n``) a camera of rule ``keep`` delivers
+    (:func:`host.learn.rates.kept_frames`: ``all``, ``3of5``, ``3of5+dropP``), with
+    the rest frame (frame 0) always kept, since a replayed clip starts from it."""
+    try:
+        idx = kept_frames(n, keep, seed)
+    except TrainError as exc:
+        raise DataError(str(exc)) from None
+    if int(n) > 0 and (len(idx) == 0 or idx[0] != 0):
+        idx = np.concatenate((np.zeros(1, np.int64), idx))
+    return idx
 
 
 def expose(image: np.ndarray, gain: float = 1.0, offset: float = 0.0,
