@@ -333,11 +333,9 @@ def export_pressure(X, y, groups, out_dir, kind: str = "gbt", T: int = 1,
     return out, pipe, parity
 
 
-def hard_plate(vectors_path, pressures_path):
-    """(X, y, groups, n_pins) from a pressing set: vectors (trials, depths, M, 2) and
-    loads (trials, 2, depths) with row 1 the load cell; one window (T=1) per press."""
-    from device.pi.models.window import encode_vectors
-
+def pressing_set(vectors_path, pressures_path):
+    """(vectors, loads) of a pressing set, checked: vectors (trials, depths, M, 2) and
+    loads (trials, 2, depths); a TrainError naming the file otherwise."""
     v = np.load(vectors_path, allow_pickle=False)
     p = np.load(pressures_path, allow_pickle=False)
     if v.ndim != 4 or v.shape[-1] != 2:
@@ -345,6 +343,15 @@ def hard_plate(vectors_path, pressures_path):
     if p.shape != (v.shape[0], 2, v.shape[1]):
         raise TrainError(f"{pressures_path}: loads must be ({v.shape[0]}, 2, {v.shape[1]}), "
                          f"got {p.shape}")
+    return v, p
+
+
+def hard_plate(vectors_path, pressures_path):
+    """(X, y, groups, n_pins) from a pressing set: vectors (trials, depths, M, 2) and
+    loads (trials, 2, depths) with row 1 the load cell; one window (T=1) per press."""
+    from device.pi.models.window import encode_vectors
+
+    v, p = pressing_set(vectors_path, pressures_path)
     n_trials, n_depths, M = v.shape[:3]
     X = encode_vectors(v.reshape(n_trials * n_depths, 1, M, 2))
     y = p[:, 1, :].reshape(-1).astype(np.float64)
@@ -358,13 +365,7 @@ def hard_plate_npz(vectors_path, pressures_path, out_path) -> dict:
     exactly (0, 0). Returns a summary (path, windows, trials, pins)."""
     from pathlib import Path
 
-    v = np.load(vectors_path, allow_pickle=False)
-    p = np.load(pressures_path, allow_pickle=False)
-    if v.ndim != 4 or v.shape[-1] != 2:
-        raise TrainError(f"{vectors_path}: vectors must be (trials, depths, M, 2), got {v.shape}")
-    if p.shape != (v.shape[0], 2, v.shape[1]):
-        raise TrainError(f"{pressures_path}: loads must be ({v.shape[0]}, 2, {v.shape[1]}), "
-                         f"got {p.shape}")
+    v, p = pressing_set(vectors_path, pressures_path)
     n_trials, n_depths, M = v.shape[:3]
     vec = v.reshape(n_trials * n_depths, 1, M, 2).astype(np.float32)
     out = Path(out_path)
