@@ -283,16 +283,19 @@ def test_texture_on_a_non_133_pin_profile_gets_every_feature_and_carries_its_pro
 def test_texture_trains_on_copies_re_cut_at_other_frame_rates_when_asked(tmp_path):
     """With rates, the texture fnn also fits windows re-cut with 3 of 5 frames kept
     (and some dropped), so it sees several frame intervals; the manifest records the
-    rules. By default (TASK_RATES) it trains on the windows as given."""
+    rules. Without rates=, it takes the task's default (TASK_RATES: on for texture);
+    rates=() trains on the windows as given."""
+    from host.learn.tasks import TASK_RATES
+
     ws = synthetic(n_groups=4, per_group=30, n_pins=20, classes=("lego", "smooth"), imu=False)
     ws.task = "texture"
     assert (ws.t_index >= 0).all()
     train_model("texture", "fnn", ws, out_dir=tmp_path / "m", progress=False,
-                hidden=(8, 4), epochs=5, rates=("3of5", "3of5+drop10"))
-    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert man["training"]["rates"] == ["3of5", "3of5+drop10"]
-    train_model("texture", "fnn", ws, out_dir=tmp_path / "p", progress=False,
                 hidden=(8, 4), epochs=5)
+    man = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert man["training"]["rates"] == list(TASK_RATES["texture"]) == ["3of5", "3of5+drop10"]
+    train_model("texture", "fnn", ws, out_dir=tmp_path / "p", progress=False,
+                hidden=(8, 4), epochs=5, rates=())
     plain = json.loads((tmp_path / "p" / "manifest.json").read_text())
     assert plain["training"]["rates"] == []
     assert man["training"]["fit_windows"] > plain["training"]["fit_windows"]
