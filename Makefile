@@ -44,7 +44,7 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed-test node_modules/.installed
 	$(VENV)/bin/lint-imports --no-cache
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadfile
 
 # the real-frame tables of docs/BENCHMARKS.md (marker pipeline and runtime on
 # roboskin/smooth.avi and concrete.avi: the authors' default spec out/specs/bench.csv,
