@@ -204,13 +204,8 @@ def _define_scaler():
 
     def convert(scope, operator, container):
         op = operator.raw_operator
-
-        def init(values, dims):
-            return _onnx_init(scope, container, values, dims)
-
-        def node(op_type, inputs, out=None):
-            return _onnx_node(scope, container, op_type, inputs, out)
-
+        g = OnnxGraph(scope, container)
+        init, node = g.floats, g.node
         D = int(op.n_features_in_)
         z = node("Mul", [node("Sub", [operator.inputs[0].full_name, init(op.mean_, [D])]),
                          init(op.inv_scale_, [D])])
@@ -242,6 +237,25 @@ def _onnx_node(scope, container, op_type, inputs, out=None, **attrs) -> str:
     return out
 
 
+class OnnxGraph:
+    """The one way a converter here adds to an ONNX graph: int64 vectors, float
+    constants and nodes, each named by the converter's ``scope``."""
+
+    def __init__(self, scope, container):
+        self.scope, self.container = scope, container
+
+    def ints(self, values) -> str:
+        """An int64 vector (indices, axes, shapes)."""
+        return _onnx_init(self.scope, self.container, values, [len(values)], "int64")
+
+    def floats(self, values, dims) -> str:
+        return _onnx_init(self.scope, self.container, values, dims)
+
+    def node(self, op_type, inputs, out=None, **attrs) -> str:
+        """A node whose output is ``out`` (or a fresh name); returns the name."""
+        return _onnx_node(self.scope, self.container, op_type, inputs, out, **attrs)
+
+
 def _register_temporal(cls) -> None:
     from skl2onnx import update_registered_converter
     from skl2onnx.common.data_types import FloatTensorType
@@ -257,14 +271,8 @@ def _temporal_to_onnx(scope, operator, container):
     op = operator.raw_operator
     T, M = int(op.T), int(op.n_pins)
 
-    def const(values):              # an int64 vector (indices, axes, shapes)
-        return _onnx_init(scope, container, values, [len(values)], "int64")
-
-    def fconst(values, dims):
-        return _onnx_init(scope, container, values, dims)
-
-    def node(op_type, inputs, **attrs):
-        return _onnx_node(scope, container, op_type, inputs, **attrs)
+    g = OnnxGraph(scope, container)
+    const, fconst, node = g.ints, g.floats, g.node
 
     def frames(a, lo, hi):          # a[:, lo:hi] along axis 1
         return node("Slice", [a, const([lo]), const([hi]), const([1])])
@@ -293,7 +301,7 @@ def _temporal_to_onnx(scope, operator, container):
     use = op._rough()
     if use is not None:
         nb = np.asarray(op.neighbours, np.int64)
-        nbn = _onnx_init(scope, container, nb, list(nb.shape), "int64")
+        nbn = _onnx_init(scope, container, nb, list(nb.shape), "int64")   # a matrix
         # pins first, so the Gather copies whole rows of N x T x 2 values (a Gather
         # along the last axis copies them one by one); a Gather and a mean, not a
         # MatMul, so the int8 quantiser leaves it in float

@@ -148,20 +148,13 @@ def _register_tracked(cls) -> None:
 
 def _tracked_to_onnx(scope, operator, container):
     """ONNX for :class:`TrackedPins`: the same float32 numbers as its transform."""
-    from host.learn.layers import _onnx_init, _onnx_node
+    from host.learn.layers import OnnxGraph
 
     op = operator.raw_operator
     T, M = int(op.T), int(op.n_pins)
     w = T * M * 2
-
-    def const(values):
-        return _onnx_init(scope, container, values, [len(values)], "int64")
-
-    def fconst(values, dims):
-        return _onnx_init(scope, container, values, dims)
-
-    def node(op_type, inputs, **attrs):
-        return _onnx_node(scope, container, op_type, inputs, **attrs)
+    g = OnnxGraph(scope, container)
+    const, fconst, node = g.ints, g.floats, g.node
 
     x = operator.inputs[0].full_name
     v = node("Reshape", [node("Slice", [x, const([0]), const([w]), const([1])]),
