@@ -208,7 +208,8 @@ class DatasetWriter(Closing):
         while f"trial_{k:04d}.npz" in listed or (self.dir / f"trial_{k:04d}.npz").exists():
             k += 1                       # never a listed name, nor a file left in the folder
         name = f"trial_{k:04d}.npz"
-        arrays = _video_arrays(video, video_start, frames) if video is not None else None
+        got = _video_arrays(video, video_start, frames) if video is not None else None
+        arrays = got if isinstance(got, dict) else None
         codec = "source-video" if arrays else "npz"
         arrays = arrays or {"frames": np.ascontiguousarray(frames)}
         for k, v in truth.items():
@@ -216,6 +217,8 @@ class DatasetWriter(Closing):
         atomic_write(self.dir / name, lambda fh: np.savez_compressed(fh, **arrays))
         entry = {"file": name, "frames": int(frames.shape[0]), "frames_codec": codec,
                  "bytes": int((self.dir / name).stat().st_size), **info}
+        if isinstance(got, str):          # why the video was not kept
+            entry["frames_note"] = "; ".join(x for x in (entry.get("frames_note"), got) if x)
         if self.source and "source" not in entry:
             entry["source"] = self.source
         self.index["trials"].append(entry)
@@ -243,9 +246,10 @@ def decode_video(data: bytes, suffix: str, start: int, end: int) -> np.ndarray:
     return np.stack(out) if out else np.zeros((0, 0, 0), np.uint8)
 
 
-def _video_arrays(video, start: int, frames: np.ndarray) -> dict | None:
+def _video_arrays(video, start: int, frames: np.ndarray) -> dict | str:
     """The ``video`` arrays of a trial when the file's bytes decode to exactly
-    ``frames`` from ``start`` and the frames are at least half of the file's."""
+    ``frames`` from ``start`` and the frames are at least half of the file's; else
+    why not (the entry's ``frames_note``)."""
     from device.pi.sources.camera import CameraError
     data = Path(video).read_bytes()
     n = int(frames.shape[0])
@@ -254,13 +258,13 @@ def _video_arrays(video, start: int, frames: np.ndarray) -> dict | None:
     total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     cap.release()
     if 2 * n < total:
-        return None
+        return f"stored as frames: {n} frames are under half of the video's {total}"
     try:
         got = decode_video(data, Path(video).suffix, start, start + n)
-    except (CameraError, OSError, ValueError):
-        return None
+    except (CameraError, OSError, ValueError) as exc:
+        return f"stored as frames: the video does not decode ({exc})"
     if got.shape != frames.shape or not np.array_equal(got, frames):
-        return None
+        return "stored as frames: the video does not decode to exactly the frames read"
     return {"video": np.frombuffer(data, np.uint8), "video_suffix": np.array(Path(video).suffix),
             "video_range": np.array([start, start + n], np.int64)}
 

@@ -139,26 +139,67 @@ def test_record_start_and_frames_are_frame_exact_and_exclusive_of_seconds(tmp_pa
     assert len(read_index(out)["trials"]) == 1
 
 
-def test_a_recorded_clip_is_stored_compactly_and_loads_frame_exact(tmp_path):
-    """A trial of most of a real clip stores the clip's own bytes: at most 2x the
-    source's size (the frame array took 13x), and it loads as exactly the frames read
-    from the source; a short part stores the frame array."""
+def _source_frames(clip, start: int, n: int) -> np.ndarray:
     from device.pi.sources.camera import open_camera
+    with open_camera(str(clip), start_frame=start, end_frame=start + n) as cam:
+        return np.stack([cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) for f in cam])
+
+
+def test_a_recorded_clip_is_stored_compactly_and_loads_frame_exact(tmp_path):
+    """A trial of 10 % of a real clip, starting 11 frames after a keyframe (the most
+    lead-in roboskin's 12-frame keyframe interval allows), stores the remuxed packets:
+    at most 2x the source's bytes for those frames (the frame array took 13x), and it
+    loads as exactly the frames read from the source. Its stored clip starts at the
+    keyframe, and video_range says which of its frames is the trial's first. A trial
+    shorter than its lead-in stores the frame array and says why."""
     clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    total = 540
     out = tmp_path / "ds"
-    assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "100",
-                 "--frames", "300", "--out", str(out)]) == 0
+    assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "131",
+                 "--frames", "54", "--out", str(out)]) == 0
     assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "5",
                  "--frames", "4", "--out", str(out)]) == 0
     e = read_index(out)["trials"]
-    assert e[0]["frames_codec"] == "source-video" and e[1]["frames_codec"] == "npz"
+    assert e[0]["frames_codec"] == "source-video" and "frames_note" not in e[0]
     size = (out / e[0]["file"]).stat().st_size
-    assert size == e[0]["bytes"] <= 2 * clip.stat().st_size
-    t = load_trial(out, 0)["frames"]
-    assert t.shape[0] == 300
-    with open_camera(str(clip), start_frame=100, end_frame=101) as cam:
-        first = cv2.cvtColor(next(iter(cam)).image, cv2.COLOR_BGR2GRAY)
-    assert np.array_equal(t[0], first)
-    with open_camera(str(clip), start_frame=5, end_frame=9) as cam:
-        want = np.stack([cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) for f in cam])
-    assert np.array_equal(load_trial(out, 1)["frames"], want)
+    assert size == e[0]["bytes"] <= 2 * clip.stat().st_size * 54 / total
+    with np.load(out / e[0]["file"]) as z:
+        assert z["video_range"].tolist() == [11, 65]
+    assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(clip, 131, 54))
+    assert e[1]["frames_codec"] == "npz" and "under half" in e[1]["frames_note"]
+    assert np.array_equal(load_trial(out, 1)["frames"], _source_frames(clip, 5, 4))
+
+
+def test_a_clip_that_does_not_decode_to_the_frames_read_is_stored_as_frames(tmp_path,
+                                                                           monkeypatch):
+    """The stored clip is checked on write: a remux that is off by one frame is not
+    kept; the trial stores the frame array, loads exactly, and its entry says why."""
+    import host.rig.record as rec
+    clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    real = rec.remux_clip
+
+    def off_by_one(video, start, n, folder):
+        path, first = real(video, start, n + 1, folder)
+        return path, first + 1
+    monkeypatch.setattr(rec, "remux_clip", off_by_one)
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "smooth", "--start", "20",
+                 "--frames", "30", "--out", str(out)]) == 0
+    e = read_index(out)["trials"][0]
+    assert e["frames_codec"] == "npz" and "not decode to exactly" in e["frames_note"]
+    assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(clip, 20, 30))
+
+
+def test_without_pyav_a_trial_of_most_of_a_clip_stores_the_whole_file(tmp_path, monkeypatch):
+    """Without PyAV a trial covering at least half of the clip stores the file's own
+    bytes, and its entry says the clip was not remuxed."""
+    import sys
+    clip = real_data_dir("roboskin/lego_train.avi") / "roboskin" / "lego_train.avi"
+    monkeypatch.setitem(sys.modules, "av", None)          # import av fails
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "lego", "--start", "10",
+                 "--frames", "200", "--out", str(out)]) == 0
+    e = read_index(out)["trials"][0]
+    assert e["frames_codec"] == "source-video" and "PyAV" in e["frames_note"]
+    assert e["bytes"] <= 2 * clip.stat().st_size
+    assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(clip, 10, 200))
