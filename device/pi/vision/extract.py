@@ -397,6 +397,50 @@ class PinDetector:
         self._origin = np.array([x0, y0], np.float32)
         mask_full = dome_mask((h, w), dome, p.roi_shrink)
         self._mask = np.ascontiguousarray(mask_full[y0:y1, x0:x1])
+        self._set_core(bh, bw)
+
+    def _set_core(self, bh: int, bw: int) -> None:
+        """The dome's own pixels: the mask disc's bounding box inside the dome box.
+
+        Only they are thresholded and labelled (about 80 % of the box for roboskin);
+        the rest of the binary box stays 0, as the mask made it before. The core starts
+        on even rows and columns of the labelling buffer and has even sides, so the
+        block-based labelling sees the same 2x2 blocks, in the same order, as on the
+        whole buffer: the same labels in the same order."""
+        p = self.params
+        ys, xs = np.nonzero(self._mask)
+        if len(ys):
+            cy0, cx0 = int(ys.min()) & ~1, int(xs.min()) & ~1
+            cy1, cx1 = int(ys.max()) + 1, int(xs.max()) + 1
+        else:
+            cy0, cx0, cy1, cx1 = 0, 0, 2, 2
+        eh, ew = self._binary_even.shape
+        cy1, cx1 = min(eh, cy1 + cy1 % 2), min(ew, cx1 + cx1 % 2)
+        self.core = (cx0, cy0, cx1, cy1)             # in box px, even-aligned
+        self._core_binary = self._binary_even[cy0:cy1, cx0:cx1]
+        self._core_labels = np.empty((cy1 - cy0, cx1 - cx0), np.int32)
+        self._core_shift = (cx0, cy0)
+        # the threshold runs on the core clipped to the box (the odd-side pad is not
+        # in the gray box); its local mean on the core grown by half a block, so every
+        # core pixel's block sees the pixels it saw in the whole box (and the box's
+        # replicated edge where the whole box had it)
+        ty1, tx1 = min(cy1, self._smooth.shape[0]), min(cx1, self._smooth.shape[1])
+        half = p.block // 2
+        gy0, gx0 = max(0, cy0 - half), max(0, cx0 - half)
+        gy1 = min(self._smooth.shape[0], ty1 + half)
+        gx1 = min(self._smooth.shape[1], tx1 + half)
+        self._grown = (slice(gy0, gy1), slice(gx0, gx1))
+        self._in_grown = (slice(cy0 - gy0, ty1 - gy0), slice(cx0 - gx0, tx1 - gx0))
+        self._core_src = (slice(cy0, ty1), slice(cx0, tx1))
+        self._mean = np.empty((gy1 - gy0, gx1 - gx0), np.uint8)
+        self._diff = np.zeros((ty1 - cy0, tx1 - cx0), np.uint8)   # stays 0 off the mask
+        self._core_mask = np.ascontiguousarray(self._mask[cy0:ty1, cx0:tx1])
+        self._core_out = self._binary_even[cy0:ty1, cx0:tx1]
+        # OpenCV's mean-C threshold keeps src - mean > floor(offset); for offset >= 0
+        # a saturating subtraction gives the same test (a negative offset takes
+        # cv2.adaptiveThreshold on the whole box)
+        self._floor_offset = math.floor(p.offset)
+        self._fast = self._floor_offset >= 0
 
     @property
     def blur_ksize(self) -> tuple[int, int]:
@@ -408,43 +452,88 @@ class PinDetector:
         """The last thresholded crop (view of the internal buffer)."""
         return self._binary
 
-    def threshold(self, frame: np.ndarray) -> np.ndarray:
-        """Gray, blur and binarise the dome crop; returns the internal binary buffer.
-        Only the dome's box is converted to gray: a colour frame's pixels outside it
-        are never read."""
+    def gray_crop(self, frame: np.ndarray) -> np.ndarray:
+        """The dome box of ``frame`` in gray: a view when the frame is gray uint8
+        already (no copy), else converted into the internal buffer. Only the box is
+        read: a colour frame's pixels outside it are never converted."""
         if frame.shape[:2] != self.frame_shape:
             raise ValueError(f"frame shape must be {self.frame_shape!r}, got frame.shape={frame.shape!r}")
         x0, y0, x1, y1 = self.box
         crop = frame[y0:y1, x0:x1]
         if crop.ndim == 3 or crop.dtype != np.uint8:
             crop = to_gray(crop, out=self._gray)
+        return crop
+
+    def threshold(self, frame: np.ndarray) -> np.ndarray:
+        """Gray, blur and binarise the dome crop; returns the internal binary buffer."""
+        return self.threshold_gray(self.gray_crop(frame))
+
+    def threshold_gray(self, crop: np.ndarray) -> np.ndarray:
+        """Blur and binarise a gray dome box (:meth:`gray_crop`'s); returns the
+        internal binary buffer. The same pixels as ``binarise`` on the blurred box with
+        the dome mask, computed on the dome's own pixels only (:meth:`_set_core`)."""
         p = self.params
         if p.blur_sigma_px > 0:
             cv2.GaussianBlur(crop, self._ksize, p.blur_sigma_px, dst=self._smooth)
         else:
             np.copyto(self._smooth, crop)
-        return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
+        if not self._fast:
+            return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
+        # cv2.adaptiveThreshold(MEAN_C) is this box filter then a per-pixel table
+        # look-up; a saturating subtraction under the mask and one threshold do the
+        # look-up and the masking in two vectorised passes
+        cv2.boxFilter(self._smooth[self._grown], -1, (p.block, p.block), dst=self._mean,
+                      normalize=True, borderType=cv2.BORDER_REPLICATE)
+        cv2.subtract(self._smooth[self._core_src], self._mean[self._in_grown], dst=self._diff,
+                     mask=self._core_mask)
+        cv2.threshold(self._diff, self._floor_offset, 255, cv2.THRESH_BINARY, dst=self._core_out)
+        return self._binary
 
     @property
     def smooth(self) -> np.ndarray:
         """The last gray, pre-blurred dome box (view of the internal buffer)."""
         return self._smooth
 
+    def _blobs(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every blob of the binary core: centroids float64 (n,2) in box px, areas int32.
+
+        The centroids are exactly those of the labelling on the whole box: OpenCV
+        divides each blob's integer pixel-coordinate sum by its area, so the core's
+        sums are recovered exactly (rint(centroid * area)), shifted by area x the
+        core's offset and divided again."""
+        n, _, stats, cents = cv2.connectedComponentsWithStatsWithAlgorithm(
+            self._core_binary, 8, cv2.CV_32S, _CCL, labels=self._core_labels)
+        if n <= 1:
+            return np.zeros((0, 2), np.float64), np.zeros((0,), np.int32)
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        c = cents[1:]
+        if self._core_shift != (0, 0):
+            a = areas[:, None].astype(np.float64)
+            c = np.rint(c * a)
+            c += a * self._core_shift
+            c /= a
+        return c, areas
+
     def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,).
         :attr:`n_blobs` is the number of blobs of any size it was chosen from."""
-        self.threshold(frame)
-        cents, areas = components(self._binary_even, self._labels)
+        return self.detect_gray(self.gray_crop(frame))
+
+    def detect_gray(self, crop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`detect` on the gray dome box (:meth:`gray_crop`'s)."""
+        self.threshold_gray(crop)
+        cents, areas = self._blobs()
         self.n_blobs = len(areas)
         p = self.params
         keep = (areas >= p.min_area_px) & (areas <= p.max_area_px)
-        xy = np.ascontiguousarray(cents[keep])
+        xy = cents[keep].astype(np.float32)
         xy += self._origin
         return xy, areas[keep]
 
     def detect_all(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All blobs (pins, glare and noise) in frame px, for measurement."""
         self.threshold(frame)
-        xy, areas = components(self._binary_even, self._labels)
+        cents, areas = self._blobs()
+        xy = cents.astype(np.float32)
         xy += self._origin
-        return xy, areas
+        return xy, areas.copy()

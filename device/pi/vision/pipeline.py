@@ -200,7 +200,7 @@ class MarkerStream:
         t1 = clock()
         if self.detector is None:
             # the dome is looked for on the whole frame, once; after that only the
-            # dome's box is converted (in the detector)
+            # dome's box is converted (PinDetector.gray_crop)
             try:
                 gray = to_gray(a)
             except (ValueError, TypeError):
@@ -208,10 +208,13 @@ class MarkerStream:
             if not self._ensure_dome(gray):
                 timings["gray"] = (clock() - t1) * 1e3
                 return self._empty(i, t_s, faults | FAULT_NO_DOME | FAULT_NO_REFERENCE, timings)
-        t1b = clock()
-        timings["gray"] = (t1b - t1) * 1e3
         try:
-            pins, _ = self.detector.detect(a)
+            # the dome box in gray: a view of a gray frame (a camera's luma plane, a
+            # file source with gray=True), converted here for a colour one
+            crop = self.detector.gray_crop(a)
+            t1b = clock()
+            timings["gray"] = (t1b - t1) * 1e3
+            pins, _ = self.detector.detect_gray(crop)
         except (ValueError, TypeError):
             return self._empty(i, t_s, faults | FAULT_BAD_FRAME, timings)
         binary = self.detector.binary

@@ -166,6 +166,73 @@ def test_detector_odd_and_even_crops_find_the_same_pins(dx, dy):
     np.testing.assert_array_equal(areas, ref_areas)
 
 
+def _reference_detect(frame, p, dome):
+    """The detector's answer the long way: gray, blur and cv2.adaptiveThreshold on the
+    whole dome box, AND the dome mask, label the whole box."""
+    det = PinDetector(p, frame.shape[:2], dome)
+    x0, y0, x1, y1 = det.box
+    g = np.ascontiguousarray(to_gray(frame)[y0:y1, x0:x1])
+    if p.blur_sigma_px > 0:
+        g = cv2.GaussianBlur(g, det.blur_ksize, p.blur_sigma_px)
+    mask = np.ascontiguousarray(dome_mask(frame.shape[:2], dome, p.roi_shrink)[y0:y1, x0:x1])
+    b = cv2.adaptiveThreshold(g, 255, cv2.ADAPTIVE_THRESH_MEAN_C, cv2.THRESH_BINARY, p.block,
+                              -p.offset)
+    b &= mask
+    xy, areas = components(b)
+    return b, xy + np.float32([x0, y0]), areas
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31), block=st.sampled_from([3, 5, 11, 31]),
+       offset=st.floats(-6.0, 40.0), sigma=st.sampled_from([0.0, 0.7, 1.0, 2.0]),
+       cx=st.floats(-20.0, 340.0), cy=st.floats(-20.0, 260.0), r=st.floats(3.0, 200.0),
+       shrink=st.sampled_from([0.5, 0.75, 1.0, 1.3]), colour=st.booleans())
+def test_detector_is_bit_identical_to_adaptive_threshold_on_the_whole_box(
+        seed, block, offset, sigma, cx, cy, r, shrink, colour):
+    """The detector thresholds and labels only the dome's pixels (box filter, saturating
+    subtraction under the mask, one threshold; labels on the even-aligned core): the
+    binary box, the pins, their order, their float32 centroids and areas are exactly
+    cv2.adaptiveThreshold's on the whole box, for any offset (fractional, negative),
+    block, blur and any dome, on or off the frame's edge."""
+    rng = np.random.default_rng(seed)
+    frame = render(ring_layout(), bgr=colour).astype(np.int16)
+    frame = np.clip(frame + rng.integers(-25, 26, frame.shape), 0, 255).astype(np.uint8)
+    p = VisionParams(block=block, offset=offset, blur_sigma_px=sigma, min_area_px=1,
+                     max_area_px=10_000, roi_shrink=shrink)
+    dome = (cx, cy, r)
+    det = PinDetector(p, frame.shape[:2], dome)
+    ref_b, ref_xy, ref_areas = _reference_detect(frame, p, dome)
+    xy, areas = det.detect(frame)
+    np.testing.assert_array_equal(det.binary, ref_b)
+    np.testing.assert_array_equal(xy, ref_xy)
+    np.testing.assert_array_equal(areas, ref_areas)
+    assert det.n_blobs == len(ref_areas)
+    all_xy, all_areas = det.detect_all(frame)
+    np.testing.assert_array_equal(all_xy, ref_xy)
+    np.testing.assert_array_equal(all_areas, ref_areas)
+
+
+def test_detector_gray_and_bgr_frames_give_the_same_pins():
+    """A gray frame (a camera's luma plane, a file source read with gray=True) gives
+    exactly the pins its colour original gives, and its dome box is read in place."""
+    frame = render(ring_layout(), bgr=True)
+    frame[:, :, 0] //= 2                                  # a real colour frame
+    gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    dome = find_dome(frame)
+    det = PinDetector(SYNTH_PARAMS, frame.shape[:2], dome)
+    xy_bgr, a_bgr = det.detect(frame)
+    b_bgr = det.binary.copy()
+    crop = det.gray_crop(gray)
+    assert np.shares_memory(crop, gray)                   # no copy, no conversion
+    xy_g, a_g = det.detect_gray(crop)
+    assert len(xy_g) == len(ring_layout())
+    np.testing.assert_array_equal(xy_g, xy_bgr)
+    np.testing.assert_array_equal(a_g, a_bgr)
+    np.testing.assert_array_equal(det.binary, b_bgr)
+    with pytest.raises(ValueError, match="frame shape"):
+        det.gray_crop(gray[:-1])
+
+
 # --------------------------------------------------------------------------
 # Property tests: degenerate frames never break the front end
 # --------------------------------------------------------------------------

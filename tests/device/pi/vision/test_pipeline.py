@@ -29,6 +29,39 @@ def test_real_rest_pin_count_is_steady(name, rest):
     assert np.all(np.abs(c - c.mean()) <= 0.03 * c.mean()), counts
 
 
+def _same_features(a, b):
+    for k in ("pins", "vectors", "lost", "grid"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    assert (a.faults, a.contact, a.shear_x, a.shear_y, a.magnitude_sum) == \
+        (b.faults, b.contact, b.shear_x, b.shear_y, b.magnitude_sum)
+
+
+@pytest.mark.real
+def test_real_gray_and_bgr_frames_give_identical_features():
+    """A gray source (a camera's luma plane, a file read with gray=True) gives the
+    pipeline exactly what the colour frames give: the same pins, vectors, grid and
+    faults on every frame of a real clip; its gray stage reads the frame in place."""
+    frames = read_video(real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi",
+                        count=40)
+    s_bgr, s_gray = MarkerStream("roboskin"), MarkerStream("roboskin")
+    for i, f in enumerate(frames):
+        a = s_bgr.process(f, i / 120.0)
+        b = s_gray.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), i / 120.0)
+        _same_features(a, b)
+        assert "gray" in b.timings_ms and "detect" in b.timings_ms
+    assert s_gray.reference is not None and len(b.pins) > 100
+
+
+def test_sim_gray_and_bgr_frames_give_identical_features():
+    s_gray, frames = referenced()
+    s_bgr, _ = referenced()
+    for i, g in enumerate(frames[-6:]):
+        a = s_gray.process(g, float(i))
+        b = s_bgr.process(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), float(i))
+        _same_features(a, b)
+    assert len(a.pins) > 0 and len(a.vectors) > 0
+
+
 # -- hard cases -------------------------------------------------------------------------
 
 def _check_finite(out):
