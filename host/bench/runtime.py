@@ -36,9 +36,30 @@ import sys
 from device.pi.runtime.loop import EXIT_BAD_INPUT
 from host.bench.costs import PI4_FACTOR
 
+# upper bounds on simulated hardware
 GOALS = {"latency_ms_p99": 2.0, "rss_mb_peak": 150.0}
-# goals that only a real recording is measured against (120 fps with room to spare)
-REAL_GOALS = {"throughput_fps": 500.0}
+# on a real recording (issue 25: 120 fps on a Pi 4 core, about 4x slower, with room
+# to spare): upper bounds, which replace GOALS', and a lower bound on throughput
+REAL_MAX = {"latency_ms_p50": 0.8, "latency_ms_p99": 1.5, "rss_mb_peak": 120.0}
+REAL_MIN = {"throughput_fps": 1000.0}
+
+
+def goals_for(real: bool) -> tuple[dict, dict]:
+    """(upper bounds, lower bounds) a runtime result is held to."""
+    return (dict(GOALS, **REAL_MAX), dict(REAL_MIN)) if real else (dict(GOALS), {})
+
+
+def goal_text(key: str, real: bool) -> str:
+    """The goal on ``key`` as a short text ("p99 <= 1.5 ms"), or "" for none."""
+    upper, lower = goals_for(real)
+    names = {"latency_ms_p50": ("p50", "ms"), "latency_ms_p99": ("p99", "ms"),
+             "rss_mb_peak": ("", "MB"), "throughput_fps": ("", "frames/s")}
+    name, unit = names.get(key, ("", ""))
+    if key in upper:
+        return f"{name + ' ' if name else ''}<= {upper[key]:g} {unit}".strip()
+    if key in lower:
+        return f">= {lower[key]:g} {unit}".strip()
+    return ""
 PACED_FPS = 120.0
 
 
@@ -195,11 +216,13 @@ def _bench_runs(frames, scene, models, camera, imu, child) -> dict:
         "cpu_count": os.cpu_count(), "load_avg_1min": round(os.getloadavg()[0], 2),
         "load_avg_1min_per_run": {"paced": paced["load_avg_1min"],
                                   "unpaced": fast["load_avg_1min"]},
-        "goals": dict(GOALS, **(REAL_GOALS if camera is not None else {})),
         "pi4_factor": PI4_FACTOR,
     }
-    res["meets"] = {k: (res[k] is not None and res[k] <= v) for k, v in GOALS.items()}
-    for k, v in (REAL_GOALS if camera is not None else {}).items():
+    upper, lower = goals_for(camera is not None)
+    res["goals"] = {**{k: f"<= {v:g}" for k, v in upper.items()},
+                    **{k: f">= {v:g}" for k, v in lower.items()}}
+    res["meets"] = {k: (res[k] is not None and res[k] <= v) for k, v in upper.items()}
+    for k, v in lower.items():
         res["meets"][k] = res[k] is not None and res[k] >= v
     res["meets"]["surface_packet_bytes"] = surface_bytes <= 32
     res["pi4"] = {k: pi4_estimate(res[k], kind) for k, kind in (
@@ -210,16 +233,18 @@ def _bench_runs(frames, scene, models, camera, imu, child) -> dict:
 
 def format_runtime(res: dict) -> str:
     ok = lambda k: "ok" if res["meets"].get(k) else "MISSED"  # noqa: E731
+    goal = lambda k: goal_text(k, bool(res.get("real")))     # noqa: E731
     return "\n".join([
         f"runtime on {res.get('source', 'simulated hardware')}, {res['frames']} frames, models: "
         f"{', '.join(res['models']) or 'rules only'}",
         f"  latency frame -> packet written  p50 {res['latency_ms_p50']:.3f} ms  "
-        f"p99 {res['latency_ms_p99']:.3f} ms  (goal p99 <= 2 ms: {ok('latency_ms_p99')})",
+        f"p99 {res['latency_ms_p99']:.3f} ms  (goal {goal('latency_ms_p99')}: "
+        f"{ok('latency_ms_p99')})",
         f"  throughput (unpaced)             {res['throughput_fps']:.1f} frames/s",
         f"  loop CPU time per frame          p50 {res['cpu_ms_per_frame_p50']:.3f} ms  "
         f"p99 {res['cpu_ms_per_frame_p99']:.3f} ms",
         f"  RSS peak (file sources, as Pi)   {res['rss_mb_peak']:.1f} MB  "
-        f"(goal <= 150 MB: {ok('rss_mb_peak')})"
+        f"(goal {goal('rss_mb_peak')}: {ok('rss_mb_peak')})"
         + ("" if res.get("rss_mb_peak_with_simulator") is None else
            f"; with the simulator in-process {res['rss_mb_peak_with_simulator']:.1f} MB"),
         f"  SURFACE packet on the wire       {res['surface_packet_bytes']} bytes  "
