@@ -26,9 +26,17 @@ the two (clamped at 0); those before the first frame at 0.
 Files roll over by size: ``run.mcap``, then ``run-0001.mcap``, ``run-0002.mcap``
 ... once a file reaches ``max_mb``. Each is a complete MCAP file with its own
 schemas and channels. The file is written unbuffered, one chunk per write (chunk
-size ``[mcap] chunk_kb``), so a crash loses at most the chunk being filled:
+size ``[mcap] chunk_kb``), so a crash loses at most the chunk being filled and what
+the writer thread had not yet taken (below; normally nothing, as it keeps up):
 :func:`read_log` reads the complete chunks of a file that has no footer, and
 :func:`recover` rewrites them as a well-formed file.
+
+The loop does not wait on the log (``background=True``, the runtime's): per frame it
+copies the values the messages need and queues them; a writer thread encodes them
+(the small messages from templates, :mod:`device.pi.runtime.mcapmsg`; the JPEG only
+on an image frame), compresses the chunks and writes them. When the writer falls
+:data:`QUEUE_ITEMS` frames and packets behind, the oldest is dropped and counted
+(``mcap_dropped``, and its messages in ``mcap_messages_lost``): the newest wins.
 
 The log is not the job: :class:`McapLog` never raises into the loop. A failed
 write (a full disk, a vanished mount, a bad frame) is counted in ``messages_lost``
@@ -45,88 +53,29 @@ base install runs without them.
 """
 from __future__ import annotations
 
-import base64
 import json
 import sys
+import threading
+import time
+from collections import deque
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from device.pi import protocol as P
-from device.pi.faults import fault_names
+from device.pi.runtime import mcapmsg as M
+from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module had)
+    CHANNELS, COMPRESSED_IMAGE, FRAME_ID, IMAGE_ANNOTATIONS, LINE_LIST, POINTS, annotations)
 
 #: after a failed write, the next file is tried this much later (runtime clock, s)
 RETRY_S = 1.0
 #: messages the live server queues per viewer before it drops the oldest
 LIVE_BACKLOG = 256
-#: the frame id the images and annotations share
-FRAME_ID = "tactip"
+#: frames and packets the writer thread holds before the oldest is dropped
+QUEUE_ITEMS = 128
+#: close() waits this long for the writer thread to write what is queued, s
+CLOSE_WAIT_S = 10.0
 INSTALL_HINT = "MCAP logging needs the viz extra: pip install .[viz]"
-
-_TIME = {"type": "object", "title": "time",
-         "properties": {"sec": {"type": "integer", "minimum": 0},
-                        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}
-_COLOR = {"type": "object", "title": "foxglove.Color",
-          "properties": {k: {"type": "number"} for k in ("r", "g", "b", "a")}}
-_POINT2 = {"type": "object", "title": "foxglove.Point2",
-           "properties": {"x": {"type": "number"}, "y": {"type": "number"}}}
-
-#: Foxglove's JSON schemas (https://github.com/foxglove/foxglove-sdk, schemas/jsonschema)
-COMPRESSED_IMAGE = {
-    "title": "foxglove.CompressedImage", "description": "A compressed image",
-    "type": "object",
-    "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                   "data": {"type": "string", "contentEncoding": "base64"},
-                   "format": {"type": "string"}}}
-IMAGE_ANNOTATIONS = {
-    "title": "foxglove.ImageAnnotations", "description": "Array of annotations for a 2D image",
-    "type": "object",
-    "properties": {
-        "circles": {"type": "array", "items": {"type": "object"}},
-        "points": {"type": "array", "items": {
-            "type": "object", "title": "foxglove.PointsAnnotation",
-            "properties": {
-                "timestamp": _TIME,
-                "type": {"title": "foxglove.PointsAnnotationType", "type": "integer",
-                         "oneOf": [{"title": n, "const": i} for i, n in enumerate(
-                             ("UNKNOWN", "POINTS", "LINE_LOOP", "LINE_STRIP", "LINE_LIST"))]},
-                "points": {"type": "array", "items": _POINT2},
-                "outline_color": _COLOR, "outline_colors": {"type": "array", "items": _COLOR},
-                "fill_color": _COLOR, "thickness": {"type": "number", "minimum": 0}}}},
-        "texts": {"type": "array", "items": {"type": "object"}}}}
-POINTS, LINE_LIST = 1, 4
-
-
-def _obj(title: str, **props) -> dict:
-    return {"title": title, "type": "object", "properties": props}
-
-
-_NUM, _INT, _STR, _BOOL = ({"type": "number"}, {"type": "integer"}, {"type": "string"},
-                           {"type": "boolean"})
-_NUMS = {"type": "array", "items": _NUM}
-_STRS = {"type": "array", "items": _STR}
-
-#: topic -> JSON schema (its title is the schema name)
-CHANNELS = {
-    "/tacfoot/image": COMPRESSED_IMAGE,
-    "/tacfoot/pins": IMAGE_ANNOTATIONS,
-    "/tacfoot/grid": _obj("tacfoot.ContactGrid", frame=_INT, n=_INT, cells=_NUMS,
-                          contact=_BOOL),
-    "/tacfoot/decision": _obj("tacfoot.Decision", frame=_INT, t_s=_NUM, **{"class": _STR},
-                              probs=_NUMS, surface_conf=_NUM, contact=_BOOL, slip=_BOOL,
-                              slip_conf=_NUM, texture=_STR, texture_conf=_NUM,
-                              pressure=_NUM, shear_dir_deg=_NUM, shear_mag_px=_NUM,
-                              pins=_INT, faults=_STRS, latency_ms=_NUM),
-    "/tacfoot/imu": _obj("tacfoot.Imu", frame=_INT, acc_g=_NUMS, gyro_dps=_NUMS,
-                         faults=_INT),
-    "/tacfoot/latency": _obj("tacfoot.Latency", frame=_INT, latency_ms=_NUM,
-                             pipeline_ms=_NUM),
-    "/tacfoot/packets/out": _obj("tacfoot.Packet", type=_STR, seq=_INT, t_ms=_INT),
-    "/tacfoot/packets/in": _obj("tacfoot.Packet", type=_STR, seq=_INT, t_ms=_INT),
-    "/tacfoot/faults": _obj("tacfoot.Faults", faults=_INT, names=_STRS, raised=_STRS,
-                            pins_lost=_INT),
-}
 
 
 class McapLogError(OSError):
@@ -146,12 +95,8 @@ def _mcap():
     return writer
 
 
-def _stamp(ns: int) -> dict:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-
-
-def _r(x, nd=4):
-    return None if x is None else round(float(x), nd)
+def _copy(a):
+    return None if a is None else np.array(a, copy=True)
 
 
 class _CountingFile:
@@ -186,10 +131,18 @@ class _CountingFile:
 class McapLog:
     """The runtime's MCAP writer. ``cfg`` is the leg config's ``[mcap]`` section;
     ``clock`` the runtime's. The runtime calls :meth:`frame` once per frame,
-    :meth:`packet` for every packet and :meth:`close` at the end."""
+    :meth:`packet` for every packet and :meth:`close` at the end.
+
+    ``background=True`` (the runtime's): :meth:`frame` and :meth:`packet` only copy
+    the frame's values and queue them; a writer thread encodes them, compresses the
+    chunks and writes the file, so the loop never waits on encoding or the disk. The
+    queue holds :data:`QUEUE_ITEMS` frames and packets; when the writer falls that
+    far behind, the oldest is dropped (the newest wins) and counted in ``dropped``
+    and, by its messages, in ``messages_lost``. ``background=False`` (the host's
+    offline commands, which must not drop): the caller's thread does the work."""
 
     def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None,
-                 live=None):
+                 live=None, background: bool = False):
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
         self.channels = {**CHANNELS, **(channels or {})}
         self.live = live             # a LiveView (--foxglove), or None
@@ -197,16 +150,31 @@ class McapLog:
         self.clock = clock
         self.files: list[str] = []
         self.messages_written = 0
-        self.messages_lost = 0
+        self._lost = 0               # the writer's failures (its thread)
+        self._dropped_msgs = 0       # messages of the items dropped from the queue
+        self.dropped = 0             # queue items (frames, packets) dropped
         self.warned = False
         self._w = None
         self._retry_at = None
         self._offset_s = None        # frame time - runtime clock, at the last frame
         self._frames = 0
+        self._q: deque | None = None
+        self._thread = None
+        self.loop_cpu_s = 0.0        # CPU the loop's thread spent in frame() and packet()
+        self.writer_cpu_s = 0.0      # CPU of the writer thread (background=True)
         self.path = None if path is None else Path(path)
         self._file_on = path is not None
-        if path is None:             # the live view alone
-            return
+        if path is not None:
+            self._open_first(path, max_mb)
+        if background:
+            self._q = deque()
+            self._wake = threading.Event()
+            self._closing = False
+            self._thread = threading.Thread(target=self._drain, name="mcap-writer",
+                                            daemon=True)
+            self._thread.start()
+
+    def _open_first(self, path, max_mb) -> None:
         self._writer_mod = _mcap()
         folder = self.path.resolve().parent
         if self.path.is_dir():
@@ -224,6 +192,11 @@ class McapLog:
             self._open()
         except OSError as exc:
             raise McapLogError(f"--mcap {str(path)!r}: {exc.strerror or exc}") from None
+
+    @property
+    def messages_lost(self) -> int:
+        """Messages not written: failed writes and the messages of dropped items."""
+        return self._lost + self._dropped_msgs
 
     # -- files -----------------------------------------------------------------
     def _open(self) -> None:
@@ -259,34 +232,76 @@ class McapLog:
         finally:
             self._fh.close()
 
+    # -- the queue (background=True) ---------------------------------------------
+    def _put(self, item: tuple, n_msgs: int) -> None:
+        """Queue ``(handler, args...)``; when full, the oldest item goes (counted)."""
+        q = self._q
+        if len(q) >= QUEUE_ITEMS:
+            try:
+                old = q.popleft()
+                self.dropped += 1
+                self._dropped_msgs += old[-1]
+            except IndexError:       # the writer took it meanwhile
+                pass
+        q.append(item + (n_msgs,))
+
+    def _drain(self) -> None:
+        """The writer thread: handle the queued items in order until closed."""
+        q, wake = self._q, self._wake
+        c0 = time.thread_time()
+        while True:
+            self.writer_cpu_s = time.thread_time() - c0
+            try:
+                fn, *args, _n = q.popleft()
+            except IndexError:
+                if self._closing:
+                    return
+                wake.wait(0.05)
+                wake.clear()
+                continue
+            try:
+                fn(*args)
+            except Exception as exc:
+                self._fail(exc)
+            time.sleep(0)            # let the loop thread have the GIL between items
+
+    def _do(self, fn, args: tuple, n_msgs: int) -> None:
+        if self._q is None:
+            try:
+                fn(*args)
+            except Exception as exc:
+                self._fail(exc)
+        else:
+            self._put((fn,) + args, n_msgs)
+
     # -- writing ---------------------------------------------------------------
     def write(self, topic: str, t_ns: int, doc: dict) -> None:
         """One message on ``topic`` at ``t_ns``; a failure is counted, never raised."""
-        self._write(topic, int(t_ns), doc)
+        self._do(self._write_doc, (topic, int(t_ns), doc), 1)
 
     def image(self, t_ns: int, image, ff, reference=None) -> None:
         """The frame on ``/tacfoot/image`` and its pins on ``/tacfoot/pins``."""
-        try:
-            self._image(int(t_ns), image, ff, reference)
-        except Exception as exc:
-            self._fail(exc)
+        self._do(self._image, (int(t_ns), _copy(image), _copy(ff.pins), _copy(ff.vectors),
+                               _copy(ff.lost), _copy(reference)), 2)
+
+    def _write_doc(self, topic: str, t_ns: int, doc: dict) -> None:
+        if self._on(topic):
+            self._write(topic, t_ns, json.dumps(doc, separators=(",", ":")).encode())
 
     def _on(self, topic: str) -> bool:
         """Whether a message on ``topic`` goes anywhere (the file, or a live viewer
         subscribed to it): nothing is built for a topic no one takes."""
         return self._file_on or (self.live is not None and self.live.wants(topic))
 
-    def _write(self, topic: str, t_ns: int, doc: dict) -> None:
-        data = None
+    def _write(self, topic: str, t_ns: int, data: bytes) -> None:
         if self.live is not None and self.live.wants(topic):
-            data = json.dumps(doc, separators=(",", ":")).encode()
             self.live.publish(topic, t_ns, data)
         if not self._file_on:
             return
         if self._w is None:
             now = self._now()
             if self._retry_at is None or now < self._retry_at:
-                self.messages_lost += 1
+                self._lost += 1
                 return
             try:
                 self._retry_at = None
@@ -294,8 +309,6 @@ class McapLog:
             except Exception as exc:
                 return self._fail(exc)
         try:
-            if data is None:
-                data = json.dumps(doc, separators=(",", ":")).encode()
             self._w.add_message(self._ids[topic], log_time=t_ns, publish_time=t_ns, data=data)
             self.messages_written += 1
             if self._fh.size >= self.max_bytes:
@@ -305,7 +318,7 @@ class McapLog:
             self._fail(exc)
 
     def _fail(self, exc: Exception) -> None:
-        self.messages_lost += 1
+        self._lost += 1
         if self._w is not None:
             self._drop_file()
         self._retry_at = self._now() + RETRY_S
@@ -330,77 +343,85 @@ class McapLog:
         """One frame: its decision line (``dec``, as --json-log writes it) and the
         :class:`~device.pi.runtime.decisions.Decision`, the camera frame and its
         encoding ``ef``, the IMU vector (acc g, gyro dps), the fault bits, when the
-        frame came and when its packet went (runtime clock, s) and the reference pins."""
+        frame came and when its packet went (runtime clock, s) and the reference pins.
+        On the loop's thread this copies what the messages need (the image only on
+        an image frame) and, in the background, queues it."""
+        c0 = time.thread_time()
+        t_s = float(frame.t_s)
+        self._offset_s = t_s - t_avail
+        n = self._frames
+        self._frames += 1
         if not self._file_on and not self.live.any():     # no file, no viewer: nothing
-            self._offset_s = float(frame.t_s) - t_avail
-            self._frames += 1
             return
         try:
             tex = getattr(decision, "texture", None)
-            self._frame(dict(dec, texture_conf=None if not tex else _r(tex[1])), frame, ef,
-                        imu, faults, t_avail, t_done, reference)
+            t = max(0, int(round(t_s * 1e9)))
+            ff = ef.features
+            img = None
+            if n % self.cfg.image_every == 0:
+                img = (_copy(frame.image), _copy(ff.pins), _copy(ff.vectors), _copy(ff.lost),
+                       _copy(reference))
+            args = (dec, None if not tex else round(float(tex[1]), 4), t, img,
+                    _copy(ff.grid), bool(ff.contact), _copy(imu), int(faults),
+                    (t_done - t_avail) * 1e3)
         except Exception as exc:            # never into the loop
-            self._fail(exc)
+            return self._fail(exc)
+        self._do(self._frame, args, 6 if img is not None else 4)
+        if self._q is not None:
+            self._wake.set()
+        self.loop_cpu_s += time.thread_time() - c0
 
-    def _frame(self, dec, frame, ef, imu, faults, t_avail, t_done, reference) -> None:
-        t_s = float(frame.t_s)
-        self._offset_s = t_s - t_avail
-        t = max(0, int(round(t_s * 1e9)))
+    def _frame(self, dec, tex_conf, t, img, grid, contact, imu, faults, pipeline_ms) -> None:
         k = int(dec["frame"])
-        ff = ef.features
-        if self._frames % self.cfg.image_every == 0 and (
-                self._on("/tacfoot/image") or self._on("/tacfoot/pins")):
-            self._image(t, frame.image, ff, reference)
-        self._frames += 1
-        g = np.asarray(ff.grid, np.float64)
-        self._write("/tacfoot/grid", t, {"frame": k, "n": int(g.shape[0]),
-                                         "cells": np.round(g.ravel(), 3).tolist(),
-                                         "contact": bool(ff.contact)})
-        probs = dec.get("probs") or [0.0]
-        self._write("/tacfoot/decision", t, dict(dec, surface_conf=round(max(probs), 4)))
-        imu = np.asarray(imu, np.float64)
-        self._write("/tacfoot/imu", t, {"frame": k, "acc_g": [_r(x, 5) for x in imu[:3]],
-                                        "gyro_dps": [_r(x, 4) for x in imu[3:6]],
-                                        "faults": int(faults)})
-        self._write("/tacfoot/latency", t, {"frame": k, "latency_ms": dec.get("latency_ms"),
-                                            "pipeline_ms": _r((t_done - t_avail) * 1e3)})
+        if img is not None and (self._on("/tacfoot/image") or self._on("/tacfoot/pins")):
+            self._image(t, *img)
+        if self._on("/tacfoot/grid"):
+            self._write("/tacfoot/grid", t, M.grid_bytes(k, grid, contact))
+        if self._on("/tacfoot/decision"):
+            self._write("/tacfoot/decision", t, M.decision_bytes(dec, tex_conf))
+        if self._on("/tacfoot/imu"):
+            self._write("/tacfoot/imu", t, M.imu_bytes(k, imu, faults))
+        if self._on("/tacfoot/latency"):
+            self._write("/tacfoot/latency", t,
+                        M.latency_bytes(k, dec.get("latency_ms"), pipeline_ms))
 
-    def _image(self, t: int, image, ff, reference) -> None:
-        img = np.asarray(image)
-        h, w = img.shape[:2]
-        s = self.cfg.image_width / float(w)
-        small = cv2.resize(img, (self.cfg.image_width, max(1, int(round(h * s)))),
-                           interpolation=cv2.INTER_AREA)
-        ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY,
-                                                self.cfg.jpeg_quality])
-        if not ok:
-            raise ValueError("cv2.imencode refused the frame")
-        stamp = _stamp(t)
-        self._write("/tacfoot/image", t, {"timestamp": stamp, "frame_id": FRAME_ID,
-                                          "format": "jpeg",
-                                          "data": base64.b64encode(buf).decode("ascii")})
-        self._write("/tacfoot/pins", t, annotations(stamp, ff, reference, s,
-                                                    self.cfg.vector_scale))
+    def _image(self, t: int, image, pins, vectors, lost, reference) -> None:
+        jpg, s = M.jpeg(image, self.cfg.image_width, self.cfg.jpeg_quality)
+        self._write("/tacfoot/image", t, M.image_bytes(t, jpg))
+        self._write("/tacfoot/pins", t, M.annotations_bytes(t, pins, vectors, lost, reference,
+                                                            s, self.cfg.vector_scale))
 
     def packet(self, direction: str, msg, clock_s: float, seq=None, t_ms=None) -> None:
         """A packet sent (``direction`` "out") or received ("in"), decoded; a FAULT
         sent is also logged on ``/tacfoot/faults``."""
-        topic = f"/tacfoot/packets/{direction}"
-        if not (self._on(topic) or self._on("/tacfoot/faults")):
+        if not self._file_on and not self.live.any():
             return
-        try:
-            t = self._t_ns(clock_s)
-            d = P.message_dict(msg)
-            d.update(seq=seq, t_ms=t_ms)
-            self._write(topic, t, d)
-            if direction == "out" and isinstance(msg, P.Fault):
-                self._write("/tacfoot/faults", t, {
-                    "faults": int(msg.faults), "names": fault_names(msg.faults),
-                    "raised": fault_names(msg.raised), "pins_lost": int(msg.pins_lost)})
-        except Exception as exc:
-            self._fail(exc)
+        c0 = time.thread_time()
+        fault = direction == "out" and isinstance(msg, P.Fault)
+        self._do(self._packet, (f"/tacfoot/packets/{direction}", msg, self._t_ns(clock_s),
+                                seq, t_ms, fault), 2 if fault else 1)
+        self.loop_cpu_s += time.thread_time() - c0
+
+    def _packet(self, topic, msg, t, seq, t_ms, fault) -> None:
+        if self._on(topic):
+            self._write(topic, t, M.packet_bytes(msg, seq, t_ms))
+        if fault and self._on("/tacfoot/faults"):
+            self._write("/tacfoot/faults", t, M.faults_bytes(msg))
 
     def close(self) -> None:
+        """Write what is queued (waiting at most :data:`CLOSE_WAIT_S`), end the
+        file with its summary and stop the live view."""
+        if self._thread is not None:
+            self._closing = True
+            self._wake.set()
+            self._thread.join(CLOSE_WAIT_S)
+            if self._thread.is_alive():          # the disk hangs: leave it, count it
+                self._dropped_msgs += sum(x[-1] for x in list(self._q))
+                self._thread = None
+                if self.live is not None:
+                    self.live.close()
+                return
+            self._thread = None
         if self.live is not None:
             self.live.close()
         if self._w is None:
@@ -412,7 +433,9 @@ class McapLog:
 
     def status(self) -> dict:
         st = {"mcap_messages_written": self.messages_written,
-              "mcap_messages_lost": self.messages_lost, "mcap_files": list(self.files)}
+              "mcap_messages_lost": self.messages_lost, "mcap_dropped": self.dropped,
+              "mcap_files": list(self.files), "mcap_loop_cpu_s": round(self.loop_cpu_s, 4),
+              "mcap_writer_cpu_s": round(self.writer_cpu_s, 4)}
         if self.live is not None:
             st.update(self.live.status())
         return st
@@ -484,30 +507,6 @@ def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int
         raise ValueError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
                          f"(e.g. 8765 or 0.0.0.0:8765)")
     return (host or default_host), p
-
-
-def annotations(stamp: dict, ff, reference, scale: float, vector_scale: float) -> dict:
-    """foxglove.ImageAnnotations: one point per detected pin (green) and, for each
-    reference pin still tracked, a segment from its reference place along its
-    vector times ``vector_scale`` (red); pixel coordinates times ``scale``."""
-    pins = np.round(np.asarray(ff.pins, np.float64).reshape(-1, 2) * scale, 2)
-    pts = [{"x": x, "y": y} for x, y in pins.tolist()]
-    segs = []
-    if reference is not None and len(reference) == len(ff.vectors):
-        ref = np.asarray(reference, np.float64).reshape(-1, 2)
-        ok = ~np.asarray(ff.lost, bool)
-        a = ref[ok] * scale
-        b = (ref[ok] + vector_scale * np.asarray(ff.vectors, np.float64)[ok]) * scale
-        ends = np.round(np.stack([a, b], 1).reshape(-1, 2), 2)    # a0, b0, a1, b1 ...
-        segs = [{"x": x, "y": y} for x, y in ends.tolist()]
-    green = {"r": 0.1, "g": 0.9, "b": 0.2, "a": 1.0}
-    red = {"r": 1.0, "g": 0.2, "b": 0.1, "a": 1.0}
-    none = {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.0}
-    return {"circles": [], "texts": [], "points": [
-        {"timestamp": stamp, "type": POINTS, "points": pts, "outline_color": green,
-         "outline_colors": [], "fill_color": green, "thickness": 3.0},
-        {"timestamp": stamp, "type": LINE_LIST, "points": segs, "outline_color": red,
-         "outline_colors": [], "fill_color": none, "thickness": 1.5}]}
 
 
 # ---------------------------------------------------------------------------

@@ -358,3 +358,66 @@ def test_a_websocket_client_receives_the_live_channels(tmp_path):
     assert proc.returncode == 0, err
     st = json.loads(out)
     assert st["foxglove_messages_sent"] >= 10 and st["mcap_files"] == []
+
+
+def test_in_the_background_the_loop_never_waits_and_the_newest_wins(tmp_path, monkeypatch):
+    """background=True (the runtime's): with the writer stuck on the disk, frame()
+    still returns at once; past QUEUE_ITEMS queued, the oldest frames are dropped and
+    counted, and once the disk is back the newest frames are written."""
+    import threading
+    stuck = threading.Event()
+    real = McapLog._write
+
+    def slow(self, *a):
+        stuck.wait(30)
+        return real(self, *a)
+    monkeypatch.setattr(McapLog, "_write", slow)
+    log = McapLog(tmp_path / "bg.mcap", McapConfig(image_every=1000, image_width=32),
+                  clock=lambda: 0.0, background=True)
+    n = mcaplog.QUEUE_ITEMS + 50
+    t0 = time.perf_counter()
+    for k in range(n):
+        log.frame(*_frame_args(k, t_s=0.01 * (k + 1)))
+    assert time.perf_counter() - t0 < 5.0          # nothing waited on the stuck writer
+    assert log.messages_written == 0
+    assert 49 <= log.dropped <= 51                # the writer may hold one frame
+    assert log.messages_lost >= 4 * 49            # four messages a frame without an image
+    stuck.set()
+    log.close()
+    msgs, complete = read_log(tmp_path / "bg.mcap")
+    frames = [m["data"]["frame"] for m in msgs if m["topic"] == "/tacfoot/decision"]
+    assert complete and frames[-1] == n - 1       # the newest got through
+    assert len(frames) == n - log.dropped and frames == sorted(frames)
+    assert log.status()["mcap_dropped"] == log.dropped
+    assert log.status()["mcap_writer_cpu_s"] >= 0 and log.loop_cpu_s > 0
+
+
+def test_in_the_background_close_writes_everything_queued(tmp_path):
+    log = McapLog(tmp_path / "all.mcap", McapConfig(image_every=2, image_width=32),
+                  clock=lambda: 0.0, background=True)
+    for k in range(40):
+        log.frame(*_frame_args(k, t_s=0.01 * (k + 1)))
+        log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), 0.01 * k, k, 10)
+    log.close()
+    m = _by_topic(tmp_path / "all.mcap")
+    assert [x[4]["frame"] for x in m["/tacfoot/decision"]] == list(range(40))
+    assert len(m["/tacfoot/image"]) == len(m["/tacfoot/pins"]) == 20
+    assert len(m["/tacfoot/packets/out"]) == len(m["/tacfoot/faults"]) == 40
+    assert log.dropped == 0 and log.messages_lost == 0
+    assert log.messages_written == sum(len(v) for v in m.values()) == 40 * 6 + 20 * 2
+
+
+def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path):
+    """The writer encodes later: a frame's grid and image are copied at frame() so a
+    buffer the loop overwrites afterwards does not change what was logged."""
+    log = McapLog(tmp_path / "cp.mcap", McapConfig(image_every=1, image_width=32),
+                  clock=lambda: 0.0, background=True)
+    args = list(_frame_args(0))
+    args[3].features.grid = np.full((3, 3), 0.5)
+    log.frame(*args)
+    args[3].features.grid[:] = 9.0                # the loop reuses the buffer
+    args[3].features.pins[:] = -50.0
+    log.close()
+    m = _by_topic(tmp_path / "cp.mcap")
+    assert m["/tacfoot/grid"][0][4]["cells"] == [0.5] * 9
+    assert m["/tacfoot/pins"][0][4]["points"][0]["points"][0] == {"x": 5.0, "y": 10.0}
