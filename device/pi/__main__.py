@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             live = LiveView(*parse_hostport(args.foxglove)) if args.foxglove else None
             rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
-                              live=live)
+                              live=live, background=True)
         except (McapLogError, ValueError) as exc:
             print(f"device.pi run: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
