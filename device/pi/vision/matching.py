@@ -5,20 +5,20 @@ shape ``(m,)``: ``idx[i]`` is the row of the second cloud that point ``i`` of th
 first matches, or ``-1``. No point is used twice.
 
     match_pins     shortest distance with a gate, one to one (greedy by
-                   distance, done as rounds of mutual nearest neighbours on
-                   one matrix product)
+                   distance, done as rounds of mutual best pairs among the
+                   pairs within the gate, found on a cell grid)
     mutual_match   one round: pairs that are each other's nearest within a gate
 """
 
 from __future__ import annotations
 
-import threading
+import math
 
 import numpy as np
 
 from device.checks import positive_number
 
-__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "MAX_COORD_PX", "as_points", "usable_rows",
+__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "gated_pairs", "MAX_COORD_PX", "as_points", "usable_rows",
            "all_rows_usable"]
 
 
@@ -59,59 +59,6 @@ def all_rows_usable(a: np.ndarray) -> bool:
 # One-to-one matching
 # --------------------------------------------------------------------------
 
-#: Above this coordinate spread (px) the score matrices are float64, below it
-#: float32 (half the memory traffic; score rounding ~0.015 px^2 at 500 px).
-_F32_SPREAD_PX = 1024.0
-
-
-class _Scratch(threading.local):
-    """Per-thread score buffers for :func:`match_pins`, grown on demand.
-
-    Fresh (m, n) matrices of a few hundred kB cost more in page faults than
-    the arithmetic, so they are reused from call to call.
-    """
-
-    def __init__(self) -> None:
-        self.bufs: dict = {}
-
-    def get(self, key: str, size: int, dtype) -> np.ndarray:
-        b = self.bufs.get((key, dtype))
-        if b is None or b.size < size:
-            b = np.empty(max(size, 64), dtype)
-            self.bufs[(key, dtype)] = b
-        return b[:size]
-
-
-_SCRATCH = _Scratch()
-
-
-def _homogeneous(r: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``ut = [x, y, 1]`` and ``vt = [2x, 2y, -|p|^2]`` of both sets (3, m+n).
-
-    ``ut[:, a] . vt[:, b] = 2 p_a.p_b - |p_b|^2 = |p_a|^2 - |p_a - p_b|^2``, so a
-    row argmax of ``ut[:, :m].T @ vt[:, m:]`` is each reference pin's nearest
-    current pin. Both sets are first shifted to the first reference pin, for
-    precision. Coordinates are kept as rows (x row, y row) so every numpy
-    loop runs along the long axis.
-    """
-    m, n = r.shape[0], c.shape[0]
-    k = m + n
-    qt = _SCRATCH.get("qt", 2 * k, np.float64).reshape(2, k)
-    sq = _SCRATCH.get("sq", k, np.float64)
-    np.subtract(r.T, r[0, :, None], out=qt[:, :m])
-    np.subtract(c.T, r[0, :, None], out=qt[:, m:])
-    dt = np.float32 if max(qt.max(), -qt.min()) < _F32_SPREAD_PX else np.float64
-    ut = _SCRATCH.get("ut", 3 * k, dt).reshape(3, k)
-    vt = _SCRATCH.get("vt", 3 * k, dt).reshape(3, k)
-    ut[:2] = qt
-    ut[2] = 1.0
-    np.multiply(qt, 2.0, out=vt[:2], casting="unsafe")
-    np.multiply(qt[0], qt[0], out=sq)
-    sq += qt[1] * qt[1]
-    np.negative(sq, out=vt[2], casting="unsafe")
-    return ut, vt
-
-
 def pair_d2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Squared distances (m, n) between the rows of ``a`` (m, 2) and ``b`` (n, 2):
     ``(ax - bx)^2 + (ay - by)^2``, without a (m, n, 2) temporary."""
@@ -123,78 +70,131 @@ def pair_d2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return dx
 
 
-#: up to this many (reference, current) pairs the scores are exact squared
-#: distances by broadcasting; above it, one matrix product (:func:`_homogeneous`)
+#: up to this many (reference, current) pairs every pair is scored (one small
+#: matrix, the tracker's re-searches for a handful of lost pins); above it only
+#: the pairs a cell grid puts within the gate (:func:`gated_pairs`)
 _SMALL_PAIRS = 4096
+#: cells are this much wider than the gate, so float rounding of the cell
+#: coordinates can never put a pair within the gate two cells apart
+_CELL_MARGIN = 1.0 + 1e-6
+#: at most this many cells along an axis of the +-MAX_COORD_PX square: the keys
+#: (float64) stay exact integers, and cells are never narrower than 2e6 / 2^21 px
+_MAX_CELLS = float(1 << 21)
+
+
+def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair of a row of ``r`` (m, 2) and a row of ``c`` (n, 2), both usable
+    (finite, within +-MAX_COORD_PX), with squared distance <= ``max_d2``:
+    ``rows``, ``cols`` (int64) and ``d2`` (float64), ``rows`` ascending.
+
+    A cell grid with cells about one gate wide: the current pins are sorted by
+    cell key, and each reference pin looks up its own and the eight
+    neighbouring cells as three key ranges (a column of three cells is
+    contiguous in the key order), by binary search. The work is
+    O((m + n) log n) plus the number of candidate pairs, not O(m n). ``d2``
+    is ``(rx - cx)^2 + (ry - cy)^2``, the same numbers as :func:`pair_d2`.
+    """
+    m = r.shape[0]
+    cell = max(math.sqrt(max_d2) * _CELL_MARGIN, 2.0 * MAX_COORD_PX / (_MAX_CELLS - 4.0))
+    ny = math.floor(2.0 * MAX_COORD_PX / cell) + 3.0
+    # cell coordinates of both sets, from the corner of the usable square (all >= 0),
+    # folded into one key (kx + 1) * ny + ky + 1: exact integers in float64
+    t = np.concatenate((r, c))
+    t *= 1.0 / cell
+    t += MAX_COORD_PX / cell + 1.0
+    np.floor(t, out=t)
+    key = t @ np.array([ny, 1.0])
+    order = np.argsort(key[m:], kind="stable")
+    sk = key[m:][order]
+    # each reference pin's cell columns kx-1, kx, kx+1, each from ky-1 to ky+1: the
+    # keys from q - 1 to q + 1, q = key + dx * ny (start and end of each range)
+    q = key[:m, None] + np.array([-ny - 1.0, -1.0, ny - 1.0, 2.0 - ny, 2.0, ny + 2.0])
+    ab = np.searchsorted(sk, q)
+    a = ab[:, :3].ravel()
+    cnt = ab[:, 3:].ravel() - a
+    total = int(cnt.sum())
+    if total == 0:
+        e = np.zeros(0, np.int64)
+        return e, e, np.zeros(0, np.float64)
+    rows = np.repeat(np.arange(m), cnt.reshape(m, 3).sum(axis=1))
+    start = np.cumsum(cnt)
+    start -= cnt
+    a -= start
+    cols = order[np.repeat(a, cnt) + np.arange(total)]
+    d = r[rows] - c[cols]
+    d *= d
+    d2 = d[:, 0] + d[:, 1]
+    keep = d2 <= max_d2
+    return rows[keep], cols[keep], d2[keep]
+
+
+def _greedy_pairs(rows: np.ndarray, cols: np.ndarray, d2: np.ndarray, m: int, n: int,
+                  idx: np.ndarray) -> None:
+    """Greedy-by-distance one-to-one choice among candidate pairs; writes ``idx``.
+
+    ``rows`` must come grouped (equal values together). Pairs are ranked by
+    ``d2``, ties by their order in the arrays (a strict order). Fast paths:
+    every pin has at most one candidate and none is shared; or every
+    reference pin's best pair goes to a different current pin (that is the
+    greedy answer). Otherwise rounds of
+    mutual best pairs give the same pairs as taking the best free pair again
+    and again: the best free pair is always mutually best, and a mutually
+    best pair can never be taken away by a better one. Each round takes at
+    least the best remaining pair and drops the pairs of pins taken.
+    """
+    k = d2.size
+    if k == 0:
+        return
+    # the common case (a gate well under the pin spacing): every pin has at most one
+    # candidate (rows come grouped) and no candidate is shared
+    if (k == 1 or bool((rows[1:] != rows[:-1]).all())) and np.bincount(cols).max() <= 1:
+        idx[rows] = cols
+        return
+    rank = np.empty(k, np.int64)
+    rank[np.argsort(d2, kind="stable")] = np.arange(k)
+    best_r = np.full(m, k, np.int64)
+    np.minimum.at(best_r, rows, rank)
+    first = rank == best_r[rows]                           # each row's best pair
+    hits = cols[first]
+    if np.bincount(hits, minlength=n).max() <= 1:
+        idx[rows[first]] = hits
+        return
+    free_r = np.ones(m, bool)
+    free_c = np.ones(n, bool)
+    while True:
+        best_c = np.full(n, k, np.int64)
+        np.minimum.at(best_c, cols, rank)
+        take = first & (rank == best_c[cols])
+        tr, tc = rows[take], cols[take]
+        idx[tr] = tc
+        free_r[tr] = False
+        free_c[tc] = False
+        keep = free_r[rows] & free_c[cols]
+        if not keep.any():
+            return
+        rows, cols, rank = rows[keep], cols[keep], rank[keep]
+        best_r = np.full(m, k, np.int64)
+        np.minimum.at(best_r, rows, rank)
+        first = rank == best_r[rows]
 
 
 def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> None:
     """Greedy-by-distance one-to-one matching of finite points; writes ``idx`` in place.
 
-    Fast path: when every reference pin's nearest current pin is different,
-    each gets its first choice and that is the greedy answer. Otherwise rounds
-    of mutual nearest neighbours give the same pairs as taking the globally
-    closest free pair again and again: the closest free pair is always a
-    mutual nearest pair, and a mutual nearest pair can never be taken away by
-    a closer pair. Later rounds work on the still-free pins only, on
-    sub-matrices of the same scores (a pin's score does not depend on the
-    others).
+    Few pairs: every pair is scored (:func:`pair_d2`); many: only the pairs
+    within the gate, found on a cell grid (:func:`gated_pairs`), so the cost
+    grows with the pin count, not with its square. Either way the pairs are
+    the exact squared distances, and the choice is :func:`_greedy_pairs`.
     """
     m, n = r.shape[0], c.shape[0]
-    small = m * n <= _SMALL_PAIRS
-    if small:
-        # few pairs (the tracker's re-searches for a handful of lost pins): the
-        # exact negative squared distances, without the product's set-up
-        s_rc = pair_d2(r, c)
-        np.negative(s_rc, out=s_rc)
+    if m * n <= _SMALL_PAIRS:
+        d2 = pair_d2(r, c).ravel()
+        near = np.flatnonzero(d2 <= max_d2)
+        rows, cols = np.divmod(near, n)
+        d2 = d2[near]
     else:
-        ut, vt = _homogeneous(r, c)
-        s_rc = _SCRATCH.get("s_rc", m * n, ut.dtype).reshape(m, n)
-        np.matmul(ut[:, :m].T, vt[:, m:], out=s_rc)
-    nn_r = s_rc.argmax(axis=1)
-    if small:
-        d2 = -s_rc.max(axis=1)             # the exact distances already
-    else:
-        d = r - c[nn_r]
-        d *= d
-        d2 = d[:, 0] + d[:, 1]
-    reach = d2 <= max_d2
-    hits = nn_r[reach]
-    if np.bincount(hits, minlength=n).max(initial=0) <= 1:
-        idx[reach] = hits
-        return
-    if small:
-        s_cr = s_rc.T
-    else:
-        s_cr = _SCRATCH.get("s_cr", m * n, ut.dtype).reshape(n, m)
-        np.matmul(ut[:, m:].T, vt[:, :m], out=s_cr)
-    nn_c = s_cr.argmax(axis=1)
-    rows = np.arange(m)
-    cols = np.arange(n)
-    while True:
-        take = (nn_c[nn_r] == np.arange(rows.size)) & reach
-        if not take.any():
-            # Only (near-)exact ties get here, when rounding breaks the
-            # symmetry of the two argmax passes: take the closest pair alone.
-            take[int(np.argmin(np.where(reach, d2, np.inf)))] = True
-        idx[rows[take]] = cols[nn_r[take]]
-        # A reference pin whose nearest free pin is out of reach never matches.
-        keep_r = reach & ~take
-        if not keep_r.any():
-            return
-        keep_c = np.ones(cols.size, bool)
-        keep_c[nn_r[take]] = False
-        if not keep_c.any():
-            return
-        rows, cols = rows[keep_r], cols[keep_c]
-        nn_r = s_rc[np.ix_(rows, cols)].argmax(axis=1)
-        nn_c = s_cr[np.ix_(cols, rows)].argmax(axis=1)
-        d = r[rows] - c[cols[nn_r]]
-        d *= d
-        d2 = d[:, 0] + d[:, 1]
-        reach = d2 <= max_d2
-        if not reach.any():
-            return
+        rows, cols, d2 = gated_pairs(r, c, max_d2)
+    _greedy_pairs(rows, cols, d2, m, n, idx)
 
 
 def mutual_match(pred: np.ndarray, det: np.ndarray, gate_px: float) -> np.ndarray:
@@ -234,9 +234,10 @@ def match_pins(ref, cur, max_dist_px: float) -> np.ndarray:
     no current pin is used twice and a pin is not swapped with a neighbour
     that is closer to someone else. Rows with NaN, inf or a coordinate beyond
     ``MAX_COORD_PX`` never match.
-    ``m = 0`` or ``n = 0`` gives an empty / all -1 result. Distances that tie
-    to within float32 rounding (below 0.1 px^2 for point sets up to 1024 px
-    across; float64 beyond) are broken arbitrarily.
+    ``m = 0`` or ``n = 0`` gives an empty / all -1 result. Distances are exact
+    float64; pairs at exactly the same distance are taken in an arbitrary but
+    fixed order. The cost grows with m + n (only pairs within the gate are
+    scored, see :func:`gated_pairs`), not with m x n.
     """
     gate = positive_number("max_dist_px", max_dist_px)
     r = as_points("ref", ref)

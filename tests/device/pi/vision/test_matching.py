@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision.matching import match_pins, match_pins_unchecked, mutual_match
+from device.pi.vision.matching import gated_pairs, match_pins, match_pins_unchecked, mutual_match
 from tests.pins import hex_pins
 from tests.pins import points
 
@@ -162,10 +162,9 @@ def test_match_permutation_dropout_duplicates(n, seed, drop, n_dup, n_extra):
 @given(m=st.integers(1, 160), n=st.integers(1, 160), seed=st.integers(0, 2**31 - 1),
        gate=st.floats(0.5, 30.0))
 def test_unchecked_matching_is_the_greedy_answer_small_and_large(m, n, seed, gate):
-    """Few pairs take the exact-distance path, many the matrix-product path: both
-    are the greedy answer (to the product's float32 rounding, which check_greedy
-    allows for), and the same as match_pins. Up to 40 x 40 pins (the exact path)
-    it is the slow reference's answer itself."""
+    """Few pairs take the all-pairs path, many the cell-grid path: both are the
+    greedy answer and the same as match_pins; up to 40 x 40 pins the slow
+    reference's answer itself."""
     rng = np.random.default_rng(seed)
     ref = rng.integers(0, 400, (m, 2)).astype(np.float64) + rng.random((m, 2)) * 1e-3
     cur = np.vstack([ref[rng.permutation(m)[:min(m, n)]] + rng.normal(0, gate / 2, (min(m, n), 2)),
@@ -233,3 +232,82 @@ def test_a_bad_point_set_is_named_and_the_result_is_int64():
     for cur in (np.zeros((0, 2)), np.array([[0.5, 0.0]]), np.array([[np.nan, 0.0], [0.5, 0]])):
         idx = match_pins(np.zeros((2, 2)), cur, 2.0)
         assert idx.dtype == np.int64 and idx.shape == (2,)
+
+
+# -- the cell-grid matching (issue 25): the same pairs and answer as brute force ---------
+
+def brute_pairs(ref, cur, max_d2):
+    d2 = pair_d2(ref, cur)
+    rows, cols = np.nonzero(d2 <= max_d2)
+    return {(int(i), int(j)): float(d2[i, j]) for i, j in zip(rows, cols)}
+
+
+_centre = st.sampled_from([0.0, 333.3, -1.0e6 + 3000.0, 1.0e6 - 3000.0])   # all within +-1e6
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(m=st.integers(0, 120), n=st.integers(0, 120), seed=st.integers(0, 2**31 - 1),
+       gate=st.sampled_from([0.01, 0.5, 1.0, 3.0, 5.0, 12.0, 40.0]), centre=_centre,
+       lattice=st.booleans())
+def test_gated_pairs_are_exactly_the_pairs_within_the_gate(m, n, seed, gate, centre, lattice):
+    """Every pair within the gate and no other, with the brute-force squared
+    distances to the bit: on random points, and on an integer lattice where many
+    pairs lie exactly at the gate and on cell borders (gate 5: 3-4-5 triangles),
+    near the origin and near the edges of the usable square (+-1e6 px)."""
+    rng = np.random.default_rng(seed)
+    if lattice:
+        ref = rng.integers(-20, 20, (m, 2)).astype(np.float64) + centre
+        cur = rng.integers(-20, 20, (n, 2)).astype(np.float64) + centre
+    else:
+        spread = 50.0 * gate if gate > 0.1 else 10.0
+        ref = centre + rng.uniform(-spread, spread, (m, 2))
+        cur = np.vstack([ref[: n // 2] + rng.normal(0, gate, (min(n // 2, m), 2)),
+                         centre + rng.uniform(-spread, spread, (n - min(n // 2, m), 2))])
+    rows, cols, d2 = gated_pairs(ref, cur, gate * gate)
+    got = {(int(i), int(j)): float(v) for i, j, v in zip(rows, cols, d2)}
+    assert len(got) == rows.size                         # no pair twice
+    assert got == brute_pairs(ref, cur, gate * gate)
+    assert (np.diff(rows) >= 0).all()                    # grouped by row
+
+
+def test_gated_pairs_keeps_pairs_exactly_at_the_gate_across_cells():
+    ref = np.array([[0.0, 0.0], [10.0, 10.0], [-7.0, 3.0]])
+    cur = np.array([[3.0, 4.0], [10.0, 15.0], [-7.0, -2.0], [5.0, 0.0], [6.0, 0.0]])
+    rows, cols, d2 = gated_pairs(ref, cur, 25.0)
+    assert sorted(zip(rows.tolist(), cols.tolist())) == [(0, 0), (0, 3), (1, 1), (2, 2)]
+    assert d2.tolist() == [25.0] * 4
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(m=st.integers(0, 150), n=st.integers(0, 150), seed=st.integers(0, 2**31 - 1),
+       gate=st.floats(0.3, 40.0), centre=_centre, crowd=st.floats(0.2, 3.0))
+def test_grid_matching_is_the_brute_force_greedy_answer(m, n, seed, gate, centre, crowd):
+    """The fast matcher gives the slow greedy reference's assignment on random point
+    sets: empty sets, 0 and 1 pins, crowded sets (many candidates per pin, so the
+    rounds of mutual best pairs run), sparse ones, and coordinates near +-1e6 px."""
+    rng = np.random.default_rng(seed)
+    spread = crowd * gate * math.sqrt(max(m, n, 1))
+    ref = centre + rng.uniform(-spread, spread, (m, 2))
+    k = min(m, n)
+    cur = np.vstack([ref[rng.permutation(m)[:k]] + rng.normal(0, gate / 2, (k, 2)),
+                     centre + rng.uniform(-spread, spread, (n - k, 2))])[rng.permutation(n)]
+    idx = match_pins_unchecked(ref, cur, gate)
+    assert idx.dtype == np.int64 and idx.shape == (m,)
+    assert (idx == greedy_reference(ref, cur, gate)).all()
+    assert (idx == match_pins(ref, cur, gate)).all()
+
+
+def test_grid_matching_resolves_a_chain_of_shared_candidates():
+    """A row of pins each with two candidates, the nearer one shared with the next
+    pin: only the greedy order (closest pair first, then the next free one) gives
+    this answer; enough pins for the cell-grid path."""
+    x = np.arange(100) * 10.0
+    ref = np.stack([x, np.zeros(100)], 1)
+    cur = np.stack([x + 4.0 + np.linspace(0, 0.5, 100), np.zeros(100)], 1)
+    idx = match_pins_unchecked(ref, cur, 7.0)
+    assert (idx == greedy_reference(ref, cur, 7.0)).all()
+    assert (idx == np.arange(100)).all()                 # each pin's own right neighbour
+    # shifted past half the spacing the nearest is the left neighbour's: pin 0 loses out
+    idx = match_pins_unchecked(ref, cur + [2.0, 0.0], 7.0)
+    assert (idx == greedy_reference(ref, cur + [2.0, 0.0], 7.0)).all()
+    assert idx[0] == -1 and (idx[1:] == np.arange(99)).all()
