@@ -73,10 +73,10 @@ def config_profile_file(cfg: Path) -> Path | None:
 
 def check_models_profile(models: Path | None, cfg: Path | None) -> dict | None:
     """The one sensor profile the models of a release carry (their specs), checked
-    against the profile the leg will run with (the config's ``models.profile``, or
-    the default config's): DeployInputError naming both files and hashes when they
-    differ or when two models carry different profiles (the leg would refuse to
-    start). None without models."""
+    against the profile the config sets (``models.profile``; a config that does not
+    set it runs the models' profile): DeployInputError naming both files and hashes
+    when they differ or when two models carry different profiles (the leg would
+    refuse to start). None without models."""
     from device.pi.models.artefact import ModelError, read_spec
     from host.learn.onnx_io import models_profile
 
@@ -90,16 +90,17 @@ def check_models_profile(models: Path | None, cfg: Path | None) -> dict | None:
         return models_profile(specs, leg)[1]
     except (ModelError, ConfigError, ValueError) as exc:
         raise DeployInputError(f"{cfg or 'the default leg config'}: models.profile: "
-                               + str(exc).replace("drop --profile", "set models.profile to "
-                                                                    "the models' profile")
+                               + str(exc).replace("drop --profile", "remove models.profile "
+                                                                    "(the leg then runs the "
+                                                                    "models' profile)")
                                ) from None
 
 
-def _leg_profile(cfg: Path | None) -> str:
-    """The ``models.profile`` the leg will run with: the config's (a relative .toml
-    beside it), else the default config's. Only this key is read here; the leg
-    checks the rest of the config."""
-    from device.pi.runtime.config import DEFAULT_CONFIG, LegConfig
+def _leg_profile(cfg: Path | None) -> str | None:
+    """The ``models.profile`` the config sets (a relative .toml beside it), else the
+    default config's; None when neither sets it (the leg runs the models' profile).
+    Only this key is read here; the leg checks the rest of the config."""
+    from device.pi.runtime.config import DEFAULT_CONFIG
 
     path = cfg if cfg is not None else DEFAULT_CONFIG
     try:
@@ -109,7 +110,7 @@ def _leg_profile(cfg: Path | None) -> str:
     models = doc.get("models") if isinstance(doc, dict) else None
     prof = models.get("profile") if isinstance(models, dict) else None
     if not isinstance(prof, str) or not prof.strip():
-        return LegConfig().models.profile
+        return None
     if prof.endswith(".toml") and not Path(prof).is_absolute():
         return str(Path(path).parent / prof)
     return prof

@@ -15,8 +15,7 @@ import numpy as np
 from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST,
                                       ort_session, sha256_file)
 from device.pi.models.spec import (METRIC_KEYS, ModelSpec, SpecError, check_same_profiles,
-                                   profile_record)
-from device.profile import PROFILE_DIR
+                                   profile_record, profile_source)
 from host.data.dataset import atomic_write, atomic_write_text
 
 __all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
@@ -61,25 +60,6 @@ def spec_profile(profile) -> dict:
     else:
         rec = profile_record(profile if profile is not None else "roboskin")
     return {k: rec[k] for k in ("name", "n_pins", "sha256", "toml")}
-
-
-def profile_source(profile: dict) -> str:
-    """A profile name or ``.toml`` path that loads the spec's ``profile`` record: the
-    built-in of that name when its content is the same (same hash), else the
-    record's text written once to a file named by its hash under the temp folder."""
-    import tempfile
-
-    name = str(profile["name"])
-    if (PROFILE_DIR / f"{name}.toml").is_file() and \
-            profile_record(name)["sha256"] == profile["sha256"]:
-        return name
-    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "profile"
-    path = Path(tempfile.gettempdir()) / "tacfoot-profiles" / profile["sha256"][:16] / \
-        f"{safe}.toml"
-    if not path.is_file():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path, profile["toml"])
-    return str(path)
 
 
 def models_profile(specs: dict, given=None) -> tuple[str, dict]:

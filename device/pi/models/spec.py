@@ -54,7 +54,7 @@ from device.profile import PROFILE_DIR, builtin_toml, parse_pipeline_profile
 
 __all__ = ["ModelSpec", "SpecError", "SPEC_VERSION", "METRIC_KEYS", "DATA_SOURCES",
            "profile_record", "profile_hash", "profile_from_text", "same_profile",
-           "check_same_profiles"]
+           "check_same_profiles", "profile_source"]
 
 #: the manifest version this schema reads and writes
 SPEC_VERSION = 2
@@ -110,6 +110,29 @@ def profile_record(name_or_path: str | Path) -> dict:
     if rec["name"] in ("", "custom"):
         rec["name"] = Path(p).stem
     return dict(rec, path=str(p))
+
+
+def profile_source(profile: dict) -> str:
+    """A profile name or ``.toml`` path that loads the spec's ``profile`` record: the
+    built-in of that name when its content is the same (same hash), else the
+    record's text written once to a file named by its hash under the temp folder
+    (so the pipeline, the layout and the runtime read the model's own sensor)."""
+    import os
+    import tempfile
+
+    name = str(profile["name"])
+    if (PROFILE_DIR / f"{name}.toml").is_file() and \
+            profile_record(name)["sha256"] == profile["sha256"]:
+        return name
+    safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in name) or "profile"
+    path = Path(tempfile.gettempdir()) / "tacfoot-profiles" / str(profile["sha256"])[:16] / \
+        f"{safe}.toml"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(profile["toml"])
+        os.replace(tmp, path)          # another process reading it sees all or nothing
+    return str(path)
 
 
 def same_profile(a: dict, b: dict) -> bool:

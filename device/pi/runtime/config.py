@@ -13,7 +13,8 @@ Sections and keys (units in the names)::
     [imu]      summary_hz (IMU summary packets per second)
     [serial]   baudrate, stall_ms (bytes waiting and none accepted this long = link
                fault), heartbeat_hz, fault_repeat_s (FAULT repeated while a fault lasts)
-    [models]   variant ("int8" | "float"), profile (pipeline profile name or .toml),
+    [models]   variant ("int8" | "float"), profile (pipeline profile name or .toml;
+               unset: the profile the models carry, roboskin without models),
                window_T (frames in the rule fallback's window), localiser (bool: load
                and run the fixed-count localiser on every frame; off by default, as no
                decision reads its pins)
@@ -76,6 +77,9 @@ class ModelsConfig:
     profile: str = "roboskin"
     window_T: int = 3
     localiser: bool = False
+    #: the config names ``profile``; otherwise the runtime runs the profile the models
+    #: carry (their model spec), and ``profile`` only without models
+    profile_set: bool = False
 
 
 @dataclass
@@ -173,7 +177,8 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
         variant=m.string("variant", d.models.variant, choices=("int8", "float")),
         profile=m.string("profile", d.models.profile),
         window_T=m.integer("window_T", d.models.window_T, min=1, max=100),
-        localiser=m.boolean("localiser", d.models.localiser))
+        localiser=m.boolean("localiser", d.models.localiser),
+        profile_set=m.has("profile"))
     m.done()
     if not mod.profile.strip():
         m.fail("models.profile", mod.profile, "must name a profile")

@@ -7,21 +7,27 @@ required, the folder as a whole against its signed ``models-set.json``
 emptied or changed, or an unsigned one added, and the leg refuses to start.
 
 Every model carries the sensor profile it was trained for (its model spec,
-:mod:`device.pi.models.spec`): models of one folder that carry different profiles,
-or a config whose ``models.profile`` is not the models' profile, are refused,
-naming both files and hashes; :attr:`Models.profile` is the models' profile."""
+:mod:`device.pi.models.spec`), and the models' profile is the one the runtime runs:
+:attr:`Models.profile` is its record and :attr:`Models.profile_source` the name or
+path the pipeline and the pin layout load. Models of one folder that carry different
+profiles, or a config that sets ``models.profile`` to another profile, are refused,
+naming both files and hashes; a config that does not set it runs the models'
+profile (``models.profile``'s default, roboskin, only without models)."""
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from device.pi.models.artefact import MANIFEST, ModelError, manifest_for
-from device.pi.models.spec import ModelSpec, SpecError, check_same_profiles, profile_record
+from device.pi.models.spec import (ModelSpec, SpecError, check_same_profiles, profile_record,
+                                   profile_source)
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
 from device.pi.models.window import RollingWindow
 from device.pi.runtime.config import LegConfig
+from device.pi.vision.layout import layout_for_profile
 from device.pi.models.localiser import Localiser
 from device.pi.models.signature import check_manifest, check_model_set
 
@@ -39,6 +45,7 @@ class Models:
     rule: object | None = None          # the rule classifier (always present)
     loaded: tuple = ()
     profile: dict | None = None         # the models' sensor profile record (None: none loaded)
+    profile_source: str | None = None   # the profile name or .toml path the runtime runs
 
 
 def default_models_dir() -> Path:
@@ -87,8 +94,25 @@ def check_profiles(m: Models, profile: str | None) -> dict | None:
         given = profile_record(profile) if profile is not None and recs else None
         return check_same_profiles(recs, given) if recs else None
     except (SpecError, ValueError) as exc:
-        raise ModelError(str(exc).replace("drop --profile", "set models.profile to the "
-                                                            "models' profile")) from None
+        raise ModelError(str(exc).replace(
+            "drop --profile", "remove models.profile from the leg config (the runtime then "
+                              "runs the models' profile)")) from None
+
+
+def runtime_profile(m: Models, cfg: LegConfig) -> tuple[dict | None, str]:
+    """(the models' profile record, the profile name or path the runtime runs): the
+    models' profile, checked against ``models.profile`` when the config sets it;
+    the config's (default) profile when no model is loaded."""
+    given = cfg.models.profile if cfg.models.profile_set else None
+    rec = check_profiles(m, given)
+    if rec is None or given is not None:
+        return rec, cfg.models.profile
+    return rec, profile_source(rec)
+
+
+def layout_pins(profile: str) -> int:
+    """M, the pins of a profile's fixed layout (LayoutError naming the profile)."""
+    return int(len(layout_for_profile(profile)))
 
 
 def _check_inputs(m: Models, n_pins: int) -> None:
@@ -110,12 +134,14 @@ def _check_inputs(m: Models, n_pins: int) -> None:
                              f"the {n_pins}-pin layout gives {x.size}")
 
 
-def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int,
+def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int | None,
                 cfg: LegConfig) -> Models:
     """Every model present in ``models_dir`` (surface, texture, slip, pressure, and
     the localiser when ``cfg.models.localiser``), loaded once. Raises ModelError
     naming the file for a bad one, and naming both when the models carry different
-    sensor profiles or ``cfg.models.profile`` is not theirs."""
+    sensor profiles or the config sets a ``models.profile`` that is not theirs.
+    ``profile_n_pins`` None: the pins of the profile the runtime runs
+    (:func:`runtime_profile`)."""
     m = Models()
     loaded = []
     d = Path(models_dir) if models_dir is not None else default_models_dir()
@@ -144,6 +170,9 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         if pick is not None:
             m.localiser = Localiser.load(checked(pick / "manifest.json"))
             loaded.append(pick.name)
+    m.profile, m.profile_source = runtime_profile(m, cfg)
+    if profile_n_pins is None:
+        profile_n_pins = layout_pins(m.profile_source)
     s = m.surface
     if isinstance(s, RuleClassifier) and list(s.classes) == list(SURFACE_CLASSES):
         m.rule = s
@@ -154,7 +183,23 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
                                             manifest=s.manifest, path=s.path)
     else:
         m.rule = rule_from_config(cfg, profile_n_pins)
-    m.profile = check_profiles(m, cfg.models.profile)
     _check_inputs(m, profile_n_pins)
     m.loaded = tuple(loaded)
     return m
+
+
+def check_models_folder(models_dir, fail) -> None:
+    """Refuse one model's folder given for the models folder (it would load nothing
+    and run the rules alone); warn when the folder holds no model."""
+    d = Path(models_dir)
+    if not d.is_dir():
+        return                                # load_models names the missing folder
+    if (d / "manifest.json").is_file() or any(d.glob("*.onnx")):
+        fail(f"--models {str(models_dir)!r} is one model's folder (it holds "
+             f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
+             f"give the folder that holds surface/, texture/, slip/ and pressure/, "
+             f"e.g. {d.parent}")
+    tasks = (*CLASSIFIER_TASKS, "pressure")
+    if not any((d / t).is_dir() for t in tasks):
+        print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
+              f"({', '.join(tasks)}); running the rules only", file=sys.stderr)

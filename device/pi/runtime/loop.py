@@ -42,7 +42,7 @@ from device.pi.runtime.decisions import (GaitContext, decide, expected_context, 
                                          gait_from_message)
 from device.pi.runtime.feed import CameraFeed
 from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
-from device.pi.runtime.load import CLASSIFIER_TASKS, Models, load_models
+from device.pi.runtime.load import Models, check_models_folder, load_models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
 from device.pi.runtime.stats import BoundedStats
@@ -51,7 +51,6 @@ from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
 from device.pi.sources.options import opt_bool
 from device.pi.vision.encoder import FrameEncoder
-from device.pi.vision.layout import layout_for_profile
 from device.profile import load_pipeline_profile
 
 #: a live camera that delivered nothing for this long is closed and reopened
@@ -87,7 +86,8 @@ class LegRuntime:
         self.models = models
         need_crop = any(getattr(c, "input_layout", "") == "frames"
                         for c in (models.surface, models.texture, models.slip) if c is not None)
-        self.encoder = FrameEncoder(cfg.models.profile, crop_px=CROP_PX if need_crop else None,
+        self.encoder = FrameEncoder(models.profile_source or cfg.models.profile,
+                                    crop_px=CROP_PX if need_crop else None,
                                     localiser=models.localiser)
         self.stream = self.encoder.stream
         self.n_pins = self.encoder.n_pins
@@ -541,11 +541,11 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         if not os.access(folder, os.W_OK):
             fail(f"--status {status!r}: the folder {folder} is not writable")
     if models_dir is not None:
-        _check_models_folder(models_dir, fail)
+        check_models_folder(models_dir, fail)
     try:
-        n_pins = _layout_pins(cfg.models.profile)
+        # the pins and the pipeline are the models' profile's (their model spec)
         models = load_models(models_dir, "float" if float_models else cfg.models.variant,
-                             n_pins, cfg)
+                             None, cfg)
     except (ModelError, ValueError) as exc:
         fail(str(exc))
     try:
@@ -576,24 +576,3 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
                       fps=cfg.camera.fps,
                       json_log=log, status_path=status, max_frames=frames, first_camera=first,
                       notify=notify, camera_opts=opts if live else None)
-
-
-def _check_models_folder(models_dir, fail) -> None:
-    """Refuse one model's folder given for the models folder (it would load nothing
-    and run the rules alone); warn when the folder holds no model."""
-    d = Path(models_dir)
-    if not d.is_dir():
-        return                                # load_models names the missing folder
-    if (d / "manifest.json").is_file() or any(d.glob("*.onnx")):
-        fail(f"--models {str(models_dir)!r} is one model's folder (it holds "
-             f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
-             f"give the folder that holds surface/, texture/, slip/ and pressure/, "
-             f"e.g. {d.parent}")
-    tasks = (*CLASSIFIER_TASKS, "pressure")
-    if not any((d / t).is_dir() for t in tasks):
-        print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
-              f"({', '.join(tasks)}); running the rules only", file=sys.stderr)
-
-
-def _layout_pins(profile: str) -> int:
-    return int(len(layout_for_profile(profile)))

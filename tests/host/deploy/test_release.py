@@ -401,7 +401,8 @@ def test_unreachable_pi_and_nothing_to_roll_back_give_clear_errors(pi, tmp_path)
 
 def test_a_release_whose_models_carry_another_profile_than_its_config_is_refused(tmp_path):
     """The leg would refuse such models at start; deploy says so before staging,
-    naming both profiles (files, pin counts, hashes)."""
+    naming both profiles (files, pin counts, hashes). A config that sets no profile
+    (the default) runs the models' profile."""
     import json
     import shutil
 
@@ -416,10 +417,14 @@ def test_a_release_whose_models_carry_another_profile_than_its_config_is_refused
         spec = ModelSpec.from_manifest(json.loads(mf.read_text()), mf)
         spec.profile = {k: v for k, v in profile_record("tactip331").items() if k != "path"}
         mf.write_text(json.dumps(spec.to_manifest()))
+    # the default config sets no profile: the leg runs the models' own
+    assert check_models_profile(models, None)["n_pins"] == 331
+    cfg = tmp_path / "leg.toml"
+    cfg.write_text('[models]\nprofile = "roboskin"\n')
     with pytest.raises(DeployInputError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not "
                                                r"the model's: .*pressure/manifest\.json "
-                                               r"\(tactip331, 331 pins.*set models\.profile"):
-        check_models_profile(models, None)
-    cfg = tmp_path / "leg.toml"
+                                               r"\(tactip331, 331 pins.*remove "
+                                               r"models\.profile"):
+        check_models_profile(models, cfg)
     cfg.write_text('[models]\nprofile = "tactip331"\n')
     assert check_models_profile(models, cfg)["n_pins"] == 331

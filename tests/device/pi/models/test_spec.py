@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from device.pi.models.spec import (METRIC_KEYS, SPEC_VERSION, ModelSpec, SpecError,
-                                   check_same_profiles, profile_record)
+                                   check_same_profiles, profile_from_text, profile_record)
 
 ROOT = Path(__file__).resolve().parents[4]
 
@@ -82,3 +82,19 @@ def test_every_shipped_manifest_follows_the_spec_and_names_its_sensor():
         spec = ModelSpec.from_manifest(json.loads(m.read_text()), m)
         assert spec.profile["name"] == "roboskin" and spec.n_pins == 133
         assert spec.trained_on["data"] in ("real", "simulated", "real+simulated")
+
+
+def test_profile_source_loads_the_records_own_profile(tmp_path):
+    """A built-in profile's record names the built-in; a calibrated one (any other
+    content) is written to a file that loads the same record, so the runtime runs
+    the model's own sensor."""
+    from device.pi.models.spec import profile_source
+
+    rob = profile_record("roboskin")
+    assert profile_source(rob) == "roboskin"
+    text = rob["toml"].replace("n_pins = 133", "n_pins = 132", 1)
+    assert text != rob["toml"]
+    own = profile_from_text(text, "roboskin")
+    src = profile_source(own)
+    assert src.endswith(".toml") and profile_record(src)["sha256"] == own["sha256"]
+    assert profile_source(own) == src            # written once, by its hash

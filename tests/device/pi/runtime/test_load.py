@@ -257,6 +257,60 @@ def test_models_carrying_different_profiles_or_another_than_the_configs_are_refu
     other = tmp_path / "other"
     other.mkdir()
     _with_profile(model_dir / "pressure", other / "pressure", "tactip331")
+    explicit = parse_leg_config({"models": {"profile": "roboskin"}})
     with pytest.raises(ModelError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not the "
                                          r"model's: .*pressure/manifest\.json \(tactip331"):
-        load_models(other, "int8", 133, cfg)
+        load_models(other, "int8", 133, explicit)
+
+
+@pytest.fixture(scope="module")
+def tactip331_models(tmp_path_factory):
+    """A models folder whose pressure ridge was trained for the 331-pin tactip331
+    profile (not the config's default roboskin)."""
+    from host.learn.train import train_model
+    from tests.windows import synthetic
+
+    d = tmp_path_factory.mktemp("models331")
+    wp = synthetic(n_groups=4, per_group=6, n_pins=331, Tn=2, targets=True, imu=False)
+    train_model("pressure", "ridge", wp, out_dir=d / "pressure", progress=False,
+                profile="tactip331")
+    return d
+
+
+def test_a_config_without_a_profile_runs_the_models_profile(tactip331_models, tmp_path):
+    """Issue #23: models written for tactip331 run under a config that names no
+    profile: the models' profile is the runtime's, its pipeline maps onto the 331-pin
+    layout, and the pressure model gets a window of its size."""
+    from device.pi.runtime.loop import build_runtime
+    from device.pi.vision.layout import layout_for_profile
+
+    cfg = parse_leg_config({})
+    assert cfg.models.profile == "roboskin" and not cfg.models.profile_set
+    m = load_models(tactip331_models, "int8", None, cfg)
+    assert m.profile["name"] == "tactip331" and m.profile["n_pins"] == 331
+    assert m.profile_source == "tactip331"
+    rt = build_runtime("sim://press-hard", "none", "loop://", models_dir=tactip331_models,
+                       frames=3, notify=lambda s: None)
+    assert rt.n_pins == 331 and rt.encoder.n_pins == 331
+    np.testing.assert_array_equal(rt.encoder.mapper.layout_px, layout_for_profile("tactip331"))
+    assert rt.models.pressure.n_features == rt.windows[rt.models.pressure.T].encode(
+        "vectors").size
+    assert rt.run() == 0 and rt.frames == 3
+
+
+def test_a_config_that_sets_another_profile_than_the_models_is_refused(tactip331_models):
+    """An explicit models.profile that is not the models' stays an error naming both
+    files, pin counts and hashes, and saying how to fix it."""
+    explicit = parse_leg_config({"models": {"profile": "roboskin"}})
+    assert explicit.models.profile_set
+    with pytest.raises(ModelError, match=r"roboskin\.toml \(roboskin, 133 pins.*is not the "
+                                         r"model's: .*pressure/manifest\.json \(tactip331, "
+                                         r"331 pins.*remove models\.profile"):
+        load_models(tactip331_models, "int8", None, explicit)
+    same = parse_leg_config({"models": {"profile": "tactip331"}})
+    assert load_models(tactip331_models, "int8", None, same).profile_source == "tactip331"
+
+
+def test_without_models_the_configs_profile_runs(tmp_path):
+    m = load_models(tmp_path, "int8", None, parse_leg_config({}))
+    assert m.profile is None and m.profile_source == "roboskin" and m.rule.n_pins == 133
