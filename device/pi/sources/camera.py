@@ -28,13 +28,20 @@ arguments win. An option a source does not know is a ``ValueError`` naming it.
 * sim: ``seed`` (int, default 0).
 * v4l2: ``width``, ``height`` (int), ``fps`` (float in 1..1000), ``fourcc`` (4 chars, e.g.
   MJPG or YUYV), ``buffersize`` (int, default 1: always the newest frame).
+* every source: ``gray`` (bool, default false): frames come as HxW gray uint8,
+  converted in ``read()`` (the runtime's grab thread), so the marker pipeline reads the
+  dome box in place and its loop converts nothing. A decoded colour frame is converted
+  with the pipeline's own ``cv2.cvtColor`` (the same pins to the bit); a V4L2 camera
+  in YUYV / UYVY / GREY hands over its luma plane without decoding colour
+  (``device/pi/sources/luma.py``: the colour path's gray for neutral pixels). Simulator
+  frames are gray already.
 
 A video file whose header declares a rate outside 1..1000 frames/s (a broken
 or odd header) is read at :data:`DEFAULT_FILE_FPS`, with a warning on stderr; a
 simulated scene's rate is checked when the scene loads. A live camera that
 reports such a rate counts as one whose rate is unknown.
 
-Images are returned as decoded: video frames as HxWx3 BGR uint8; folder images with
+Without ``gray``, images are returned as decoded: video frames as HxWx3 BGR uint8; folder images with
 ``cv2.IMREAD_UNCHANGED`` (a grayscale PNG stays HxW; an alpha channel is dropped);
 simulator frames as HxW gray. Each ``read()`` returns a new array, so frames can be
 kept (e.g. as a reference frame).
@@ -57,6 +64,7 @@ import cv2
 import numpy as np
 
 from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
+from device.pi.sources.luma import PACKED_YUV, PLANE_GRAY, luma_plane, to_gray_frame
 from device.pi.sources.options import opt_bool, opt_fps, opt_int, parse_options
 from device.closing import Closing
 
@@ -128,7 +136,8 @@ def _plausible_fps(fps) -> bool:
     return math.isfinite(fps) and FPS_MIN_HZ <= fps <= FPS_MAX_HZ
 
 
-_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_fps, "realtime": opt_bool}
+_STREAM_OPTS = {"start_frame": opt_int, "end_frame": opt_int, "fps": opt_fps, "realtime": opt_bool,
+                "gray": opt_bool}
 
 
 # ------------------------------------------------------------------ base class
@@ -220,9 +229,12 @@ class VideoFileSource(CameraSource):
     """A video file read with cv2.VideoCapture."""
 
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
-                 fps: float | None = None, realtime: bool = False, source: str | None = None):
+                 fps: float | None = None, realtime: bool = False, gray: bool = False,
+                 source: str | None = None):
         super().__init__()
         path, start, end, fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
+        self.gray = opt_bool("gray", gray)
+        self._decoded = None              # gray: the decode buffer, reused
         if not path.is_file():
             raise CameraError(errno.ENOENT, "no such video file", str(path))
         self._cap = cv2.VideoCapture(str(path))
@@ -260,11 +272,15 @@ class VideoFileSource(CameraSource):
     def _next(self):
         if self._eof or (self._end is not None and self._index >= self._end):
             return None
-        ok, image = self._cap.read()
+        if not self.gray:
+            ok, image = self._cap.read()
+        else:                             # decode into one buffer; the gray copy is new
+            ok, image = self._cap.read(self._decoded)
+            self._decoded = image
         if not ok or image is None:
             self._eof = True
             return None
-        return image, None
+        return (to_gray_frame(image) if self.gray else image), None
 
     def _release(self) -> None:
         self._cap.release()
@@ -285,9 +301,11 @@ class ImageFolderSource(CameraSource):
     """Images from a folder (natural order by name), or a single image file."""
 
     def __init__(self, path, *, start_frame: int = 0, end_frame: int | None = None,
-                 fps: float | None = None, realtime: bool = False, source: str | None = None):
+                 fps: float | None = None, realtime: bool = False, gray: bool = False,
+                 source: str | None = None):
         super().__init__()
         path, start, end, self.fps = self._open_file(path, source, start_frame, end_frame, fps, realtime)
+        self.gray = opt_bool("gray", gray)
         if path.is_dir():
             files = [p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()]
             files.sort(key=lambda p: natural_key(p.name))
@@ -335,7 +353,7 @@ class ImageFolderSource(CameraSource):
             raise BadFrameError(errno.EINVAL,
                                 f"image is {image.shape[1]}x{image.shape[0]}, the folder's first "
                                 f"is {self.width}x{self.height}", str(self.files[i]))
-        return image, None
+        return (to_gray_frame(image) if self.gray else image), None
 
 
 # ------------------------------------------------------------------ simulator
@@ -344,7 +362,8 @@ class SimSource(CameraSource):
     simulator and its per-frame ground truth."""
 
     def __init__(self, scene: str, *, seed: int = 0, start_frame: int = 0, end_frame: int | None = None,
-                 fps: float | None = None, realtime: bool = False, source: str | None = None):
+                 fps: float | None = None, realtime: bool = False, gray: bool = True,
+                 source: str | None = None):
         super().__init__()
         from device.sim import Simulator, load_scene   # lazy: the Pi never needs the simulator
 
@@ -372,7 +391,7 @@ class SimSource(CameraSource):
         i = self._index
         if i >= self._stop:
             return None
-        image = np.asarray(self.sim.render(i))
+        image = np.asarray(self.sim.render(i))          # gray already (``gray`` is moot)
         if image.dtype != np.uint8 or image.shape[:2] != (self.height, self.width):
             raise CameraError(errno.EINVAL,
                               f"simulator rendered {image.dtype}{image.shape} for frame {i}, expected "
@@ -389,7 +408,7 @@ class V4L2Source(CameraSource):
 
     def __init__(self, device: str | int, *, width: int | None = None, height: int | None = None,
                  fps: float | None = None, fourcc: str | None = None, buffersize: int = 1,
-                 source: str | None = None):
+                 gray: bool = False, source: str | None = None):
         super().__init__()
         self.device = device
         self.source = source if source is not None else f"v4l2://{device}"
@@ -431,6 +450,13 @@ class V4L2Source(CameraSource):
         code = int(cap.get(cv2.CAP_PROP_FOURCC))
         self.fourcc = "".join(chr((code >> (8 * k)) & 0xFF) for k in range(4)) if code > 0 else None
         self.n_frames = None
+        self.gray = opt_bool("gray", gray)
+        # gray from a YUV or GREY camera: the raw buffer's luma plane, no colour decode;
+        # from any other format (MJPG): the decoded frame, converted once here
+        self._raw = None
+        if self.gray and (self.fourcc in PACKED_YUV or self.fourcc in PLANE_GRAY):
+            if cap.set(cv2.CAP_PROP_CONVERT_RGB, 0):
+                self._raw = self.fourcc
 
     def _next(self):
         if not self._cap.grab():
@@ -439,7 +465,19 @@ class V4L2Source(CameraSource):
         ok, image = self._cap.retrieve()
         if not ok or image is None:
             raise CameraError(errno.EIO, "camera retrieve failed", str(self.device))
+        if self.gray:
+            image = self._gray(image)
         return image, t
+
+    def _gray(self, image: np.ndarray) -> np.ndarray:
+        """The retrieved frame in gray: the luma plane of a raw buffer, else converted
+        (a backend that ignored CONVERT_RGB gives a BGR frame of the right size)."""
+        if self._raw is not None and not (image.ndim == 3 and image.shape[2] == 3):
+            try:
+                return luma_plane(image, self.width, self.height, self._raw)
+            except ValueError as exc:
+                raise CameraError(errno.EIO, f"camera buffer: {exc}", str(self.device)) from None
+        return to_gray_frame(image)
 
     def _release(self) -> None:
         self._cap.release()
@@ -447,7 +485,7 @@ class V4L2Source(CameraSource):
 
 # ------------------------------------------------------------------ factory
 _V4L2_OPTS = {"width": opt_int, "height": opt_int, "fps": opt_fps, "fourcc": _opt_fourcc,
-              "buffersize": opt_int}
+              "buffersize": opt_int, "gray": opt_bool}
 _SIM_OPTS = {**_STREAM_OPTS, "seed": opt_int}
 
 

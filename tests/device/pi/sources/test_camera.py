@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from device.pi.sources import camera
 from device.pi.sources.camera import (CameraError, Frame, ImageFolderSource, SimSource,
                                       V4L2Source, VideoFileSource, natural_key, open_camera)
+from device.pi.sources.luma import yuv_luma_table
 from tests.realdata import real_data_dir
 
 
@@ -535,3 +536,104 @@ def test_a_live_camera_reporting_an_implausible_rate_counts_as_unknown(tmp_path,
     monkeypatch.setattr(camera.cv2, "VideoCapture", Odd)
     with open_camera(f"v4l2://{dev}?width=64&height=48") as cam:
         assert cam.fps is None
+
+
+# ------------------------------------------------------------------ gray from the source
+def test_video_file_gray_is_the_pipelines_gray_of_each_frame(clip):
+    """gray=True: each frame is HxW uint8, exactly cv2.cvtColor of the frame the colour
+    source gives (so the marker pipeline finds the same pins), and a new array."""
+    with open_camera(str(clip)) as bgr_cam, open_camera(f"file://{clip}?gray=1") as cam:
+        assert cam.gray and not bgr_cam.gray
+        frames = list(cam)
+        colour = list(bgr_cam)
+    assert len(frames) == len(colour) == N
+    for f, c in zip(frames, colour):
+        assert f.index == c.index and f.t_s == c.t_s
+        assert f.image.shape == (H, W) and f.image.dtype == np.uint8
+        np.testing.assert_array_equal(f.image, cv2.cvtColor(c.image, cv2.COLOR_BGR2GRAY))
+    assert not np.shares_memory(frames[0].image, frames[1].image)
+    with open_camera(str(clip), gray=True, start_frame=3, end_frame=5) as cam:
+        assert [f.index for f in cam] == [3, 4]
+    with pytest.raises(ValueError, match="gray must be a bool"):
+        open_camera(f"file://{clip}?gray=maybe")
+
+
+def test_image_folder_gray(tmp_path):
+    rng = np.random.default_rng(3)
+    imgs = [rng.integers(0, 256, (12, 16, 3), dtype=np.uint8) for _ in range(3)]
+    for i, im in enumerate(imgs):
+        cv2.imwrite(str(tmp_path / f"im_{i}.png"), im)
+    with open_camera(str(tmp_path) + "/", gray=True) as cam:
+        got = [f.image for f in cam]
+    assert [g.shape for g in got] == [(12, 16)] * 3
+    for g, im in zip(got, imgs):
+        np.testing.assert_array_equal(g, cv2.cvtColor(im, cv2.COLOR_BGR2GRAY))
+
+
+class RawCapture(FakeCapture):
+    """A V4L2 capture whose buffers are YUYV / GREY bytes: raw with CONVERT_RGB off,
+    decoded to BGR (OpenCV's colour path) with it on."""
+
+    luma = None                    # (h, w) uint8 luma of every frame
+
+    def retrieve(self):
+        fourcc = int(self.props[cv2.CAP_PROP_FOURCC])
+        y = RawCapture.luma
+        h, w = y.shape
+        if fourcc == cv2.VideoWriter_fourcc(*"GREY"):
+            raw = y.reshape(1, -1).copy()
+            bgr = cv2.cvtColor(y, cv2.COLOR_GRAY2BGR)
+        else:
+            buf = np.empty((h, w, 2), np.uint8)
+            buf[:, :, 0] = y
+            buf[:, 0::2, 1], buf[:, 1::2, 1] = 125, 131                   # mild chroma
+            raw, bgr = buf.reshape(1, -1).copy(), cv2.cvtColor(buf, cv2.COLOR_YUV2BGR_YUYV)
+        return True, (raw if self.props.get(cv2.CAP_PROP_CONVERT_RGB, 1) == 0 else bgr)
+
+
+@pytest.mark.parametrize("fourcc", ["YUYV", "GREY", "MJPG"])
+def test_v4l2_gray_hands_over_the_luma_plane(tmp_path, monkeypatch, fourcc):
+    """No camera here: a capture that serves synthetic YUYV / GREY buffers. gray=True
+    turns OpenCV's colour conversion off for YUYV and GREY and gives the luma plane
+    (within a gray level of the colour path's gray, exact for GREY); for MJPG it
+    converts the decoded frame."""
+    dev = tmp_path / "video3"
+    dev.touch()
+    RawCapture.luma = np.random.default_rng(4).integers(40, 200, (8, 12), dtype=np.uint8)
+    monkeypatch.setattr(camera.cv2, "VideoCapture", RawCapture)
+    cam = open_camera(f"v4l2://{dev}?width=12&height=8&fourcc={fourcc}&gray=true")
+    cap = FakeCapture.instances[-1]
+    colour = cv2.cvtColor(RawCapture.retrieve(types.SimpleNamespace(props={
+        **cap.props, cv2.CAP_PROP_CONVERT_RGB: 1}))[1], cv2.COLOR_BGR2GRAY)
+    img = cam.read().image
+    assert img.shape == (8, 12) and img.dtype == np.uint8
+    raw = fourcc != "MJPG"
+    assert (cap.props.get(cv2.CAP_PROP_CONVERT_RGB) == 0) == raw
+    assert np.abs(img.astype(int) - colour).max() <= (0 if fourcc != "YUYV" else 1)
+    if fourcc == "YUYV":                                  # the luma plane, not the colour
+        np.testing.assert_array_equal(img, yuv_luma_table()[RawCapture.luma])
+    cam.close()
+    plain = open_camera(f"v4l2://{dev}?width=12&height=8&fourcc={fourcc}")
+    assert plain.read().image.shape == (8, 12, 3)         # without gray: as decoded
+    assert cv2.CAP_PROP_CONVERT_RGB not in FakeCapture.instances[-1].props
+    plain.close()
+
+
+def test_v4l2_gray_short_buffer_is_a_camera_error(tmp_path, monkeypatch):
+    dev = tmp_path / "video4"
+    dev.touch()
+
+    class Short(RawCapture):
+        def retrieve(self):
+            return True, np.zeros((1, 10), np.uint8)
+
+    monkeypatch.setattr(camera.cv2, "VideoCapture", Short)
+    cam = open_camera(f"v4l2://{dev}?width=12&height=8&fourcc=YUYV", gray=True)
+    with pytest.raises(CameraError, match=r"raw.shape=\(1, 10\)"):
+        cam.read()
+    cam.close()
+
+
+def test_sim_accepts_gray_and_is_gray_already(stub_sim):
+    with open_camera("sim://walk?gray=1&end_frame=2") as cam:
+        assert [f.image.ndim for f in cam] == [2, 2]
