@@ -433,7 +433,6 @@ class PinDetector:
         self._in_grown = (slice(cy0 - gy0, ty1 - gy0), slice(cx0 - gx0, tx1 - gx0))
         self._core_src = (slice(cy0, ty1), slice(cx0, tx1))
         self._mean = np.empty((gy1 - gy0, gx1 - gx0), np.uint8)
-        self._diff = np.zeros((ty1 - cy0, tx1 - cx0), np.uint8)   # stays 0 off the mask
         self._core_mask = np.ascontiguousarray(self._mask[cy0:ty1, cx0:tx1])
         self._core_out = self._binary_even[cy0:ty1, cx0:tx1]
         # OpenCV's mean-C threshold keeps src - mean > floor(offset); for offset >= 0
@@ -480,13 +479,14 @@ class PinDetector:
         if not self._fast:
             return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
         # cv2.adaptiveThreshold(MEAN_C) is this box filter then a per-pixel table
-        # look-up; a saturating subtraction under the mask and one threshold do the
-        # look-up and the masking in two vectorised passes
+        # look-up; a saturating subtraction, one threshold and the mask do the look-up
+        # and the masking in three vectorised passes over the core
+        out = self._core_out
         cv2.boxFilter(self._smooth[self._grown], -1, (p.block, p.block), dst=self._mean,
                       normalize=True, borderType=cv2.BORDER_REPLICATE)
-        cv2.subtract(self._smooth[self._core_src], self._mean[self._in_grown], dst=self._diff,
-                     mask=self._core_mask)
-        cv2.threshold(self._diff, self._floor_offset, 255, cv2.THRESH_BINARY, dst=self._core_out)
+        cv2.subtract(self._smooth[self._core_src], self._mean[self._in_grown], dst=out)
+        cv2.threshold(out, self._floor_offset, 255, cv2.THRESH_BINARY, dst=out)
+        cv2.bitwise_and(out, self._core_mask, dst=out)
         return self._binary
 
     @property
