@@ -170,3 +170,24 @@ def test_a_pin_far_from_every_current_pin_stays_near_its_prior_at_the_largest_sl
     idx, disp = track_with_neighbours(far, cur, 16.0, outlier_sigmas=6.0, smooth=0.0)
     assert idx[0] == -1
     assert np.hypot(*disp[0]) < 16.0
+
+
+def test_the_smoothing_gives_the_same_field_by_gathering_as_by_the_dense_product(monkeypatch):
+    """Above _DENSE_SMOOTH_PINS the coarse matching's smoothing gathers each pin's
+    neighbours instead of multiplying by the dense (m, m) graph (issue 25: linear in
+    pins): the same displacement field to float rounding, and the same assignment."""
+    import device.pi.vision.neighbours as nbm
+
+    rng = np.random.default_rng(3)
+    ref = hex_pins(10, 20.0)                                          # 331 pins
+    ref = ref[rng.permutation(len(ref))[:300]]                        # an irregular rim
+    cur = ref + np.array([26.0, -9.0]) + rng.normal(0, 0.8, ref.shape)
+    cur = cur[rng.permutation(len(cur))[:280]]                        # pins missing
+    neighbours = layout_neighbours(ref)
+    monkeypatch.setattr(nbm, "_DENSE_SMOOTH_PINS", 10**6)
+    idx_d, disp_d = track_with_neighbours(ref, cur, 20.0, neighbours=neighbours, anneal_steps=6)
+    monkeypatch.setattr(nbm, "_DENSE_SMOOTH_PINS", 0)
+    idx_s, disp_s = track_with_neighbours(ref, cur, 20.0, neighbours=neighbours, anneal_steps=6)
+    assert (idx_s == idx_d).all()
+    assert np.abs(disp_s - disp_d).max() < 1e-6
+    assert (idx_d >= 0).sum() >= 250                                  # and it tracked
