@@ -13,10 +13,12 @@ Sources, each timed with :class:`~device.pi.vision.pipeline.MarkerStream`:
 - simulated binary frames (the tactip331 sensor's image and motion) with hexagonal
   layouts of 127 to 721 pins, the pitch and pin size shrunk to fit the same dome.
 
-Separately, :func:`device.pi.vision.matching.match_pins` and the tracker's steady
-state (:meth:`Tracker.update`) are timed alone on synthetic hexagonal point sets
-(133 to 1400 pins, small random motion), to show whether matching grows
-quadratically. The fits are a least-squares line (ms per pin) and the exponent of
+Separately, :func:`device.pi.vision.matching.match_pins`, the tracker's steady
+state (:meth:`Tracker.update`) and its coarse re-acquisition
+(:func:`~device.pi.vision.neighbours.track_with_neighbours` with the tracker's
+schedule, after a jump of more than a pitch) are timed alone on synthetic
+hexagonal point sets (133 to 1400 pins, small random motion), to show whether
+they grow quadratically. The fits are a least-squares line (ms per pin) and the exponent of
 a log-log fit, ``time ~ pins ** k``.
 """
 from __future__ import annotations
@@ -78,12 +80,17 @@ def _stats(ms: list[float]) -> dict:
 
 
 def time_matching(sizes=MATCH_SIZES, frames: int = 60, pitch_px: float = 10.0,
-                  motion_px: float = 0.5, seed: int = 0) -> dict:
+                  motion_px: float = 0.5, seed: int = 0, reacquire_repeats: int = 3) -> dict:
     """Per-call median / p99 ms of ``match_pins`` (gate 0.4 pitch) and of the
     tracker's steady-state ``update`` on hexagonal sets of ``sizes`` pins that
-    drift and jitter by about ``motion_px`` a frame (3 % of pins missing)."""
+    drift and jitter by about ``motion_px`` a frame (3 % of pins missing); and
+    ``reacquire_repeats`` times the tracker's coarse re-acquisition
+    (``track_with_neighbours`` with ``FULL_SEARCH_SCHEDULE``) after a jump of 1.2
+    pitch, with the fraction of pins it puts back on their own pin
+    (``reacquire_right``). ``reacquire_repeats=0`` leaves it out."""
     from device.pi.vision.matching import match_pins
-    from device.pi.vision.tracking import Tracker
+    from device.pi.vision.neighbours import layout_neighbours, track_with_neighbours
+    from device.pi.vision.tracking import FULL_SEARCH_SCHEDULE, Tracker
 
     rng = np.random.default_rng(seed)
     gate = 0.4 * pitch_px
@@ -116,13 +123,34 @@ def time_matching(sizes=MATCH_SIZES, frames: int = 60, pitch_px: float = 10.0,
             tt.append((clock() - t0) * 1e3)
         out[int(n)] = {"match": _stats(mt), "tracker_update": _stats(tt),
                        "matched_fraction": float(np.mean(right))}
+        if reacquire_repeats > 0:
+            # a jump of 1.2 pitch (a snap back): the nearest-pin matching would take
+            # the neighbour; the coarse search, from no prior, finds the pins again
+            jump = ref + np.array([1.2, 0.3]) * pitch_px + rng.normal(0, motion_px / 2, ref.shape)
+            perm = rng.permutation(len(jump))
+            neighbours = layout_neighbours(ref)
+            start, steps, iters = FULL_SEARCH_SCHEDULE
+            rt = []
+            for _ in range(reacquire_repeats):
+                t0 = clock()
+                idx, _ = track_with_neighbours(ref, jump[perm], pitch_px, neighbours=neighbours,
+                                               gate_frac=0.4, grow_rounds=4, anneal_start=start,
+                                               anneal_steps=steps, sinkhorn_iters=iters)
+                rt.append((clock() - t0) * 1e3)
+            hit = idx >= 0
+            out[int(n)]["reacquire"] = _stats(rt)
+            out[int(n)]["reacquire_right"] = float(np.mean(hit & (perm[np.maximum(idx, 0)]
+                                                                  == np.arange(len(ref)))))
     ns = sorted(out)
+    keys = ("match", "tracker_update") + (("reacquire",) if reacquire_repeats > 0 else ())
     res = {"sizes": out, "pitch_px": pitch_px, "motion_px": motion_px,
            "match_fit": fit_growth(ns, [out[n]["match"]["median_ms"] for n in ns]),
            "tracker_fit": fit_growth(ns, [out[n]["tracker_update"]["median_ms"] for n in ns])}
+    if reacquire_repeats > 0:
+        res["reacquire_fit"] = fit_growth(ns, [out[n]["reacquire"]["median_ms"] for n in ns])
     if len(ns) >= 2:          # the local exponent between the two largest sets
         a, b = ns[-2], ns[-1]
-        for key in ("match", "tracker_update"):
+        for key in keys:
             ya, yb = out[a][key]["median_ms"], out[b][key]["median_ms"]
             res[f"{key}_exponent_{a}_{b}"] = (math.log(yb / ya) / math.log(b / a)
                                               if ya > 0 and yb > 0 else float("nan"))
@@ -288,13 +316,18 @@ def format_scaling(res: dict) -> str:
     m = res["matching"]
     lines.append(f"matching alone, CPU ms per call (hex lattice, pitch {m['pitch_px']} px, "
                  f"motion {m['motion_px']} px/frame)")
-    lines.append(f"  {'pins':>6}{'match_pins':>12}{'p99':>9}{'Tracker.update':>16}{'p99':>9}")
+    lines.append(f"  {'pins':>6}{'match_pins':>12}{'p99':>9}{'Tracker.update':>16}{'p99':>9}"
+                 f"{'re-acquire':>12}{'right':>7}")
     for n, e in m["sizes"].items():
+        re = (f"{e['reacquire']['median_ms']:>12.3f}{e['reacquire_right']:>7.3f}"
+              if "reacquire" in e else "")
         lines.append(f"  {n:>6}{e['match']['median_ms']:>12.4f}{e['match']['p99_ms']:>9.4f}"
                      f"{e['tracker_update']['median_ms']:>16.4f}"
-                     f"{e['tracker_update']['p99_ms']:>9.4f}")
+                     f"{e['tracker_update']['p99_ms']:>9.4f}{re}")
     lines.append(f"  match_pins: {fit(m['match_fit'])}")
     lines.append(f"  Tracker.update: {fit(m['tracker_fit'])}")
+    if "reacquire_fit" in m:
+        lines.append(f"  re-acquisition: {fit(m['reacquire_fit'])}")
     for k, v in m.items():
         if "_exponent_" in k:
             lines.append(f"  local exponent {k.replace('_exponent_', ' ')}: {v:.2f}")

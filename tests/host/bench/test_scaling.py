@@ -46,6 +46,12 @@ def test_time_matching_reports_cpu_times_and_the_local_exponent():
         assert 0.9 <= e["matched_fraction"] <= 1.0    # small motion: nearly all matched
     assert math.isfinite(res["match_exponent_50_100"])
     assert res["match_fit"]["ok"]
+    # the coarse re-acquisition after a jump of 1.2 pitch: timed, and it finds the pins
+    for e in res["sizes"].values():
+        assert e["reacquire"]["n"] == 3 and e["reacquire"]["median_ms"] > 0
+        assert e["reacquire_right"] >= 0.9
+    assert res["reacquire_fit"]["ok"] and math.isfinite(res["reacquire_exponent_50_100"])
+    assert "reacquire" not in time_matching((50,), frames=3, reacquire_repeats=0)["sizes"][50]
 
 
 def test_bench_scaling_on_simulated_layouts_finds_more_pins_on_denser_ones(capsys,
