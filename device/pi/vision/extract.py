@@ -402,24 +402,24 @@ class PinDetector:
     def _set_core(self, bh: int, bw: int) -> None:
         """The dome's own pixels: the mask disc's bounding box inside the dome box.
 
-        Only they are thresholded and labelled (about 80 % of the box for roboskin);
-        the rest of the binary box stays 0, as the mask made it before. The core starts
-        on even rows and columns of the labelling buffer and has even sides, so the
-        block-based labelling sees the same 2x2 blocks, in the same order, as on the
-        whole buffer: the same labels in the same order."""
+        Only they are thresholded (about 80 % of the box for roboskin); the rest of the
+        binary box stays 0, as the mask made it before. The labelling runs from the
+        box's origin to the disc's far edge, rounded up to even sides (about 90 % of
+        the box): the block-based labelling then sees the same 2x2 blocks, in the same
+        order, as on the whole buffer, so the same labels in the same order, and the
+        centroids are OpenCV's own in box px (no shift to correct)."""
         p = self.params
         ys, xs = np.nonzero(self._mask)
         if len(ys):
-            cy0, cx0 = int(ys.min()) & ~1, int(xs.min()) & ~1
+            cy0, cx0 = int(ys.min()), int(xs.min())
             cy1, cx1 = int(ys.max()) + 1, int(xs.max()) + 1
         else:
             cy0, cx0, cy1, cx1 = 0, 0, 2, 2
         eh, ew = self._binary_even.shape
         cy1, cx1 = min(eh, cy1 + cy1 % 2), min(ew, cx1 + cx1 % 2)
-        self.core = (cx0, cy0, cx1, cy1)             # in box px, even-aligned
-        self._core_binary = self._binary_even[cy0:cy1, cx0:cx1]
-        self._core_labels = np.empty((cy1 - cy0, cx1 - cx0), np.int32)
-        self._core_shift = (cx0, cy0)
+        self.core = (cx0, cy0, cx1, cy1)             # in box px
+        self._core_binary = self._binary_even[:cy1, :cx1]
+        self._core_labels = np.empty((cy1, cx1), np.int32)
         # the threshold runs on the core clipped to the box (the odd-side pad is not
         # in the gray box); its local mean on the core grown by half a block, so every
         # core pixel's block sees the pixels it saw in the whole box (and the box's
@@ -495,24 +495,11 @@ class PinDetector:
         return self._smooth
 
     def _blobs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every blob of the binary core: centroids float64 (n,2) in box px, areas int32.
-
-        The centroids are exactly those of the labelling on the whole box: OpenCV
-        divides each blob's integer pixel-coordinate sum by its area, so the core's
-        sums are recovered exactly (rint(centroid * area)), shifted by area x the
-        core's offset and divided again."""
+        """Every blob of the binary box (labelled up to the dome's far edge):
+        centroids float64 (n,2) in box px, areas int32 (n,), views of OpenCV's output."""
         n, _, stats, cents = cv2.connectedComponentsWithStatsWithAlgorithm(
             self._core_binary, 8, cv2.CV_32S, _CCL, labels=self._core_labels)
-        if n <= 1:
-            return np.zeros((0, 2), np.float64), np.zeros((0,), np.int32)
-        areas = stats[1:, cv2.CC_STAT_AREA]
-        c = cents[1:]
-        if self._core_shift != (0, 0):
-            a = areas[:, None].astype(np.float64)
-            c = np.rint(c * a)
-            c += a * self._core_shift
-            c /= a
-        return c, areas
+        return cents[1:], stats[1:, cv2.CC_STAT_AREA]
 
     def detect(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pins of one frame: centroids float32 (n,2) x,y in frame px, areas int32 (n,).
@@ -526,14 +513,12 @@ class PinDetector:
         self.n_blobs = len(areas)
         p = self.params
         keep = (areas >= p.min_area_px) & (areas <= p.max_area_px)
-        xy = cents[keep].astype(np.float32)
-        xy += self._origin
+        # float32 centroids plus the float32 origin, added in float32
+        xy = np.add(cents[keep], self._origin, dtype=np.float32)
         return xy, areas[keep]
 
     def detect_all(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All blobs (pins, glare and noise) in frame px, for measurement."""
         self.threshold(frame)
         cents, areas = self._blobs()
-        xy = cents.astype(np.float32)
-        xy += self._origin
-        return xy, areas.copy()
+        return np.add(cents, self._origin, dtype=np.float32), areas.copy()
