@@ -237,9 +237,14 @@ class Classifier:
         way the model was trained. The window must hold T frames. A window's encoding
         is finite and within ``window.ENCODED_BOUND`` (<= INPUT_CLIP) for any pushed
         values, so it goes to the model as it is, without :meth:`predict`'s cleaning."""
+        self.fill_window(window, self._x)
+        return self._run()
+
+    def fill_window(self, window, x: np.ndarray) -> None:
+        """Write the model's input for ``window`` into ``x`` (its input buffer, or a
+        fused graph's, :mod:`device.pi.models.fused`), as :meth:`predict_window` runs it."""
         if window.T != self.T:
             raise ModelError(f"{self.onnx_path}: the model sees T={self.T} frames, the "
                              f"window holds {window.T}")
         a = self._sized(window.encode(self.input_layout, with_imu=self.uses_imu))
-        self._x.reshape(-1)[:] = a.reshape(-1)
-        return self._run()
+        x.reshape(-1)[:] = a.reshape(-1)

@@ -53,15 +53,29 @@ class Regressor:
     def predict_window(self, window) -> float | None:
         """The prediction for a :class:`~device.pi.models.window.RollingWindow` of
         this model's ``T``, encoded as in training; None until the window is full."""
-        if window.T != self.T:
-            raise ModelError(f"{self.model.path}: reads windows of T={self.T}, "
-                             f"got T={window.T}")
+        self._check_T(window)
         if not window.full:
             return None
         return self.predict_one(window.encode(self.input_layout, with_imu=self.uses_imu))
 
+    def _check_T(self, window) -> None:
+        if window.T != self.T:
+            raise ModelError(f"{self.model.path}: reads windows of T={self.T}, "
+                             f"got T={window.T}")
+
     def predict_one(self, features: np.ndarray) -> float:
-        x = self._x
+        bad_input = self.prepare(features, self._x)
+        return self.finish(self._runner(), bad_input)
+
+    def prepare_window(self, window, x: np.ndarray) -> bool:
+        """:meth:`prepare` for a full window of this model's T (a fused graph's
+        input, :mod:`device.pi.models.fused`)."""
+        self._check_T(window)
+        return self.prepare(window.encode(self.input_layout, with_imu=self.uses_imu), x)
+
+    def prepare(self, features: np.ndarray, x: np.ndarray) -> bool:
+        """Write the cleaned, clipped input for ``features`` into ``x`` (1, D); True
+        when an input was NaN/inf or beyond any encoding (the fault)."""
         f = np.asarray(features)
         if f.dtype != np.float32:
             with np.errstate(over="ignore", invalid="ignore"):   # beyond float32: inf
@@ -77,7 +91,12 @@ class Regressor:
             zero = x == 0
             np.clip(x, self._lo, self._hi, out=x)
             x[zero] = 0
-        y = float(self._runner().reshape(-1)[0])
+        return bad_input
+
+    def finish(self, out, bad_input: bool) -> float:
+        """The prediction from the model's raw output, and :attr:`fault` set: the
+        training mean for a non-finite output."""
+        y = float(np.asarray(out).reshape(-1)[0])
         bad_output = not math.isfinite(y)
         self.fault = bad_input or bad_output
         return self.fallback if bad_output else y

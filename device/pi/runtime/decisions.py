@@ -114,6 +114,14 @@ def unknown_class_wins(classes, p) -> bool:
     return bool(p.size) and str(classes[int(np.argmax(p))]) not in SURFACE_CLASSES
 
 
+def _result(ran, task: str, model, due: dict, **ctx):
+    """A model's result this frame: from the fused graph's run when it ran the
+    model, else from the model's own session."""
+    if ran is not None and task in ran:
+        return ran[task]
+    return model.predict_window(due[task], **ctx)
+
+
 @dataclass
 class Decision:
     class_id: int
@@ -142,6 +150,22 @@ def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
     m = models
     model_fault = False
     rwin = windows[m.rule.T]
+    learned_surface = m.surface is not None and m.surface is not m.rule
+    # the learned models that decide this frame, each with its full window
+    due = {}
+    if learned_surface and windows[m.surface.T].full:
+        due["surface"] = windows[m.surface.T]
+    if m.texture is not None and contact_seen and windows[m.texture.T].full:
+        due["texture"] = windows[m.texture.T]
+    if m.slip is not None and windows[m.slip.T].full:
+        due["slip"] = windows[m.slip.T]
+    if m.pressure is not None and referenced and windows[m.pressure.T].full:
+        due["pressure"] = windows[m.pressure.T]
+    fused = getattr(m, "fused", None)
+    ran = None
+    if fused is not None:
+        # one graph for every learned model due (rules are not in it)
+        ran = fused.run({t: w for t, w in due.items() if t in fused.tasks})
     probs_rule = None
     if rwin.full:
         _, probs_rule = m.rule.predict(rwin.encode("vectors"), expected_mag_px=expected_mag_px,
@@ -149,34 +173,32 @@ def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
     rule_probs = no_touch_probs() if probs_rule is None else probs_rule
     surface = rule_probs
     model_probs = None
-    if m.surface is not None and m.surface is not m.rule:
-        w = windows[m.surface.T]
-        if w.full:
-            _, p = m.surface.predict_window(w)
-            surface = model_probs = surface_probs_of_model(m.surface.classes, p)
-            model_fault |= bool(m.surface.fault) or unknown_class_wins(m.surface.classes, p)
-            wr = gait_rule_weight
-            if gait is not None and probs_rule is not None and wr > 0:
-                surface = (1.0 - wr) * model_probs + wr * rule_probs
+    if "surface" in due:
+        _, p = _result(ran, "surface", m.surface, due)
+        surface = model_probs = surface_probs_of_model(m.surface.classes, p)
+        model_fault |= bool(m.surface.fault) or unknown_class_wins(m.surface.classes, p)
+        wr = gait_rule_weight
+        if gait is not None and probs_rule is not None and wr > 0:
+            surface = (1.0 - wr) * model_probs + wr * rule_probs
     texture = None
-    if m.texture is not None and contact_seen and windows[m.texture.T].full:
-        tid, tp = m.texture.predict_window(windows[m.texture.T])
+    if "texture" in due:
+        tid, tp = _result(ran, "texture", m.texture, due)
         texture = (m.texture.classes[tid], float(tp[tid]), tid)
         model_fault |= bool(m.texture.fault)
     measures = m.rule.last if rwin.full else {}
     slip_conf = 0.0
-    if m.slip is not None and windows[m.slip.T].full:
+    if "slip" in due:
         ctx = ({"expected_mag_px": expected_mag_px, "expected_motion_px": expected_motion_px}
                if isinstance(m.slip, RuleClassifier) else {})
-        sid, sp = m.slip.predict_window(windows[m.slip.T], **ctx)
+        sid, sp = _result(ran, "slip", m.slip, due, **ctx)
         slip_conf = (float(sp[list(m.slip.classes).index("slip")]) if "slip" in m.slip.classes
                      else float(sp[sid]))
         model_fault |= bool(m.slip.fault)
     elif probs_rule is not None:
         slip_conf = float(probs_rule[SLIPPERY])
     pressure = None
-    if m.pressure is not None and referenced:
-        pressure = m.pressure.predict_window(windows[m.pressure.T])
+    if "pressure" in due:
+        pressure = _result(ran, "pressure", m.pressure, due)
         model_fault |= pressure is not None and bool(m.pressure.fault)
     class_id = int(np.argmax(surface))
     contact = bool(contact_seen) and class_id != NO_TOUCH

@@ -23,6 +23,7 @@ from device.pi.models.artefact import MANIFEST, ModelError, manifest_for
 from device.pi.models.spec import (ModelSpec, SpecError, check_same_profiles, profile_record,
                                    profile_source)
 from device.pi.models.classifier import Classifier
+from device.pi.models.fused import FUSED_DIR, FUSED_TASKS, load_fused
 from device.pi.models.regressor import Regressor
 from device.pi.models.rules import SURFACE_CLASSES, RuleClassifier
 from device.pi.models.window import RollingWindow
@@ -46,6 +47,8 @@ class Models:
     loaded: tuple = ()
     profile: dict | None = None         # the models' sensor profile record (None: none loaded)
     profile_source: str | None = None   # the profile name or .toml path the runtime runs
+    fused: object | None = None         # the per-frame models as one graph (FusedModels)
+    fused_note: str = ""                # why the fused graph is not used ("" when it is)
 
 
 def default_models_dir() -> Path:
@@ -185,7 +188,25 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         m.rule = rule_from_config(cfg, profile_n_pins)
     _check_inputs(m, profile_n_pins)
     m.loaded = tuple(loaded)
+    if d.is_dir():
+        _use_fused(m, d, variant, checked)
     return m
+
+
+def _use_fused(m: Models, d: Path, variant: str, checked) -> None:
+    """The fused graph of the loaded ONNX models (one call per frame) when it
+    matches them; otherwise the individual sessions, and, when a fused graph is
+    there but does not match, one line on stderr saying why."""
+    members = {t: getattr(m, t) for t in FUSED_TASKS
+               if getattr(m, t) is not None and not isinstance(getattr(m, t), RuleClassifier)}
+    if len(members) < 2:
+        m.fused_note = "fewer than two ONNX models: nothing to fuse"
+        return
+    m.fused, why = load_fused(d, variant, members, check=checked)
+    m.fused_note = why
+    if m.fused is None and (d / FUSED_DIR).is_dir():      # absent: nothing to say
+        print(f"device.pi run: note: models: {why}; running one session per model",
+              file=sys.stderr)
 
 
 def check_models_folder(models_dir, fail) -> None:

@@ -8,8 +8,9 @@ One loop, one thread for the work (a second thread only grabs frames, so a camer
 that blocks or vanishes cannot stall the loop):
 
     frame -> MarkerStream -> fixed pin layout -> rolling windows -> models (ONNX
-    Runtime, int8, one session each, one thread) or the paper's rules with the gait
-    context -> decision -> SURFACE packet -> non-blocking writer
+    Runtime, int8, one thread: the fused graph of every model, one call per frame, or
+    one session each) or the paper's rules with the gait context -> decision ->
+    SURFACE packet -> non-blocking writer
 
 and around it, on every pass, with or without a frame: the MCU's GAIT / COMMAND
 packets are read, the IMU summary and the HEARTBEAT go out at their rates, a change
@@ -434,6 +435,7 @@ class LegRuntime:
                 "gait_packets": self.gait_packets,
                 "commands": self.commands, "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps,
+                "models_fused": self.models.fused is not None,
                 "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
                 "link_write_errors": w.write_errors, "json_log_lines_lost":
                     0 if self.json_log is None else self.json_log.lines_lost,

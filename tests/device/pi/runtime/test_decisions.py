@@ -304,3 +304,48 @@ def test_a_rule_slip_model_sees_the_gait_context_and_a_learned_one_does_not(tmp_
     m, ws = _pressed(tmp_path, slip=learned)
     decide(m, ws, contact_seen=True, **{**_KW, "expected_motion_px": 5.0})
     assert learned.calls == [{}]
+
+
+def test_the_fused_graph_decides_exactly_as_one_session_per_model(model_dir, tmp_path):
+    """Issue #25: with the fused graph (one model call per frame) every decision is
+    the one the individual sessions give, field for field, frame by frame; with
+    contact, without, with and without a reference and a gait context."""
+    import shutil
+
+    from host.learn.fuse import fuse_models
+
+    fused_dir = tmp_path / "fused-models"
+    for t in ("surface", "pressure"):
+        shutil.copytree(model_dir / t, fused_dir / t)
+    fuse_models(fused_dir)
+    one = load_models(model_dir, "int8", N_PINS, LegConfig())
+    fused = load_models(fused_dir, "int8", N_PINS, LegConfig())
+    assert one.fused is None and fused.fused is not None
+    ws = {}
+    for m in (one, fused):
+        w = RollingWindow(3, N_PINS)
+        ws[id(m)] = {3: w}
+    rng = np.random.default_rng(5)
+    n = 0
+    for i in range(40):
+        v = rng.normal(0, 1 + i % 5, (N_PINS, 2)).astype(np.float32)
+        imu = rng.normal(0, 1, 6).astype(np.float32)
+        kw = dict(contact_seen=i % 3 != 0, referenced=i % 7 != 3,
+                  expected_mag_px=None if i % 2 else 2.0,
+                  expected_motion_px=None if i % 2 else 0.5,
+                  gait=None if i % 2 else {"stance": True}, gait_rule_weight=0.5)
+        got = []
+        for m in (one, fused):
+            ws[id(m)][3].push(vectors=v, imu=imu)
+            got.append(decide(m, ws[id(m)], **kw))
+        a, b = got
+        for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
+                  "model_fault", "measures"):
+            assert getattr(a, f) == getattr(b, f), (i, f)
+        for f in ("probs", "rule_probs", "model_probs"):
+            x, y = getattr(a, f), getattr(b, f)
+            assert (x is None) == (y is None)
+            if x is not None:
+                np.testing.assert_array_equal(x, y)
+        n += a.model_probs is not None and a.pressure is not None
+    assert n > 20                        # both models decided on most frames

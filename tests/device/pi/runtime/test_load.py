@@ -314,3 +314,33 @@ def test_a_config_that_sets_another_profile_than_the_models_is_refused(tactip331
 def test_without_models_the_configs_profile_runs(tmp_path):
     m = load_models(tmp_path, "int8", None, parse_leg_config({}))
     assert m.profile is None and m.profile_source == "roboskin" and m.rule.n_pins == 133
+
+
+def test_the_fused_graph_is_used_when_it_matches_and_else_one_line_says_why(
+        model_dir, tmp_path, capsys):
+    from host.learn.fuse import fuse_models
+
+    d = tmp_path / "models"
+    for t in ("surface", "pressure"):
+        shutil.copytree(model_dir / t, d / t)
+    m = load_models(d, "int8", 133, LegConfig())
+    assert m.fused is None and "no fused/ graph" in m.fused_note
+    assert capsys.readouterr().err == ""               # no fused graph: nothing to say
+    fuse_models(d)
+    for variant in ("int8", "float"):
+        m = load_models(d, variant, 133, LegConfig())
+        assert m.fused is not None and m.fused_note == ""
+        assert m.fused.members == {"surface": m.surface, "pressure": m.pressure}
+    assert capsys.readouterr().err == ""
+    from host.learn.train import train_model
+    from tests.windows import synthetic
+
+    shutil.rmtree(d / "pressure")                     # pressure retrained since the fuse
+    train_model("pressure", "ridge", synthetic(n_groups=4, per_group=8, n_pins=133, Tn=3,
+                                               targets=True, imu=False, seed=9),
+                out_dir=d / "pressure", progress=False)
+    m = load_models(d, "int8", 133, LegConfig())
+    assert m.fused is None and m.pressure is not None
+    err = capsys.readouterr().err
+    assert err.startswith("device.pi run: note: models: ") and "pressure member" in err
+    assert "rebuild it" in err and err.count("\n") == 1

@@ -1,0 +1,163 @@
+"""The per-frame models as one ONNX Runtime call: the fused graph ``MODELS/fused``
+that ``host.learn.fuse`` builds from the individual artefacts.
+
+The leg loads and checks every model as before; :func:`load_fused` then loads the
+fused graph for the same variant and uses it only when its members are exactly the
+ONNX models the leg loaded (each member's task and the SHA-256 of the ONNX file it
+was built from, against the file the loaded model's manifest names), and when each
+member's input and output have the sizes the loaded model has. Anything else (no
+fused folder, a member retrained or swapped since the fuse, a bad fused artefact)
+leaves the individual sessions in charge, with one line saying why.
+
+:meth:`FusedModels.run` is then the frame's one model call: each member that is to
+decide this frame gets its input written the way its own ``predict_window`` writes
+it (a classifier's window encoding as it is; the regressor's cleaned and clipped),
+the graph runs once over I/O-bound buffers, and each member's output goes through
+its own post-processing (probabilities cleaned, the regressor's fallback and fault
+flag). The results are those of the members' ``predict_window``, value for value.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from device.pi.models.artefact import ModelError, load_model, manifest_for, model_file
+from device.pi.models.signature import SignatureError
+
+#: the fused graph's folder inside the models folder, and its manifest's kind
+FUSED_DIR = "fused"
+FUSED_KIND = "fused"
+#: the per-frame tasks a fused graph may hold, in its order
+FUSED_TASKS = ("surface", "texture", "slip", "pressure")
+
+
+class MultiBoundRun:
+    """One session run over fixed input buffers ``inputs`` ({name: array}): the
+    first call runs it the plain way, then inputs and outputs are bound (ONNX
+    Runtime I/O binding) to the buffers and to preallocated outputs shaped as the
+    first call's, so later calls copy nothing. Returns {output name: array} (the
+    bound buffers: read them before the next call)."""
+
+    def __init__(self, session, inputs: dict, outputs: list[str]):
+        self.session = session
+        self.inputs = inputs
+        self.outputs = list(outputs)
+        self._binding = None
+        self._out: dict = {}
+
+    def __call__(self) -> dict:
+        if self._binding:
+            self.session.run_with_iobinding(self._binding)
+            return self._out
+        got = self.session.run(self.outputs, self.inputs)
+        res = {n: np.asarray(a) for n, a in zip(self.outputs, got)}
+        if self._binding is None:
+            self._bind(res)
+        return res
+
+    def _bind(self, first: dict) -> None:
+        try:
+            b = self.session.io_binding()
+            for name, x in self.inputs.items():
+                b.bind_cpu_input(name, x)
+            for name in self.outputs:
+                o = np.empty(first[name].shape, first[name].dtype)
+                b.bind_output(name, "cpu", 0, o.dtype, list(o.shape), o.ctypes.data)
+                self._out[name] = o
+        except Exception:              # a session without I/O binding
+            self._binding = False
+            return
+        self._binding = b
+
+
+class FusedModels:
+    """The loaded fused graph and its members ({task: Classifier or Regressor})."""
+
+    def __init__(self, model, members: dict, rows: list[dict]):
+        self.model = model
+        self.members = members
+        self.tasks = tuple(r["task"] for r in rows)
+        self._in = {}
+        self._out_name = {}
+        for r in rows:
+            mod = members[r["task"]]
+            self._in[r["task"]] = np.zeros(mod._x.shape, np.float32)
+            self._out_name[r["task"]] = r["output"]
+        self._runner = MultiBoundRun(model.session, {r["input"]: self._in[r["task"]]
+                                                     for r in rows},
+                                     [r["output"] for r in rows])
+        self._bad_input = dict.fromkeys(self.tasks, False)
+
+    def run(self, windows: dict) -> dict:
+        """{task: the result its model's ``predict_window`` gives} for the members
+        in ``windows`` ({task: full window of the member's T}), from one run of the
+        graph. Members not asked for keep their last input; their outputs are not
+        read."""
+        for task, w in windows.items():
+            mod = self.members[task]
+            if task == "pressure":
+                self._bad_input[task] = mod.prepare_window(w, self._in[task])
+            else:
+                mod.fill_window(w, self._in[task])
+        try:
+            outs = self._runner()
+        except Exception as exc:      # onnxruntime's own exception types
+            raise ModelError(f"{self.model.path}: ONNX Runtime failed: {exc}") from None
+        res = {}
+        for task in windows:
+            mod = self.members[task]
+            o = outs[self._out_name[task]]
+            if task == "pressure":
+                res[task] = mod.finish(o, self._bad_input[task])
+            else:
+                p = mod.probabilities_from_output(o)
+                res[task] = (int(np.argmax(p)), p)
+        return res
+
+
+def _onnx_sha(mod) -> str | None:
+    doc = mod.model.manifest
+    return (doc.get("sha256") or {}).get(doc.get("onnx"))
+
+
+def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
+    """(FusedModels or None, why not): the fused graph of ``models_dir`` for
+    ``variant`` when its members are exactly ``loaded`` ({task: loaded Classifier
+    or Regressor}, rules left out). ``check(manifest)`` (the signature check) runs
+    before the graph is loaded."""
+    folder = Path(models_dir) / FUSED_DIR
+    if not folder.is_dir():
+        return None, f"no {FUSED_DIR}/ graph in {models_dir}"
+    mf = manifest_for(folder, variant)
+    if mf.is_dir():
+        return None, f"{folder}: no manifest.json"
+    try:
+        if check is not None:
+            check(mf)
+        model = load_model(mf, expect_kind=FUSED_KIND)
+        rows = model.manifest.get("members")
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise ModelError(f"{mf}: members must be a list of tables")
+        want = {r.get("task"): r for r in rows}
+        if set(want) != set(loaded) or len(want) != len(rows):
+            return None, (f"{mf}: built from {sorted(t for t in want if t)}, the leg loaded "
+                          f"{sorted(loaded)}; rebuild it (python -m host.learn.fuse)")
+        names_in = {i.name: i for i in model.session.get_inputs()}
+        names_out = {o.name for o in model.session.get_outputs()}
+        for task, r in want.items():
+            mod = loaded[task]
+            if r.get("sha256") != _onnx_sha(mod) or r.get("onnx") != mod.model.manifest["onnx"]:
+                return None, (f"{mf}: its {task} member is not the loaded "
+                              f"{model_file(mod.model.path, mod.model.manifest['onnx'])} "
+                              f"(another file or hash); rebuild it (python -m host.learn.fuse)")
+            inp = names_in.get(r.get("input"))
+            dims = [d for d in (inp.shape[1:] if inp is not None else []) if isinstance(d, int)]
+            if inp is None or r.get("output") not in names_out or \
+                    int(np.prod(dims or [0])) != mod._x.size:
+                return None, f"{mf}: its {task} member's input or output is not the model's"
+        return FusedModels(model, loaded, [want[t] for t in FUSED_TASKS if t in want]), ""
+    except SignatureError:
+        raise                          # a fused graph signed by no one is refused, not skipped
+    except (ModelError, ValueError, KeyError, TypeError) as exc:
+        return None, f"{exc}"

@@ -1,0 +1,210 @@
+"""One ONNX graph for the per-frame models: built on the host from the signed
+artefacts of a models folder, run by the leg once per frame.
+
+The leg runs surface, texture, slip and pressure on every frame. Four ONNX Runtime
+sessions cost more in the loop than their sum alone (each session's caches are
+cold after the marker pipeline), so :func:`fuse_models` puts them side by side in
+one graph: each model's nodes, initialisers, input and output renamed with its
+task as prefix (``surface/x`` -> ``surface/probabilities``), no edge between them.
+Only the output the runtime reads is kept (a classifier's probabilities, the
+regressor's value), so the label branch is not computed.
+
+The fused graph is written as a model folder, ``MODELS/fused``, beside the
+artefacts it was built from::
+
+    fused/fused.onnx           the members' default files (int8 where quantised), fused
+    fused/manifest.json        a model spec (kind "fused") naming the file and its
+                               SHA-256, and in ``members`` each member's task,
+                               manifest, ONNX file and that file's SHA-256
+    fused/fused.float.onnx     the same for the float variant (when the members
+    fused/manifest.float.json  have float files other than their default)
+
+so ``host deploy`` signs it with the others and ``models-set.json`` covers it. The
+individual artefacts stay the unit of training and signing: the leg loads them
+as before, and uses the fused graph only when every member it records is a model
+it loaded, file hash for file hash (:mod:`device.pi.models.fused`).
+
+``python -m host.learn.fuse MODELS`` (re)builds it; ``host deploy`` and
+``host bench runtime`` build it for the models they run.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from device.pi.models.artefact import (FLOAT_MANIFEST, MANIFEST, ModelError,
+                                      checked_model_file, manifest_for, read_manifest,
+                                      sha256_file)
+from device.pi.models.fused import FUSED_DIR, FUSED_KIND, FUSED_TASKS
+from device.pi.models.spec import ModelSpec, check_same_profiles
+from host.data.dataset import atomic_write
+
+__all__ = ["fuse_models", "fused_graph", "FuseError"]
+
+#: (ONNX file, manifest) of each pick in the fused folder, as
+#: :func:`device.pi.models.artefact.manifest_for` picks the members' manifests
+FUSED_FILES = {"int8": ("fused.onnx", MANIFEST),
+               "float": ("fused.float.onnx", FLOAT_MANIFEST)}
+
+
+class FuseError(ModelError):
+    """The models cannot be fused; the message names the file."""
+
+
+def _members(models_dir: Path, variant: str) -> list[dict]:
+    """The ONNX models of ``models_dir`` the leg runs per frame, as loaded for
+    ``variant``: task, manifest path, document and ONNX file."""
+    out = []
+    for task in FUSED_TASKS:
+        folder = models_dir / task
+        if not folder.is_dir():
+            continue
+        mf = manifest_for(folder, variant)
+        if mf.is_dir():
+            continue                              # no manifest: the leg refuses it anyway
+        doc, _ = read_manifest(mf)
+        if doc.get("model") == "rule" or doc.get("onnx") is None:
+            continue                              # a rule has no graph
+        onnx = checked_model_file(folder, doc["onnx"], doc["sha256"], mf)   # its hash
+        out.append({"task": task, "manifest": mf, "doc": doc, "onnx": onnx})
+    return out
+
+
+def _output_name(graph, doc: dict, task: str) -> str:
+    """The output the runtime reads: a classifier's manifest ``output`` (default
+    probabilities, else the last), the regressor's first."""
+    names = [o.name for o in graph.output]
+    if task == "pressure":
+        return names[0]
+    want = doc.get("output", "probabilities")
+    return want if want in names else names[-1]
+
+
+def fused_graph(members: list[dict]):
+    """(onnx.ModelProto, member records) of ``members`` (task, doc, onnx path) side
+    by side: names prefixed with ``task/``, only the read output kept, the opsets
+    raised to the highest among them (onnx.version_converter)."""
+    import onnx
+    from onnx import compose, helper, version_converter
+
+    protos = []
+    for m in members:
+        try:
+            protos.append(onnx.load(str(m["onnx"])))
+        except Exception as exc:       # protobuf's own errors
+            raise FuseError(f"{m['onnx']}: not an ONNX model ({exc})") from None
+    opsets: dict[str, int] = {}
+    for p in protos:
+        for o in p.opset_import:
+            opsets[o.domain] = max(opsets.get(o.domain, 0), o.version)
+    nodes, inits, inputs, outputs, vinfo, recs = [], [], [], [], [], []
+    ir = max(p.ir_version for p in protos)
+    for m, p in zip(members, protos):
+        have = {o.domain: o.version for o in p.opset_import}
+        if have.get("", opsets.get("", 0)) != opsets.get("", 0):
+            try:
+                p = version_converter.convert_version(p, opsets[""])
+            except Exception as exc:       # the converter's own errors
+                raise FuseError(f"{m['onnx']}: cannot raise its opset to {opsets['']} to fuse "
+                                f"it ({exc})") from None
+        keep = _output_name(p.graph, m["doc"], m["task"])
+        prefix = f"{m['task']}/"
+        p = compose.add_prefix(p, prefix)
+        g = p.graph
+        if len(g.input) != 1:
+            raise FuseError(f"{m['onnx']}: has {len(g.input)} inputs; a member reads one window")
+        nodes += list(g.node)
+        inits += list(g.initializer)
+        inputs += list(g.input)
+        outputs += [o for o in g.output if o.name == prefix + keep]
+        vinfo += list(g.value_info)
+        recs.append({"task": m["task"], "input": g.input[0].name, "output": prefix + keep})
+    graph = helper.make_graph(nodes, "tacfoot-fused", inputs, outputs, initializer=inits,
+                              value_info=vinfo)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v)
+                                                    for d, v in sorted(opsets.items())],
+                              producer_name="tacfoot host.learn.fuse")
+    model.ir_version = ir
+    onnx.checker.check_model(model)
+    model = onnx.shape_inference.infer_shapes(model)
+    return model, recs
+
+
+def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: str,
+          sha: str, size: int) -> ModelSpec:
+    specs = {str(m["manifest"]): ModelSpec.from_manifest(m["doc"], m["manifest"])
+             for m in members}
+    profile = check_same_profiles({w: s.profile for w, s in specs.items()})
+    n = sum(s.n_inputs for s in specs.values())
+    rows = []
+    for m, r in zip(members, recs):
+        doc = m["doc"]
+        rows.append({**r, "manifest": str(m["manifest"].relative_to(models_dir)),
+                     "onnx": doc["onnx"], "sha256": sha256_file(m["onnx"]),
+                     "n_inputs": specs[str(m["manifest"])].n_inputs,
+                     "T": specs[str(m["manifest"])].T})
+    return ModelSpec(kind=FUSED_KIND, task=FUSED_KIND, model="fused", classes=[],
+                     T=max(s.T for s in specs.values()), input_layout="vectors", n_inputs=n,
+                     profile={k: profile[k] for k in ("name", "n_pins", "sha256", "toml")},
+                     input_name=recs[0]["input"], output=recs[0]["output"],
+                     output_kind="fused",
+                     trained_on={"data": "unknown", "recordings": [],
+                                 "split": "fused from the member models (see members)"},
+                     onnx=onnx_name, sha256={onnx_name: sha}, size_bytes=size,
+                     variant="int8" if any(m["doc"].get("variant") == "int8" for m in members)
+                     else "float", params={"members": rows})
+
+
+def fuse_models(models_dir: Path | str) -> dict:
+    """Build ``models_dir/fused`` from the per-frame models of ``models_dir`` (see
+    the module doc); a stale one is replaced, and removed when fewer than two
+    models have a graph. Returns {variant: manifest path}. FuseError naming the
+    file when a member cannot be fused."""
+    import shutil
+
+    d = Path(models_dir)
+    out = d / FUSED_DIR
+    built: dict[str, Path] = {}
+    seen: dict[tuple, str] = {}
+    plans = {}
+    for variant in ("int8", "float"):
+        members = _members(d, variant)
+        if len(members) < 2:
+            continue
+        key = tuple(str(m["onnx"]) for m in members)
+        if key in seen:
+            continue                            # the float pick is the default's files
+        seen[key] = variant
+        plans[variant] = members
+    if out.exists():
+        shutil.rmtree(out)                      # stale: rebuilt from the members as they are
+    from host.learn.onnx_io import write_spec
+
+    for variant, members in plans.items():
+        model, recs = fused_graph(members)
+        out.mkdir(parents=True, exist_ok=True)
+        data = model.SerializeToString()
+        name, manifest = FUSED_FILES[variant]
+        atomic_write(out / name, lambda fh: fh.write(data))
+        spec = _spec(d, members, recs, name, sha256_file(out / name), len(data))
+        built[variant] = write_spec(out, spec, manifest)
+    return built
+
+
+def main(argv=None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) != 1:
+        print("usage: python -m host.learn.fuse MODELS_FOLDER", file=sys.stderr)
+        return 2
+    try:
+        built = fuse_models(args[0])
+    except (ModelError, OSError) as exc:
+        print(f"host.learn.fuse: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps({v: str(p) for v, p in built.items()}))
+    return 0
+
+
+if __name__ == "__main__":                      # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,84 @@
+"""host/learn/fuse.py: the per-frame models as one ONNX graph, built from the
+artefacts of a models folder; each member's output is its own model's, bit for bit."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from device.pi.models.artefact import ModelError, ort_session, read_spec, sha256_file
+from host.learn.fuse import fuse_models, main
+from tests import REPO_ROOT
+
+TASKS = ("surface", "texture", "slip", "pressure")
+
+
+@pytest.fixture(scope="module")
+def shipped(tmp_path_factory):
+    """A copy of the shipped per-frame models (int8 + float; pressure at opset 13,
+    the classifiers at 17)."""
+    d = tmp_path_factory.mktemp("models")
+    for t in TASKS:
+        if not (REPO_ROOT / "models" / t / "manifest.json").is_file():
+            pytest.skip(f"no shipped models/{t}")
+        shutil.copytree(REPO_ROOT / "models" / t, d / t)
+    return d
+
+
+def test_the_fused_graph_gives_each_members_output_bit_for_bit(shipped):
+    built = fuse_models(shipped)
+    assert set(built) == {"int8", "float"}
+    rng = np.random.default_rng(3)
+    for variant, manifest in built.items():
+        spec, _ = read_spec(manifest)
+        assert spec.kind == "fused" and spec.profile["name"] == "roboskin"
+        rows = spec.params["members"]
+        assert [r["task"] for r in rows] == list(TASKS)
+        fused = ort_session(str(manifest.parent / spec.onnx))
+        assert sha256_file(manifest.parent / spec.onnx) == spec.sha256[spec.onnx]
+        assert [o.name for o in fused.get_outputs()] == [r["output"] for r in rows]
+        for trial in range(3):
+            feeds, want = {}, {}
+            for r in rows:
+                mdoc = json.loads((shipped / r["manifest"]).read_text())
+                assert r["onnx"] == mdoc["onnx"] and r["sha256"] == mdoc["sha256"][r["onnx"]]
+                assert mdoc["variant"] == ("int8" if variant == "int8" else "float")
+                x = (np.round(rng.normal(0, 3, (1, r["n_inputs"])) * 4) / 4).astype(np.float32)
+                feeds[r["input"]] = x
+                one = ort_session(str(shipped / r["task"] / r["onnx"]))
+                want[r["task"]] = one.run([r["output"].split("/", 1)[1]], {"x": x})[0]
+            got = fused.run([r["output"] for r in rows], feeds)
+            for r, g in zip(rows, got):
+                np.testing.assert_array_equal(g, want[r["task"]], err_msg=r["task"])
+
+
+def test_a_rebuild_follows_the_members_and_fewer_than_two_give_no_graph(shipped, tmp_path):
+    d = tmp_path / "models"
+    for t in ("surface", "pressure"):
+        shutil.copytree(shipped / t, d / t)
+    (d / "fused").mkdir()
+    (d / "fused" / "stale.onnx").write_bytes(b"old")
+    built = fuse_models(d)
+    assert not (d / "fused" / "stale.onnx").exists()
+    rows = read_spec(built["int8"])[0].params["members"]
+    assert [r["task"] for r in rows] == ["surface", "pressure"]
+    shutil.rmtree(d / "pressure")
+    assert fuse_models(d) == {} and not (d / "fused").exists()
+
+
+def test_the_command_builds_it_and_a_broken_member_is_one_line(shipped, tmp_path, capsys):
+    d = tmp_path / "models"
+    for t in ("surface", "slip"):
+        shutil.copytree(shipped / t, d / t)
+    assert main([str(d)]) == 0
+    assert (d / "fused" / "manifest.json").is_file()
+    assert "manifest.json" in capsys.readouterr().out
+    (d / "slip" / "model.int8.onnx").write_bytes(b"not onnx")
+    assert main([str(d)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("host.learn.fuse: error: ") and "slip" in err
+    assert main([]) == 2
+    with pytest.raises(ModelError):
+        fuse_models(d)
