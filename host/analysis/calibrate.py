@@ -25,7 +25,7 @@ from device.pi.vision.pipeline import MarkerStream
 from device.profile import parse_pipeline_profile
 from host.analysis.frames import nearest_neighbour_px
 from host.analysis.rest_pins import (MIN_SEEN, Region, RestPins, agreement, find_rest_pins,
-                                     merge_layouts, nn_px)
+                                     merge_with_flags, nn_px)
 from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
 
@@ -161,9 +161,12 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
               "max_area_px": int(max(round(3.0 * area), round(0.3 * area) + 1)),
               "roi_shrink": p.roi_shrink, "pitch_px": round(pitch, 2),
               "n_pins": int(len(pins)), "dome_px": [round(v, 1) for v in dome]}
+    order = layout_order(pins, dome, pitch)
     layout = order_layout(pins, dome, pitch)
+    loose = np.flatnonzero(rest.pins_loose[order])
     vision.update(rest_contact(grays, vision))
     return {"name": name, "vision": vision, "layout": layout, "frames": len(grays),
+            "loose": [int(i) for i in loose],
             "start": int(start), "region": region, "rest": rest,
             "blobs": rest.counts(), "dome_in_view": region.disc is not None,
             "spot_scale": scale, "lattice_regularity": round(lattice_regularity(pins), 3),
@@ -171,29 +174,46 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
 
 
-def order_layout(pins: np.ndarray, dome, pitch_px: float) -> list[list[float]]:
-    """The layout [[x, y], ...] px, sorted by angle around the region's centre within
-    rings of one pitch, so the order is stable."""
+def layout_order(pins: np.ndarray, dome, pitch_px: float) -> np.ndarray:
+    """The rows of ``pins`` sorted by angle around the region's centre within rings
+    of one pitch, so the order is stable."""
     pins = np.asarray(pins, np.float64).reshape(-1, 2)
     d = pins - np.asarray(dome[:2], np.float64)
     ring = np.round(np.hypot(d[:, 0], d[:, 1]) / max(pitch_px, 1e-9))
-    order = np.lexsort((np.arctan2(d[:, 1], d[:, 0]), ring))
-    return [[round(float(x), 2), round(float(y), 2)] for x, y in pins[order]]
+    return np.lexsort((np.arctan2(d[:, 1], d[:, 0]), ring))
+
+
+def order_layout(pins: np.ndarray, dome, pitch_px: float) -> list[list[float]]:
+    """The layout [[x, y], ...] px in :func:`layout_order`."""
+    pins = np.asarray(pins, np.float64).reshape(-1, 2)
+    return [[round(float(x), 2), round(float(y), 2)]
+            for x, y in pins[layout_order(pins, dome, pitch_px)]]
+
+
+def loose_flags(res: dict) -> np.ndarray:
+    """(len(layout),) bool: the layout's loose pins (``res["loose"]`` indices)."""
+    flags = np.zeros(len(res["layout"]), bool)
+    flags[np.asarray(res.get("loose", []), np.int64)] = True
+    return flags
 
 
 def merge_results(results: list[dict]) -> dict:
     """One profile from the calibrations of several clips of one sensor: the first
     clip's ``[vision]`` and region, and the rest layout of the pins more than half of
-    the clips found (each clip's layout shifted onto the first's). ``agreement``
-    compares every pair of clips (:func:`agreement`)."""
+    the clips found (each clip's layout shifted onto the first's; a pin loose in half
+    of them or more stays loose). ``agreement`` compares every pair of clips
+    (:func:`agreement`, with ``steady``: over the pins loose in neither)."""
     first = results[0]
     pitch = first["vision"]["pitch_px"]
     lays = [np.asarray(r["layout"], np.float64).reshape(-1, 2) for r in results]
-    merged = merge_layouts(lays, pitch)
+    flags = [loose_flags(r) for r in results]
+    merged, merged_loose = merge_with_flags(lays, pitch, flags)
     vision = dict(first["vision"], n_pins=int(len(merged)))
-    pairs = [dict(agreement(lays[i], lays[j], pitch), clips=[i, j])
+    pairs = [dict(agreement(lays[i], lays[j], pitch, flags[i], flags[j]), clips=[i, j])
              for i in range(len(lays)) for j in range(i + 1, len(lays))]
+    order = layout_order(merged, vision["dome_px"], pitch)
     return dict(first, vision=vision, layout=order_layout(merged, vision["dome_px"], pitch),
+                loose=[int(i) for i in np.flatnonzero(merged_loose[order])],
                 frames=sum(r["frames"] for r in results), clips_merged=len(results),
                 agreement=pairs)
 
@@ -247,7 +267,13 @@ def profile_toml(res: dict) -> str:
                       f"{MIN_SEEN:.0%} of the rest frames at a steady position"
                       + (f" in more than half of {merged} clips" if merged > 1 else "")
                       + "; every model reads them in this order",
-                  "[layout]", 'kind = "points"', "pins_px = ["]
+                  ]
+        loose = res.get("loose") or []
+        if loose:
+            lines += [f"# {len(loose)} of them loose (a glare-clipped core or a centre that "
+                      f"wanders over the rest frames; their rest position is less certain), "
+                      f"rows: {', '.join(str(i) for i in loose)}"]
+        lines += ["[layout]", 'kind = "points"', "pins_px = ["]
         lines += [f"  [{x}, {y}]," for x, y in lay]
         lines.append("]")
     return "\n".join(lines) + "\n"

@@ -25,6 +25,14 @@ Centres are sub-pixel (:func:`centres`): the centroid of what stands above a pla
 fitted to a ring around each spot, so the glare's gradient does not shift a faint
 pin's centre.
 
+A kept pin is ``loose`` when its rest centre cannot be measured to a small share
+of the pitch: its core is clipped at the camera's full scale in most frames (an
+LED glare core: the centroid of a flat, saturated top snaps between frames), or
+its centre wanders across the rest frames by more than ``WANDER_PITCH`` pitch
+(80th percentile of its distance from the median). Loose pins stay in the layout
+(they are pins, and a model needs every pin), but layouts of one sensor are
+compared on the steady ones (:func:`agreement`).
+
 Nothing here knows how many pins a sensor has: the pitch and the pin size come
 from the threshold search, the thresholds from the spots' own distribution.
 """
@@ -59,6 +67,16 @@ EDGE_STRENGTH = 0.6
 FAINT_STRENGTH = 0.3
 #: ... within this many pitches of where its neighbours' rows predict a pin
 SITE_PITCH = 0.2
+
+#: a kept pin whose centre wanders by more than this many pitches (80th percentile
+#: over the rest frames of its distance from its median position) is loose
+WANDER_PITCH = 0.04
+#: ... and so is one whose core is clipped at the camera's full scale in more than
+#: this share of the frames (a saturated glare core has no measurable centre)
+CLIPPED_SHARE = 0.5
+#: "full scale" is this share of the frame type's largest value (compression noise
+#: keeps a clipped area a few levels under it)
+FULL_SCALE = 0.98
 
 REASONS = ("kept", "glare", "duplicate", "edge", "unstable")
 
@@ -95,17 +113,32 @@ class Region:
 class RestPins:
     """Tracked blobs of the rest frames: median position ``xy`` (K, 2) px, the share
     of frames ``seen`` (K,), median ``strength`` (K,) and ``reason`` (K,) from
-    :data:`REASONS`; ``pins`` are the kept ones."""
+    :data:`REASONS`; ``pins`` are the kept ones. ``wander_px`` (K,) is how far each
+    blob's centre wanders over the frames (80th percentile of its distance from its
+    median position), ``clipped`` (K,) the share of frames with its core at full
+    scale, and ``loose`` (K,) marks the kept pins whose centre is uncertain (see the
+    module's rules)."""
     xy: np.ndarray
     seen: np.ndarray
     strength: np.ndarray
     reason: np.ndarray
     pitch_px: float
     frames: int
+    wander_px: np.ndarray | None = None
+    clipped: np.ndarray | None = None
+    loose: np.ndarray | None = None
 
     @property
     def pins(self) -> np.ndarray:
         return self.xy[self.reason == "kept"]
+
+    @property
+    def pins_loose(self) -> np.ndarray:
+        """(len(pins),) bool: which kept pins are loose (all False without flags)."""
+        kept = self.reason == "kept"
+        if self.loose is None:
+            return np.zeros(int(kept.sum()), bool)
+        return np.asarray(self.loose, bool)[kept]
 
     def counts(self) -> dict:
         return {r: int(np.count_nonzero(self.reason == r)) for r in REASONS}
@@ -291,8 +324,44 @@ def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
             reason[i] = "glare"
     kept = reason == "kept"
     typical_pitch = float(np.median(pitch[kept])) if kept.any() else float(pitch_px)
+    wander = wander_px(pos, xy)
+    clipped = clipped_share(grays, pos)
+    loose = kept & ((clipped > CLIPPED_SHARE) | ~(wander <= WANDER_PITCH * pitch))
     return RestPins(xy=xy, seen=seen, strength=np.nan_to_num(med_s), reason=reason.astype(str),
-                    pitch_px=typical_pitch, frames=len(grays))
+                    pitch_px=typical_pitch, frames=len(grays), wander_px=wander,
+                    clipped=clipped, loose=loose)
+
+
+def wander_px(pos: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """How far each track's centre wanders (K,) px: the 80th percentile over the
+    frames that saw it of its distance from ``xy`` (its median position); 0 for a
+    track seen once."""
+    d = np.hypot(*(pos - xy[None]).transpose(2, 0, 1))                       # (F, K)
+    out = np.zeros(d.shape[1])
+    seen = np.isfinite(d)
+    for k in np.flatnonzero(seen.sum(axis=0) > 0):
+        out[k] = float(np.percentile(d[seen[:, k], k], 80))
+    return out
+
+
+def clipped_share(grays: list[np.ndarray], pos: np.ndarray) -> np.ndarray:
+    """The share (K,) of the frames that saw each track in which the brightest pixel
+    of its core (3 x 3 px around its centre in that frame) is at full scale
+    (``FULL_SCALE`` of the frame type's largest value; never for float frames)."""
+    hits = np.zeros(pos.shape[1])
+    seen = np.zeros(pos.shape[1])
+    for g, p in zip(grays, pos):
+        ok = np.flatnonzero(np.isfinite(p[:, 0]))
+        seen[ok] += 1
+        if not np.issubdtype(g.dtype, np.integer) or not len(ok):
+            continue
+        level = FULL_SCALE * np.iinfo(g.dtype).max
+        h, w = g.shape[:2]
+        xs = np.clip(np.round(p[ok, 0]).astype(np.int64), 1, w - 2)
+        ys = np.clip(np.round(p[ok, 1]).astype(np.int64), 1, h - 2)
+        core = np.max([g[ys + dy, xs + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+        hits[ok] += core >= level
+    return np.where(seen > 0, hits / np.maximum(seen, 1), 0.0)
 
 
 def match_nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -322,48 +391,81 @@ def align(a: np.ndarray, b: np.ndarray, gate_px: float, rounds: int = 5):
     return shift, idx, dist
 
 
-def agreement(a: np.ndarray, b: np.ndarray, pitch_px: float) -> dict:
+def agreement(a: np.ndarray, b: np.ndarray, pitch_px: float, loose_a=None, loose_b=None
+              ) -> dict:
     """How two rest layouts of one sensor agree, aligned by a shift: pins matched
-    one-to-one within 0.4 pitch, the count difference, and the matched distances."""
+    one-to-one within 0.4 pitch, the count difference, and the matched distances;
+    ``steady`` the same figures over the matched pins loose in neither layout
+    (``loose_a`` (len(a),), ``loose_b`` (len(b),) bool; none loose when not given)."""
+    a = np.asarray(a, np.float64).reshape(-1, 2)
+    b = np.asarray(b, np.float64).reshape(-1, 2)
+    la = np.zeros(len(a), bool) if loose_a is None else np.asarray(loose_a, bool)
+    lb = np.zeros(len(b), bool) if loose_b is None else np.asarray(loose_b, bool)
+    if la.shape != (len(a),) or lb.shape != (len(b),):
+        raise ValueError(f"loose flags must have one entry per pin: loose_a {la.shape} for "
+                         f"{len(a)} pins, loose_b {lb.shape} for {len(b)} pins")
     shift, idx, dist = align(a, b, 0.4 * pitch_px)
-    d = dist[np.isfinite(dist)]
+    ok = np.isfinite(dist)
+    steady = ok.copy()
+    steady[ok] = ~la[ok] & ~lb[idx[ok]]
+
+    def figures(sel):
+        d = dist[sel]
+        return {"matched": int(len(d)),
+                "median_px": round(float(np.median(d)), 3) if len(d) else None,
+                "max_px": round(float(d.max()), 3) if len(d) else None}
+
     return {"pins": [int(len(a)), int(len(b))], "count_difference": int(abs(len(a) - len(b))),
-            "matched": int(len(d)), "shift_px": [round(float(v), 2) for v in shift],
-            "median_px": round(float(np.median(d)), 3) if len(d) else None,
-            "max_px": round(float(d.max()), 3) if len(d) else None}
+            "shift_px": [round(float(v), 2) for v in shift], **figures(ok),
+            "steady": figures(steady)}
 
 
 def merge_layouts(layouts: list[np.ndarray], pitch_px: float) -> np.ndarray:
     """One layout from several clips' rest layouts of one sensor, in the first one's
     coordinates: each other layout is shifted onto it; a pin stays when more than
     half the clips found it, at its mean position."""
-    ref = np.asarray(layouts[0], np.float64).reshape(-1, 2)
-    if len(layouts) == 1:
-        return ref.copy()
+    return merge_with_flags(layouts, pitch_px)[0]
+
+
+def merge_with_flags(layouts: list[np.ndarray], pitch_px: float, loose=None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`merge_layouts` and, for each merged pin, whether it is loose: loose in
+    at least half of the clips that found it (``loose``: one bool array per layout;
+    none loose when not given). A loose pin's position is the mean over the clips
+    where it was steady, when there are any."""
+    lays = [np.asarray(lay, np.float64).reshape(-1, 2) for lay in layouts]
+    flags = [np.zeros(len(lay), bool) if loose is None else np.asarray(f, bool)
+             for lay, f in zip(lays, loose if loose is not None else lays)]
     gate = 0.4 * pitch_px
-    pts = [ref]
-    for lay in layouts[1:]:
-        shift, _, _ = align(lay, ref, gate)
-        pts.append(np.asarray(lay, np.float64).reshape(-1, 2) + shift)
+    pts = [lays[0]]
+    for lay in lays[1:]:
+        shift, _, _ = align(lay, lays[0], gate)
+        pts.append(lay + shift)
     # union by greedy matching to a growing list of clusters
     centre = pts[0].copy()
-    members = [[p] for p in centre]
-    for p in pts[1:]:
+    members = [[(p, f)] for p, f in zip(centre, flags[0])]
+    for p, fl in zip(pts[1:], flags[1:]):
         idx = match_pins(p, centre, gate)
         for j, t in enumerate(idx):
             if t >= 0:
-                members[t].append(p[j])
+                members[t].append((p[j], fl[j]))
             else:
-                members.append([p[j]])
-        centre = np.array([np.mean(m, axis=0) for m in members])
+                members.append([(p[j], fl[j])])
+        centre = np.array([np.mean([q for q, _ in m], axis=0) for m in members])
     need = len(layouts) / 2.0
-    keep = np.array([len(m) > need for m in members])
-    return centre[keep]
+    out, out_loose = [], []
+    for m in members:
+        if len(m) <= need:
+            continue
+        steady = [q for q, f in m if not f]
+        out.append(np.mean(steady if steady else [q for q, _ in m], axis=0))
+        out_loose.append(2 * len(steady) <= len(m))
+    return np.asarray(out, np.float64).reshape(-1, 2), np.asarray(out_loose, bool)
 
 
 #: overlay colours (BGR) of each kind of blob
 COLOURS = {"kept": (0, 200, 0), "glare": (0, 140, 255), "duplicate": (255, 0, 255),
-           "edge": (255, 255, 0), "unstable": (0, 0, 255)}
+           "edge": (255, 255, 0), "unstable": (0, 0, 255), "loose": (0, 255, 255)}
 #: the overlay is drawn at this many times the frame's size
 OVERLAY_SCALE = 2
 
@@ -380,16 +482,18 @@ def overlay_image(frame: np.ndarray, rest: RestPins, region: Region) -> np.ndarr
         cv2.circle(img, (int(round(cx * s)), int(round(cy * s))), int(round(r * s)),
                    (255, 128, 0), 1, cv2.LINE_AA)
     rad = max(3, int(round(0.3 * rest.pitch_px * s)))
-    for (x, y), why in zip(rest.xy, rest.reason):
+    loose = np.zeros(len(rest.xy), bool) if rest.loose is None else np.asarray(rest.loose, bool)
+    for (x, y), why, lo in zip(rest.xy, rest.reason, loose):
         c = (int(round(x * s)), int(round(y * s)))
         if why == "kept":
-            cv2.circle(img, c, rad, COLOURS[why], 1, cv2.LINE_AA)
+            cv2.circle(img, c, rad, COLOURS["loose" if lo else why], 1, cv2.LINE_AA)
         else:
             cv2.drawMarker(img, c, COLOURS[why], cv2.MARKER_TILTED_CROSS, 2 * rad, 1, cv2.LINE_AA)
     counts = rest.counts()
-    lines = [(f"kept pins: {counts['kept']}", "kept")] + [
+    lines = [(f"kept pins: {counts['kept']}", "kept"),
+             (f"  of them loose (glare-clipped or wandering): {int(loose.sum())}", "loose")] + [
         (f"rejected, {why}: {counts[why]}", why) for why in REASONS[1:]]
-    cv2.rectangle(img, (4, 4), (250, 10 + 20 * len(lines)), (0, 0, 0), -1)
+    cv2.rectangle(img, (4, 4), (400, 10 + 20 * len(lines)), (0, 0, 0), -1)
     for i, (text, why) in enumerate(lines):
         y = 22 + 20 * i
         cv2.circle(img, (16, y - 5), 6, COLOURS[why], -1)

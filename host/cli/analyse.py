@@ -170,8 +170,8 @@ def cmd_calibrate(args):
             raise UserError(f"{source}: {exc}") from None
         results.append((source, frames[0], res))
     source, frame, res = results[0]
-    clips = [{"source": s, "pins": len(r["layout"]), "blobs": r["blobs"]}
-             for s, _, r in results]
+    clips = [{"source": s, "pins": len(r["layout"]), "loose": len(r["loose"]),
+              "blobs": r["blobs"]} for s, _, r in results]
     if len(results) > 1:
         res = merge_results([r for _, _, r in results])
     lay = res["layout"]
@@ -186,12 +186,14 @@ def cmd_calibrate(args):
     text = (f"wrote {args.out}: {'dome' if res['dome_in_view'] else 'no dome in view, region'} "
             f"{v['dome_px']}, block {v['block']}, offset {v['offset']}, pin area "
             f"{v['min_area_px']}..{v['max_area_px']} px, pitch {v['pitch_px']} px, "
-            f"{len(lay)} pins")
+            f"{len(lay)} pins ({len(res['loose'])} loose: glare-clipped or wandering)")
     if len(results) > 1:
-        text += "".join(f"\n  {c['source']}: {c['pins']} pins" for c in clips)
+        text += "".join(f"\n  {c['source']}: {c['pins']} pins ({c['loose']} loose)"
+                        for c in clips)
         text += "".join(f"\n  {clips[a['clips'][0]]['source']} vs {clips[a['clips'][1]]['source']}: "
                         f"{a['count_difference']} pins apart, {a['matched']} matched, "
-                        f"median {a['median_px']} px, max {a['max_px']} px"
+                        f"median {a['median_px']} px, max {a['max_px']} px; "
+                        f"{a['steady']['matched']} steady in both, max {a['steady']['max_px']} px"
                         for a in res["agreement"])
     if args.overlay:
         text += f"\noverlay: {res['overlay']}"

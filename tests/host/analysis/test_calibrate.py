@@ -118,29 +118,61 @@ SENSOR_133 = ("smooth", "concrete", "lego_train", "north", "east")
 
 @pytest.fixture(scope="module")
 def layouts():
-    """Each 133-pin clip's rest layout from its 16 leading frames (the default)."""
+    """Each 133-pin clip's calibration from its 16 leading frames (the default)."""
     from host.analysis.calibrate import calibrate
     from tests.realdata import read_video, real_data_dir
     data = real_data_dir(*(f"roboskin/{n}.avi" for n in SENSOR_133)) / "roboskin"
-    return {n: np.asarray(calibrate(read_video(data / f"{n}.avi", 0, 16))["layout"])
-            for n in SENSOR_133}
+    return {n: calibrate(read_video(data / f"{n}.avi", 0, 16)) for n in SENSOR_133}
+
+
+#: the clips of one recording set-up (concrete.avi is another session: 120 fps, a
+#: brighter exposure; see test_clips_of_one_sensor_give_one_layout)
+SAME_SESSION = ("smooth", "lego_train", "north", "east")
 
 
 def test_clips_of_one_sensor_give_one_layout(layouts):
     """Every layout near 133 pins, the clips within 3 pins of each other, and matched
-    pins (after a shift) close. Measured (issue 23, second round): 130, 130, 130, 130,
-    133 pins; 0-3 apart; median 0.06-0.25 px, max 0.8-1.6 px (the 1 px goal is not
-    met: a few faint pins under the glare)."""
+    pins (after a shift) close. Measured (issue 23, fourth round): 130, 130, 130, 130,
+    133 pins; 0-3 apart; all matched pins: median 0.06-0.25 px, max 0.81-1.57 px. The
+    worst are pins on the LED glare: 5-10 per clip are loose (a clipped core, or a
+    centre that wanders over the rest frames) and left out of the steady figures:
+    max 0.42-0.81 px between smooth, lego_train, north and east except lego_train vs
+    north/east (1.01, 1.06 px: a pin beside a glare core whose centre is steady in
+    each clip), 1.11-1.42 px between concrete and the others (pins beside the glare,
+    not clipped there)."""
+    from host.analysis.calibrate import loose_flags
     from host.analysis.rest_pins import agreement
-    for name, lay in layouts.items():
-        assert abs(len(lay) - 133) <= 4, (name, len(lay))
+    for name, res in layouts.items():
+        assert abs(len(res["layout"]) - 133) <= 4, (name, len(res["layout"]))
+        assert 0 < len(res["loose"]) <= 0.1 * len(res["layout"]), (name, res["loose"])
     names = list(layouts)
     for i, a in enumerate(names):
         for b in names[i + 1:]:
-            ag = agreement(layouts[a], layouts[b], 11.7)
+            ag = agreement(np.asarray(layouts[a]["layout"]), np.asarray(layouts[b]["layout"]),
+                           11.7, loose_flags(layouts[a]), loose_flags(layouts[b]))
             assert ag["count_difference"] <= 3, (a, b, ag)
             assert ag["matched"] >= 0.92 * min(ag["pins"]), (a, b, ag)
             assert ag["median_px"] <= 0.3 and ag["max_px"] <= 2.0, (a, b, ag)
+            assert ag["steady"]["matched"] >= 0.85 * min(ag["pins"]), (a, b, ag)
+            same = a in SAME_SESSION and b in SAME_SESSION
+            assert ag["steady"]["max_px"] <= (1.1 if same else 1.5), (a, b, ag)
+            assert ag["steady"]["max_px"] <= ag["max_px"]
+
+
+def test_two_rest_windows_of_one_clip_agree_on_their_steady_pins(layouts):
+    """east.avi rests for its first 34 frames: its frames 0-15 and 16-31 give layouts
+    whose steady pins agree within 0.7 px (measured 0.63 px), while a glare core's
+    centroid snaps between plateau modes (all pins: 2.6 px)."""
+    from host.analysis.calibrate import calibrate, loose_flags
+    from host.analysis.rest_pins import agreement
+    from tests.realdata import read_video, real_data_dir
+    clip = real_data_dir("roboskin/east.avi") / "roboskin" / "east.avi"
+    first = layouts["east"]
+    later = calibrate(read_video(clip, 16, 16))
+    ag = agreement(np.asarray(first["layout"]), np.asarray(later["layout"]), 11.7,
+                   loose_flags(first), loose_flags(later))
+    assert ag["steady"]["matched"] >= 110, ag
+    assert ag["steady"]["max_px"] <= 0.7 < ag["max_px"], ag
 
 
 def test_the_printed_count_is_the_written_count_and_start_frames_merge(tmp_path, capsys):
@@ -155,7 +187,8 @@ def test_the_printed_count_is_the_written_count_and_start_frames_merge(tmp_path,
                  "--frames", "6", "--out", str(out), "--overlay", str(png)]) == 0
     text = capsys.readouterr().out
     n = len(load_layout(out))
-    assert f"{n} pins\n" in text and load_pipeline_profile(out).n_pins == n
+    assert f"{n} pins (" in text and load_pipeline_profile(out).n_pins == n
+    assert "steady in both" in text and "loose" in out.read_text()
     assert "smooth.avi: " in text and "north.avi: " in text and "matched" in text
     assert cv2.imread(str(png)).shape == (960, 1280, 3)
     assert main(["calibrate", str(clips / "smooth.avi"), "--start", "2", "--frames", "6",

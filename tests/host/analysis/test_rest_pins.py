@@ -3,6 +3,7 @@ lattice, each rejection has its reason, and centres are sub-pixel true under gla
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from host.analysis.rest_pins import Region, centres, find_rest_pins, lattice_error_px
 
@@ -84,3 +85,95 @@ def test_lattice_error_is_small_on_a_site_and_large_between_rows():
     others = np.delete(sites, i, axis=0)
     assert lattice_error_px(sites[i], others, PITCH) < 0.01
     assert lattice_error_px(sites[i] + [0.0, 0.5 * PITCH], others, PITCH) > 0.2 * PITCH
+
+
+def test_a_clipped_pin_and_a_wandering_pin_are_kept_but_loose():
+    """A pin whose core is clipped at full scale (an LED glare core) and a pin whose
+    centre wanders by 1 px over the rest frames stay in the layout, flagged loose;
+    the other pins are steady (their centres move by noise only)."""
+    sites = _sites()
+    i_clip = int(np.argmin(np.hypot(*(sites - (CX - 25, CY + 10)).T)))
+    i_wander = int(np.argmin(np.hypot(*(sites - (CX + 25, CY - 10)).T)))
+    amps = np.full(len(sites), 120.0)
+    amps[i_clip] = 400.0                                  # clipped at 255 over its core
+    frames = []
+    for k in range(6):
+        pins = sites.copy()
+        pins[i_wander, 0] += (0.0, 1.0, -1.0)[k % 3]      # median distance 1 px < 0.1 pitch
+        frames.append(_render(pins, amps, noise=1.0, seed=k))
+    rest = find_rest_pins(frames, Region(SIZE, SIZE, (CX, CY, R)), 6.0, PITCH)
+    assert len(rest.pins) == len(sites)                   # neither is rejected
+    kept = rest.reason == "kept"
+    loose_xy = rest.xy[kept & rest.loose]
+    assert len(loose_xy) == 2
+    assert _nearest(sites[[i_clip, i_wander]], loose_xy).max() < 1.0
+    i = int(np.argmin(np.hypot(*(rest.xy - sites[i_clip]).T)))
+    assert rest.clipped[i] == 1.0 and rest.wander_px[i] < 0.3
+    j = int(np.argmin(np.hypot(*(rest.xy - sites[i_wander]).T)))
+    assert rest.wander_px[j] > 0.9 and rest.clipped[j] == 0.0
+    steady = kept & ~rest.loose
+    assert rest.wander_px[steady].max() < 0.3
+    assert rest.pins_loose.sum() == 2 and len(rest.pins_loose) == len(rest.pins)
+
+
+def test_agreement_reports_the_steady_pins_apart():
+    """Two layouts of one lattice, shifted; one pin 2 px off in the second: the
+    all-pins maximum shows it, the steady figures leave it out when it is loose."""
+    from host.analysis.rest_pins import agreement
+    a = _sites()
+    b = a + [3.0, -2.0]
+    b[5] += [2.0, 0.0]
+    plain = agreement(a, b, PITCH)
+    assert plain["max_px"] == pytest.approx(2.0, abs=0.01)
+    assert plain["steady"]["max_px"] == plain["max_px"]      # nothing flagged: the same
+    loose_b = np.zeros(len(b), bool)
+    loose_b[5] = True
+    ag = agreement(a, b, PITCH, None, loose_b)
+    assert ag["matched"] == len(a) and ag["steady"]["matched"] == len(a) - 1
+    assert ag["steady"]["max_px"] < 0.01 and ag["max_px"] == pytest.approx(2.0, abs=0.01)
+    with pytest.raises(ValueError, match=r"loose_a \(3,\) for \d+ pins"):
+        agreement(a, b, PITCH, np.zeros(3, bool), None)
+
+
+def test_merged_pins_carry_their_flags_and_steady_positions():
+    """A pin loose in two of three clips stays loose in the merge; one loose in one
+    clip is steady, at the mean of the clips where it was steady."""
+    from host.analysis.rest_pins import merge_with_flags
+    a = _sites()
+    lays = [a.copy(), a + [0.0, 0.0], a + [0.0, 0.0]]
+    lays[1][0] += [1.5, 0.0]                           # pin 0 off (and loose) in clip 1
+    flags = [np.zeros(len(a), bool) for _ in lays]
+    flags[1][0] = True
+    flags[0][1] = flags[2][1] = True                   # pin 1 loose in clips 0 and 2
+    merged, loose = merge_with_flags(lays, PITCH, flags)
+    assert len(merged) == len(a) and loose.sum() == 1
+    i0 = int(np.argmin(np.hypot(*(merged - a[0]).T)))
+    i1 = int(np.argmin(np.hypot(*(merged - a[1]).T)))
+    assert not loose[i0] and np.hypot(*(merged[i0] - a[0])) < 0.01   # not pulled by clip 1
+    assert loose[i1]
+
+
+def test_the_overlay_draws_loose_pins_in_their_own_colour():
+    from host.analysis.rest_pins import COLOURS, OVERLAY_SCALE, RestPins, overlay_image
+    xy = np.array([[150.0, 150.0], [180.0, 150.0], [150.0, 185.0]])
+    rest = RestPins(xy=xy, seen=np.ones(3), strength=np.full(3, 50.0),
+                    reason=np.array(["kept", "kept", "glare"]), pitch_px=PITCH, frames=4,
+                    wander_px=np.zeros(3), clipped=np.array([0.0, 1.0, 0.0]),
+                    loose=np.array([False, True, False]))
+    img = overlay_image(np.full((SIZE, SIZE), 60, np.uint8), rest, Region(SIZE, SIZE))
+    s = OVERLAY_SCALE
+
+    palette = np.array([(60, 60, 60), COLOURS["kept"], COLOURS["loose"], COLOURS["glare"]],
+                       np.float64)
+
+    def has(colour, x, y):
+        """Some pixel near (x, y) is closer to ``colour`` than to any other drawn one
+        (the lines are anti-aliased) and within 80 levels of it (summed over the channels)."""
+        box = img[int(y * s) - 12:int(y * s) + 13, int(x * s) - 12:int(x * s) + 13]
+        d = np.abs(box.reshape(-1, 1, 3).astype(np.float64) - palette[None]).sum(axis=2)
+        k = [tuple(p) for p in palette].index(tuple(float(c) for c in colour))
+        return bool(((d.argmin(axis=1) == k) & (d[:, k] < 80)).any())
+
+    assert has(COLOURS["loose"], 180, 150) and not has(COLOURS["kept"], 180, 150)
+    assert has(COLOURS["kept"], 150, 150) and not has(COLOURS["loose"], 150, 150)
+    assert has(COLOURS["glare"], 150, 185)
