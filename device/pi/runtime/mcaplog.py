@@ -73,6 +73,9 @@ RETRY_S = 1.0
 LIVE_BACKLOG = 256
 #: frames and packets the writer thread holds before the oldest is dropped
 QUEUE_ITEMS = 128
+#: the writer thread looks for queued frames this often (s): it takes them in batches,
+#: its code warm in the cache, instead of waking once per frame
+WRITER_POLL_S = 0.02
 #: close() waits this long for the writer thread to write what is queued, s
 CLOSE_WAIT_S = 10.0
 INSTALL_HINT = "MCAP logging needs the viz extra: pip install .[viz]"
@@ -256,14 +259,13 @@ class McapLog:
             except IndexError:
                 if self._closing:
                     return
-                wake.wait(0.05)
-                wake.clear()
+                wake.wait(WRITER_POLL_S)     # woken early only by close()
                 continue
             try:
                 fn(*args)
             except Exception as exc:
                 self._fail(exc)
-            time.sleep(0)            # let the loop thread have the GIL between items
+            time.sleep(0)            # the GIL to the loop, if it waits, between items
 
     def _do(self, fn, args: tuple, n_msgs: int) -> None:
         if self._q is None:
@@ -359,7 +361,9 @@ class McapLog:
             ff = ef.features
             img = None
             if n % self.cfg.image_every == 0:
-                img = (_copy(frame.image), _copy(ff.pins), _copy(ff.vectors), _copy(ff.lost),
+                # a camera hands a new array each frame (device.pi.sources.camera): the
+                # image is kept, not copied; the features' arrays are copied
+                img = (frame.image, _copy(ff.pins), _copy(ff.vectors), _copy(ff.lost),
                        _copy(reference))
             args = (dec, None if not tex else round(float(tex[1]), 4), t, img,
                     _copy(ff.grid), bool(ff.contact), _copy(imu), int(faults),
@@ -367,8 +371,6 @@ class McapLog:
         except Exception as exc:            # never into the loop
             return self._fail(exc)
         self._do(self._frame, args, 6 if img is not None else 4)
-        if self._q is not None:
-            self._wake.set()
         self.loop_cpu_s += time.thread_time() - c0
 
     def _frame(self, dec, tex_conf, t, img, grid, contact, imu, faults, pipeline_ms) -> None:

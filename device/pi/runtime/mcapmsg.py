@@ -89,8 +89,11 @@ CHANNELS = {
 }
 
 
+_ENCODE = json.JSONEncoder(separators=(",", ":")).encode     # one encoder, made once
+
+
 def _json(doc) -> bytes:
-    return json.dumps(doc, separators=(",", ":")).encode()
+    return _ENCODE(doc).encode()
 
 
 _IMU = '{"frame":%d,"acc_g":[%.5f,%.5f,%.5f],"gyro_dps":[%.4f,%.4f,%.4f],"faults":%d}'
