@@ -21,6 +21,7 @@ from host.analysis.sim2real import (SIM2REAL_TRIALS, real_texture_manifest, sim2
                                     sim_to_real, stroke_scene)
 from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
                              open_stream, out_file, progress_bar, read_frames, whole)
+from host.cli.export import add_mcap_args
 
 
 def _profile_from_models(args) -> None:
@@ -85,9 +86,47 @@ def frame_line(f, pressure: float | None, localised: bool) -> dict:
     return line
 
 
+#: ``host analyse --mcap``: each frame's JSON line, beside the leg's channels
+ANALYSE_CHANNEL = {"/tacfoot/analyse": {
+    "title": "tacfoot.AnalyseFrame", "type": "object", "properties": {
+        "frame": {"type": "integer"}, "t": {"type": "number"}, "pins": {"type": "integer"},
+        "contact": {"type": "boolean"}, "shear_x": {"type": "number"},
+        "shear_y": {"type": "number"}, "magnitude": {"type": "number"},
+        "magnitude_sum": {"type": "number"}, "pressure": {"type": "number"},
+        "faults": {"type": "array", "items": {"type": "string"}},
+        "timings_ms": {"type": "object"}}}}
+
+
+def mcap_frame(log, f, line: dict, k: int, image, reference, image_every: int) -> None:
+    """One analysed frame into an MCAP log at its own time: the image and pins every
+    ``image_every``-th frame, the contact grid, the pipeline's time on
+    ``/tacfoot/latency`` (no packet: ``latency_ms`` null) and the JSON line."""
+    t_ns = max(0, int(round(float(f.t_s) * 1e9)))
+    if k % image_every == 0:
+        log.image(t_ns, image, f, reference)
+    g = np.asarray(f.grid, np.float64)
+    log.write("/tacfoot/grid", t_ns, {"frame": line["frame"], "n": int(g.shape[0]),
+                                      "cells": np.round(g.ravel(), 3).tolist(),
+                                      "contact": bool(f.contact)})
+    total = f.timings_ms.get("total")
+    log.write("/tacfoot/latency", t_ns, {"frame": line["frame"], "latency_ms": None,
+                                         "pipeline_ms": None if total is None
+                                         else round(float(total), 4)})
+    log.write("/tacfoot/analyse", t_ns, line)
+
+
 def cmd_analyse(args):
     stream, encoder, window, reg = _open_pipeline(args)
-    cam = open_source(args.source)
+    log = None
+    if args.mcap:
+        from host.cli.export import open_log
+        log = open_log(args.mcap, args.mcap_image_every, channels=ANALYSE_CHANNEL)
+    try:
+        cam = open_source(args.source)
+    except BaseException:
+        if log is not None:
+            log.close()
+        raise
     out = open(out_file(args.out), "w") if args.out else sys.stdout
     n = contact = 0
     faults: dict[str, int] = {}
@@ -98,7 +137,11 @@ def cmd_analyse(args):
                                not args.json and args.out is not None) as bar:
             for fr in read_frames(cam):
                 f, pressure = _process(stream, encoder, window, reg, fr)
-                out.write(json.dumps(frame_line(f, pressure, bool(args.localiser))) + "\n")
+                line = frame_line(f, pressure, bool(args.localiser))
+                out.write(json.dumps(line) + "\n")
+                if log is not None:
+                    mcap_frame(log, f, line, n, fr.image, stream.reference,
+                               args.mcap_image_every)
                 n += 1
                 contact += f.contact
                 for name in fault_names(f.faults):
@@ -113,8 +156,13 @@ def cmd_analyse(args):
                    "timings_ms": {k: {"median": float(np.median(v)),
                                       "p99": float(np.percentile(v, 99))}
                                   for k, v in times.items() if v}}
+        if log is not None:
+            from host.cli.export import close_log
+            summary["mcap"], log = close_log(log), None
         out.write(json.dumps(summary) + "\n")
     finally:
+        if log is not None:
+            log.close()
         if out is not sys.stdout:
             out.close()
 
@@ -293,6 +341,7 @@ def register(sub) -> None:
     s.add_argument("--localiser", help="localiser model folder (ONNX + manifest)")
     s.add_argument("--pressure", help="pressure regressor model folder")
     s.add_argument("--out", help="write the JSON lines here instead of stdout")
+    add_mcap_args(s)
     s.add_argument("--json", action="store_true", help="(output is always JSON lines)")
     s.set_defaults(func=cmd_analyse)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from host.cli.common import UserError, emit
+from host.cli.common import UserError, emit, whole
 from host.data.dataset import load_trial, read_index
 
 _NUM, _INT, _STR, _BOOL = ({"type": "number"}, {"type": "integer"}, {"type": "string"},
@@ -38,28 +38,72 @@ def register(sub) -> None:
     m.set_defaults(func=cmd_export_mcap)
 
 
-def cmd_export_mcap(args) -> None:
+def open_log(path, image_every: int, flag: str = "--mcap", channels=None):
+    """The McapLog a host command writes ``--mcap FILE`` with (written in the
+    caller's thread, nothing dropped): the leg's channels, :data:`LABELS` and
+    ``channels``; a UserError naming ``flag`` when it cannot be opened."""
     try:
         from device.pi.runtime.mcaplog import McapLog, McapLogError
         from device.pi.runtime.config import McapConfig
     except ImportError as exc:                     # pragma: no cover
         raise UserError(str(exc)) from None
+    if image_every < 1:
+        raise UserError(f"--mcap-image-every must be >= 1, got {image_every}")
+    try:
+        return McapLog(Path(path), McapConfig(image_every=image_every), max_mb=1e9,
+                       channels={**LABELS, **(channels or {})})
+    except McapLogError as exc:
+        raise UserError(str(exc).replace("--mcap", flag)) from None
+
+
+def close_log(log, flag: str = "--mcap") -> dict:
+    """Close a log from :func:`open_log`: its file and message count; a UserError
+    when messages could not be written."""
+    log.close()
+    if log.messages_lost:
+        raise UserError(f"{flag} {log.path}: {log.messages_lost} messages could not be "
+                        f"written")
+    return {"file": str(log.path), "messages": log.messages_written}
+
+
+def export_trials(log, dataset, trials, image_every: int) -> int:
+    """Trials ``trials`` (indices) of a dataset folder into ``log``, one after
+    another on one time line; the frames written."""
+    doc = read_index(dataset)
+    frames, t_base = 0, 0.0
+    for i in trials:
+        t_end = export_trial(log, load_trial(dataset, i), i, doc, t_base, image_every)
+        frames += int(doc["trials"][i].get("frames", 0))
+        t_base = t_end + TRIAL_GAP_S
+    return frames
+
+
+def add_mcap_args(s) -> None:
+    """``--mcap FILE`` and ``--mcap-image-every N`` (host analyse, simulate, record)."""
+    s.add_argument("--mcap", metavar="FILE",
+                   help="also write the leg's MCAP channels to FILE for Foxglove "
+                        "(docs/viewing.md; needs pip install .[viz])")
+    s.add_argument("--mcap-image-every", type=whole(1, 1_000_000), default=4,
+                   help="with --mcap, log every Nth frame's image and pins (default 4, "
+                        "the leg's [mcap] image_every)")
+
+
+def mcap_last_trials(log, out, trials: int, image_every: int) -> dict:
+    """The dataset's last ``trials`` trials (the ones just written) into ``log``,
+    then closed: its file and message count (``--mcap`` of simulate and record)."""
+    n = len(read_index(out)["trials"])
+    export_trials(log, out, range(max(0, n - trials), n), image_every)
+    return close_log(log)
+
+
+def cmd_export_mcap(args) -> None:
     if args.image_every < 1:
         raise UserError(f"--image-every must be >= 1, got {args.image_every}")
     doc = read_index(args.dataset)
     out = Path(args.out)
+    log = open_log(out, args.image_every, "--out")
     try:
-        log = McapLog(out, McapConfig(image_every=args.image_every), max_mb=1e9,
-                      channels=LABELS)
-    except McapLogError as exc:
-        raise UserError(str(exc).replace("--mcap", "--out")) from None
-    frames, t_base = 0, 0.0
-    try:
-        for i, entry in enumerate(doc["trials"]):
-            t_end = export_trial(log, load_trial(args.dataset, i), i, doc, t_base,
-                                 args.image_every)
-            frames += int(entry.get("frames", 0))
-            t_base = t_end + TRIAL_GAP_S
+        frames = export_trials(log, args.dataset, range(len(doc["trials"])), args.image_every)
     finally:
         log.close()
     if log.messages_lost:

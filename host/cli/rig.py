@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, open_imu
+from host.cli.export import add_mcap_args, mcap_last_trials, open_log
 from host.cli.common import (SEED, UserError, dataset_folder, emit, number, open_source,
                              out_folder, progress_bar, whole)
 from host.rig.record import RecordError, record
@@ -55,7 +56,18 @@ def _open_range(args):
 
 
 def cmd_record(args):
-    out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
+    out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
+    log = None
+    if args.mcap:                       # opened first: a bad FILE fails before the work
+        log = open_log(args.mcap, args.mcap_image_every)
+    try:
+        return _record(args, out, log)
+    finally:
+        if log is not None:
+            log.close()                 # a second close does nothing
+
+
+def _record(args, out, log):
     camera = _open_range(args)
     imu = None
     if args.imu:
@@ -77,6 +89,8 @@ def cmd_record(args):
     finally:
         if imu is not None:
             imu.close()
+    if log is not None:
+        entry["mcap"] = mcap_last_trials(log, out, 1, args.mcap_image_every)
     emit(args, entry, f"wrote {entry['path']}: {entry['frames']} frames of {args.label!r} "
                       f"({entry['seconds']:.2f} s" + (f", {entry['fps']:.1f} fps" if entry["fps"]
                                                       else "") + ")")
@@ -101,6 +115,7 @@ def register(sub) -> None:
     s.add_argument("--profile", default="roboskin",
                    help="the sensor profile the trial is recorded for (kept in dataset.json)")
     s.add_argument("--out", required=True, help="dataset folder to append the trial to")
+    add_mcap_args(s)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_record)
 

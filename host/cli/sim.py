@@ -21,6 +21,7 @@ from device.pi.runtime.load import default_models_dir
 from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
                                 truth_plot)
+from host.cli.export import add_mcap_args, mcap_last_trials, open_log
 from host.cli.common import (SEED, UserError, dataset_folder, emit, is_recording, number,
                              open_source, open_stream, out_file, out_folder, progress_bar,
                              read_frames, whole)
@@ -42,8 +43,20 @@ def cmd_scenes(args):
 
 def cmd_simulate(args):
     out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
-    res = simulate_to_dataset(args.scene, out, args.seed, args.trials, progress=not args.json)
-    emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}")
+    log = None
+    if args.mcap:                       # opened first: a bad FILE fails before the work
+        log = open_log(args.mcap, args.mcap_image_every)
+    try:
+        res = simulate_to_dataset(args.scene, out, args.seed, args.trials,
+                                  progress=not args.json)
+        if log is not None:
+            res["mcap"], log = mcap_last_trials(log, out, args.trials,
+                                                 args.mcap_image_every), None
+    finally:
+        if log is not None:
+            log.close()
+    emit(args, res, f"wrote {len(res['trials'])} trial(s), {res['frames']} frames, to {args.out}"
+         + (f"; {res['mcap']['file']}" if "mcap" in res else ""))
 
 
 def _frames_and_truth(src: str, seed: int):
@@ -403,6 +416,7 @@ def register(sub) -> None:
     s.add_argument("--seed", type=SEED, default=0)
     s.add_argument("--trials", type=whole(1, 10_000), default=1,
                    help="trials with seeds seed, seed+1, ...")
+    add_mcap_args(s)
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_simulate)
 

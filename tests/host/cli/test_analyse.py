@@ -11,6 +11,7 @@ import pytest
 from device.sim import Simulator, load_scene
 from host.cli import main
 from tests import REPO_ROOT
+from tests.mcapread import read_mcap
 from tests.realdata import real_data_dir
 
 LOCALISER = REPO_ROOT / "models" / "localiser-roboskin"
@@ -184,3 +185,38 @@ def test_analyse_takes_the_profile_from_its_models_and_refuses_another(tmp_path,
     assert rc == 2 and len(err.splitlines()) == 1
     assert "tactip331.toml (tactip331, 331 pins" in err and "pressure/manifest.json" in err
     assert "(roboskin, 133 pins" in err
+
+
+def test_analyse_mcap_writes_the_leg_channels_a_message_per_frame_at_its_time(tmp_path):
+    pytest.importorskip("mcap")
+    from device.pi.runtime.mcaplog import CHANNELS
+    out, log = tmp_path / "a.jsonl", tmp_path / "a.mcap"
+    assert main(["analyse", "sim://drag-90", "--out", str(out), "--mcap", str(log),
+                 "--mcap-image-every", "3"]) == 0
+    lines = _lines(out)
+    frames, summary = lines[:-1], lines[-1]
+    chans, msgs = read_mcap(log)
+    assert {t: CHANNELS[t]["title"] for t in CHANNELS} == {t: chans[t] for t in CHANNELS}
+    assert chans["/tacfoot/analyse"] == "tacfoot.AnalyseFrame"
+    n = len(frames)
+    for topic in ("/tacfoot/grid", "/tacfoot/latency", "/tacfoot/analyse"):
+        assert [d["frame"] for _, d in msgs[topic]] == [f["frame"] for f in frames], topic
+    assert len(msgs["/tacfoot/image"]) == len(msgs["/tacfoot/pins"]) == -(-n // 3)
+    assert [d for _, d in msgs["/tacfoot/analyse"]] == frames        # the same lines
+    for (t_ns, _), f in zip(msgs["/tacfoot/grid"], frames):
+        assert abs(t_ns - f["t"] * 1e9) <= 1e3                       # the frame's time, ns
+    assert [t for t, _ in msgs["/tacfoot/image"]] == [t for t, _ in msgs["/tacfoot/grid"]][::3]
+    assert all(d["latency_ms"] is None and d["pipeline_ms"] > 0
+               for _, d in msgs["/tacfoot/latency"])
+    assert summary["mcap"]["messages"] == sum(len(v) for v in msgs.values())
+
+
+def test_analyse_mcap_refuses_a_bad_file_before_it_starts(tmp_path, capsys):
+    pytest.importorskip("mcap")
+    rc = main(["analyse", "sim://drag-90", "--out", str(tmp_path / "a.jsonl"), "--mcap",
+               str(tmp_path / "nope" / "a.mcap")])
+    assert rc == 2 and "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "a.jsonl").exists()
+    rc = main(["analyse", "sim://drag-90", "--mcap", str(tmp_path / "b.mcap"),
+               "--mcap-image-every", "0"])
+    assert rc == 2 and "--mcap-image-every" in capsys.readouterr().err

@@ -8,6 +8,7 @@ import pytest
 
 from host.data import dataset
 from host.cli import main
+from tests.mcapread import read_mcap
 from host.data.simulate import simulate_to_dataset
 
 
@@ -238,3 +239,39 @@ def test_demo_runs_a_simulation_trained_texture_model_when_there(tmp_path):
         "texture: no texture model")
     with pytest.raises(UserError, match="no-such"):
         _demo_models(out, tmp_path / "no-such")
+
+
+def test_simulate_mcap_writes_each_frame_at_its_dataset_time(tmp_path, capsys):
+    pytest.importorskip("mcap")
+    from device.pi.runtime.mcaplog import CHANNELS
+    out, log = tmp_path / "ds", tmp_path / "s.mcap"
+    assert main(["simulate", "press-soft", "--out", str(out), "--trials", "2", "--mcap",
+                 str(log), "--mcap-image-every", "5", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    chans, msgs = read_mcap(log)
+    assert {t: chans[t] for t in CHANNELS} == {t: s["title"] for t, s in CHANNELS.items()}
+    assert chans["/tacfoot/labels"] == "tacfoot.Labels"
+    trials = [dataset.load_trial(out, i) for i in range(2)]
+    n = [len(tr["frames"]) for tr in trials]
+    for topic in ("/tacfoot/grid", "/tacfoot/imu", "/tacfoot/labels"):
+        assert [d["frame"] for _, d in msgs[topic]] == list(range(n[0])) + list(range(n[1]))
+    assert len(msgs["/tacfoot/image"]) == -(-n[0] // 5) + -(-n[1] // 5)
+    # the dataset's own frame times, trial 1 a second after trial 0 ends
+    t0 = np.asarray(trials[0]["t_s"]) - trials[0]["t_s"][0]
+    t_ns = [t for t, _ in msgs["/tacfoot/grid"]]
+    assert np.allclose(t_ns[:n[0]], t0 * 1e9, atol=1e3)
+    assert abs(t_ns[n[0]] - (t0[-1] + 1.0) * 1e9) <= 1e3
+    labels = [d for _, d in msgs["/tacfoot/labels"]]
+    assert [x["trial"] for x in labels] == [0] * n[0] + [1] * n[1]
+    assert [x["contact"] for x in labels[:n[0]]] == [bool(c) for c in trials[0]["contact"]]
+    assert res["mcap"] == {"file": str(log), "messages": sum(len(v) for v in msgs.values())}
+
+
+def test_simulate_mcap_appends_only_the_new_trials(tmp_path, capsys):
+    pytest.importorskip("mcap")
+    out = tmp_path / "ds"
+    assert main(["simulate", "press-soft", "--out", str(out), "--json"]) == 0
+    assert main(["simulate", "press-soft", "--out", str(out), "--seed", "7", "--mcap",
+                 str(tmp_path / "s.mcap"), "--json"]) == 0
+    _, msgs = read_mcap(tmp_path / "s.mcap")
+    assert {d["trial"] for _, d in msgs["/tacfoot/labels"]} == {1}   # the second trial
