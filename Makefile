@@ -48,11 +48,13 @@ test: $(VENV)/.installed-test node_modules/.installed
 
 # the real-frame tables of docs/BENCHMARKS.md (marker pipeline and runtime on
 # roboskin/smooth.avi and concrete.avi: the authors' default spec out/specs/bench.csv,
-# written from REAL_DATA), then the simulator's own timing
+# written from REAL_DATA), then the simulator's own timing, then what the MCAP log
+# and a live Foxglove viewer cost the runtime on concrete.avi (out/bench/mcap_cost.md)
 bench: $(VENV)/.installed
 	$(PY) -m host.bench.specs --real-data $(REAL_DATA) --out out/specs
 	$(VENV)/bin/host bench tables --data out/specs/bench.csv --doc docs/BENCHMARKS.md
 	$(VENV)/bin/host bench sim --json
+	$(PY) -m host.bench.mcap_cost --real-data $(REAL_DATA) --out out/bench/mcap_cost.md
 
 # Rebuild the shipped default models in models/: the localiser (needs the real
 # recordings for its real labels: REAL_DATA=path/to/data), texture from the real
