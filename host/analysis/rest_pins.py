@@ -21,6 +21,11 @@ and every rejection has a reason:
   neighbours predict (a row continued a step, the midpoint of two pins) lies
   within ``SITE_PITCH`` pitch of it (:func:`lattice_error_px`).
 
+A spot seen in fewer than ``MIN_SEEN`` but at least ``SITE_SEEN`` of the frames
+(a faint pin the peak search misses now and then) is kept when it is steady,
+inside, not a duplicate, and on a lattice site its kept neighbours predict
+(within ``SITE_PITCH`` pitch).
+
 Centres are sub-pixel (:func:`centres`): the centroid of what stands above a plane
 fitted to a ring around each spot, so the glare's gradient does not shift a faint
 pin's centre.
@@ -77,6 +82,10 @@ CLIPPED_SHARE = 0.5
 #: "full scale" is this share of the frame type's largest value (compression noise
 #: keeps a clipped area a few levels under it)
 FULL_SCALE = 0.98
+
+#: a spot seen in at least this share of the frames (under MIN_SEEN) is kept when it
+#: sits on a lattice site its kept neighbours predict (within SITE_PITCH)
+SITE_SEEN = 0.5
 
 REASONS = ("kept", "glare", "duplicate", "edge", "unstable")
 
@@ -322,6 +331,16 @@ def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
         others = xy[(reason == "kept") & (np.arange(len(xy)) != i)]
         if lattice_error_px(xy[i], others, pitch[i]) > SITE_PITCH * pitch[i]:
             reason[i] = "glare"
+    # a pin seen in fewer frames is still a pin where the lattice predicts one
+    rescue = np.flatnonzero((reason == "unstable") & (seen >= SITE_SEEN)
+                            & (spread <= MAX_SPREAD * pitch) & (med_s >= MIN_STRENGTH * typical)
+                            & ~(region.inset_px(xy) < EDGE_PITCH * pitch))
+    for i in rescue[np.argsort(-seen[rescue] - 1e-3 * med_s[rescue])]:
+        kept_xy = xy[reason == "kept"]
+        if len(kept_xy) and np.hypot(*(kept_xy - xy[i]).T).min() < DUP_PITCH * pitch[i]:
+            continue
+        if lattice_error_px(xy[i], kept_xy, pitch[i]) <= SITE_PITCH * pitch[i]:
+            reason[i] = "kept"
     kept = reason == "kept"
     typical_pitch = float(np.median(pitch[kept])) if kept.any() else float(pitch_px)
     wander = wander_px(pos, xy)
