@@ -58,10 +58,12 @@ bench: $(VENV)/.installed
 
 # Rebuild the shipped default models in models/: the localiser (needs the real
 # recordings for its real labels: REAL_DATA=path/to/data), texture from the real
-# recordings, then surface, slip and pressure from simulated trials (cached in out/sim-data).
+# recordings, then surface, slip and pressure from simulated trials (cached in out/sim-data),
+# and their fused graph (models/fused: one model call per frame on the leg).
 models: $(VENV)/.installed
 	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
 	$(PY) -m host.bench.shipped --out models --work out/sim-data --real-data $(REAL_DATA) --quiet
+	$(PY) -m host.learn.fuse models
 
 # Mutation testing (docs/testing.md): mutmut on a private copy of the tree (it writes
 # mutants/ there, never here), one mutant in ten (names ending in MUTATE_SAMPLE; '' for

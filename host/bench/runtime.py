@@ -166,8 +166,13 @@ def bench_runtime(frames: int = 600, scene: str = "walk", models: str | None = N
     ``profile`` given that is not theirs is a ValueError naming both."""
     import tempfile
 
+    from device.pi.runtime.load import default_models_dir
+    from host.learn.fuse import fused_copy
+
     with tempfile.TemporaryDirectory(prefix="tacfoot-bench-cfg-") as cfg_dir:
         config = runtime_config(models, profile, cfg_dir)
+        # the models as a deploy ships them: with their fused graph (one call per frame)
+        models = str(fused_copy(models or default_models_dir(), cfg_dir))
         return _bench_runs(frames, scene, models, camera, imu,
                            lambda cam, imu_, n, mods: _child(cam, imu_, n, mods, config))
 
@@ -201,6 +206,7 @@ def _bench_runs(frames, scene, models, camera, imu, child) -> dict:
     res = {
         "command": command, "source": source, "real": camera is not None,
         "frames": frames, "frames_run": fast.get("frames"), "models": paced.get("models", []),
+        "models_fused": paced.get("models_fused"),
         "latency_ms_p50": paced["latency_ms_p50"], "latency_ms_p99": paced["latency_ms_p99"],
         "latency_samples": paced.get("latency_samples"),
         "unpaced_latency_ms_p50": fast["latency_ms_p50"],

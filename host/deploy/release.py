@@ -116,6 +116,20 @@ def _leg_profile(cfg: Path | None) -> str | None:
     return prof
 
 
+def fuse_release_models(models: Path) -> dict:
+    """Build the fused graph of the release's models (``models/fused``: one model
+    call per frame on the leg, :mod:`host.learn.fuse`) from the artefacts it ships,
+    replacing any fused graph that came with them, before they are signed.
+    DeployInputError naming the file when a model cannot be fused."""
+    from device.pi.models.artefact import ModelError
+    from host.learn.fuse import fuse_models
+
+    try:
+        return fuse_models(models)
+    except ModelError as exc:
+        raise DeployInputError(f"cannot fuse the models: {exc}") from None
+
+
 def new_release_name() -> str:
     """VERSION-UTCSTAMP-RAND: a release folder name that sorts by time."""
     return (f"{project_version()}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}-"
@@ -206,8 +220,8 @@ class Deployer(SshSession):
         return wheels[0]
 
     def stage(self, wheel: Path, out_dir: Path) -> Path:
-        """The release folder, built locally: the wheel, the models (each manifest
-        signed), the config (with the public key), the unit, tacfootctl and
+        """The release folder, built locally: the wheel, the models (the per-frame
+        models fused into one graph, ``models/fused``; each manifest signed), the config (with the public key), the unit, tacfootctl and
         release.json (the SHA-256 of every file; signed)."""
         o = self.o
         st = out_dir / "stage"
@@ -227,6 +241,7 @@ class Deployer(SshSession):
         if models is not None:
             shutil.copytree(models, st / "models",
                             ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.sig"))
+            fuse_release_models(st / "models")
             if self.key is not None:
                 sign_models(st / "models", self.key)
         if cfg is not None:

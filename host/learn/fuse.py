@@ -24,8 +24,10 @@ individual artefacts stay the unit of training and signing: the leg loads them
 as before, and uses the fused graph only when every member it records is a model
 it loaded, file hash for file hash (:mod:`device.pi.models.fused`).
 
-``python -m host.learn.fuse MODELS`` (re)builds it; ``host deploy`` and
-``host bench runtime`` build it for the models they run.
+``python -m host.learn.fuse MODELS`` (re)builds it (``make models`` does, for the
+shipped ones); ``host deploy`` builds it into each release from the models it
+ships, and ``host bench runtime`` runs a linked copy of the models with it
+(:func:`fused_copy`).
 """
 from __future__ import annotations
 
@@ -40,7 +42,7 @@ from device.pi.models.fused import FUSED_DIR, FUSED_KIND, FUSED_TASKS
 from device.pi.models.spec import ModelSpec, check_same_profiles
 from host.data.dataset import atomic_write
 
-__all__ = ["fuse_models", "fused_graph", "FuseError"]
+__all__ = ["fuse_models", "fused_graph", "fused_copy", "FuseError"]
 
 #: (ONNX file, manifest) of each pick in the fused folder, as
 #: :func:`device.pi.models.artefact.manifest_for` picks the members' manifests
@@ -131,6 +133,22 @@ def fused_graph(members: list[dict]):
     return model, recs
 
 
+def _trained_on(specs: list) -> dict:
+    """The members' training data as one record: their data kind (real+simulated
+    when they differ) and their recordings."""
+    kinds = {s.trained_on.get("data", "unknown") for s in specs}
+    data = kinds.pop() if len(kinds) == 1 else (
+        "real+simulated" if kinds <= {"real", "simulated", "real+simulated"} else "unknown")
+    recs, seen = [], set()
+    for s in specs:
+        for r in s.trained_on.get("recordings", []):
+            if r.get("path") not in seen:
+                seen.add(r.get("path"))
+                recs.append(r)
+    return {"data": data, "recordings": recs,
+            "split": "fused from the member models (see members; each has its own)"}
+
+
 def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: str,
           sha: str, size: int) -> ModelSpec:
     specs = {str(m["manifest"]): ModelSpec.from_manifest(m["doc"], m["manifest"])
@@ -149,8 +167,7 @@ def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: st
                      profile={k: profile[k] for k in ("name", "n_pins", "sha256", "toml")},
                      input_name=recs[0]["input"], output=recs[0]["output"],
                      output_kind="fused",
-                     trained_on={"data": "unknown", "recordings": [],
-                                 "split": "fused from the member models (see members)"},
+                     trained_on=_trained_on(list(specs.values())),
                      onnx=onnx_name, sha256={onnx_name: sha}, size_bytes=size,
                      variant="int8" if any(m["doc"].get("variant") == "int8" for m in members)
                      else "float", params={"members": rows})
@@ -190,6 +207,19 @@ def fuse_models(models_dir: Path | str) -> dict:
         spec = _spec(d, members, recs, name, sha256_file(out / name), len(data))
         built[variant] = write_spec(out, spec, manifest)
     return built
+
+
+def fused_copy(models_dir: Path | str, out: Path | str) -> Path:
+    """``out/models``: links to every model folder of ``models_dir`` and a fused
+    graph built from them, so the leg runs them as a deploy ships them, without
+    writing into ``models_dir`` (``host bench runtime``)."""
+    src, dst = Path(models_dir).resolve(), Path(out) / "models"
+    dst.mkdir(parents=True)
+    for f in sorted(src.iterdir()):
+        if f.is_dir() and f.name != FUSED_DIR and not f.name.startswith("."):
+            (dst / f.name).symlink_to(f, target_is_directory=True)
+    fuse_models(dst)
+    return dst
 
 
 def main(argv=None) -> int:

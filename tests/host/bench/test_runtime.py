@@ -28,6 +28,7 @@ def test_host_bench_runtime_on_a_real_recording(capsys):
                  f"file://{clip / 'concrete_gyro.npy'}", "--frames", "30", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["real"] and res["source"].endswith("concrete.avi")
+    assert res["models_fused"] is True          # as deployed: one model call per frame
     assert res["frames_run"] == 30 and res["rss_mb_peak_with_simulator"] is None
     assert 0 < res["latency_ms_p50"] <= res["latency_ms_p99"]
     assert res["pi4"]["latency_ms_p99"] == res["latency_ms_p99"] * res["pi4_factor"]

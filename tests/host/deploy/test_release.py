@@ -124,7 +124,11 @@ def test_the_release_is_signed_and_the_leg_checks_it(pi):
     assert manifests and all(check_manifest(m, key.public_key, False) for m in manifests)
     # the shipped config loads the shipped models only because they are signed
     leg = load_leg_config(rel / "config" / "leg.toml")
-    assert "surface" in load_models(rel / "models", "int8", 133, leg).loaded
+    m = load_models(rel / "models", "int8", 133, leg)
+    assert "surface" in m.loaded
+    # the release fused its per-frame models, and signed the graph with them
+    assert rel / "models" / "fused" / "manifest.json" in manifests
+    assert m.fused is not None and set(m.fused.tasks) == set(m.loaded) - {"localiser-roboskin"}
 
 
 @needs_sshd
@@ -428,3 +432,28 @@ def test_a_release_whose_models_carry_another_profile_than_its_config_is_refused
         check_models_profile(models, cfg)
     cfg.write_text('[models]\nprofile = "tactip331"\n')
     assert check_models_profile(models, cfg)["n_pins"] == 331
+
+
+def test_a_release_fuses_the_models_it_ships_and_a_broken_one_is_one_error(tmp_path):
+    """The staged models get their fused graph built from the artefacts shipped
+    (a stale one that came along is replaced); a model that cannot be fused stops
+    the deploy naming its file."""
+    import shutil
+
+    from device.pi.models.artefact import read_spec, sha256_file
+    from host.deploy.options import DeployInputError
+    from host.deploy.release import fuse_release_models
+    from tests import REPO_ROOT
+    models = tmp_path / "models"
+    for t in ("surface", "pressure"):
+        shutil.copytree(REPO_ROOT / "models" / t, models / t)
+    (models / "fused").mkdir()
+    (models / "fused" / "manifest.json").write_text("{}")
+    built = fuse_release_models(models)
+    rows = read_spec(built["int8"])[0].params["members"]
+    assert {r["task"]: r["sha256"] for r in rows} == {
+        t: sha256_file(models / t / "model.int8.onnx") for t in ("surface", "pressure")}
+    (models / "pressure" / "model.int8.onnx").write_bytes(b"changed")
+    with pytest.raises(DeployInputError, match=r"cannot fuse the models: .*pressure/"
+                                               r"model\.int8\.onnx: checksum"):
+        fuse_release_models(models)

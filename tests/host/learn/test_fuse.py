@@ -82,3 +82,16 @@ def test_the_command_builds_it_and_a_broken_member_is_one_line(shipped, tmp_path
     assert main([]) == 2
     with pytest.raises(ModelError):
         fuse_models(d)
+
+
+def test_a_fused_copy_links_the_models_and_leaves_their_folder_alone(shipped, tmp_path):
+    from device.pi.runtime.config import LegConfig
+    from device.pi.runtime.load import load_models
+    from host.learn.fuse import fused_copy
+
+    before = sorted(p.name for p in shipped.iterdir())
+    d = fused_copy(shipped, tmp_path)
+    assert sorted(p.name for p in shipped.iterdir()) == before
+    assert all((d / t).is_symlink() for t in TASKS) and (d / "fused" / "manifest.json").is_file()
+    m = load_models(d, "int8", 133, LegConfig())
+    assert m.fused is not None and m.fused.tasks == TASKS

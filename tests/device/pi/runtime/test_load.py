@@ -344,3 +344,12 @@ def test_the_fused_graph_is_used_when_it_matches_and_else_one_line_says_why(
     err = capsys.readouterr().err
     assert err.startswith("device.pi run: note: models: ") and "pressure member" in err
     assert "rebuild it" in err and err.count("\n") == 1
+
+
+def test_the_shipped_models_run_as_one_fused_graph():
+    """models/fused is built from the shipped models as they are (make models
+    rebuilds it): the default leg makes one model call per frame, both variants."""
+    for variant in ("int8", "float"):
+        m = load_models(None, variant, 133, LegConfig())
+        assert m.fused is not None, m.fused_note
+        assert m.fused.tasks == ("surface", "texture", "slip", "pressure")
