@@ -71,6 +71,8 @@ from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module ha
 RETRY_S = 1.0
 #: messages the live server queues per viewer before it drops the oldest
 LIVE_BACKLOG = 256
+#: how often the loop asks the live server whether any viewer is subscribed, s
+LIVE_CHECK_S = 0.05
 #: frames and packets the writer thread holds before the oldest is dropped
 QUEUE_ITEMS = 128
 #: the writer thread looks for queued frames this often (s): it takes them in batches,
@@ -472,13 +474,21 @@ class LiveView:
                                                context=self._ctx)
         self.messages_sent = 0
         self.errors = 0
+        self._any, self._any_at = False, float("-inf")
 
     def wants(self, topic: str) -> bool:
         ch = self._ch.get(topic)
         return ch is not None and ch.has_sinks()
 
     def any(self) -> bool:
-        return any(ch.has_sinks() for ch in self._ch.values())
+        """Whether any viewer is subscribed to anything; asked of the server at most
+        every :data:`LIVE_CHECK_S` (the loop asks this per frame and per packet),
+        so a new viewer gets its first messages within that time."""
+        now = time.perf_counter()
+        if now - self._any_at >= LIVE_CHECK_S:
+            self._any = any(ch.has_sinks() for ch in self._ch.values())
+            self._any_at = now
+        return self._any
 
     def publish(self, topic: str, t_ns: int, data: bytes) -> None:
         try:

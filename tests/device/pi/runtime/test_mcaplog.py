@@ -421,3 +421,26 @@ def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path
     m = _by_topic(tmp_path / "cp.mcap")
     assert m["/tacfoot/grid"][0][4]["cells"] == [0.5] * 9
     assert m["/tacfoot/pins"][0][4]["points"][0]["points"][0] == {"x": 5.0, "y": 10.0}
+
+
+def test_the_live_view_asks_the_server_about_viewers_at_most_every_live_check_s(monkeypatch):
+    """With no viewer the loop's only cost is LiveView.any(); it asks the server (one
+    call per channel) at most every LIVE_CHECK_S, not per frame and packet."""
+    live = object.__new__(mcaplog.LiveView)
+    calls = []
+
+    class Ch:
+        def has_sinks(self):
+            calls.append(1)
+            return False
+    live._ch = {t: Ch() for t in CHANNELS}
+    live._any, live._any_at = False, float("-inf")
+    now = [100.0]
+    monkeypatch.setattr(mcaplog.time, "perf_counter", lambda: now[0])
+    assert live.any() is False and len(calls) == len(CHANNELS)
+    for _ in range(50):                            # within LIVE_CHECK_S: no more asks
+        assert live.any() is False
+    assert len(calls) == len(CHANNELS)
+    now[0] += 1.01 * mcaplog.LIVE_CHECK_S
+    live.any()
+    assert len(calls) == 2 * len(CHANNELS)
