@@ -12,6 +12,7 @@ first matches, or ``-1``. No point is used twice.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -82,6 +83,20 @@ _CELL_MARGIN = 1.0 + 1e-6
 _MAX_CELLS = float(1 << 21)
 
 
+@functools.lru_cache(maxsize=16)
+def _grid(max_d2: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """The cell grid's constants for a gate: 1 / cell width, the shift that makes
+    cell coordinates >= 1, the key fold [ny, 1] and the six key offsets of the
+    three cell columns' ranges (start, start, start, end, end, end)."""
+    cell = max(math.sqrt(max_d2) * _CELL_MARGIN, 2.0 * MAX_COORD_PX / (_MAX_CELLS - 4.0))
+    ny = math.floor(2.0 * MAX_COORD_PX / cell) + 3.0
+    fold = np.array([ny, 1.0])
+    ranges = np.array([-ny - 1.0, -1.0, ny - 1.0, 2.0 - ny, 2.0, ny + 2.0])
+    fold.flags.writeable = False
+    ranges.flags.writeable = False
+    return 1.0 / cell, MAX_COORD_PX / cell + 1.0, fold, ranges
+
+
 def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every pair of a row of ``r`` (m, 2) and a row of ``c`` (n, 2), both usable
     (finite, within +-MAX_COORD_PX), with squared distance <= ``max_d2``:
@@ -95,20 +110,19 @@ def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray
     is ``(rx - cx)^2 + (ry - cy)^2``, the same numbers as :func:`pair_d2`.
     """
     m = r.shape[0]
-    cell = max(math.sqrt(max_d2) * _CELL_MARGIN, 2.0 * MAX_COORD_PX / (_MAX_CELLS - 4.0))
-    ny = math.floor(2.0 * MAX_COORD_PX / cell) + 3.0
+    inv, shift, fold, ranges = _grid(max_d2)
     # cell coordinates of both sets, from the corner of the usable square (all >= 0),
     # folded into one key (kx + 1) * ny + ky + 1: exact integers in float64
     t = np.concatenate((r, c))
-    t *= 1.0 / cell
-    t += MAX_COORD_PX / cell + 1.0
+    t *= inv
+    t += shift
     np.floor(t, out=t)
-    key = t @ np.array([ny, 1.0])
+    key = t @ fold
     order = np.argsort(key[m:], kind="stable")
     sk = key[m:][order]
     # each reference pin's cell columns kx-1, kx, kx+1, each from ky-1 to ky+1: the
     # keys from q - 1 to q + 1, q = key + dx * ny (start and end of each range)
-    q = key[:m, None] + np.array([-ny - 1.0, -1.0, ny - 1.0, 2.0 - ny, 2.0, ny + 2.0])
+    q = key[:m, None] + ranges
     ab = np.searchsorted(sk, q)
     a = ab[:, :3].ravel()
     cnt = ab[:, 3:].ravel() - a
@@ -190,6 +204,8 @@ def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) 
     if m * n <= _SMALL_PAIRS:
         d2 = pair_d2(r, c).ravel()
         near = np.flatnonzero(d2 <= max_d2)
+        if near.size == 0:
+            return
         rows, cols = np.divmod(near, n)
         d2 = d2[near]
     else:

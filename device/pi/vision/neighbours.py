@@ -138,7 +138,7 @@ def neighbour_median(obs: np.ndarray, ok: np.ndarray, nb: np.ndarray, valid: np.
     vals[~use] = np.inf                                    # inf sorts last
     vals.sort(axis=1)
     ar = np.arange(nb.shape[0])
-    lo = np.maximum(count - 1, 0) // 2
+    lo = (count - 1) // 2                                  # -1 (an inf) where count is 0
     both = vals[ar, lo] + vals[ar, count // 2]             # inf where no neighbour is tracked
     has = count > 0
     np.multiply(both, 0.5, out=med, where=has[:, None])
@@ -437,7 +437,8 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     idx = match(pos, c, 0.5 * gate)
     ok = idx >= 0
     n_ok = int(np.count_nonzero(ok))
-    if n_ok < 0.5 * np.count_nonzero(fin_r):
+    n_fin = r.shape[0] if all_fin else int(np.count_nonzero(fin_r))
+    if n_ok < 0.5 * n_fin:
         # A common jump (a lift, a slip): shift every prediction by the median
         # offset of one-to-one matches with a wide gate (robust to pins
         # entering or leaving the view, unlike the shift of the centroids).
@@ -462,10 +463,11 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     ed = np.empty((r.shape[0], 4))
     err, dd = ed[:, :2], ed[:, 2:]
     dd[:] = prior
-    dd[ok] = c[idx[ok]] - r[ok]
+    hit = idx[ok]
+    dd[ok] = c[hit] - r[ok]
     np.subtract(dd, prior, out=err)                      # prediction error (0 for lost pins)
     free = np.ones(c.shape[0], bool)
-    free[idx[ok]] = False
+    free[hit] = False
 
     supported = np.zeros(r.shape[0], bool)   # lost pins with min_support tracked neighbours
 
@@ -500,7 +502,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         return got
 
     n_pred = -1                       # tracked count when the lost pins were last predicted
-    rows = np.flatnonzero(~ok & fin_r)
+    rows = np.flatnonzero(~ok if all_fin else ~ok & fin_r)
     newly = np.zeros(r.shape[0], bool)
     for _ in range(grow_rounds):
         if rows.size == 0 or not ok.any():
@@ -517,7 +519,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         # there are fewer free pins now), so they are not searched again.
         newly[:] = False
         newly[got] = True
-        lost = np.flatnonzero(~ok & fin_r)
+        lost = np.flatnonzero(~ok if all_fin else ~ok & fin_r)
         rows = lost[(valid[lost] & newly[nb[lost]]).any(axis=1)]
         if rows.size == 0:
             n_pred = int(np.count_nonzero(ok))   # every lost pin's prediction is current
@@ -525,7 +527,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
         # last passes over every pin still lost: the neighbour prediction where
         # there is one, else the pin's own prediction corrected by the median
         # error of all tracked pins; the full gate
-        lost = np.flatnonzero(~ok & fin_r)
+        lost = np.flatnonzero(~ok if all_fin else ~ok & fin_r)
         n_now = int(np.count_nonzero(ok))
         if lost.size == 0 or n_now == 0:
             break

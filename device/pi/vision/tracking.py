@@ -121,9 +121,11 @@ class Tracker:
     rings of lost pins the neighbour prediction may grow into per frame.
 
     Cost per frame in steady state is one :func:`match_pins` call plus a few
-    small array operations; buffers are allocated in :meth:`set_reference`
-    only (``match_pins`` keeps its own per-thread scratch). The coarse
-    re-acquisition costs several times more and only runs after a jump.
+    small array operations, growing linearly with the pin count (the matching
+    scores only the pairs a cell grid puts within the gate); buffers are
+    allocated in :meth:`set_reference` only. The coarse re-acquisition costs
+    several times more, grows with pins x detections (its soft matching is
+    dense), and only runs after a jump.
     """
 
     def __init__(
