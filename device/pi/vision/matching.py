@@ -78,6 +78,9 @@ _SMALL_PAIRS = 4096
 #: cells are this much wider than the gate, so float rounding of the cell
 #: coordinates can never put a pair within the gate two cells apart
 _CELL_MARGIN = 1.0 + 1e-6
+#: up to this many current pins in one range (a column of three cells) the ranges
+#: are read as a fixed-width table (fewer numpy calls); beyond, one by one
+_FIXED_WIDTH = 4
 #: at most this many cells along an axis of the +-MAX_COORD_PX square: the keys
 #: (float64) stay exact integers, and cells are never narrower than 2e6 / 2^21 px
 _MAX_CELLS = float(1 << 21)
@@ -124,17 +127,28 @@ def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray
     # keys from q - 1 to q + 1, q = key + dx * ny (start and end of each range)
     q = key[:m, None] + ranges
     ab = np.searchsorted(sk, q)
-    a = ab[:, :3].ravel()
-    cnt = ab[:, 3:].ravel() - a
-    total = int(cnt.sum())
-    if total == 0:
+    cnt = ab[:, 3:] - ab[:, :3]                       # (m, 3) pins in each range
+    width = int(cnt.max(initial=0))
+    if width == 0:
         e = np.zeros(0, np.int64)
         return e, e, np.zeros(0, np.float64)
-    rows = np.repeat(np.arange(m), cnt.reshape(m, 3).sum(axis=1))
-    start = np.cumsum(cnt)
-    start -= cnt
-    a -= start
-    cols = order[np.repeat(a, cnt) + np.arange(total)]
+    if width <= _FIXED_WIDTH:
+        # few pins per range (the usual case): a fixed-width (m, 3, width) table of
+        # the ranges' positions, masked by the counts
+        j = np.arange(width)
+        sel = cnt[:, :, None] > j
+        rows = np.nonzero(sel)[0]
+        cols = order[(ab[:, :3, None] + j)[sel]]
+    else:
+        # crowded cells (duplicates, a gate much wider than the spacing): the ranges
+        # expanded one by one, so the work stays the number of candidate pairs
+        cnt = cnt.ravel()
+        a = ab[:, :3].ravel()
+        rows = np.repeat(np.arange(m), cnt.reshape(m, 3).sum(axis=1))
+        start = np.cumsum(cnt)
+        start -= cnt
+        a -= start
+        cols = order[np.repeat(a, cnt) + np.arange(int(start[-1] + cnt[-1]))]
     d = r[rows] - c[cols]
     d *= d
     d2 = d[:, 0] + d[:, 1]

@@ -311,3 +311,18 @@ def test_grid_matching_resolves_a_chain_of_shared_candidates():
     idx = match_pins_unchecked(ref, cur + [2.0, 0.0], 7.0)
     assert (idx == greedy_reference(ref, cur + [2.0, 0.0], 7.0)).all()
     assert idx[0] == -1 and (idx[1:] == np.arange(99)).all()
+
+
+def test_gated_pairs_with_crowded_cells_are_still_exact():
+    """Many detections in one cell (duplicates, a gate wider than the spacing) take
+    the range-by-range path: the same pairs and matching as brute force."""
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(0, 300, (150, 2))
+    cur = np.vstack([np.repeat(ref[:3], 12, axis=0) + rng.normal(0, 0.2, (36, 2)),
+                     ref[3:] + rng.normal(0, 0.5, (147, 2))])[rng.permutation(183)]
+    for gate in (1.5, 4.0, 30.0):                   # the last: many pins per cell
+        rows, cols, d2 = gated_pairs(ref, cur, gate * gate)
+        got = {(int(i), int(j)): float(v) for i, j, v in zip(rows, cols, d2)}
+        assert got == brute_pairs(ref, cur, gate * gate)
+        idx = match_pins_unchecked(ref, cur, gate)
+        assert (idx == greedy_reference(ref, cur, gate)).all()
