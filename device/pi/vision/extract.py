@@ -390,7 +390,6 @@ class PinDetector:
         # a buffer one zero row / column larger when a side is odd
         self._binary_even = np.zeros((bh + bh % 2, bw + bw % 2), np.uint8)
         self._binary = self._binary_even[:bh, :bw]
-        self._labels = np.empty(self._binary_even.shape, np.int32)
         # a kernel of +-2 sigma (OpenCV's own default is +-3, which is slower)
         k = max(3, 2 * int(math.ceil(2.0 * p.blur_sigma_px)) + 1)
         self._ksize = (k, k)
