@@ -19,8 +19,8 @@ import numpy as np
 
 from device.checks import positive_number
 
-__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "gated_pairs", "MAX_COORD_PX", "as_points", "usable_rows",
-           "all_rows_usable"]
+__all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "gated_pairs",
+           "MAX_COORD_PX", "as_points", "usable_rows", "all_rows_usable"]
 
 
 # --------------------------------------------------------------------------
