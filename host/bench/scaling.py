@@ -126,8 +126,9 @@ def time_matching(sizes=MATCH_SIZES, frames: int = 60, pitch_px: float = 10.0,
         if reacquire_repeats > 0:
             # a jump of 1.2 pitch (a snap back): the nearest-pin matching would take
             # the neighbour; the coarse search, from no prior, finds the pins again
-            jump = ref + np.array([1.2, 0.3]) * pitch_px + rng.normal(0, motion_px / 2, ref.shape)
-            perm = rng.permutation(len(jump))
+            rj = np.random.default_rng([seed, int(n)])     # the matching's draws stay as they were
+            jump = ref + np.array([1.2, 0.3]) * pitch_px + rj.normal(0, motion_px / 2, ref.shape)
+            perm = rj.permutation(len(jump))
             neighbours = layout_neighbours(ref)
             start, steps, iters = FULL_SEARCH_SCHEDULE
             rt = []
