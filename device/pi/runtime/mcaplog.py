@@ -169,6 +169,9 @@ class McapLog:
         self.writer_cpu_s = 0.0      # CPU of the writer thread (background=True)
         self.path = None if path is None else Path(path)
         self._file_on = path is not None
+        if path is None and live is None:
+            raise McapLogError("McapLog needs a file (--mcap), a live view (--foxglove) "
+                               "or both; got neither")
         if path is not None:
             self._open_first(path, max_mb)
         if background:

@@ -248,6 +248,8 @@ def test_a_bad_path_is_an_error_naming_it(tmp_path):
         McapLog(tmp_path / "nope" / "x.mcap", McapConfig())
     with pytest.raises(mcaplog.McapLogError, match="is a folder"):
         McapLog(tmp_path, McapConfig())
+    with pytest.raises(mcaplog.McapLogError, match="got neither"):
+        McapLog(None, McapConfig())               # else frame() would raise in the loop
 
 
 def test_the_foxglove_layout_names_only_logged_topics_and_fields():
