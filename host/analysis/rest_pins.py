@@ -22,9 +22,9 @@ and every rejection has a reason:
   within ``SITE_PITCH`` pitch of it (:func:`lattice_error_px`).
 
 A spot seen in fewer than ``MIN_SEEN`` but at least ``SITE_SEEN`` of the frames
-(a faint pin the peak search misses now and then) is kept when it is steady,
-inside, not a duplicate, and on a lattice site its kept neighbours predict
-(within ``SITE_PITCH`` pitch).
+(a pin the peak search misses now and then) is kept when it is steady, inside,
+not a duplicate, not faint (``FAINT_STRENGTH``), and on a lattice site its kept
+neighbours predict (within ``SITE_PITCH`` pitch).
 
 Centres are sub-pixel (:func:`centres`): the centroid of what stands above a plane
 fitted to a ring around each spot, so the glare's gradient does not shift a faint
@@ -333,7 +333,7 @@ def find_rest_pins(grays: list[np.ndarray], region: Region, pin_d_px: float,
             reason[i] = "glare"
     # a pin seen in fewer frames is still a pin where the lattice predicts one
     rescue = np.flatnonzero((reason == "unstable") & (seen >= SITE_SEEN)
-                            & (spread <= MAX_SPREAD * pitch) & (med_s >= MIN_STRENGTH * typical)
+                            & (spread <= MAX_SPREAD * pitch) & (med_s >= FAINT_STRENGTH * typical)
                             & ~(region.inset_px(xy) < EDGE_PITCH * pitch))
     for i in rescue[np.argsort(-seen[rescue] - 1e-3 * med_s[rescue])]:
         kept_xy = xy[reason == "kept"]

@@ -132,9 +132,9 @@ SAME_SESSION = ("smooth", "lego_train", "north", "east")
 
 def test_clips_of_one_sensor_give_one_layout(layouts):
     """Every layout near 133 pins, the clips within 3 pins of each other, and matched
-    pins (after a shift) close. Measured (issue 23, fourth round): 131, 133, 132, 133,
-    134 pins (130, 130, 130, 130, 133 before faint pins on lattice sites seen in half
-    the frames were kept); 0-3 apart; all matched pins: median 0.06-0.25 px, max 0.81-1.57 px. The
+    pins (after a shift) close. Measured (issue 23, fourth round): 131, 132, 130, 130,
+    133 pins (130, 130, 130, 130, 133 before pins on lattice sites seen in half the
+    frames were kept); 0-3 apart; all matched pins: median 0.06-0.25 px, max 0.81-1.57 px. The
     worst are pins on the LED glare: 5-10 per clip are loose (a clipped core, or a
     centre that wanders over the rest frames) and left out of the steady figures:
     max 0.42-0.81 px between smooth, lego_train, north and east except lego_train vs
