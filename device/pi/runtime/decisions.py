@@ -7,7 +7,9 @@ a fresh gait context the rule's probabilities are blended in with the weight
 ``decision.gait_rule_weight``, as the learned model cannot see the gait. Slip comes
 from a slip model, else from the rule's ``slippery`` probability. A texture is only
 decided in contact. Probabilities are in the SURFACE class order
-(:data:`device.pi.protocol.SURFACE_CLASSES`).
+(:data:`device.pi.protocol.SURFACE_CLASSES`). The learned models due on a frame run
+as one call of the fused graph when the model set has one
+(:mod:`device.pi.models.fused`), else one session each; the results are the same.
 
 A frame with the ``frame`` fault (implausible for the sensor: noise, black, white,
 bad pixel values) holds "no touch": class no-touch with all its probability, no
