@@ -82,22 +82,27 @@ _CELL_MARGIN = 1.0 + 1e-6
 #: are read as a fixed-width table (fewer numpy calls); beyond, one by one
 _FIXED_WIDTH = 4
 #: at most this many cells along an axis of the +-MAX_COORD_PX square: the keys
-#: (float64) stay exact integers, and cells are never narrower than 2e6 / 2^21 px
+#: (float64) stay exact integers, and cells are never narrower than about 2e6 / 2^21 px
 _MAX_CELLS = float(1 << 21)
 
 
 @functools.lru_cache(maxsize=16)
-def _grid(max_d2: float) -> tuple[float, float, np.ndarray, np.ndarray]:
-    """The cell grid's constants for a gate: 1 / cell width, the shift that makes
-    cell coordinates >= 1, the key fold [ny, 1] and the six key offsets of the
-    three cell columns' ranges (start, start, start, end, end, end)."""
-    cell = max(math.sqrt(max_d2) * _CELL_MARGIN, 2.0 * MAX_COORD_PX / (_MAX_CELLS - 4.0))
-    ny = math.floor(2.0 * MAX_COORD_PX / cell) + 3.0
+def _grid(max_d2: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """The cell grid's constants for a gate: 1 / cell width, the key fold [ny, 1]
+    and the six key offsets of the three cell columns' ranges (start, start, start,
+    end, end, end). Cell coordinates run from -1e6 / cell - 1 to 1e6 / cell, so a
+    key column of ny cells holds every row with a free cell at each end."""
+    cell = max(math.sqrt(max_d2) * _CELL_MARGIN, 2.0 * MAX_COORD_PX / (_MAX_CELLS - 6.0))
+    ny = math.floor(2.0 * MAX_COORD_PX / cell) + 5.0
     fold = np.array([ny, 1.0])
     ranges = np.array([-ny - 1.0, -1.0, ny - 1.0, 2.0 - ny, 2.0, ny + 2.0])
     fold.flags.writeable = False
     ranges.flags.writeable = False
-    return 1.0 / cell, MAX_COORD_PX / cell + 1.0, fold, ranges
+    return 1.0 / cell, fold, ranges
+
+
+#: np.arange(k) for the fixed-width table's widths
+_WIDTHS = tuple(np.arange(k) for k in range(_FIXED_WIDTH + 1))
 
 
 def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -113,12 +118,11 @@ def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray
     is ``(rx - cx)^2 + (ry - cy)^2``, the same numbers as :func:`pair_d2`.
     """
     m = r.shape[0]
-    inv, shift, fold, ranges = _grid(max_d2)
-    # cell coordinates of both sets, from the corner of the usable square (all >= 0),
-    # folded into one key (kx + 1) * ny + ky + 1: exact integers in float64
+    inv, fold, ranges = _grid(max_d2)
+    # cell coordinates of both sets (|k| <= 1e6 / cell + 1), folded into one key
+    # kx * ny + ky: exact integers in float64, the rows of a column contiguous
     t = np.concatenate((r, c))
     t *= inv
-    t += shift
     np.floor(t, out=t)
     key = t @ fold
     order = np.argsort(key[m:], kind="stable")
@@ -135,7 +139,7 @@ def gated_pairs(r: np.ndarray, c: np.ndarray, max_d2: float) -> tuple[np.ndarray
     if width <= _FIXED_WIDTH:
         # few pins per range (the usual case): a fixed-width (m, 3, width) table of
         # the ranges' positions, masked by the counts
-        j = np.arange(width)
+        j = _WIDTHS[width]
         sel = cnt[:, :, None] > j
         rows = np.nonzero(sel)[0]
         cols = order[(ab[:, :3, None] + j)[sel]]
