@@ -224,7 +224,12 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
         rows = np.repeat(np.arange(m), nb.shape[1])
         np.add.at(adj_t, (nb.ravel()[valid.ravel()], rows[valid.ravel()]), 1.0)
         diag = np.diag_indices(m)
-        b_t = np.empty((m, m), np.float64)
+        # B transposed with the constant part below it, and the field with a 2 x 2
+        # identity beside it: [v | I] [B; a] = B v + a in one product per sweep
+        b_t = np.empty((m + 2, m), np.float64)
+        x0 = np.zeros((2, m + 2), np.float64)
+        x0[:, m:] = np.eye(2)
+        x1 = x0.copy()
     else:
         nb_t = np.where(valid, nb, m).T.copy()          # (k, m)
         x_t = np.zeros((2, m + 1), np.float64)
@@ -265,20 +270,21 @@ def _anneal(ref: np.ndarray, use: np.ndarray, cur: np.ndarray, pitch: float, dis
             continue
         # Jacobi sweeps from the data, v <- (wt + lam adj v + eps v) / den, as
         # v <- a + B v with the constant parts folded once per temperature
-        # The field is kept transposed, (2, m), and so is B: a (2, m) x (m, m)
-        # product per sweep is the same arithmetic as B v, at about half the cost
-        # of a product with a two-column right-hand side.
+        # The field is kept transposed, (2, m), and so is B: a (2, m) x (m + 2, m)
+        # product per sweep is B v + a, at about half the cost of a product with a
+        # two-column right-hand side.
         inv = 1.0 / (w + lam * deg + 1e-12)
-        a_t = (wt * inv[:, None]).T.copy()
         if dense:
-            np.multiply(adj_t, lam * inv, out=b_t)
+            np.multiply(wt, inv[:, None], out=b_t[m:].T)
+            np.multiply(adj_t, lam * inv, out=b_t[:m])
             b_t[diag] += 1e-12 * inv
-            v_t = v.T.copy()
+            x0[:, :m] = v.T
             for _ in range(smooth_iters):
-                v_t = np.matmul(v_t, b_t)
-                v_t += a_t
-            v = v_t.T.copy()
+                np.matmul(x0, b_t, out=x1[:, :m])
+                x0, x1 = x1, x0
+            v = x0[:, :m].T.copy()
             continue
+        a_t = (wt * inv[:, None]).T.copy()
         lam_inv = lam * inv
         eps_inv = 1e-12 * inv
         x_t[:, :m] = v.T
