@@ -11,6 +11,9 @@
   replays it.
 * :func:`recordings_of`: the training data's recordings with checksums, from
   data specs (CSV manifests, dataset folders, ``.npz`` files).
+* :func:`measure_cost`: the cost per decision of a model folder's files, timed
+  single-threaded on this machine; :func:`write_model_docs` records it in the
+  manifest (``cost_per_decision``) before it writes the card from the spec.
 * :func:`write_model_docs`: both files for a model folder, from its manifest.
 """
 from __future__ import annotations
@@ -18,15 +21,22 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import platform
+import time
 from pathlib import Path
 
+import numpy as np
+
 from device.config import read_toml
-from device.pi.models.artefact import MANIFEST, read_spec, sha256_file
+from device.pi.models.artefact import (FLOAT_MANIFEST, MANIFEST, ort_session, read_spec,
+                                       sha256_file)
 from device.pi.models.spec import ModelSpec
 from host.data.dataset import atomic_write_text
 
 __all__ = ["card_text", "write_card", "write_train_toml", "read_train_toml", "toml_text",
-           "recordings_of", "data_source", "write_model_docs", "CARD", "TRAIN_TOML"]
+           "recordings_of", "data_source", "measure_cost", "machine_text", "write_model_docs",
+           "CARD", "TRAIN_TOML"]
 
 CARD = "README.md"
 TRAIN_TOML = "train.toml"
@@ -213,6 +223,33 @@ def _int8_line(spec: ModelSpec) -> str:
     return json.dumps(q)[:200]
 
 
+def _identity_lines(spec: ModelSpec) -> list[str]:
+    """The recording-identity check's warning (host.learn.identity), where the spec's
+    metrics carry one."""
+    out = []
+    for k in ("test", "cv", "train"):
+        w = (spec.metrics.get(k) or {}).get("identity_warning")
+        if w and f"- warning: {w}" not in out:
+            out.append(f"- warning: {w}")
+    if out:
+        out.append("  - the recording-identity check (host.learn.identity): the same model "
+                   "kind tells apart recordings of one class; test on a separate recording")
+    return out
+
+
+def _cost_lines(spec: ModelSpec) -> list[str]:
+    c = spec.params.get("cost_per_decision")
+    if not isinstance(c, dict) or not isinstance(c.get("files"), dict):
+        return ["- cost per decision: not measured here (see docs/BENCHMARKS.md, "
+                "`host bench runtime`)"]
+    out = [f"- cost per decision, `{f}`: median {float(r['median_ms']):.3g} ms, p99 "
+           f"{float(r['p99_ms']):.3g} ms over {r['n']} runs"
+           for f, r in c["files"].items()]
+    out.append(f"  - one ONNX Runtime session, {c.get('threads', 1)} thread, one window "
+               f"({c.get('inputs', 'inputs of its shape')}); on {c.get('machine', '?')}")
+    return out
+
+
 def card_text(spec: ModelSpec, name: str = "") -> str:
     """The model card (markdown) of ``spec``; ``name`` is the model folder's name."""
     t = spec.trained_on
@@ -246,7 +283,7 @@ def card_text(spec: ModelSpec, name: str = "") -> str:
     lines += ["", "## Protocol", "", f"- {t.get('split') or 'not recorded'}"]
     if isinstance(t.get("real_accuracy"), (int, float)):
         lines.append(f"- accuracy on real frames: {_num(t['real_accuracy'])}")
-    lines += ["", "## Accuracy", ""] + _metric_lines(spec)
+    lines += ["", "## Accuracy", ""] + _metric_lines(spec) + _identity_lines(spec)
     lines += ["", "## int8", "", f"- {_int8_line(spec)}", "", "## Size and cost", ""]
     files = spec.files or ({spec.onnx: {"size_bytes": spec.size_bytes}} if spec.onnx else {})
     for f, rec in files.items():
@@ -254,10 +291,7 @@ def card_text(spec: ModelSpec, name: str = "") -> str:
                      + (" (loaded by default)" if f == spec.onnx else ""))
     if not files:
         lines.append("- a rule: no model file")
-    cost = spec.params.get("cost_per_decision_ms", spec.training.get("cost_per_decision_ms"))
-    lines.append(f"- cost per decision: {_num(cost)} ms" if isinstance(cost, (int, float))
-                 else "- cost per decision: not measured here (see docs/BENCHMARKS.md, "
-                      "`host bench runtime`)")
+    lines += _cost_lines(spec)
     if spec.config:
         lines += ["", "## How it was made", "",
                   "`train.toml` beside this file holds the config; replay it with "
@@ -274,10 +308,100 @@ def write_card(folder: Path | str, spec: ModelSpec) -> Path:
     return path
 
 
-def write_model_docs(folder: Path | str) -> dict:
+def machine_text() -> str:
+    """This machine, for a timing: CPU model, cores, load, ONNX Runtime version."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.lower().startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    try:
+        import onnxruntime
+        ort = f", onnxruntime {onnxruntime.__version__}"
+    except ImportError:                          # pragma: no cover - a host dependency
+        ort = ""
+    load = f", load {os.getloadavg()[0]:.1f}" if hasattr(os, "getloadavg") else ""
+    return f"{cpu} ({platform.machine()}, {os.cpu_count()} cores{load}){ort}"
+
+
+_DTYPES = {"tensor(float)": np.float32, "tensor(double)": np.float64,
+           "tensor(uint8)": np.uint8, "tensor(int64)": np.int64, "tensor(int32)": np.int32}
+
+
+def _one_input(session, spec: ModelSpec, seed: int = 0) -> tuple[str, np.ndarray]:
+    """A window of the model's input shape (batch 1): seeded standard normal values,
+    clipped to the spec's ``input_clip`` where it has one (uint8 images: 0..255)."""
+    inp = session.get_inputs()[0]
+    shape = [d if isinstance(d, int) and d > 0 else 1 for d in inp.shape]
+    dtype = _DTYPES.get(inp.type, np.float32)
+    rng = np.random.default_rng(seed)
+    if np.issubdtype(dtype, np.integer):
+        x = rng.integers(0, 256, size=shape).astype(dtype)
+    else:
+        x = rng.standard_normal(shape).astype(dtype)
+        clip = spec.params.get("input_clip")
+        if isinstance(clip, list) and len(clip) == 2 and len(clip[0]) == x.shape[-1]:
+            x = np.clip(x, np.asarray(clip[0], dtype), np.asarray(clip[1], dtype))
+    return inp.name, x
+
+
+def measure_cost(folder: Path | str, spec: ModelSpec, inputs: np.ndarray | None = None,
+                 runs: int = 200, budget_s: float = 1.0) -> dict:
+    """The cost per decision of each model file of ``folder``: one single-threaded
+    ONNX Runtime session run on one window (``inputs[:1]``, else a window of the
+    model's shape, :func:`_one_input`), ``runs`` timed runs after 10 untimed ones
+    (fewer, at least 20, when they pass ``budget_s``). Returns ``{"files": {name:
+    {"median_ms", "p99_ms", "n"}}, "threads": 1, "inputs", "machine"}``."""
+    if isinstance(runs, bool) or not isinstance(runs, int) or runs < 20:
+        raise ValueError(f"measure_cost: runs must be a whole number >= 20, got {runs!r}")
+    folder = Path(folder)
+    names = list(spec.files or {}) or ([spec.onnx] if spec.onnx else [])
+    out = {"files": {}, "threads": 1,
+           "inputs": ("a window of its own inputs" if inputs is not None else
+                      "a window of its input shape, seeded normal values"),
+           "machine": machine_text()}
+    for name in names:
+        sess = ort_session(str(folder / name), threads=1)
+        in_name, x = _one_input(sess, spec)
+        if inputs is not None:
+            x = np.ascontiguousarray(np.asarray(inputs)[:1], x.dtype).reshape(x.shape)
+        for _ in range(10):
+            sess.run(None, {in_name: x})
+        times = []
+        end = time.perf_counter() + budget_s
+        while len(times) < runs and (len(times) < 20 or time.perf_counter() < end):
+            t = time.perf_counter_ns()
+            sess.run(None, {in_name: x})
+            times.append((time.perf_counter_ns() - t) / 1e6)
+        out["files"][name] = {"median_ms": round(float(np.median(times)), 4),
+                              "p99_ms": round(float(np.percentile(times, 99)), 4),
+                              "n": len(times)}
+    return out
+
+
+def _record_cost(folder: Path, cost: dict) -> None:
+    """``cost`` in the folder's manifest.json (and manifest.float.json, if any)."""
+    from host.learn.onnx_io import write_manifest
+    for name in (MANIFEST, FLOAT_MANIFEST):
+        if (folder / name).is_file():
+            doc = json.loads((folder / name).read_text())
+            doc["cost_per_decision"] = cost
+            write_manifest(folder, doc, name)
+
+
+def write_model_docs(folder: Path | str, measure: bool = True,
+                     inputs: np.ndarray | None = None) -> dict:
     """README.md (the model card) and, when the spec has a config, train.toml, for
-    the model folder ``folder`` from its manifest.json. Returns {name: path}."""
+    the model folder ``folder`` from its manifest.json. With ``measure`` (at train
+    time), the cost per decision is timed here first (:func:`measure_cost`, on
+    ``inputs`` when given) and recorded in the manifest. Returns {name: path}."""
     spec, _ = read_spec(Path(folder) / MANIFEST)
+    if measure and (spec.files or spec.onnx):
+        _record_cost(Path(folder), measure_cost(folder, spec, inputs))
+        spec, _ = read_spec(Path(folder) / MANIFEST)
     out = {CARD: write_card(folder, spec)}
     if spec.config:
         out[TRAIN_TOML] = write_train_toml(folder, spec.config)

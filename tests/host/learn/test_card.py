@@ -81,3 +81,64 @@ def test_recordings_of_data_specs_carry_checksums_and_frame_ranges(tmp_path):
     assert recs[2]["sha256"] == hashlib.sha256(b"npz").hexdigest()
     assert data_source(recs[:1]) == "real" and data_source(recs[1:2]) == "simulated"
     assert data_source(recs[:2]) == "real+simulated" and data_source(recs[2:]) == "unknown"
+
+
+def test_the_card_carries_the_identity_warning_the_spec_holds():
+    """The recording-identity check's warning (metrics.test.identity_warning, written by
+    host train when the check flags) is on the card, as the spec words it; no
+    warning in the spec, none on the card."""
+    from host.learn.identity import WARNING
+    spec, _ = read_spec(ROOT / "models" / "texture")
+    spec.metrics["test"] = {k: v for k, v in spec.metrics["test"].items()
+                            if k != "identity_warning"}
+    assert WARNING not in card_text(spec, "texture")
+    warning = f"{WARNING}: the fnn tells apart the recordings of class(es) ['qz-7'] far above"
+    spec.metrics["test"]["identity_warning"] = warning
+    text = card_text(spec, "texture")
+    assert f"- warning: {warning}" in text
+    assert text.index("## Accuracy") < text.index(warning) < text.index("## int8")
+
+
+def test_model_docs_time_the_cost_per_decision_into_the_spec_and_the_card(tmp_path):
+    """write_model_docs times each model file single-threaded and records median and p99
+    with the machine in both manifests; the card shows the spec's figures (changed in
+    the spec, they change on the card)."""
+    import json
+    folder = tmp_path / "surface"
+    shutil.copytree(ROOT / "models" / "surface", folder)
+    write_model_docs(folder)
+    spec, _ = read_spec(folder)
+    cost = spec.params["cost_per_decision"]
+    assert set(cost["files"]) == {"model.onnx", "model.int8.onnx"} and cost["threads"] == 1
+    for r in cost["files"].values():
+        assert 20 <= r["n"] <= 200 and 0 < r["median_ms"] <= r["p99_ms"] < 1e3
+    assert "cores" in cost["machine"] and "onnxruntime" in cost["machine"]
+    float_doc = json.loads((folder / "manifest.float.json").read_text())
+    assert float_doc["cost_per_decision"] == cost
+    text = (folder / "README.md").read_text()
+    r = cost["files"]["model.int8.onnx"]
+    assert (f"cost per decision, `model.int8.onnx`: median {r['median_ms']:.3g} ms, "
+            f"p99 {r['p99_ms']:.3g} ms over {r['n']} runs") in text
+    assert cost["machine"] in text
+    doc = json.loads((folder / "manifest.json").read_text())
+    doc["cost_per_decision"]["files"]["model.onnx"] = {"median_ms": 12.5, "p99_ms": 31.25,
+                                                       "n": 77}
+    doc["cost_per_decision"]["machine"] = "a test machine"
+    (folder / "manifest.json").write_text(json.dumps(doc))
+    write_model_docs(folder, measure=False)
+    text = (folder / "README.md").read_text()
+    assert "`model.onnx`: median 12.5 ms, p99 31.2 ms over 77 runs" in text
+    assert "on a test machine" in text
+
+
+def test_measure_cost_times_given_inputs_and_refuses_too_few_runs():
+    from host.learn.card import measure_cost
+    folder = ROOT / "models" / "surface"
+    spec, _ = read_spec(folder)
+    with pytest.raises(ValueError, match="runs must be a whole number >= 20, got 5"):
+        measure_cost(folder, spec, runs=5)
+    import numpy as np
+    x = np.zeros((3, spec.n_inputs), np.float32)
+    c = measure_cost(folder, spec, inputs=x, runs=20, budget_s=0.0)
+    assert c["inputs"] == "a window of its own inputs"
+    assert all(r["n"] == 20 for r in c["files"].values())
