@@ -500,7 +500,9 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         paced = opt_bool("realtime", q.get("realtime", False))
     except ValueError as exc:
         raise StartupError(f"--camera {camera!r}: {exc}") from None
-    opts = {}
+    # frames come gray, converted on the grab thread (a YUYV camera's luma plane):
+    # the loop reads the dome's box in place; ?gray=0 keeps the colour frames
+    opts = {} if "gray" in q else {"gray": True}
     if live:
         c = cfg.camera
         for k, v in (("width", c.width), ("height", c.height), ("fps", c.fps),
