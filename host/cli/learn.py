@@ -159,14 +159,39 @@ def _train(args):
     headline = ", ".join(f"held-out {k} {m[k]:.4g}" + _interval(m, k)
                          for k in ("accuracy", "macro_f1", "mae")
                          if isinstance(m.get(k), (int, float)))
-    warning = (res.get("identity_check") or {}).get("warning")
-    if warning and not args.json:
-        print(f"host train: warning: {warning} (host eval --identity shows the figures)",
-              file=sys.stderr)
+    check = res.get("identity_check") or {}
+    if check and not args.json:
+        for line in identity_lines(check):
+            print(f"host train: identity check: {line}", file=sys.stderr)
+    if check.get("warning") and not args.json:
+        print(f"host train: warning: {check['warning']} (host eval --identity shows the "
+              f"figures)", file=sys.stderr)
     if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
         headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
     emit(args, res, f"wrote {args.out} ({args.task} {args.model}, T={args.window}): "
                     f"{headline}; held out: {res.get('holdout')}")
+
+
+def identity_lines(check: dict) -> list[str]:
+    """One line per class of a recording-identity check (host.learn.identity): its
+    balanced accuracy against chance, or why it did not conclude; a whole check
+    skipped is one line."""
+    if check.get("skipped"):
+        return [f"skipped: {check['skipped']}"]
+    lines = []
+    for c, e in sorted((check.get("classes") or {}).items()):
+        what = f"{c} ({e.get('mode', '?')})"
+        if "skipped" in e:
+            lines.append(f"{what}: not run, {e['skipped']}")
+            continue
+        ci = e.get("balanced_accuracy_ci95") or [float("nan")] * 2
+        verdict = ("FLAGGED: may learn the recording" if e.get("flagged")
+                   else f"inconclusive, {e['inconclusive']}" if e.get("inconclusive")
+                   else "not told apart far above chance")
+        lines.append(f"{what}: balanced accuracy {e['balanced_accuracy']:.2f} "
+                     f"[{ci[0]:.2f}, {ci[1]:.2f}] on {e['n_windows']} windows, chance "
+                     f"{e['chance']:.2f}: {verdict}")
+    return lines
 
 
 def _interval(m: dict, key: str) -> str:

@@ -348,3 +348,24 @@ def test_train_pressure_default_reports_grouped_cv_mae_at_most_180_on_the_hard_p
     lo, hi = cv["mae_ci95"]
     assert lo <= cv["mae"] <= hi <= 180, cv
     assert cv["mae"] <= 0.1 * cv["mae_predict_mean"], cv
+
+
+def test_identity_lines_give_each_class_its_verdict_and_figures():
+    """host train prints the identity check per class without --json: a flagged
+    class, an inconclusive one with its reason, a class not run and why."""
+    from host.cli.learn import identity_lines
+    check = {"classes": {
+        "lego": {"mode": "halves", "balanced_accuracy": 0.97,
+                 "balanced_accuracy_ci95": [0.91, 1.0], "chance": 0.5, "n_windows": 40,
+                 "flagged": True},
+        "smooth": {"mode": "recordings", "balanced_accuracy": 0.6,
+                   "balanced_accuracy_ci95": [0.4, 0.8], "chance": 0.5, "n_windows": 12,
+                   "flagged": False, "inconclusive": "a recording has 6 test windows"},
+        "concrete": {"mode": "halves", "skipped": "too few windows"}}}
+    lines = identity_lines(check)
+    assert lines[0] == "concrete (halves): not run, too few windows"
+    assert lines[1].startswith("lego (halves): balanced accuracy 0.97 [0.91, 1.00] on 40 "
+                               "windows, chance 0.50: FLAGGED")
+    assert "inconclusive, a recording has 6 test windows" in lines[2]
+    assert identity_lines({"skipped": "a rule learns no recording"}) == [
+        "skipped: a rule learns no recording"]
