@@ -158,6 +158,10 @@ class RuleClassifier:
         bad = [c for c in classes if c not in known]
         if len(classes) < 2 or bad:
             raise ValueError(f"classes must be at least 2 of {list(known)}, got {classes!r}")
+        twice = sorted({c for c in classes if classes.count(c) > 1})
+        if twice:          # a repeated class would share its probability between slots
+            raise ValueError(f"classes must each be named once, got {classes!r} "
+                             f"({', '.join(twice)} repeated)")
         if isinstance(T, bool) or not isinstance(T, (int, np.integer)) or T < 1:
             raise ValueError(f"T must be a whole number >= 1, got T={T!r}")
         if isinstance(n_pins, bool) or not isinstance(n_pins, (int, np.integer)) or n_pins < 1:

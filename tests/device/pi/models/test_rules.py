@@ -71,3 +71,10 @@ def test_the_rule_decides_each_class_from_the_gait_context():
     moving = pressed.copy()
     moving[:, :, 1] = np.array([0.0, 1.0, 2.0])[:, None]
     assert call(moving, expected_mag_px=5.0, expected_motion_px=1.0) == "hard"
+
+
+def test_a_rule_model_naming_a_class_twice_is_refused_naming_it():
+    """Two slots of one class would split its probability between them: refused."""
+    with pytest.raises(ValueError, match=r"each be named once.*hard repeated"):
+        RuleClassifier(RULE, ["hard", "soft", "hard"], 3, 5)
+    assert RuleClassifier(RULE, ["hard", "soft"], 3, 5).n_classes == 2
