@@ -169,11 +169,16 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         if f.is_dir():
             m.pressure = Regressor.load(checked(manifest_for(f, variant)))
             loaded.append("pressure")
-        pick = _pick_localiser(d, cfg.models.profile) if cfg.models.localiser else None
+    m.profile, m.profile_source = runtime_profile(m, cfg)
+    if d.is_dir() and cfg.models.localiser:
+        # the localiser of the profile the leg runs: the models' own when the config
+        # names none (then checked against the models' profile with the rest)
+        name = (m.profile or {}).get("name") or cfg.models.profile
+        pick = _pick_localiser(d, name)
         if pick is not None:
             m.localiser = Localiser.load(checked(pick / "manifest.json"))
             loaded.append(pick.name)
-    m.profile, m.profile_source = runtime_profile(m, cfg)
+            m.profile, m.profile_source = runtime_profile(m, cfg)
     if profile_n_pins is None:
         profile_n_pins = layout_pins(m.profile_source)
     s = m.surface

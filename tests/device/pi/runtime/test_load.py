@@ -353,3 +353,25 @@ def test_the_shipped_models_run_as_one_fused_graph():
         m = load_models(None, variant, 133, LegConfig())
         assert m.fused is not None, m.fused_note
         assert m.fused.tasks == ("surface", "texture", "slip", "pressure")
+
+
+def test_the_localiser_is_the_models_profiles_when_the_config_names_none(
+        tactip331_models, monkeypatch):
+    """With localisers for two profiles in the folder and no models.profile set, the
+    leg picks the one of the profile its models carry (tactip331), not the default
+    config's (roboskin)."""
+    import device.pi.runtime.load as L
+    for name in ("localiser-roboskin", "localiser-tactip331"):
+        (tactip331_models / name).mkdir()
+    picked = []
+    real = L._pick_localiser
+
+    def spy(folder, profile):
+        picked.append(real(folder, profile).name)
+        return None                            # load none: the pick is the test
+
+    monkeypatch.setattr(L, "_pick_localiser", spy)
+    cfg = parse_leg_config({"models": {"localiser": True}})
+    assert cfg.models.profile == "roboskin" and not cfg.models.profile_set
+    load_models(tactip331_models, "int8", None, cfg)
+    assert picked == ["localiser-tactip331"]
