@@ -286,6 +286,13 @@ class VisionParams:
     max_area_px: blobs larger than this are glare (LED reflections), not pins.
     roi_shrink: the pin search disc is ``roi_shrink`` times the dome radius;
         below 1 it keeps the bright specular glints on the dome rim out.
+    contrast_ref: the dome's local contrast at calibration, gray levels (the 95th
+        percentile of the blurred gray minus its ``block`` box mean over the dome
+        disc, :func:`device.pi.vision.extract.local_contrast`). Given, the pipeline
+        scales ``offset`` by the contrast it measures when it sets its reference,
+        ``offset * clamp(contrast / contrast_ref, 0.5, 1)`` (1 for a ratio of 0.95 or
+        more), so a darker exposure keeps its faint pins; None (absent) leaves the
+        offset fixed.
     """
 
     block: int = 11
@@ -294,6 +301,7 @@ class VisionParams:
     min_area_px: int = 10
     max_area_px: int = 100
     roi_shrink: float = 0.75
+    contrast_ref: float | None = None
 
     def __post_init__(self) -> None:
         whole_number("block", self.block, lo=3)
@@ -309,6 +317,8 @@ class VisionParams:
                 f"with min_area_px={self.min_area_px!r}"
             )
         finite_number("roi_shrink", self.roi_shrink, lo=0.0, hi=1.5, lo_open=True)
+        if self.contrast_ref is not None:
+            finite_number("contrast_ref", self.contrast_ref, lo=0.0, hi=255.0, lo_open=True)
 
 
 class ProfileError(ConfigError):
@@ -354,7 +364,10 @@ def parse_pipeline_profile(doc: dict, source: str = "") -> PipelineProfile:
                               blur_sigma_px=f.number("blur_sigma_px", 1.0, min=0, max=50),
                               min_area_px=min_area, max_area_px=max_area,
                               roi_shrink=f.number("roi_shrink", 0.75, min=0, max=1.5,
-                                                  min_exclusive=True))
+                                                  min_exclusive=True),
+                              contrast_ref=(f.number("contrast_ref", min=0, max=255,
+                                                     min_exclusive=True)
+                                            if f.has("contrast_ref") else None))
         pitch = f.number("pitch_px", min=0.5, max=1000)
         dome = None
         if f.has("dome_px"):

@@ -116,6 +116,8 @@ def test_a_vision_only_profile_names_the_missing_layout(tmp_path):
         ("blur_sigma_px", -1.0),
         ("min_area_px", 0), ("max_area_px", 5),  # max < default min 10
         ("roi_shrink", 0.0), ("roi_shrink", float("inf")),
+        ("contrast_ref", 0.0), ("contrast_ref", -3.0), ("contrast_ref", float("nan")),
+        ("contrast_ref", 300.0), ("contrast_ref", "30"),
     ],
 )
 def test_params_reject_bad_value_and_name_it(field, value):
@@ -144,8 +146,20 @@ def test_vision_params_are_frozen():
      r"p\.toml: vision\.match_gate_px must be <= 11\.7, got 1e\+308"),
     ({"pitch_px": 11.7, "n_pins": 5, "match_gate_px": 0}, r"match_gate_px must be > 0"),
     ({"pitch_px": 11.7, "n_pins": 5, "contact_px": 1e9}, r"contact_px must be <= 11\.7"),
+    ({"pitch_px": 5, "n_pins": 5, "contrast_ref": 0}, r"vision\.contrast_ref must be > 0, got 0"),
+    ({"pitch_px": 5, "n_pins": 5, "contrast_ref": 256}, r"vision\.contrast_ref must be <= 255"),
+    ({"pitch_px": 5, "n_pins": 5, "contrast_ref": "29"}, r"vision\.contrast_ref must be a number"),
 ])
 def test_bad_profile_gets_one_clear_error(vision, match):
     with pytest.raises(ProfileError, match=match):
         parse_pipeline_profile({"vision": vision}, source="p.toml")
 
+
+
+def test_contrast_ref_is_optional_and_absent_means_no_scaling():
+    """[vision] contrast_ref: absent (every profile before it) is None, the pipeline's
+    fixed offset; given, it is read as the calibration's contrast in gray levels."""
+    base = {"pitch_px": 5, "n_pins": 5}
+    assert parse_pipeline_profile({"vision": base}).vision.contrast_ref is None
+    got = parse_pipeline_profile({"vision": dict(base, contrast_ref=29.7)}).vision
+    assert got.contrast_ref == 29.7 and got.offset == 14.0

@@ -36,6 +36,8 @@ __all__ = [
     "binarise",
     "components",
     "extract_pins",
+    "local_contrast",
+    "offset_scale",
     "PinDetector",
 ]
 
@@ -292,6 +294,56 @@ def binarise(
     return out
 
 
+#: the offset's exposure scale (:func:`offset_scale`) never goes below this: a very
+#: dark frame's threshold stays above its noise
+MIN_OFFSET_SCALE = 0.5
+#: a contrast ratio at or above this is the calibration's exposure: the contrast
+#: varies by 1-3 % between frames and sessions of one exposure, and one gray level
+#: less (offset 14 -> 13, the threshold takes whole levels) changes the pins
+SAME_EXPOSURE_RATIO = 0.95
+#: a contrast below this many gray levels (a black, white or blank dome) is no
+#: measure of the exposure: the offset is not scaled
+MIN_CONTRAST_LEVELS = 1.0
+
+
+def local_contrast(smooth: np.ndarray, mask: np.ndarray | None, block: int) -> float:
+    """The dome's local contrast, gray levels: the 95th percentile, over the pixels
+    where ``mask`` (uint8, ``smooth``'s shape; None = all) is set, of ``smooth`` minus
+    its ``block`` x ``block`` box mean (the pins' height above their surround, which a
+    darker exposure lowers). 0.0 with no pixel in the mask."""
+    if smooth.ndim != 2:
+        raise ValueError(f"smooth must be 2-D, got shape={smooth.shape!r}")
+    if mask is not None and mask.shape != smooth.shape:
+        raise ValueError(f"mask must have smooth's shape {smooth.shape!r}, got "
+                         f"mask.shape={mask.shape!r}")
+    g = smooth.astype(np.float32)
+    d = g - cv2.boxFilter(g, -1, (int(block), int(block)), normalize=True,
+                          borderType=cv2.BORDER_REPLICATE)
+    d = d if mask is None else d[mask != 0]
+    if d.size == 0:
+        return 0.0
+    v = float(np.percentile(d, 95.0))
+    return v if math.isfinite(v) else 0.0
+
+
+def offset_scale(contrast: float | None, contrast_ref: float | None) -> float:
+    """The threshold offset's factor for a frame of local contrast ``contrast`` when
+    the calibration measured ``contrast_ref``: ``clamp(contrast / contrast_ref,
+    MIN_OFFSET_SCALE, 1)``, and 1 for a ratio of :data:`SAME_EXPOSURE_RATIO` or
+    more (the same exposure). Never above 1: a brighter exposure keeps the offset (its
+    pins stand out already; a larger offset lost pins). 1.0 (no scaling) when either
+    is None, not finite, or below :data:`MIN_CONTRAST_LEVELS` (a black or white dome
+    has no contrast to compare)."""
+    try:
+        c, ref = float(contrast), float(contrast_ref)
+    except (TypeError, ValueError):
+        return 1.0
+    if not (math.isfinite(c) and math.isfinite(ref)) or min(c, ref) < MIN_CONTRAST_LEVELS:
+        return 1.0
+    r = c / ref
+    return 1.0 if r >= SAME_EXPOSURE_RATIO else float(max(MIN_OFFSET_SCALE, r))
+
+
 #: the labelling algorithm for the pin image: Grana's block-based decision tree
 #: (BBDT) with statistics is 2-3x faster on the sparse pin image than OpenCV 5's
 #: default (Spaghetti) with statistics, with the same labels and centroids
@@ -434,11 +486,25 @@ class PinDetector:
         self._mean = np.empty((gy1 - gy0, gx1 - gx0), np.uint8)
         self._core_mask = np.ascontiguousarray(self._mask[cy0:ty1, cx0:tx1])
         self._core_out = self._binary_even[cy0:ty1, cx0:tx1]
+        self.set_offset(p.offset)
+
+    def set_offset(self, offset: float) -> None:
+        """Threshold from now on with ``offset`` gray levels (the profile's, or the
+        profile's scaled for the exposure, :func:`offset_scale`)."""
+        offset = float(offset)
+        if not math.isfinite(offset):
+            raise ValueError(f"offset must be finite, got offset={offset!r}")
+        #: the offset the threshold uses
+        self.offset = offset
         # OpenCV's mean-C threshold keeps src - mean > floor(offset); for offset >= 0
         # a saturating subtraction gives the same test (a negative offset takes
         # cv2.adaptiveThreshold on the whole box)
-        self._floor_offset = math.floor(p.offset)
+        self._floor_offset = math.floor(offset)
         self._fast = self._floor_offset >= 0
+
+    def local_contrast(self) -> float:
+        """:func:`local_contrast` of the last blurred dome box over the dome disc."""
+        return local_contrast(self._smooth, self._mask, self.params.block)
 
     @property
     def blur_ksize(self) -> tuple[int, int]:
@@ -476,7 +542,7 @@ class PinDetector:
         else:
             np.copyto(self._smooth, crop)
         if not self._fast:
-            return binarise(self._smooth, p.block, p.offset, self._mask, out=self._binary)
+            return binarise(self._smooth, p.block, self.offset, self._mask, out=self._binary)
         # cv2.adaptiveThreshold(MEAN_C) is this box filter then a per-pixel table
         # look-up; a saturating subtraction, one threshold and the mask do the look-up
         # and the masking in three vectorised passes over the core

@@ -6,6 +6,18 @@ localiser, when one is given) -> contact grid -> average vector, magnitude sum.
 The fault bits are device.pi.faults'. Pressure is not a per-frame feature: a pressure
 model reads its own window (device.pi.models.regressor.Regressor.predict_window).
 
+With the profile's ``[vision] contrast_ref`` (the dome's local contrast at
+calibration), the threshold offset follows the exposure. At the first frame of each
+run of still frames the reference may be chosen from (after start, a rezero, a new
+frame size, or a run broken), the dome's local contrast is measured, the offset
+becomes ``offset * clamp(contrast / contrast_ref, 0.5, 1)``
+(:func:`device.pi.vision.extract.offset_scale`: not scaled within 5 % of the
+calibration's contrast, nor for a black, white or blank dome) and that frame is
+detected again with it. The offset then stays until the next run begins, so the
+reference and every frame after it share one threshold, and a frame after the
+reference costs what it did. Without ``contrast_ref`` nothing is measured and the
+offset is the profile's.
+
 A frame the sensor cannot make (device.pi.vision.plausibility: noise, black, white,
 the dome moved; or pixel values that are NaN/inf, beyond 0..255 or boolean) gets the
 ``frame`` fault and no contact: its pins are counted but not tracked (every reference
@@ -35,7 +47,8 @@ from device.pi.vision.plausibility import FramePlausibility
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
 from device.pi.vision.tracking import Tracker
-from device.pi.vision.extract import PinDetector, find_dome, image_shape, to_gray
+from device.pi.vision.extract import (PinDetector, find_dome, image_shape, offset_scale,
+                                      to_gray)
 
 STAGES = ("gray", "detect", "track", "localise", "grid", "features")
 
@@ -114,6 +127,10 @@ class MarkerStream:
         self.reference_index = -1          # the frame the reference was taken from
         self._candidates: list[tuple[np.ndarray, np.ndarray, int]] = []
         self._empty2 = np.zeros((0, 2), np.float32)
+        #: the dome's local contrast (gray levels) measured when the reference search
+        #: began, and the offset's factor from it (1.0: not scaled); see the module doc
+        self.contrast = 0.0
+        self.offset_scale = 1.0
 
     # -- control ---------------------------------------------------------------
     def rezero(self) -> None:
@@ -144,16 +161,34 @@ class MarkerStream:
         self.detector = PinDetector(self.profile.vision, self.shape, self.dome)
         return True
 
+    def _set_exposure(self, crop: np.ndarray, pins: np.ndarray, stats):
+        """Measure the dome's local contrast on this frame, scale the threshold offset
+        to it (:func:`offset_scale`) and, when the threshold changes, detect the frame
+        again: (pins, plausibility stats) under the offset from now on."""
+        det, vis = self.detector, self.profile.vision
+        self.contrast = det.local_contrast()
+        self.offset_scale = offset_scale(self.contrast, vis.contrast_ref)
+        offset = vis.offset * self.offset_scale
+        if math.floor(offset) != math.floor(det.offset):
+            det.set_offset(offset)
+            pins, _ = det.detect_gray(crop)
+            stats = self.plausibility.stats(det.smooth, det.n_blobs)
+        return pins, stats
+
+    def _still(self, pins: np.ndarray) -> bool:
+        """Whether ``pins`` moved less than ``still_px`` (median over the pins matched)
+        since the last candidate for the reference."""
+        prev = self._candidates[-1][0]
+        idx = match_pins(prev, pins, self.profile.match_gate_px)
+        ok = idx >= 0
+        moved = (np.median(np.hypot(*(pins[idx[ok]] - prev[ok]).T)) if ok.sum() >= 3
+                 else np.inf)
+        return bool(moved <= self.still_px)
+
     def _maybe_choose_reference(self, pins: np.ndarray, binary: np.ndarray, stats) -> None:
         c = self._candidates
-        if c:
-            prev = c[-1][0]
-            idx = match_pins(prev, pins, self.profile.match_gate_px)
-            ok = idx >= 0
-            moved = (np.median(np.hypot(*(pins[idx[ok]] - prev[ok]).T)) if ok.sum() >= 3
-                     else np.inf)
-            if not moved <= self.still_px:
-                c.clear()
+        if c and not self._still(pins):
+            c.clear()
         c.append((pins.copy(), binary.copy(), self.index - 1, stats))
         if len(c) < self.warmup:
             return
@@ -232,6 +267,13 @@ class MarkerStream:
             ff.pins = pins
             return ff
         if self.reference is None:
+            if self.profile.vision.contrast_ref is not None and not (
+                    self._candidates and self._still(pins)):
+                self._candidates.clear()       # a new run of still frames begins here
+                pins, stats = self._set_exposure(crop, pins, stats)
+                faults &= ~FAULT_TOO_FEW_PINS
+                if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
+                    faults |= FAULT_TOO_FEW_PINS
             self._maybe_choose_reference(pins, binary, stats)
         if self.reference is None:
             faults |= FAULT_NO_REFERENCE

@@ -4,6 +4,7 @@ when present."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -22,6 +23,8 @@ from device.pi.vision.extract import (
     dome_mask,
     extract_pins,
     find_dome,
+    local_contrast,
+    offset_scale,
     to_gray,
 )
 from tests.domes import DOME, SYNTH_PARAMS, degenerate_frames, match, render, ring_layout
@@ -315,3 +318,68 @@ def test_real_tactip_shear_image_1():
     assert d is not None
     assert 195 <= d[2] <= 225
     assert abs(d[0] - g.shape[1] / 2) < 15 and abs(d[1] - g.shape[0] / 2) < 15
+
+
+# --------------------------------------------------------------------------
+# Exposure: the dome's local contrast and the offset's scale
+# --------------------------------------------------------------------------
+
+
+def test_local_contrast_follows_the_exposure_gain():
+    """The pins' height above their surround: a gain of 0.6 on the frame gives 0.6
+    of the contrast (within a few %), and the mask chooses the pixels measured."""
+    f = render(ring_layout(), pin_amp=60.0).astype(np.float64)
+    mask = dome_mask(f.shape, DOME, 0.9)
+    c1 = local_contrast(np.clip(np.rint(f), 0, 255).astype(np.uint8), mask, 11)
+    c06 = local_contrast(np.clip(np.rint(0.6 * f), 0, 255).astype(np.uint8), mask, 11)
+    assert 10.0 < c1 < 40.0
+    assert c06 / c1 == pytest.approx(0.6, abs=0.03)
+    assert local_contrast(np.zeros((40, 50), np.uint8), None, 11) == 0.0
+    assert local_contrast(np.full((40, 50), 255, np.uint8), None, 11) == 0.0
+    assert local_contrast(f.astype(np.uint8), np.zeros(f.shape, np.uint8), 11) == 0.0
+    with pytest.raises(ValueError, match="mask"):
+        local_contrast(f.astype(np.uint8), np.zeros((3, 3), np.uint8), 11)
+
+
+@pytest.mark.parametrize("contrast, ref, want", [
+    (24.0, 30.0, 0.8),           # darker: scaled
+    (29.0, 30.0, 1.0),           # within 5 %: the same exposure, not scaled
+    (36.0, 30.0, 1.0),           # brighter: never above 1
+    (6.0, 30.0, 0.5),            # very dark: clamped
+    (0.0, 30.0, 1.0),            # black / blank dome: no measure, not scaled
+    (0.5, 30.0, 1.0),
+    (float("nan"), 30.0, 1.0), (float("inf"), 30.0, 1.0),
+    (24.0, None, 1.0),           # no contrast_ref: not scaled
+    (None, 30.0, 1.0),
+])
+def test_offset_scale(contrast, ref, want):
+    assert offset_scale(contrast, ref) == pytest.approx(want)
+
+
+@given(st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)),
+       st.one_of(st.none(), st.floats(allow_nan=True, allow_infinity=True)))
+def test_offset_scale_is_always_a_finite_factor_between_half_and_one(contrast, ref):
+    k = offset_scale(contrast, ref)
+    assert math.isfinite(k) and 0.5 <= k <= 1.0
+
+
+def test_set_offset_thresholds_as_a_detector_built_with_that_offset():
+    """A detector whose offset is set later gives the pins (and binary) of one built
+    with it, on the fast path (offset >= 0) and on cv2's (offset < 0)."""
+    f = render(ring_layout(), pin_amp=60.0)
+    for offset in (8.4, 14.0, -2.0):
+        a = PinDetector(SYNTH_PARAMS, f.shape, DOME)
+        a.set_offset(offset)
+        b = PinDetector(dataclasses.replace(SYNTH_PARAMS, offset=offset), f.shape, DOME)
+        xa, _ = a.detect(f)
+        xb, _ = b.detect(f)
+        assert np.array_equal(xa, xb) and np.array_equal(a.binary, b.binary)
+        assert a.offset == offset
+    fewer, _ = PinDetector(SYNTH_PARAMS, f.shape, DOME).detect(
+        np.clip(0.6 * f, 0, 255).astype(np.uint8))
+    det = PinDetector(SYNTH_PARAMS, f.shape, DOME)
+    det.set_offset(0.6 * SYNTH_PARAMS.offset)
+    more, _ = det.detect(np.clip(0.6 * f, 0, 255).astype(np.uint8))
+    assert len(more) > len(fewer)
+    with pytest.raises(ValueError, match="offset"):
+        det.set_offset(float("nan"))

@@ -195,3 +195,91 @@ def test_localiser_runs_on_every_frame_when_given_and_raises_its_fault():
     assert [bool(o.faults & FAULT_LOCALISER) for o in outs] == [False, True, False, True]
     plain = MarkerStream("roboskin").process(sim.render(0))
     assert plain.localised is None and not plain.faults & FAULT_LOCALISER
+
+
+# -- exposure: the offset scaled by the dome's contrast ([vision] contrast_ref) --------
+
+def _synth_profile(contrast_ref=None):
+    from device.profile import parse_pipeline_profile
+    from tests.domes import DOME, ring_layout
+    v = {"block": 11, "offset": 14.0, "min_area_px": 6, "max_area_px": 100,
+         "roi_shrink": 0.9, "pitch_px": 10.0, "n_pins": len(ring_layout()),
+         "dome_px": list(DOME)}
+    if contrast_ref is not None:
+        v["contrast_ref"] = contrast_ref
+    return parse_pipeline_profile({"vision": v}, source="synth.toml")
+
+
+def _synth_frames(gain):
+    """A still synthetic dome (faint pins) at exposure ``gain``, and the calibration
+    contrast of the same dome at gain 1."""
+    from tests.domes import render, ring_layout
+    f = render(ring_layout(), pin_amp=60.0).astype(np.float64)
+    s = MarkerStream(_synth_profile())
+    s.process(f.astype(np.uint8))
+    return np.clip(np.rint(gain * f), 0, 255).astype(np.uint8), s.detector.local_contrast()
+
+
+def test_a_darker_exposure_keeps_its_pins_with_contrast_ref():
+    """At 0.6 of the calibration's exposure the fixed offset finds under half of the
+    pins (too few to take a reference); scaled by the contrast it finds them all,
+    takes its reference, and the still frames after it read as rest."""
+    dim, c_ref = _synth_frames(0.6)
+    fixed, scaled = MarkerStream(_synth_profile()), MarkerStream(_synth_profile(c_ref))
+    for i in range(8):
+        a, b = fixed.process(dim, float(i)), scaled.process(dim, float(i))
+    n = len(scaled.reference)
+    assert len(a.pins) < 0.5 * n <= n and a.faults & FAULT_TOO_FEW_PINS
+    assert fixed.reference is None
+    assert len(b.pins) == n == _synth_profile().n_pins and not b.faults
+    assert scaled.offset_scale == pytest.approx(0.6, abs=0.03)
+    assert scaled.detector.offset == pytest.approx(14.0 * scaled.offset_scale)
+    assert not b.contact and not b.lost.any() and np.abs(b.vectors).max() < 0.05
+    # the calibration's own exposure is not scaled: the fixed offset's pins exactly
+    same, _ = _synth_frames(1.0)
+    s1, s0 = MarkerStream(_synth_profile(c_ref)), MarkerStream(_synth_profile())
+    for i in range(6):
+        x, y = s1.process(same, float(i)), s0.process(same, float(i))
+    assert s1.offset_scale == 1.0 and np.array_equal(x.pins, y.pins)
+
+
+def test_the_contrast_is_measured_once_per_reference_search_not_per_frame(monkeypatch):
+    """One measurement when the reference search begins, none on the frames after the
+    reference (their cost is unchanged), one more after rezero; and none at all without
+    contrast_ref."""
+    dim, c_ref = _synth_frames(0.7)
+    for ref, want in ((c_ref, [1, 2]), (None, [0, 0])):
+        s = MarkerStream(_synth_profile(ref))
+        s.process(dim)
+        calls = []
+        real = s.detector.local_contrast
+        monkeypatch.setattr(s.detector, "local_contrast", lambda: calls.append(1) or real())
+        s.rezero()
+        for i in range(20):
+            s.process(dim, float(i))
+        got = [len(calls)]
+        s.rezero()
+        for i in range(20):
+            s.process(dim, float(i))
+        got.append(len(calls))
+        assert got == want and s.reference is not None
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 255), st.integers(0, 3))
+def test_a_flat_black_or_white_reference_frame_leaves_the_offset_unscaled(level, n_flat):
+    """A flat frame (black, white or any gray) has no contrast to compare: whether or
+    not it passes as a frame, the offset is not scaled from it, every number is
+    finite, and a real (dim) dome after it still gets its scale."""
+    dim, c_ref = _synth_frames(0.6)
+    s = MarkerStream(_synth_profile(c_ref))
+    flat = np.full(dim.shape, level, np.uint8)
+    for i in range(n_flat + 1):
+        out = s.process(flat, float(i))
+        _check_finite(out)
+        assert s.offset_scale == 1.0 and s.detector.offset == 14.0
+        assert not out.contact
+    for i in range(8):
+        out = s.process(dim, float(i))
+        _check_finite(out)
+    assert s.offset_scale == pytest.approx(0.6, abs=0.03) and s.reference is not None
