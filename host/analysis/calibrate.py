@@ -161,6 +161,7 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
               "max_area_px": int(max(round(3.0 * area), round(0.3 * area) + 1)),
               "roi_shrink": p.roi_shrink, "pitch_px": round(pitch, 2),
               "n_pins": int(len(pins)), "dome_px": [round(v, 1) for v in dome]}
+    vision["contrast_ref"] = rest_contrast(grays, p, dome)
     order = layout_order(pins, dome, pitch)
     layout = order_layout(pins, dome, pitch)
     loose = np.flatnonzero(rest.pins_loose[order])
@@ -172,6 +173,18 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
             "spot_scale": scale, "lattice_regularity": round(lattice_regularity(pins), 3),
             "fit": {"score": score, "regular_fraction": info["regular"],
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
+
+
+def rest_contrast(grays, params: VisionParams, dome) -> float:
+    """``contrast_ref``: the median over the rest frames of the dome's local contrast
+    (:meth:`PinDetector.local_contrast`, gray levels) under ``params`` in ``dome``, as
+    the pipeline measures it when it sets its reference and scales its offset."""
+    det = PinDetector(params, grays[0].shape, dome)
+    got = []
+    for g in grays:
+        det.threshold(g)
+        got.append(det.local_contrast())
+    return round(float(np.median(got)), 2)
 
 
 def layout_order(pins: np.ndarray, dome, pitch_px: float) -> np.ndarray:
@@ -257,6 +270,8 @@ def profile_toml(res: dict) -> str:
     for k in ("block", "offset", "blur_sigma_px", "min_area_px", "max_area_px", "roi_shrink",
               "pitch_px", "n_pins", "grid_contact", "contact_px"):
         lines.append(f"{k} = {v[k]}")
+    if v.get("contrast_ref"):
+        lines.append(f"contrast_ref = {v['contrast_ref']}")
     if not res.get("dome_in_view", True):
         lines.append("# no dome in view: the region is the circle around the pins")
     lines.append(f"dome_px = [{', '.join(str(x) for x in v['dome_px'])}]")

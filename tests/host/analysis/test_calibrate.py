@@ -240,3 +240,28 @@ def test_a_skin_without_a_dome_calibrates_at_each_pins_own_size(tmp_path, capsys
     frames = [d for d in lines if "frame" in d and not d.get("summary")]
     assert frames and all("no_dome" not in d["faults"] for d in frames)
     assert np.median([d["pins"] for d in frames]) >= 300
+
+
+def test_calibrate_writes_the_rest_contrast_the_pipeline_scales_its_offset_by():
+    """contrast_ref is the dome's local contrast on the rest frames, measured as the
+    pipeline measures it: the calibration's own exposure is not scaled, 0.7 of it
+    scales the offset by about 0.7; and it survives the TOML."""
+    import tomllib
+
+    from device.pi.vision.pipeline import MarkerStream
+    from device.sim import Simulator, load_scene
+    from host.analysis.calibrate import calibrate, profile_toml
+    from device.profile import parse_pipeline_profile
+    sim = Simulator(load_scene("no-touch"))
+    frames = [sim.render(i) for i in range(8)]
+    res = calibrate(frames, name="sim")
+    ref = res["vision"]["contrast_ref"]
+    assert 5.0 < ref < 120.0
+    prof = parse_pipeline_profile(tomllib.loads(profile_toml(res)))
+    assert prof.vision.contrast_ref == ref
+    for gain, want in ((1.0, 1.0), (0.7, 0.7)):
+        s = MarkerStream(prof)
+        for i, f in enumerate(frames):
+            s.process(np.clip(np.rint(gain * f.astype(np.float64)), 0, 255).astype(np.uint8),
+                      float(i))
+        assert s.offset_scale == pytest.approx(want, abs=0.05) and s.reference is not None
