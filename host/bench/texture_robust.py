@@ -1,7 +1,7 @@
 """Texture accuracy on proxies for a recording session the model never saw.
 
     host bench texture-robustness --data ../shared/data [--json] [--work DIR]
-    python -m host.bench.texture_robust --data ../shared/data [--json]
+    python -m host.bench.texture_robust --data ../shared/data [--json] [--profile TOML]
 
 There is one real recording per surface (``roboskin/concrete.avi``, ``smooth.avi``,
 ``lego_train.avi``), so a new session is stood in for by changing the held-out
@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from device.config import ConfigError
+from device.profile import load_pipeline_profile
 from host.data.windows import DataError, TrialPart, WindowSet, stack_parts, window_ends
 from host.learn.rates import kept_frames
 from host.learn.tasks import DEFAULT_WINDOW, TrainError
@@ -278,6 +280,7 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
     model's frame-rate copies (:mod:`host.learn.rates`; None = host train's, () =
     none, as before they were added)."""
     T = DEFAULT_WINDOW["texture"] if T is None else int(T)
+    load_pipeline_profile(profile)     # a profile that does not load fails before any clip
     root = Path(data).expanduser() / "roboskin"
     say = progress or (lambda m: None)
     for t in tasks:
@@ -391,6 +394,10 @@ def main(argv=None) -> int:
     p.add_argument("--rates", default=None,
                    help="frame-rate copies the trained model fits, comma-separated "
                         "(e.g. 3of5,3of5+drop10); 'none' for none (default: host train's)")
+    p.add_argument("--profile", default="roboskin",
+                   help="the pipeline profile the frames go through: a built-in name or a "
+                        "TOML path (e.g. one with [vision] contrast_ref, to compare the "
+                        "exposure-scaled offset with the fixed one)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -402,8 +409,9 @@ def main(argv=None) -> int:
                  tuple(r.strip() for r in args.rates.split(",") if r.strip()))
         res = robustness(args.data, args.work, T, args.seed, tasks=tasks, rates=rates,
                          identity=not args.no_identity and not args.model, trainer=trainer,
+                         profile=args.profile,
                          progress=lambda m: print(f"texture-robustness: {m}", file=sys.stderr))
-    except (DataError, TrainError) as exc:
+    except (DataError, TrainError, ConfigError) as exc:
         print(f"texture-robustness: error: {exc}", file=sys.stderr)
         return 2
     if args.model:

@@ -145,3 +145,28 @@ def test_the_rates_option_reaches_the_trained_model(monkeypatch, capsys):
                                                   ("3of5", "3of5+drop10")), ([], None)):
         assert main(["--data", "x", "--no-identity", *arg]) == 0
         assert seen[-1] == want
+
+
+def test_the_profile_option_reaches_the_pipeline_and_a_bad_one_is_exit_2(monkeypatch, tmp_path,
+                                                                         capsys):
+    """--profile (default roboskin) is the profile every clip goes through, e.g. one
+    with [vision] contrast_ref; a profile that does not load is one line and exit 2."""
+    import host.bench.texture_robust as tr
+    seen = []
+
+    def fake(*a, **kw):
+        seen.append(kw["profile"])
+        return {"T": 15, "train_frac": 0.7, "tasks": {}, "identity": {}}
+    monkeypatch.setattr(tr, "robustness", fake)
+    assert main(["--data", "x", "--no-identity"]) == 0
+    assert main(["--data", "x", "--no-identity", "--profile", "my.toml"]) == 0
+    assert seen == ["roboskin", "my.toml"]
+    monkeypatch.undo()
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[vision]\npitch_px = 10\nn_pins = 5\ncontrast_ref = 0\n")
+    (tmp_path / "roboskin").mkdir()
+    for clip in ("concrete.avi", "smooth.avi", "lego_train.avi"):
+        (tmp_path / "roboskin" / clip).write_bytes(b"")
+    assert main(["--data", str(tmp_path), "--profile", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "contrast_ref" in err and "Traceback" not in err
