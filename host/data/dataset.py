@@ -123,6 +123,17 @@ def atomic_write(path: Path, write) -> None:
         raise
 
 
+def write_npz(fh, arrays: dict, level: int = 1) -> None:
+    """``arrays`` as an .npz (what ``np.load`` reads) deflated at ``level``: level 1
+    stores a trial's frames as small as ``np.savez_compressed``'s level 6 (camera
+    noise does not compress further) in under half the time."""
+    with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED,
+                         compresslevel=int(level)) as z:
+        for name, a in arrays.items():
+            with z.open(f"{name}.npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+
 def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda fh: fh.write(text.encode()))
 
@@ -214,7 +225,7 @@ class DatasetWriter(Closing):
         arrays = arrays or {"frames": np.ascontiguousarray(frames)}
         for k, v in truth.items():
             arrays[k] = np.asarray(v)
-        atomic_write(self.dir / name, lambda fh: np.savez_compressed(fh, **arrays))
+        atomic_write(self.dir / name, lambda fh: write_npz(fh, arrays))
         entry = {"file": name, "frames": int(frames.shape[0]), "frames_codec": codec,
                  "bytes": int((self.dir / name).stat().st_size), **info}
         if isinstance(got, str):          # why the video was not kept
