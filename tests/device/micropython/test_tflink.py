@@ -1,10 +1,12 @@
 """The MCU's framing layer (device/micropython/tflink.py) on REAL MicroPython (the
-WebAssembly port under Node) and on CPython: 100k fuzzed streams per interpreter
+WebAssembly port under Node) and on CPython: 30k fuzzed streams per interpreter (100k
+with TACFOOT_FUZZ_STREAMS=100000)
 (no exception, no corrupt frame accepted, resynchronised within one frame), and the
 same frames accepted as the Pi's decoder (device/pi/protocol.py)."""
 from __future__ import annotations
 
 import json
+import os
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -12,7 +14,9 @@ from hypothesis import strategies as st
 from device.pi import protocol as P
 from tests.mpyrun import MPY_LIB, cpython_path, requires_mpy, run_cpython, run_mpy
 
-FUZZ_STREAMS = 100_000
+# make test fuzzes 30 000 streams on each interpreter; the figure in docs/protocol.md
+# (100 000, no corrupt frame accepted) is TACFOOT_FUZZ_STREAMS=100000
+FUZZ_STREAMS = int(os.environ.get("TACFOOT_FUZZ_STREAMS", "30000"))
 
 
 FUZZ = r"""
@@ -146,14 +150,14 @@ def _check_fuzz(stats: dict, n: int):
 
 
 @requires_mpy
-def test_fuzz_100k_streams_on_micropython():
+def test_fuzz_streams_on_micropython():
     res = run_mpy(FUZZ, libs=[MPY_LIB], args=[FUZZ_STREAMS, 12345], timeout=120)
     assert res.returncode == 0, res.stderr[-3000:]
     _check_fuzz(json.loads(res.stdout), FUZZ_STREAMS)
 
 
-def test_fuzz_100k_streams_on_cpython_same_streams():
-    """The same 100k streams as on MicroPython (same PRNG and seed)."""
+def test_fuzz_streams_on_cpython_same_streams():
+    """The same streams as on MicroPython (same PRNG and seed)."""
     stats = json.loads(run_cpython(FUZZ, [FUZZ_STREAMS, 12345]))
     _check_fuzz(stats, FUZZ_STREAMS)
     # the Pi's decoder (device/pi/protocol.py) saw the same streams: same frames
