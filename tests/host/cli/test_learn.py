@@ -30,8 +30,11 @@ def test_one_clip_per_class_trains_with_a_time_split_that_keeps_both_classes(
         tmp_path, clips, capsys):
     """Without --model and --window, one clip per class, contact windows only: the
     held-out split is the end of each clip, both classes are tested, and it says so."""
-    spec = _manifest(tmp_path / "tex.csv", [(clips / "smooth.avi", "smooth"),
-                                            (clips / "concrete.avi", "concrete")])
+    # the first 300 frames of each clip: enough contact windows for both splits
+    spec = tmp_path / "tex.csv"
+    spec.write_text("path,label,start_frame,end_frame\n"
+                    f"{clips / 'smooth.avi'},smooth,0,300\n"
+                    f"{clips / 'concrete.avi'},concrete,0,300\n")
     out = tmp_path / "model"
     # the identity check has its own tests (tests/host/learn/test_identity.py and
     # test_train.py); this one is about the split
