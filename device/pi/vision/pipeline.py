@@ -161,10 +161,10 @@ class MarkerStream:
         self.detector = PinDetector(self.profile.vision, self.shape, self.dome)
         return True
 
-    def _set_exposure(self, crop: np.ndarray, pins: np.ndarray, stats):
+    def _set_exposure(self, crop: np.ndarray, pins: np.ndarray) -> np.ndarray:
         """Measure the dome's local contrast on this frame, scale the threshold offset
         to it (:func:`offset_scale`) and, when the threshold changes, detect the frame
-        again: (pins, plausibility stats) under the offset from now on."""
+        again: the pins under the offset from now on."""
         det, vis = self.detector, self.profile.vision
         self.contrast = det.local_contrast()
         self.offset_scale = offset_scale(self.contrast, vis.contrast_ref)
@@ -172,8 +172,7 @@ class MarkerStream:
         if math.floor(offset) != math.floor(det.offset):
             det.set_offset(offset)
             pins, _ = det.detect_gray(crop)
-            stats = self.plausibility.stats(det.smooth, det.n_blobs)
-        return pins, stats
+        return pins
 
     def _still(self, pins: np.ndarray) -> bool:
         """Whether ``pins`` moved less than ``still_px`` (median over the pins matched)
@@ -186,9 +185,7 @@ class MarkerStream:
         return bool(moved <= self.still_px)
 
     def _maybe_choose_reference(self, pins: np.ndarray, binary: np.ndarray, stats) -> None:
-        c = self._candidates
-        if c and not self._still(pins):
-            c.clear()
+        c = self._candidates                  # a moved frame has cleared them (process)
         c.append((pins.copy(), binary.copy(), self.index - 1, stats))
         if len(c) < self.warmup:
             return
@@ -252,6 +249,11 @@ class MarkerStream:
             pins, _ = self.detector.detect_gray(crop)
         except (ValueError, TypeError):
             return self._empty(i, t_s, faults | FAULT_BAD_FRAME, timings)
+        if self.reference is None and self._candidates and not self._still(pins):
+            self._candidates.clear()           # a new run of still frames begins here
+        if self.reference is None and not self._candidates and \
+                self.profile.vision.contrast_ref is not None:
+            pins = self._set_exposure(crop, pins)
         binary = self.detector.binary
         t2 = clock()
         timings["detect"] = (t2 - t1b) * 1e3
@@ -267,13 +269,6 @@ class MarkerStream:
             ff.pins = pins
             return ff
         if self.reference is None:
-            if self.profile.vision.contrast_ref is not None and not (
-                    self._candidates and self._still(pins)):
-                self._candidates.clear()       # a new run of still frames begins here
-                pins, stats = self._set_exposure(crop, pins, stats)
-                faults &= ~FAULT_TOO_FEW_PINS
-                if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
-                    faults |= FAULT_TOO_FEW_PINS
             self._maybe_choose_reference(pins, binary, stats)
         if self.reference is None:
             faults |= FAULT_NO_REFERENCE
