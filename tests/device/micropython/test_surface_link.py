@@ -370,3 +370,111 @@ def test_mcu_gait_encoder_flags_a_velocity_of_the_wrong_length_as_the_pi_does(ve
     g = P.decode_message(P.FrameDecoder().feed(wire)[0])
     flagged = not isinstance(vel, (int, float)) and len(vel or ()) != 3
     assert bool(g.flags & P.GAIT_FLAG_NONFINITE) == flagged
+
+
+# -- what the link reports before any message, and its counters ---------------------------
+
+COUNTERS = r"""
+import json, machine, tflink
+import surface_link as SL
+
+now = [0]
+u = machine.UART(0, 921600)
+link = SL.SurfaceLink(u, clock=lambda: now[0])
+enc = tflink.Encoder()
+
+def state_dict():
+    s = link.state()
+    return {"valid": s.valid, "stale": s.stale, "age_ms": s.age_ms, "rx_ms": s.rx_ms,
+            "seq": s.seq, "t_ms": s.t_ms, "class_id": s.class_id, "probs_u8": list(s.probs_u8),
+            "contact": s.contact, "slip": s.slip, "slip_conf_u8": s.slip_conf_u8,
+            "texture_id": s.texture_id, "shear_dir_deg_x100": s.shear_dir_deg_x100,
+            "shear_px_x100": s.shear_px_x100, "load_n_x100": s.load_n_x100, "pins": s.pins,
+            "faults": s.faults}
+
+def link_dict():
+    return {"fault_bits": link.fault_bits, "fault_raised": link.fault_raised,
+            "pins_lost": link.pins_lost, "heartbeat_rx_ms": link.heartbeat_rx_ms,
+            "heartbeats": link.heartbeats, "pi_uptime_s": link.pi_uptime_s,
+            "pi_rate_fps_x10": link.pi_rate_fps_x10, "imu": list(link.imu),
+            "imu_samples": link.imu_samples, "tx_seq": link.tx_seq,
+            "unknown_type": link.unknown_type, "short_payload": link.short_payload,
+            "drops": link.drops, "frames_ok": link.frames_ok, "crc_errors": link.crc_errors,
+            "too_long": link.too_long, "malformed": link.malformed,
+            "newer_version": link.newer_version}
+
+def send(msg_type, seq, payload):
+    w = bytes(enc.frame(msg_type, seq, 5, payload, len(payload)))
+    u.feed(w)
+    return link.poll()
+
+out = {"fresh_state": state_dict(), "fresh_link": link_dict(), "steps": []}
+
+def step(name, msg_type, seq, payload):
+    n = send(msg_type, seq, payload)
+    out["steps"].append([name, n, link.drops, link.unknown_type, link.heartbeats,
+                         link.heartbeat_rx_ms])
+
+hb = bytearray(11)
+hb[4] = 0xE8
+hb[5] = 0x03                                   # 100.0 fps
+now[0] = 1234
+step("heartbeat", SL.MSG_HEARTBEAT, 0, hb)
+now[0] = 2000
+step("unknown", 0x0E, 1, bytearray(2))
+step("unknown again", 0x0E, 2, bytearray(2))
+step("999 missed", SL.MSG_SURFACE, 1002, bytearray(18))
+step("1000 missed: a restart", SL.MSG_SURFACE, 2003, bytearray(18))
+step("far jump: a restart", SL.MSG_SURFACE, 65535, bytearray(18))
+step("wraps to 0: none missed", SL.MSG_SURFACE, 0, bytearray(18))
+now[0] = 2500
+step("1 missed", SL.MSG_HEARTBEAT, 2, hb)
+out["end_link"] = link_dict()
+print(json.dumps(out))
+"""
+
+
+def _check_counters(out: dict):
+    assert out["fresh_state"] == {
+        "valid": False, "stale": True, "age_ms": -1, "rx_ms": 0, "seq": 0, "t_ms": 0,
+        "class_id": 255, "probs_u8": [0, 0, 0, 0], "contact": False, "slip": False,
+        "slip_conf_u8": 0, "texture_id": 255, "shear_dir_deg_x100": 0, "shear_px_x100": 0,
+        "load_n_x100": 0, "pins": 0, "faults": 0}
+    assert out["fresh_link"] == {
+        "fault_bits": 0, "fault_raised": 0, "pins_lost": 0, "heartbeat_rx_ms": 0,
+        "heartbeats": 0, "pi_uptime_s": 0, "pi_rate_fps_x10": 0, "imu": [0] * 6,
+        "imu_samples": 0, "tx_seq": 0, "unknown_type": 0, "short_payload": 0, "drops": 0,
+        "frames_ok": 0, "crc_errors": 0, "too_long": 0, "malformed": 0, "newer_version": 0}
+    # == does not tell 0 from False or None from a missing value: the flags are booleans
+    for k in ("valid", "stale", "contact", "slip"):
+        assert type(out["fresh_state"][k]) is bool, k
+    for k, v in out["fresh_link"].items():
+        assert type(v) is (list if k == "imu" else int), k
+    # [name, frames decoded, drops, unknown_type, heartbeats, heartbeat_rx_ms]
+    assert out["steps"] == [
+        ["heartbeat", 1, 0, 0, 1, 1234],
+        ["unknown", 1, 0, 1, 1, 1234],
+        ["unknown again", 1, 0, 2, 1, 1234],
+        ["999 missed", 1, 999, 2, 1, 1234],                 # a gap below 1000 is counted
+        ["1000 missed: a restart", 1, 999, 2, 1, 1234],     # 1000 and more: the Pi restarted
+        ["far jump: a restart", 1, 999, 2, 1, 1234],
+        ["wraps to 0: none missed", 1, 999, 2, 1, 1234],    # 65535 -> 0 is the next number
+        ["1 missed", 1, 1000, 2, 2, 2500],
+    ]
+    assert out["end_link"]["pi_rate_fps_x10"] == 1000 and out["end_link"]["frames_ok"] == 8
+
+
+@requires_mpy
+def test_initial_values_and_counters_identically_on_micropython_and_cpython():
+    mp, cp = run_both(COUNTERS)
+    mp_out, cp_out = json.loads(mp), json.loads(cp)
+    _check_counters(mp_out)
+    _check_counters(cp_out)
+    assert mp_out == cp_out
+
+
+def test_initial_values_and_counters_on_cpython_alone():
+    """Before any message every field holds its documented start value; a gap of
+    fewer than 1000 sequence numbers counts as drops, 1000 or more as a restart of
+    the Pi; each unknown message type counts once; a HEARTBEAT stamps its arrival."""
+    _check_counters(json.loads(run_cpython(COUNTERS)))
