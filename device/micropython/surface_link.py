@@ -41,6 +41,10 @@ PHASE_SWING = const(1)
 CMD_REZERO = const(1)
 CMD_SET_RATE = const(2)
 CMD_REQUEST_STATUS = const(3)
+# the frame rates CMD_SET_RATE may ask for: the Pi's bound on every frame rate
+# (device/checks.py FPS_MIN_HZ..FPS_MAX_HZ); the Pi ignores any other
+RATE_MIN_FPS = const(1)
+RATE_MAX_FPS = const(1000)
 
 FAULT_FRAME = const(0x0080)         # the frame was implausible: its SURFACE says no contact
 FAULT_CAMERA = const(0x0100)
@@ -127,6 +131,7 @@ class SurfaceLink:
         self.pi_rate_fps_x10 = 0
         self.imu = [0, 0, 0, 0, 0, 0]   # acc mg x, y, z; gyro 0.1 deg/s x, y, z
         self.imu_samples = 0
+        self.rates_refused = 0      # CMD_SET_RATE outside RATE_MIN_FPS..RATE_MAX_FPS, not sent
 
     # -- counters of the decoder -----------------------------------------------
     frames_ok = _decoder_count("frames_ok")
@@ -262,9 +267,14 @@ class SurfaceLink:
 
     def send_command(self, command, arg=0):
         """COMMAND: CMD_REZERO, CMD_SET_RATE (arg: frames per second) or
-        CMD_REQUEST_STATUS. Values are clamped to the field; never raises."""
+        CMD_REQUEST_STATUS. Values are clamped to the field; never raises. A rate
+        outside RATE_MIN_FPS..RATE_MAX_FPS (the Pi's bound) is not sent: it counts
+        in rates_refused and 0 is returned."""
         c, _ = _clamp_int(command, 0, 255, 0)
-        a, _ = _clamp_int(arg, 0, 0xFFFF, 0)
+        a, f = _clamp_int(arg, 0, 0xFFFF, 0)
+        if c == CMD_SET_RATE and (f or a < RATE_MIN_FPS or a > RATE_MAX_FPS):
+            self.rates_refused += 1
+            return 0
         b = self._tx_payload
         b[0] = c
         b[1] = a & 0xFF

@@ -30,7 +30,7 @@ from urllib.parse import parse_qsl, urlsplit
 import cv2
 import numpy as np
 
-from device.checks import frame_rate
+from device.checks import FPS_MAX_HZ, FPS_MIN_HZ, frame_rate
 from device.config import ConfigError
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_FRAME, FAULT_IMU, FAULT_LINK,
                               FAULT_MODEL, FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
@@ -129,6 +129,7 @@ class LegRuntime:
         self.gait: GaitContext | None = None
         self.gait_packets = 0
         self.commands = 0
+        self.rates_refused = 0          # rate COMMANDs outside --fps's bound, ignored
         self.rezeros = {"command": 0, "auto": 0}
         self._last_rezero = -1e9
         self._still = 0
@@ -414,11 +415,13 @@ class LegRuntime:
                 self.rezero("command")
             elif op == "rate":
                 fps = finite_float(msg.arg, 0.0)
-                if 1.0 <= fps <= 1000.0:
+                if FPS_MIN_HZ <= fps <= FPS_MAX_HZ:          # --fps's bound, as on the MCU
                     self.fps = fps
                     if self.camera_opts is not None:      # a live camera: ask it for the rate
                         self.camera_opts["fps"] = fps
                         self.feed.reopen()
+                else:
+                    self.rates_refused += 1
             elif op == "status":
                 self._send("status", self._heartbeat())
                 self.write_status(force=True)
@@ -433,7 +436,8 @@ class LegRuntime:
                 "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
                 "frames_dropped_behind": self.feed.dropped,
                 "gait_packets": self.gait_packets,
-                "commands": self.commands, "rezeros": dict(self.rezeros),
+                "commands": self.commands, "rates_refused": self.rates_refused,
+                "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps,
                 "models_fused": self.models.fused is not None,
                 "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,

@@ -265,6 +265,67 @@ def test_set_rate_reopens_a_live_camera_at_the_new_rate(tmp_path):
     assert rt.fps == 60.0 and opened[-1] == {"fps": 60.0} and len(opened) >= 2
 
 
+RATE_MCU = """
+import json
+import mpy_args
+import surface_link as SL
+
+class Wire:
+    def __init__(self):
+        self.out = bytearray()
+    def write(self, b):
+        self.out += b
+        return len(b)
+
+w = Wire()
+link = SL.SurfaceLink(w, clock=lambda: 0)
+sent = []
+for v in json.loads(mpy_args.ARGV[1]):
+    n = len(w.out)
+    link.send_command(SL.CMD_SET_RATE, v)
+    sent.append(len(w.out) > n)
+print(json.dumps({"bound": [SL.RATE_MIN_FPS, SL.RATE_MAX_FPS], "sent": sent,
+                  "refused": link.rates_refused, "wire": bytes(w.out).hex()}))
+"""
+
+#: rates at and around both ends of the bound, and beyond the u16 field
+RATES = [0, 1, 2, 60, 999, 1000, 1001, 65535, 70000, -5]
+
+
+def test_the_mcu_and_the_pi_hold_a_rate_command_to_one_bound(tmp_path):
+    """CMD_SET_RATE: the MCU (surface_link, on MicroPython and CPython) sends a rate
+    exactly when the Pi would take it, the bound of --fps (device.checks); the Pi
+    ignores and counts any other that reaches it (before: the MCU sent 0..65535 and
+    the Pi held its own literal 1..1000)."""
+    import json
+    from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
+    from tests.mpyrun import run_both
+    mp_out, cp_out = run_both(RATE_MCU, args=[json.dumps(RATES)])
+    mcu = json.loads(cp_out)
+    assert json.loads(mp_out) == mcu
+    assert mcu["bound"] == [FPS_MIN_HZ, FPS_MAX_HZ]
+    expected = [FPS_MIN_HZ <= v <= FPS_MAX_HZ for v in RATES]
+    assert mcu["sent"] == expected and mcu["refused"] == expected.count(False)
+    # the Pi, fed the MCU's own bytes and then every rate as it fits the u16 field
+    rt, cam, port = make_runtime(tmp_path)
+    wire = bytes.fromhex(mcu["wire"])
+    applied = []
+    on_wire = [min(max(v, 0), 0xFFFF) for v in RATES]
+
+    def hook(rt):
+        applied.append(rt.fps)
+        if rt.frames == 2:
+            port.inbox += wire
+        if 5 <= rt.frames < 5 + len(on_wire):
+            port.send(P.Command(P.CMD_SET_RATE, on_wire[rt.frames - 5]), rt.frames)
+    run_for(rt, frames=8 + len(on_wire), hook=hook)
+    took = sorted({v for v in applied if v != FPS})
+    assert took == sorted({float(v) for v, ok in zip(on_wire, expected) if ok} - {FPS})
+    assert rt.rates_refused == expected.count(False)
+    assert rt.status()["rates_refused"] == rt.rates_refused
+    assert rt.commands == expected.count(True) + len(on_wire)
+
+
 _image = st.one_of(
     st.sampled_from(["black", "white", "noise", "tiny", "colour"]),
 )
