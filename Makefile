@@ -9,7 +9,7 @@ DEMO_OUT ?= out/demo
 
 REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
 
-.PHONY: demo test install install-test install-cnn install-node clean bench models mutate
+.PHONY: native demo test install install-test install-cnn install-node clean bench models mutate
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -18,6 +18,11 @@ $(PY):
 $(VENV)/.installed: $(PY) pyproject.toml
 	$(PIP) install -e '.[host,viz]'
 	touch $@
+
+# the tracker's compiled matching kernel (device/pi/vision/native.py), built for this
+# machine; without a C compiler the tracker runs on numpy (same numbers, slower)
+native: $(VENV)/.installed
+	@$(PY) -m device.pi.vision.native build --quiet || echo "make: the tracker runs on numpy"
 
 $(VENV)/.installed-test: $(VENV)/.installed pyproject.toml
 	$(PIP) install -e '.[host,test]'
@@ -34,15 +39,15 @@ node_modules/.installed: package.json package-lock.json
 	touch $@
 
 install-node: node_modules/.installed
-install: $(VENV)/.installed
-install-test: $(VENV)/.installed-test node_modules/.installed
+install: $(VENV)/.installed native
+install-test: $(VENV)/.installed-test node_modules/.installed native
 # the optional CNN extra: the CPU build of torch (CI installs it so the CNN tests run)
 install-cnn: $(VENV)/.installed-cnn
 
-demo: $(VENV)/.installed
+demo: $(VENV)/.installed native
 	$(VENV)/bin/host demo --out $(DEMO_OUT)
 
-test: $(VENV)/.installed-test node_modules/.installed
+test: $(VENV)/.installed-test node_modules/.installed native
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -n 2 --dist loadfile
 
@@ -50,7 +55,7 @@ test: $(VENV)/.installed-test node_modules/.installed
 # roboskin/smooth.avi and concrete.avi: the authors' default spec out/specs/bench.csv,
 # written from REAL_DATA), then the simulator's own timing, then what the MCAP log
 # and a live Foxglove viewer cost the runtime on concrete.avi (out/bench/mcap_cost.md)
-bench: $(VENV)/.installed
+bench: $(VENV)/.installed native
 	$(PY) -m host.bench.specs --real-data $(REAL_DATA) --out out/specs
 	$(VENV)/bin/host bench tables --data out/specs/bench.csv --doc docs/BENCHMARKS.md
 	$(VENV)/bin/host bench sim --json

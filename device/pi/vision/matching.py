@@ -8,6 +8,9 @@ first matches, or ``-1``. No point is used twice.
                    distance, done as rounds of mutual best pairs among the
                    pairs within the gate, found on a cell grid)
     mutual_match   one round: pairs that are each other's nearest within a gate
+
+``match_pins`` runs compiled (:mod:`device.pi.vision.native`, built on the leg)
+when the library is built, with the same assignment as the numpy code here.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import math
 import numpy as np
 
 from device.checks import positive_number
+from device.pi.vision import native
 
 __all__ = ["match_pins", "match_pins_unchecked", "mutual_match", "pair_d2", "gated_pairs",
            "MAX_COORD_PX", "as_points", "usable_rows", "all_rows_usable"]
@@ -213,11 +217,14 @@ def _greedy_pairs(rows: np.ndarray, cols: np.ndarray, d2: np.ndarray, m: int, n:
 def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> None:
     """Greedy-by-distance one-to-one matching of finite points; writes ``idx`` in place.
 
-    Few pairs: every pair is scored (:func:`pair_d2`); many: only the pairs
+    The compiled kernel (:mod:`device.pi.vision.native`) when it is built, the
+    same assignment; otherwise numpy. Few pairs: every pair is scored (:func:`pair_d2`); many: only the pairs
     within the gate, found on a cell grid (:func:`gated_pairs`), so the cost
     grows with the pin count, not with its square. Either way the pairs are
     the exact squared distances, and the choice is :func:`_greedy_pairs`.
     """
+    if native.match_into(r, c, max_d2, idx):
+        return
     m, n = r.shape[0], c.shape[0]
     if m * n <= _SMALL_PAIRS:
         d2 = pair_d2(r, c).ravel()

@@ -1,0 +1,202 @@
+"""device/pi/vision/native.py: the compiled matching kernel gives the numpy
+matcher's assignment, builds atomically, and falls back to numpy when it cannot load."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from device.pi.vision import matching, native
+from tests.realdata import real_data_dir
+
+needs_cc = pytest.mark.skipif(shutil.which(os.environ.get("CC", "cc")) is None,
+                              reason="no C compiler here: the tracker runs on numpy")
+
+
+@pytest.fixture(scope="module")
+def compiled(tmp_path_factory):
+    """The kernel built into a private folder (not the package's)."""
+    if shutil.which(os.environ.get("CC", "cc")) is None:
+        pytest.skip("no C compiler here: the tracker runs on numpy")
+    path = native.build(folder=tmp_path_factory.mktemp("native"))
+    return native.kernel(path)
+
+
+def run_c(fn, r, c, gate):
+    r = np.ascontiguousarray(r, np.float64).reshape(-1, 2)
+    c = np.ascontiguousarray(c, np.float64).reshape(-1, 2)
+    idx = np.full(r.shape[0], -1, np.int64)
+    assert fn(r.ctypes.data, r.shape[0], c.ctypes.data, c.shape[0], gate * gate, idx.ctypes.data) == 0
+    return idx
+
+
+def run_numpy(r, c, gate, monkeypatch):
+    with monkeypatch.context() as mp:
+        mp.setattr(native, "_FN", None)
+        return matching.match_pins_unchecked(np.asarray(r, np.float64).reshape(-1, 2),
+                                             np.asarray(c, np.float64).reshape(-1, 2), gate)
+
+
+def is_greedy(r, c, gate, idx):
+    """One to one, inside the gate, and no free pair shorter than a taken one
+    (no blocking pair): what greedy-by-distance gives, whatever its tie order."""
+    hit = idx >= 0
+    if len(set(idx[hit].tolist())) != int(hit.sum()):
+        return False
+    if not (r.size and c.size):
+        return not hit.any()
+    d2 = ((r[:, None, :] - c[None, :, :]) ** 2).sum(-1)
+    mine = np.where(hit, d2[np.arange(len(r)), np.maximum(idx, 0)], np.inf)
+    used = np.zeros(len(c), bool)
+    used[idx[hit]] = True
+    theirs = np.full(len(c), np.inf)
+    for i in np.flatnonzero(hit):
+        theirs[idx[i]] = mine[i]
+    within = d2 <= gate * gate
+    # a pair (i, j) within the gate that both ends would rather have blocks the answer
+    block = within & (d2 < mine[:, None]) & (d2 < theirs[None, :])
+    return bool((d2[hit.nonzero()[0], idx[hit]] <= gate * gate).all()) and not block.any()
+
+
+coords = st.floats(-50, 50, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(r=st.lists(st.tuples(coords, coords), max_size=40), c=st.lists(st.tuples(coords, coords), max_size=40),
+       gate=st.floats(0.01, 60), grid=st.sampled_from([0, 1, 4]))
+def test_the_kernel_gives_the_numpy_assignment(compiled, monkeypatch, r, c, gate, grid):
+    """Every pair set up to 40 x 40 points, including points rounded onto a grid
+    (exact ties, duplicates): the same idx as the numpy matcher, to the element."""
+    r = np.array(r, np.float64).reshape(-1, 2)
+    c = np.array(c, np.float64).reshape(-1, 2)
+    if grid:
+        r, c = np.round(r / grid) * grid, np.round(c / grid) * grid
+    np.testing.assert_array_equal(run_c(compiled, r, c, gate), run_numpy(r, c, gate, monkeypatch))
+
+
+@pytest.mark.parametrize("n", [0, 1, 133, 700, 2000])
+def test_large_layouts_match_as_numpy_does(compiled, monkeypatch, n):
+    """A jittered hexagonal layout moved by up to a third of a pitch (the tracker's
+    case, numpy's cell-grid path above 4096 pairs): the same idx."""
+    rng = np.random.default_rng(n)
+    side = max(int(np.ceil(np.sqrt(n))), 1)
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
+    g[:, 0] += 0.5 * (g[:, 1] % 2)
+    ref = g * 12.0 + 40.0
+    cur = ref + rng.normal(0, 2.5, ref.shape)
+    cur = cur[rng.permutation(n)][: max(n - n // 20, 0)]          # 5 % missing, shuffled
+    for gate in (2.4, 4.8, 12.0, 30.0):
+        idx = run_c(compiled, ref, cur, gate)
+        np.testing.assert_array_equal(idx, run_numpy(ref, cur, gate, monkeypatch))
+        assert is_greedy(ref, cur, gate, idx)
+
+
+def test_ties_on_a_large_set_still_give_a_greedy_answer(compiled):
+    """Integer points on a crowded grid: the tie order is the one freedom the
+    contract leaves, so the answer is checked as a greedy answer."""
+    rng = np.random.default_rng(3)
+    r = rng.integers(0, 30, (150, 2)).astype(float)
+    c = rng.integers(0, 30, (150, 2)).astype(float)
+    for gate in (1.0, 1.5, 3.0):
+        assert is_greedy(r, c, gate, run_c(compiled, r, c, gate))
+
+
+def test_far_points_and_coordinates_at_the_bound(compiled, monkeypatch):
+    """References far outside the current points' box, and points at +-1e6 px."""
+    r = np.array([[-1e6, -1e6], [1e6, 1e6], [0.0, 0.0], [5e5, -5e5], [3.0, 4.0]])
+    c = np.array([[1e6, 1e6 - 1.0], [-1e6 + 0.5, -1e6], [3.0, 4.5]])
+    for gate in (0.1, 1.0, 2.0, 1e7):
+        np.testing.assert_array_equal(run_c(compiled, r, c, gate), run_numpy(r, c, gate, monkeypatch))
+    np.testing.assert_array_equal(run_c(compiled, r, c, 1.0), [1, 0, -1, -1, 2])
+
+
+def test_a_broken_or_foreign_library_is_not_loaded(tmp_path, monkeypatch):
+    """A file at the library's name that is not a library: load() returns None and
+    says why, and match_pins still answers (numpy)."""
+    monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(tmp_path))
+    native.library_path().write_bytes(b"not a shared object")
+    try:
+        assert native.load() is None
+        assert not native.active()
+        assert "does not load" in native.status()
+        idx = matching.match_pins([[0.0, 0.0], [10.0, 0.0]], [[10.5, 0.0], [0.2, 0.0]], 1.0)
+        np.testing.assert_array_equal(idx, [1, 0])
+    finally:
+        monkeypatch.delenv("TACFOOT_NATIVE_DIR")
+        native.load()
+
+
+def test_disabled_by_the_environment_and_reported(tmp_path):
+    env = dict(os.environ, TACFOOT_NATIVE="0")
+    run = subprocess.run([sys.executable, "-m", "device.pi.vision.native", "status"],
+                         capture_output=True, text=True, env=env, timeout=60)
+    assert run.returncode == 1
+    assert "disabled by TACFOOT_NATIVE=0" in run.stdout
+
+
+def test_no_compiler_is_one_clear_error_and_nothing_written(tmp_path):
+    with pytest.raises(native.NativeBuildError, match="no C compiler 'no-such-cc-here'"):
+        native.build(folder=tmp_path, cc="no-such-cc-here")
+    assert list(tmp_path.iterdir()) == []
+
+
+@needs_cc
+def test_a_failed_compile_leaves_no_file(tmp_path):
+    fake = tmp_path / "failcc"
+    fake.write_text("#!/bin/sh\necho 'broken compiler' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    out = tmp_path / "lib"
+    with pytest.raises(native.NativeBuildError, match="broken compiler"):
+        native.build(folder=out, cc=str(fake))
+    assert list(out.iterdir()) == []
+
+
+@needs_cc
+def test_build_names_the_library_by_source_and_machine_and_reuses_it(tmp_path):
+    path = native.build(folder=tmp_path)
+    assert path.parent == tmp_path and path.name.startswith("_match-") and path.suffix == ".so"
+    mtime = path.stat().st_mtime_ns
+    assert native.build(folder=tmp_path) == path and path.stat().st_mtime_ns == mtime
+    assert native.build(folder=tmp_path, force=True) == path
+
+
+@needs_cc
+def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(monkeypatch):
+    """A real clip, 150 frames: the same pins, vectors and lost flags to the bit."""
+    data = real_data_dir("roboskin/smooth.avi")
+    import cv2
+
+    from device.pi.vision.pipeline import MarkerStream
+    if not native.active():
+        native.build()
+        native.load()
+    cap = cv2.VideoCapture(str(Path(data) / "roboskin" / "smooth.avi"))
+    frames = []
+    while len(frames) < 150:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
+    assert len(frames) == 150
+
+    def run():
+        s = MarkerStream("roboskin")
+        return [s.process(f, i / 120.0) for i, f in enumerate(frames)]
+
+    fast = run()
+    monkeypatch.setattr(native, "_FN", None)
+    slow = run()
+    assert sum(int((~r.lost).sum()) for r in fast) > 100 * 149
+    for a, b in zip(fast, slow):
+        np.testing.assert_array_equal(a.vectors, b.vectors)
+        np.testing.assert_array_equal(a.lost, b.lost)
+        np.testing.assert_array_equal(a.pins, b.pins)
+        assert a.faults == b.faults
