@@ -29,8 +29,11 @@ MAX_SWITCH_FRAC = 0.005          # identity switches <= 0.5% of pins per frame
 def test_tracker_without_reference_flags_a_fault():
     tr = Tracker()
     vec, lost = tr.update(np.ones((5, 2)))
-    assert tr.faults & FAULT_NO_REFERENCE
+    assert tr.faults == FAULT_NO_REFERENCE
     assert vec.shape == (0, 2) and lost.shape == (0,) and np.isfinite(vec).all()
+    assert vec.dtype == np.float32 and lost.dtype == bool
+    assert tr.idx.shape == (0,) and tr.idx.dtype == np.int64            # an index array, even empty
+    assert tr.n_tracked == 0 and tr.reacquired == 0 and not tr.has_reference
 
 
 def test_tracker_tracks_a_drag_and_rezeroes():
@@ -60,6 +63,7 @@ def test_tracker_reacquires_after_a_jump():
     correct = ~lost & (tr.idx == np.arange(len(ref)))
     assert correct.mean() >= 0.97
     assert (~lost & ~correct).sum() == 0
+    assert tr.n_tracked == int((~lost).sum()) and tr.faults == 0      # the re-acquired pins count
 
 
 @pytest.mark.parametrize("fill", ["predict", "hold", "zero"])
@@ -86,16 +90,21 @@ def test_tracker_fill_modes_for_lost_pins(fill):
 
 
 @pytest.mark.parametrize("kw,field", [({"max_dist_px": 0}, "max_dist_px"), ({"pitch_px": -2.0}, "pitch_px"),
+                                      ({"gate_frac": 0.0}, "gate_frac"),
                                       ({"fill": "last"}, "fill"), ({"reacquire_frac": 2.0}, "reacquire_frac"),
-                                      ({"min_tracked_frac": "x"}, "min_tracked_frac"), ({"k": 0}, "k"),
+                                      ({"min_tracked_frac": "x"}, "min_tracked_frac"),
+                                      ({"min_tracked_frac": 1.5}, "min_tracked_frac"), ({"k": 0}, "k"),
+                                      ({"grow_rounds": -1}, "grow_rounds"),
                                       ({"velocity_gain": -1.0}, "velocity_gain"),
                                       ({"reacquire_schedule": (1.5, 6)}, "reacquire_schedule"),
                                       ({"reacquire_schedule": (0.0, 6, 5)}, r"reacquire_schedule\[0\]"),
-                                      ({"reacquire_schedule": (1.5, 0, 5)}, r"reacquire_schedule\[1\]")])
+                                      ({"reacquire_schedule": (1.5, 0, 5)}, r"reacquire_schedule\[1\]"),
+                                      ({"reacquire_schedule": (1.5, 6, 0)}, r"reacquire_schedule\[2\]")])
 def test_tracker_bad_arguments_name_the_field(kw, field):
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=rf"^{field} must") as e:     # the message starts with the name
         Tracker(**kw)
-    with pytest.raises(ValueError, match="pins"):
+    assert "got " + field.replace("\\", "") + "=" in str(e.value)     # and the value given
+    with pytest.raises(ValueError, match="^pins must"):
         Tracker().set_reference(np.zeros((4, 3)))
 
 
@@ -142,6 +151,168 @@ def test_tracker_flags_bad_rows_but_uses_the_rest():
     assert tr.faults & FAULT_BAD_INPUT
     assert not lost.any() and np.allclose(vec, 0.0)
     assert np.allclose(cur[tr.idx], ref)                            # indices into the caller's array
+
+
+@pytest.mark.parametrize("cur", [np.ones((5, 3)), np.ones(4), None, "abc", [[1.0, "a"]], [[1.0, 2.0], [3.0]]],
+                         ids=["5x3", "flat", "None", "text", "text-cell", "ragged"])
+def test_pins_of_the_wrong_shape_or_type_are_bad_input_and_no_pins(cur):
+    ref = hex_pins(2, 10.0)
+    tr = Tracker(fill="hold")
+    tr.set_reference(ref)
+    tr.update(ref + [1.0, 0.0])
+    vec, lost = tr.update(cur)
+    assert tr.faults == FAULT_BAD_INPUT | FAULT_TOO_FEW_PINS
+    assert lost.all() and tr.n_tracked == 0 and (tr.idx == -1).all()
+    assert np.allclose(vec, [1.0, 0.0])                                 # held at the last value
+    vec, lost = tr.update(ref + [1.5, 0.0])                            # a good frame clears the flags
+    assert tr.faults == 0 and not lost.any() and np.allclose(vec, [1.5, 0.0])
+
+
+@pytest.mark.parametrize("cur", [[], np.zeros((0, 2)), np.zeros((0, 3))])
+def test_an_empty_frame_is_too_few_pins_not_bad_input(cur):
+    tr = Tracker()
+    tr.set_reference(hex_pins(2, 10.0))
+    _, lost = tr.update(cur)
+    assert tr.faults == FAULT_TOO_FEW_PINS and lost.all()
+
+
+def test_too_few_pins_starts_below_min_tracked_frac_of_the_reference():
+    ref = hex_pins(2, 12.0)                                             # 19 pins
+    for frac, present, flagged in ((0.5, 10, False), (0.5, 9, True), (0.8, 16, False), (0.8, 15, True)):
+        tr = Tracker(min_tracked_frac=frac)
+        tr.set_reference(ref)
+        _, lost = tr.update(ref[:present] + [0.5, 0.0])
+        assert tr.n_tracked == present and int((~lost).sum()) == present
+        assert bool(tr.faults & FAULT_TOO_FEW_PINS) == flagged, (frac, present)
+
+
+def test_a_frame_with_too_few_pins_does_not_move_the_prediction():
+    """Two trackers on the same drag, one of them also shown a frame with a few
+    pins far off (flagged too few): afterwards both give the same answers, also for
+    a lost pin, whose vector is the prediction."""
+    ref = hex_pins(3, 12.0)                                             # 37 pins
+    seen, skipped = Tracker(), Tracker()
+    for tr in (seen, skipped):
+        tr.set_reference(ref)
+    drag = [ref + [0.8 * k, 0.0] for k in range(1, 6)]
+    for f in drag:
+        seen.update(f)
+        skipped.update(f)
+    seen.update(drag[-1][:12] + [3.0, 1.0])                            # 12 of 37 pins, 3 px off
+    assert seen.faults & FAULT_TOO_FEW_PINS
+    for k in range(6, 9):
+        f = np.delete(ref + [0.8 * k, 0.0], 18, axis=0)                 # pin 18 lost
+        a, la = seen.update(f)
+        b, lb = skipped.update(f)
+        assert (la == lb).all() and la[18] and la.sum() == 1
+        assert np.array_equal(a, b) and np.array_equal(seen.idx, skipped.idx)
+        assert seen.reacquired == skipped.reacquired == 0 and seen.faults == skipped.faults == 0
+        assert np.allclose(a[18], [0.8 * k, 0.0], atol=0.6)            # predicted along the drag
+
+
+@pytest.mark.parametrize("steps", [0, -3, 1001, 5000, 2.5, "2", None, True])
+def test_a_steps_value_out_of_range_counts_as_one_frame(steps):
+    ref = hex_pins(4, 12.0)
+    runs = []
+    for s in (1, steps):
+        tr = Tracker()
+        tr.set_reference(ref)
+        out = [tr.update(ref + [0.8 * k, 0.0]) for k in range(1, 6)]
+        out.append(tr.update(np.delete(ref + [4.8, 0.0], 7, axis=0), steps=s))
+        assert tr.reacquired == 0 and tr.faults == 0
+        out.append(tr.update(np.delete(ref + [5.6, 0.0], 7, axis=0)))
+        runs.append(out)
+    for (a, la), (b, lb) in zip(*runs):
+        assert np.array_equal(a, b) and np.array_equal(la, lb)
+
+
+def test_the_coarse_search_starts_beyond_0_8_gate_from_the_prediction():
+    """Every pin found, but not all of them within half a gate of the prediction: the
+    coarse search runs only when the pins' median distance from their prediction is
+    more than 0.8 gate. A 7 x 7 square grid with integer positions and a gate of
+    5 px (0.8 gate = 4 px, exact); diagonal stripes of pins move right by s - 2.4,
+    s and s + 2.4 px, so the median distance is s and no common shift brings every
+    pin within half a gate."""
+    g = np.arange(7) * 12.0 + 100.0
+    ref = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2)
+    stripe = np.add(*np.divmod(np.arange(len(ref)), 7)) % 3 - 1.0        # -1, 0, 1
+    for s, searched in ((4.0, 0), (4.25, 1)):
+        tr = Tracker(max_dist_px=5.0, reacquire_frac=0.9)
+        tr.set_reference(ref)
+        d = np.zeros_like(ref)
+        d[:, 0] = s + 2.4 * stripe
+        vec, lost = tr.update(ref + d)
+        assert tr.reacquired == searched, s
+        assert not lost.any() and (tr.idx == np.arange(len(ref))).all()
+        assert np.allclose(vec, d) and tr.faults == 0
+
+
+def test_the_coarse_search_needs_reacquire_frac_of_the_pins_in_the_frame():
+    """A jump with fewer detections than reacquire_frac of the reference (most pins
+    hidden): no coarse search; with enough of them, the search runs."""
+    rng = np.random.default_rng(5)
+    ref = hex_pins(8, 16.0)                                             # 217 pins
+    moved = big_deformation(ref, 16.0, rng)
+    for frac, searched in ((0.6, 0), (0.75, 1)):
+        tr = Tracker()
+        tr.set_reference(ref)
+        tr.update(ref + [0.5, 0.0])
+        keep = np.sort(rng.choice(len(ref), int(frac * len(ref)), replace=False))
+        tr.update(moved[keep])
+        assert tr.reacquired == searched, frac
+
+
+def test_steps_up_to_1000_move_the_prediction_that_many_frames_ahead():
+    ref = hex_pins(4, 12.0)
+    tr = Tracker()
+    tr.set_reference(ref)
+    for k in range(1, 21):                                              # the velocity settles
+        tr.update(ref + [0.8 * k, 0.0])
+    vec, lost = tr.update(ref + [0.8 * 1020, 0.0], steps=1000)          # 800 px on: predicted
+    assert tr.reacquired == 0 and tr.faults == 0 and not lost.any()
+    assert (tr.idx == np.arange(len(ref))).all() and np.allclose(vec, [816.0, 0.0], atol=1e-3)
+
+
+def test_the_coarse_search_starts_from_the_prediction():
+    """After a drag of two pitches, a press-like jump is re-acquired by the cheap
+    schedule (1.5, 6, 5), which only finds the pins from a prior near them: the
+    tracker's prediction, not zero."""
+    rng = np.random.default_rng(5)
+    ref = hex_pins(6, 16.0)                                             # 127 pins
+    tr = Tracker(reacquire_schedule=(1.5, 6, 5))
+    tr.set_reference(ref)
+    for k in range(1, 9):
+        tr.update(ref + [4.0 * k, 0.0])
+    vec, lost = tr.update(big_deformation(ref + [36.0, 0.0], 16.0, rng))
+    assert tr.reacquired == 1
+    correct = ~lost & (tr.idx == np.arange(len(ref)))
+    assert correct.mean() >= 0.9 and (~lost & ~correct).sum() <= 2
+
+
+@pytest.mark.parametrize("k", [1, 2, 4])
+def test_rezero_is_a_new_reference_at_the_tracked_positions(k):
+    """rezero() without pins tracks on exactly as a tracker (same k) given the
+    tracked positions as its reference: the layout neighbours are those of the
+    new reference, k of them. A slow rotation with three pins missing, so the
+    lost pins' vectors are predicted from their neighbours."""
+    ref = hex_pins(4, 12.0)
+    centre = ref.mean(axis=0)
+    rezeroed, fresh = Tracker(k=k, pitch_px=12.0), Tracker(k=k, pitch_px=12.0)
+    rezeroed.set_reference(ref)
+    for x in (1.0, 2.0, 3.0, 3.0, 3.0):
+        rezeroed.update(ref + [x, 0.0])
+    rezeroed.rezero()
+    base = ref + [3.0, 0.0]
+    fresh.set_reference(base)
+    for f in range(1, 6):
+        a = 0.01 * f
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        cur = np.delete((base - centre) @ rot.T + centre + [0.5 * f, 0.0], [10, 30, 31], axis=0)
+        va, la = rezeroed.update(cur)
+        vb, lb = fresh.update(cur)
+        assert (la == lb).all() and la.sum() == 3
+        assert np.allclose(va, vb, atol=1e-4)
+        assert np.array_equal(rezeroed.idx, fresh.idx)
 
 
 def test_tracker_no_allocation_growth():
