@@ -440,7 +440,9 @@ class Deployer(SshSession):
         return [l for l in st.get("stdout", "").splitlines() if l.strip()]
 
     def rollback(self) -> dict:
-        """Switch current back to previous (and previous to the one we left)."""
+        """Switch current back to previous (and previous to the one we left). A
+        failure or a signal after the swap began puts both links back as they were
+        and restarts that release (:meth:`_unswap`): never half a rollback."""
         o = self.o
         res = {"target": o.target, "prefix": o.prefix, "dry_run": self.dry_run, "ok": False}
         info = self.probe()
@@ -451,19 +453,50 @@ class Deployer(SshSession):
             raise DeployError(f"no previous release under {o.prefix} to roll back to")
         res.update(release=prev, previous=cur)
         p = q(o.prefix)
-        self.remote("switch", f"cd {p}\nprev=$(readlink previous)\ncur=$(readlink current)\n"
-                    "[ -f \"$prev/.complete\" ] || "
-                    "{ echo \"previous release $prev is incomplete\" >&2; exit 3; }\n"
-                    "ln -sfn \"$prev\" .current.tmp\nmv -T .current.tmp current\n"
-                    "ln -sfn \"$cur\" .previous.tmp\nmv -T .previous.tmp previous\n")
-        self.remote("service", self._service_script())
-        res["health"] = self.health("health",
-                                    marker=f"{o.prefix}/{prev}/.healthy" if prev else None)
+        try:
+            self.switched = True        # undo from here, even if the swap broke off
+            self.remote("switch", f"cd {p}\nprev=$(readlink previous)\ncur=$(readlink current)\n"
+                        "[ -f \"$prev/.complete\" ] || "
+                        "{ echo \"previous release $prev is incomplete\" >&2; exit 3; }\n"
+                        "ln -sfn \"$prev\" .current.tmp\nmv -T .current.tmp current\n"
+                        "ln -sfn \"$cur\" .previous.tmp\nmv -T .previous.tmp previous\n")
+            self.remote("service", self._service_script())
+            res["health"] = self.health("health",
+                                        marker=f"{o.prefix}/{prev}/.healthy" if prev else None)
+        except BaseException as exc:          # a signal or Ctrl-C too
+            res["error"] = str(exc) or type(exc).__name__
+            res["undone"] = self._unswap(cur, prev)
+            if not isinstance(exc, DeployError):
+                raise
+            return res
         res["ok"] = True if self.dry_run else bool(res["health"].get("ok"))
         if not res["ok"]:
             res["error"] = f"health check failed: {res['health'].get('reason', 'unknown')}"
         return res
 
+    def _unswap(self, cur: str | None, prev: str | None) -> dict:
+        """Undo a rollback's swap: current back to cur, previous back to prev, and
+        cur's release restarted and health-checked (the service stopped when there
+        was no current). Never interrupted."""
+        self.unwinding = True
+        p = q(self.o.prefix)
+        out = {"to": cur}
+        try:
+            if cur:
+                self.remote("undo-switch", f"cd {p}\n" + self._link_script("current", cur)
+                            + self._link_script("previous", prev))
+                self.remote("undo-service", self._service_script())
+                out["health"] = self.health("undo-health",
+                                            marker=f"{self.o.prefix}/{cur}/.healthy")
+                out["ok"] = bool(self.dry_run or out["health"].get("ok"))
+            else:
+                self.remote("undo-stop", self._stop_script() + f"cd {p}\n"
+                            + self._link_script("current", None)
+                            + self._link_script("previous", prev))
+                out["ok"] = True
+        except DeployError as exc:
+            out.update(ok=False, error=str(exc))
+        return out
 
 def run(opts: DeployOptions, dry_run: bool = False, rollback: bool = False,
         log=None, key=None, stop=None) -> dict:
@@ -521,6 +554,10 @@ def summary_text(res: dict) -> str:
                 f"(pid {h.get('pid')}, {h.get('packets_per_s')} packets/s)"
                 + (f"; previous {res['previous']}" if res.get("previous") else ""))
     msg = f"{res.get('target')}: FAILED: {res.get('error')}"
+    if "undone" in res:
+        un = res["undone"]
+        msg += (f"; rollback undone, back on {un.get('to') or 'nothing (service stopped)'}"
+                f" ({'ok' if un.get('ok') else 'undo FAILED'})")
     if res.get("rolled_back"):
         rb = res.get("rollback", {})
         msg += (f"; rolled back to {rb.get('to') or 'nothing (service stopped)'}"

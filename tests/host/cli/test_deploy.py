@@ -197,3 +197,59 @@ def test_status_refuses_a_dry_run_without_connecting(robot, capsys):
     rc, out, err = _main(capsys, robot.argv("--status", "--dry-run"))
     assert rc == 2 and "no --dry-run" in err and len(err.strip().splitlines()) == 1
     assert robot.ssh.live() == []
+
+
+def _leg1_argv(robot, *extra):
+    argv = robot.argv(*extra)
+    i = argv.index("--robot")
+    argv[i:i + 2] = ["pi@127.0.0.1:220", "--prefix", str(robot.prefixes[0])]
+    return argv
+
+
+#: a text in the first remote command of each phase of a rollback
+ROLLBACK_PHASES = {"switch": "prev=$(readlink previous)", "service": "tacfootctl restart",
+                   "health": "packets_sent"}
+ROLLBACK_CASES = [(ph, sg) for ph in ROLLBACK_PHASES for sg in ("SIGTERM", "SIGHUP", "SIGINT")
+                  if os.environ.get("TACFOOT_FULL_SIGNAL_MATRIX")
+                  or (ph, sg) in {("switch", "SIGTERM"), ("service", "SIGHUP"),
+                                  ("health", "SIGINT")}]
+
+
+@pytest.fixture(scope="module")
+def leg1_on_r1(robot):
+    """Leg 1 on release r1 with r0 as previous (what --rollback goes back to)."""
+    from host.cli import main
+    p = robot.prefixes[0]
+    if os.readlink(p / "current") != "releases/r1":
+        with pytest.MonkeyPatch.context() as mp:
+            mp.delenv("TRIP_SIGNAL", raising=False)
+            assert main(_leg1_argv(robot, "--release", "r1")) == 0
+    assert robot.running(p) == "r1" and os.readlink(p / "previous") == "releases/r0"
+    return p
+
+
+@pytest.mark.parametrize("phase, sig", ROLLBACK_CASES)
+def test_a_signal_during_a_rollback_puts_the_links_and_the_process_back(
+        robot, leg1_on_r1, capsys, monkeypatch, phase, sig):
+    """--rollback swaps current and previous; a signal in its switch, service or
+    health step puts both links back and restarts the release that ran, prints a
+    summary, closes ssh and exits 128 + N (before: the links stayed swapped with
+    the old process running, or the service never restarted)."""
+    p = leg1_on_r1
+    capsys.readouterr()
+    robot.ssh.reset_trip()
+    monkeypatch.setenv("TRIP_SIGNAL", sig)
+    monkeypatch.setenv("TRIP_WHEN", ROLLBACK_PHASES[phase])
+    rc, out, err = _main(capsys, _leg1_argv(robot, "--rollback"))
+    assert (robot.ssh.folder / "tripped").exists(), "the signal was never sent"
+    res = json.loads(out)
+    assert rc == 128 + getattr(signal, sig), (rc, out[-2000:], err[-2000:])
+    assert res["interrupted"] == sig and not res["ok"] and "Traceback" not in err
+    assert f"stopped by {sig}" in res["error"]
+    assert os.readlink(p / "current") == "releases/r1"
+    assert os.readlink(p / "previous") == "releases/r0"
+    assert robot.running(p) == "r1"
+    assert res["undone"]["ok"] and res["undone"]["to"] == "releases/r1", res["undone"]
+    assert robot.ssh.live() == []
+    from host.deploy.release import summary_text
+    assert "rollback undone, back on releases/r1 (ok)" in summary_text(res)
