@@ -133,6 +133,10 @@ class DeployOptions:
                 if any(ord(c) < 32 or 127 <= ord(c) < 160 or c in "\u2028\u2029" for c in v):
                     raise DeployInputError(f"--{name} must not hold control characters "
                                            f"(newline, tab...), got {v!r}")
+        for name in ("camera", "imu", "serial", "python"):       # the leg's runtime would
+            if not getattr(self, name).strip():                  # refuse it only after the
+                raise DeployInputError(f"--{name} must not be empty, got "    # switch
+                                       f"{getattr(self, name)!r}")
         for kv in self.env:
             k, eq, _ = kv.partition("=")
             if not eq or not k.replace("_", "").isalnum() or k[0].isdigit():

@@ -54,3 +54,18 @@ def test_good_targets_pass(target):
 def test_service_user_must_be_a_user_name():
     with pytest.raises(DeployInputError, match="--service-user"):
         _opts(service_user="pi;x").check()
+
+
+@pytest.mark.parametrize("field", ["camera", "imu", "serial", "python"])
+def test_an_empty_runtime_source_is_refused_before_any_step(field, tmp_path, capsys):
+    """An empty --camera/--imu/--serial (or a blank one in a robot file) was shipped:
+    the runtime refused it on the leg, found only by the health check after the switch."""
+    with pytest.raises(DeployInputError, match=f"--{field} must not be empty"):
+        _opts(**{field: " "}).check()
+    from host.cli import main
+    robot = tmp_path / "robot.toml"
+    robot.write_text(f'[[leg]]\ntarget = "pi@leg1"\n{field} = ""\n')
+    if field != "python":                   # not a per-leg key
+        assert main(["deploy", "--robot", str(robot), "--dry-run"]) == 2
+        err = capsys.readouterr().err
+        assert f"{robot}: leg 1 (pi@leg1): {field} must not be empty" in err, err
