@@ -399,7 +399,8 @@ def link_dict():
             "pi_rate_fps_x10": link.pi_rate_fps_x10, "imu": list(link.imu),
             "imu_samples": link.imu_samples, "tx_seq": link.tx_seq,
             "unknown_type": link.unknown_type, "short_payload": link.short_payload,
-            "drops": link.drops, "frames_ok": link.frames_ok, "crc_errors": link.crc_errors,
+            "drops": link.drops, "rates_refused": link.rates_refused,
+            "frames_ok": link.frames_ok, "crc_errors": link.crc_errors,
             "too_long": link.too_long, "malformed": link.malformed,
             "newer_version": link.newer_version}
 
@@ -430,6 +431,14 @@ step("wraps to 0: none missed", SL.MSG_SURFACE, 0, bytearray(18))
 now[0] = 2500
 step("1 missed", SL.MSG_HEARTBEAT, 2, hb)
 out["end_link"] = link_dict()
+# CMD_SET_RATE: sent within RATE_MIN_FPS..RATE_MAX_FPS, else refused and counted
+from binascii import hexlify
+u.take()
+out["rates"] = []
+for a in (1, 1000, 0, 1001, 70000, -1, "x", None, 2.5):
+    seq = link.tx_seq
+    n = link.send_command(SL.CMD_SET_RATE, a)
+    out["rates"].append([str(a), seq, n, hexlify(u.take()).decode(), link.rates_refused])
 print(json.dumps(out))
 """
 
@@ -444,7 +453,7 @@ def _check_counters(out: dict):
         "fault_bits": 0, "fault_raised": 0, "pins_lost": 0, "heartbeat_rx_ms": 0,
         "heartbeats": 0, "pi_uptime_s": 0, "pi_rate_fps_x10": 0, "imu": [0] * 6,
         "imu_samples": 0, "tx_seq": 0, "unknown_type": 0, "short_payload": 0, "drops": 0,
-        "frames_ok": 0, "crc_errors": 0, "too_long": 0, "malformed": 0, "newer_version": 0}
+        "rates_refused": 0, "frames_ok": 0, "crc_errors": 0, "too_long": 0, "malformed": 0, "newer_version": 0}
     # == does not tell 0 from False or None from a missing value: the flags are booleans
     for k in ("valid", "stale", "contact", "slip"):
         assert type(out["fresh_state"][k]) is bool, k
@@ -462,6 +471,21 @@ def _check_counters(out: dict):
         ["1 missed", 1, 1000, 2, 2, 2500],
     ]
     assert out["end_link"]["pi_rate_fps_x10"] == 1000 and out["end_link"]["frames_ok"] == 8
+    # [arg, tx_seq before, send_command's return, bytes written, rates_refused]
+    sent = {"1": 1, "1000": 1000, "2.5": 2}                # 2.5 goes out as 2, as the Pi packs it
+    refused = 0
+    seq = 0
+    for arg, seq_before, n, wire, n_refused in out["rates"]:
+        assert seq_before == seq, arg
+        if arg in sent:
+            w = P.Command(P.CMD_SET_RATE, sent[arg]).encode(seq, 2500)
+            assert (n, wire) == (len(w), w.hex()), arg
+            seq += 1
+        else:
+            refused += 1
+            assert (n, wire) == (0, ""), arg                  # nothing written, no sequence number
+        assert n_refused == refused, arg
+    assert refused == 6
 
 
 @requires_mpy
@@ -476,5 +500,6 @@ def test_initial_values_and_counters_identically_on_micropython_and_cpython():
 def test_initial_values_and_counters_on_cpython_alone():
     """Before any message every field holds its documented start value; a gap of
     fewer than 1000 sequence numbers counts as drops, 1000 or more as a restart of
-    the Pi; each unknown message type counts once; a HEARTBEAT stamps its arrival."""
+    the Pi; each unknown message type counts once; a HEARTBEAT stamps its arrival; a
+    rate command goes out for 1..1000 fps and is refused and counted otherwise."""
     _check_counters(json.loads(run_cpython(COUNTERS)))
