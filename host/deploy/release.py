@@ -356,6 +356,11 @@ class Deployer(SshSession):
               # every file as release.json lists it, and release.json signed with the
               # key the release's config trusts
               f"venv/bin/python -c {q(VERIFY_RELEASE_PY)}\n"
+              # the tracker's matching kernel, compiled for this leg from the verified
+              # source; without a compiler the tracker runs on numpy (same numbers)
+              "venv/bin/python -m device.pi.vision.native build --quiet || "
+              "echo 'tacfoot: no compiled matcher on this leg (apt install gcc); "
+              "the tracker runs on numpy' >&2\n"
               "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
         return s
 

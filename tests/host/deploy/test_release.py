@@ -15,6 +15,7 @@ from tests import REPO_ROOT
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +103,15 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
                        capture_output=True, text=True, cwd=pi.root)
     assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
     assert str(REPO) not in r.stdout
+    # the tracker's matching kernel was compiled on the leg, into the release's venv
+    if shutil.which("cc"):
+        r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-m",
+                            "device.pi.vision.native", "status"],
+                           capture_output=True, text=True, cwd=pi.root,
+                           env={k: v for k, v in os.environ.items() if not k.startswith("TACFOOT_NATIVE")})
+        assert r.returncode == 0, r.stdout + r.stderr
+        lib = Path(r.stdout.split("compiled (", 1)[1].rsplit(")", 1)[0]).resolve()
+        assert lib.is_relative_to((pi.prefix / "releases" / "r1" / "venv").resolve()), r.stdout
 
 
 @needs_sshd
