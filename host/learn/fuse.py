@@ -7,7 +7,8 @@ cold after the marker pipeline), so :func:`fuse_models` puts them side by side i
 one graph: each model's nodes, initialisers, input and output renamed with its
 task as prefix (``surface/x`` -> ``surface/probabilities``), no edge between them.
 Only the output the runtime reads is kept (a classifier's probabilities, the
-regressor's value), so the label branch is not computed.
+regressor's value), and only the nodes it needs, so the label branch is not in the
+graph (ONNX Runtime runs every node of a graph, read or not).
 
 The fused graph is written as a model folder, ``MODELS/fused``, beside the
 artefacts it was built from::
@@ -18,6 +19,10 @@ artefacts it was built from::
                                manifest, ONNX file and that file's SHA-256
     fused/fused.float.onnx     the same for the float variant (when the members
     fused/manifest.float.json  have float files other than their default)
+    fused/fused.notexture.onnx the same graph without the texture member (and
+                               fused.float.notexture.onnx), listed in the manifest's
+                               ``subsets`` and ``sha256``: the leg runs it on the
+                               frames with no texture due (out of contact)
 
 so ``host deploy`` signs it with the others and ``models-set.json`` covers it. The
 individual artefacts stay the unit of training and signing: the leg loads them
@@ -48,6 +53,11 @@ __all__ = ["fuse_models", "fused_graph", "fused_copy", "FuseError"]
 #: :func:`device.pi.models.artefact.manifest_for` picks the members' manifests
 FUSED_FILES = {"int8": ("fused.onnx", MANIFEST),
                "float": ("fused.float.onnx", FLOAT_MANIFEST)}
+
+
+#: the member the leg runs on some frames only (a texture is decided in contact):
+#: the fused folder also holds the graph without it, for the frames it is not due
+SKIPPED_TASK = "texture"
 
 
 class FuseError(ModelError):
@@ -122,15 +132,43 @@ def fused_graph(members: list[dict]):
         outputs += [o for o in g.output if o.name == prefix + keep]
         vinfo += list(g.value_info)
         recs.append({"task": m["task"], "input": g.input[0].name, "output": prefix + keep})
-    graph = helper.make_graph(nodes, "tacfoot-fused", inputs, outputs, initializer=inits,
-                              value_info=vinfo)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v)
-                                                    for d, v in sorted(opsets.items())],
+    model = _graph_for(nodes, inputs, outputs, inits, vinfo,
+                       [helper.make_opsetid(d, v) for d, v in sorted(opsets.items())], ir)
+    return onnx.shape_inference.infer_shapes(model), recs
+
+
+def _graph_for(nodes, inputs, outputs, inits, vinfo, opsets, ir: int):
+    """A checked model of the nodes that ``outputs`` need (walked back from them),
+    and of the inputs, initialisers and value infos those nodes read: a node whose
+    outputs nothing reads (a classifier's label branch) is not in it, as ONNX
+    Runtime would run it on every call."""
+    import onnx
+    from onnx import helper
+
+    need = {o.name for o in outputs}
+    keep = []
+    for n in reversed(list(nodes)):
+        if any(o in need for o in n.output):
+            keep.append(n)
+            need.update(i for i in n.input if i)
+    graph = helper.make_graph(keep[::-1], "tacfoot-fused",
+                              [i for i in inputs if i.name in need], list(outputs),
+                              initializer=[i for i in inits if i.name in need],
+                              value_info=[v for v in vinfo if v.name in need])
+    model = helper.make_model(graph, opset_imports=opsets,
                               producer_name="tacfoot host.learn.fuse")
     model.ir_version = ir
     onnx.checker.check_model(model)
-    model = onnx.shape_inference.infer_shapes(model)
-    return model, recs
+    return model
+
+
+def subset_graph(model, tasks):
+    """The fused ``model`` cut down to the members ``tasks``: the same nodes, so
+    each output is the full graph's, value for value."""
+    g = model.graph
+    prefixes = tuple(f"{t}/" for t in tasks)
+    return _graph_for(g.node, g.input, [o for o in g.output if o.name.startswith(prefixes)],
+                      g.initializer, g.value_info, list(model.opset_import), model.ir_version)
 
 
 def _trained_on(specs: list) -> dict:
@@ -150,7 +188,7 @@ def _trained_on(specs: list) -> dict:
 
 
 def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: str,
-          sha: str, size: int) -> ModelSpec:
+          sha: str, size: int, subsets: list[dict], subset_sha: dict) -> ModelSpec:
     specs = {str(m["manifest"]): ModelSpec.from_manifest(m["doc"], m["manifest"])
              for m in members}
     profile = check_same_profiles({w: s.profile for w, s in specs.items()})
@@ -168,9 +206,9 @@ def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: st
                      input_name=recs[0]["input"], output=recs[0]["output"],
                      output_kind="fused",
                      trained_on=_trained_on(list(specs.values())),
-                     onnx=onnx_name, sha256={onnx_name: sha}, size_bytes=size,
+                     onnx=onnx_name, sha256={onnx_name: sha, **subset_sha}, size_bytes=size,
                      variant="int8" if any(m["doc"].get("variant") == "int8" for m in members)
-                     else "float", params={"members": rows})
+                     else "float", params={"members": rows, "subsets": subsets})
 
 
 def fuse_models(models_dir: Path | str) -> dict:
@@ -204,7 +242,17 @@ def fuse_models(models_dir: Path | str) -> dict:
         data = model.SerializeToString()
         name, manifest = FUSED_FILES[variant]
         atomic_write(out / name, lambda fh: fh.write(data))
-        spec = _spec(d, members, recs, name, sha256_file(out / name), len(data))
+        subsets, subset_sha = [], {}
+        tasks = [r["task"] for r in recs]
+        if SKIPPED_TASK in tasks and len(tasks) > 1:
+            rest = [t for t in tasks if t != SKIPPED_TASK]
+            sub = subset_graph(model, rest).SerializeToString()
+            sname = name.replace(".onnx", f".no{SKIPPED_TASK}.onnx")
+            atomic_write(out / sname, lambda fh: fh.write(sub))
+            subsets.append({"tasks": rest, "onnx": sname})
+            subset_sha[sname] = sha256_file(out / sname)
+        spec = _spec(d, members, recs, name, sha256_file(out / name), len(data), subsets,
+                     subset_sha)
         built[variant] = write_spec(out, spec, manifest)
     return built
 

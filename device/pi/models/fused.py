@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, load_model, manifest_for, model_file
+from device.pi.models.artefact import (ModelError, checked_model_file, load_model,
+                                       manifest_for, model_file, ort_session)
 from device.pi.models.signature import SignatureError
 
 #: the fused graph's folder inside the models folder, and its manifest's kind
@@ -72,9 +73,11 @@ class MultiBoundRun:
 
 
 class FusedModels:
-    """The loaded fused graph and its members ({task: Classifier or Regressor})."""
+    """The loaded fused graph and its members ({task: Classifier or Regressor}), with
+    ``subsets`` ([(tasks, session)]: the same graph cut down to those members, for
+    the frames that need no other)."""
 
-    def __init__(self, model, members: dict, rows: list[dict]):
+    def __init__(self, model, members: dict, rows: list[dict], subsets=()):
         self.model = model
         self.members = members
         self.tasks = tuple(r["task"] for r in rows)
@@ -84,16 +87,28 @@ class FusedModels:
             mod = members[r["task"]]
             self._in[r["task"]] = np.zeros(mod._x.shape, np.float32)
             self._out_name[r["task"]] = r["output"]
-        self._runner = MultiBoundRun(model.session, {r["input"]: self._in[r["task"]]
-                                                     for r in rows},
-                                     [r["output"] for r in rows])
+        by_task = {r["task"]: r for r in rows}
+
+        def runner(session, tasks):
+            return MultiBoundRun(session, {by_task[t]["input"]: self._in[t] for t in tasks},
+                                 [by_task[t]["output"] for t in tasks])
+        self._runner = runner(model.session, self.tasks)
+        # (tasks, runner), fewest tasks first: a frame runs the first that covers it
+        self._subsets = [(frozenset(t), runner(sess, [x for x in self.tasks if x in t]))
+                         for t, sess in sorted(subsets, key=lambda ts: len(ts[0]))]
         self._bad_input = dict.fromkeys(self.tasks, False)
+
+    def _runner_for(self, tasks) -> MultiBoundRun:
+        for have, run in self._subsets:
+            if have.issuperset(tasks):
+                return run
+        return self._runner
 
     def run(self, windows: dict) -> dict:
         """{task: the result its model's ``predict_window`` gives} for the members
         in ``windows`` ({task: full window of the member's T}), from one run of the
-        graph. Members not asked for keep their last input; their outputs are not
-        read."""
+        graph (the smallest of its subsets that holds them). Members not asked for
+        keep their last input; their outputs are not read."""
         for task, w in windows.items():
             mod = self.members[task]
             if task == "pressure":
@@ -101,7 +116,7 @@ class FusedModels:
             else:
                 mod.fill_window(w, self._in[task])
         try:
-            outs = self._runner()
+            outs = self._runner_for(windows)()
         except Exception as exc:      # onnxruntime's own exception types
             raise ModelError(f"{self.model.path}: ONNX Runtime failed: {exc}") from None
         res = {}
@@ -119,6 +134,34 @@ class FusedModels:
 def _onnx_sha(mod) -> str | None:
     doc = mod.model.manifest
     return (doc.get("sha256") or {}).get(doc.get("onnx"))
+
+
+def _subsets(model, mf: Path, want: dict) -> list:
+    """[(tasks, session)] of the manifest's ``subsets``: each a list of member
+    ``tasks`` and the ``onnx`` file of the graph cut down to them (its SHA-256 in the
+    manifest's ``sha256``, each member's input and output as in ``want``, {task:
+    member row}). ModelError naming the manifest or the file for a bad one."""
+    doc = model.manifest
+    rows = doc.get("subsets") or []
+    if not isinstance(rows, list):
+        raise ModelError(f"{mf}: subsets must be a list of tables, got {rows!r}")
+    out = []
+    for r in rows:
+        have = r.get("tasks") if isinstance(r, dict) else None
+        if not isinstance(have, list) or not have or not set(have) < set(want):
+            raise ModelError(f"{mf}: a subset's tasks must be some of the members "
+                             f"{sorted(want)}, got {have!r}")
+        path = checked_model_file(model.path, r.get("onnx"), doc.get("sha256"), mf)
+        try:
+            sess = ort_session(str(path))
+        except Exception as exc:      # onnxruntime's own exception types
+            raise ModelError(f"{path}: ONNX Runtime cannot load it ({exc})") from None
+        names = {i.name for i in sess.get_inputs()} | {o.name for o in sess.get_outputs()}
+        for t in have:
+            if want[t].get("input") not in names or want[t].get("output") not in names:
+                raise ModelError(f"{path}: lacks its member {t}'s input or output")
+        out.append((tuple(have), sess))
+    return out
 
 
 def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
@@ -156,7 +199,9 @@ def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
             if inp is None or r.get("output") not in names_out or \
                     int(np.prod(dims or [0])) != mod._x.size:
                 return None, f"{mf}: its {task} member's input or output is not the model's"
-        return FusedModels(model, loaded, [want[t] for t in FUSED_TASKS if t in want]), ""
+        subsets = _subsets(model, mf, want)
+        return FusedModels(model, loaded, [want[t] for t in FUSED_TASKS if t in want],
+                           subsets), ""
     except SignatureError:
         raise                          # a fused graph signed by no one is refused, not skipped
     except (ModelError, ValueError, KeyError, TypeError) as exc:

@@ -54,6 +54,39 @@ def test_the_fused_graph_gives_each_members_output_bit_for_bit(shipped):
                 np.testing.assert_array_equal(g, want[r["task"]], err_msg=r["task"])
 
 
+def test_the_graphs_hold_only_the_nodes_read_and_the_one_without_texture_is_the_same(shipped):
+    """Issue #25: no label branch in the fused graph (ONNX Runtime runs every node,
+    read or not), and the graph without texture (for frames out of contact) has no
+    texture node and gives the other members' outputs bit for bit."""
+    import onnx
+
+    built = fuse_models(shipped)
+    rng = np.random.default_rng(4)
+    for variant, manifest in built.items():
+        spec, _ = read_spec(manifest)
+        full = onnx.load(str(manifest.parent / spec.onnx))
+        assert not {"ArgMax", "ArrayFeatureExtractor"} & {n.op_type for n in full.graph.node}
+        assert not any(o.endswith("/label") for n in full.graph.node for o in n.output)
+        (sub,) = spec.params["subsets"]
+        assert sub["tasks"] == ["surface", "slip", "pressure"]
+        path = manifest.parent / sub["onnx"]
+        assert sha256_file(path) == spec.sha256[sub["onnx"]]
+        cut = onnx.load(str(path))
+        assert not any(n.name.startswith("texture/") for n in cut.graph.node)
+        assert {n.name for n in cut.graph.node} < {n.name for n in full.graph.node}
+        a, b = ort_session(str(manifest.parent / spec.onnx)), ort_session(str(path))
+        rows = {r["task"]: r for r in spec.params["members"]}
+        outs = [rows[t]["output"] for t in sub["tasks"]]
+        assert [o.name for o in b.get_outputs()] == outs
+        for trial in range(3):
+            feeds = {r["input"]: (np.round(rng.normal(0, 3, (1, r["n_inputs"])) * 4) / 4
+                                  ).astype(np.float32) for r in rows.values()}
+            want = a.run(outs, feeds)
+            got = b.run(outs, {k: v for k, v in feeds.items() if not k.startswith("texture/")})
+            for o, g, w in zip(outs, got, want):
+                np.testing.assert_array_equal(g, w, err_msg=f"{variant} {o}")
+
+
 def test_a_rebuild_follows_the_members_and_fewer_than_two_give_no_graph(shipped, tmp_path):
     d = tmp_path / "models"
     for t in ("surface", "pressure"):
@@ -64,6 +97,9 @@ def test_a_rebuild_follows_the_members_and_fewer_than_two_give_no_graph(shipped,
     assert not (d / "fused" / "stale.onnx").exists()
     rows = read_spec(built["int8"])[0].params["members"]
     assert [r["task"] for r in rows] == ["surface", "pressure"]
+    assert read_spec(built["int8"])[0].params["subsets"] == []     # no texture member
+    assert sorted(p.name for p in (d / "fused").iterdir()) == [
+        "fused.float.onnx", "fused.onnx", "manifest.float.json", "manifest.json"]
     shutil.rmtree(d / "pressure")
     assert fuse_models(d) == {} and not (d / "fused").exists()
 

@@ -80,3 +80,59 @@ def test_a_signature_that_fails_refuses_rather_than_falls_back(fused_dir):
 
     with pytest.raises(SignatureError, match="fused/manifest.json"):
         load_fused(fused_dir, "int8", _loaded(fused_dir), check=check)
+
+
+@pytest.fixture()
+def with_texture(model_dir, tmp_path):
+    """surface, a texture member (the surface fnn under the texture task) and
+    pressure, fused: the folder holds the graph without texture too."""
+    d = tmp_path / "models3"
+    for t in ("surface", "pressure"):
+        shutil.copytree(model_dir / t, d / t)
+    shutil.copytree(model_dir / "surface", d / "texture")
+    fuse_models(d)
+    return d
+
+
+def test_frames_without_texture_run_the_graph_without_it_value_for_value(with_texture):
+    """Issue #25: out of contact (no texture due) the frame runs the fused graph
+    cut down to the other members, whose results are still each model's own."""
+    def loaded():
+        return {**_loaded(with_texture), "texture": Classifier.load(with_texture / "texture")}
+    ones, mine = loaded(), loaded()
+    fused, why = load_fused(with_texture, "int8", mine)
+    assert fused is not None and why == "" and fused.tasks == ("surface", "texture", "pressure")
+    rest = fused._runner_for({"surface", "pressure"})
+    assert rest is not fused._runner and fused._runner_for(fused.tasks) is fused._runner
+    assert [i.name for i in rest.session.get_inputs()] == ["surface/x", "pressure/x"]
+    w = RollingWindow(3, 133)
+    rng = np.random.default_rng(2)
+    for i in range(14):
+        w.push(vectors=rng.normal(0, 3 + i, (133, 2)), imu=rng.normal(0, 1, 6))
+        if not w.full:
+            continue
+        due = {"surface": w, "pressure": w} if i % 2 else {"surface": w, "texture": w,
+                                                           "pressure": w}
+        got = fused.run(due)
+        assert set(got) == set(due)
+        for task in due:
+            want = ones[task].predict_window(w)
+            if task == "pressure":
+                assert got[task] == want
+            else:
+                assert got[task][0] == want[0]
+                np.testing.assert_array_equal(got[task][1], want[1])
+            assert mine[task].fault == ones[task].fault
+
+
+def test_a_bad_subset_graph_leaves_the_individual_sessions_naming_it(with_texture):
+    loaded = {**_loaded(with_texture), "texture": Classifier.load(with_texture / "texture")}
+    (with_texture / FUSED_DIR / "fused.notexture.onnx").write_bytes(b"junk")
+    fused, why = load_fused(with_texture, "int8", loaded)
+    assert fused is None and "fused.notexture.onnx" in why and "checksum" in why
+    mf = with_texture / FUSED_DIR / "manifest.json"
+    doc = json.loads(mf.read_text())
+    doc["subsets"][0]["tasks"] = ["surface", "depth"]
+    mf.write_text(json.dumps(doc))
+    fused, why = load_fused(with_texture, "int8", loaded)
+    assert fused is None and "subset's tasks" in why and "depth" in why
