@@ -37,7 +37,7 @@ static int tf_cmp_pair(const void *pa, const void *pb) {
 /* at most this many cells along a side of the grid */
 #define TF_MAX_SIDE 2048.0
 
-int tf_abi_version(void) { return 1; }
+int tf_abi_version(void) { return 2; }
 
 int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_d2,
              int64_t *idx) {
@@ -138,4 +138,317 @@ int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_
     }
     free(start); free(cellof); free(order); free(pairs); free(used);
     return 0;
+}
+
+
+/* ------------------------------------------------------------------------------
+ * tf_grow: the tracker's per-frame matching and growth into lost pins, the C twin of
+ * device/pi/vision/neighbours.py's match_and_grow for its usual case (every reference
+ * pin finite, every predicted position within +-1e6 px). The Python function is the
+ * specification; each step below names the lines it mirrors. Every float operation
+ * is the one numpy does, in the same order, so the results are the same doubles.
+ *
+ * r (m, 2) reference pins, c (n, 2) current pins (usable rows), pred (m, 2) the
+ * prediction, nb (m, k) int64 layout neighbours with valid (m, k) bytes, gate px,
+ * grow_rounds, min_support, final_rounds. Writes idx (m,) and disp (m, 2) (disp may
+ * be pred) and *n_conf. Returns 0; 1 when a predicted position is not usable (use
+ * the numpy path); -1 when memory runs out (nothing written).
+ * ------------------------------------------------------------------------------ */
+
+typedef struct {
+    int64_t m, n, k;
+    const double *r, *c;
+    const int64_t *nb;
+    const unsigned char *valid;
+    double gate;
+    double *prior, *ed;             /* ed: per pin err x, err y, dd x, dd y */
+    unsigned char *ok, *freec, *supported, *newly;
+    int64_t *idx;
+    /* scratch */
+    double *pa, *pb, *vals;
+    int64_t *rows, *rows2, *fc, *sub;
+} tf_grow_state;
+
+static int tf_cmp_double(const void *pa, const void *pb) {
+    double a = *(const double *)pa, b = *(const double *)pb;
+    return (a > b) - (a < b);
+}
+
+/* np.median of v[0..k) (k >= 1) as column_median / neighbour_median compute it */
+static double tf_median(double *v, int64_t k, int even_as_sum_half) {
+    if (k <= 16) {                                   /* insertion sort: few values */
+        for (int64_t i = 1; i < k; i++) {
+            double x = v[i];
+            int64_t j = i - 1;
+            while (j >= 0 && v[j] > x) { v[j + 1] = v[j]; j--; }
+            v[j + 1] = x;
+        }
+    } else {
+        qsort(v, (size_t)k, sizeof(double), tf_cmp_double);
+    }
+    if (even_as_sum_half)                            /* neighbour_median: (lo + hi) * 0.5 */
+        return (v[(k - 1) / 2] + v[k / 2]) * 0.5;
+    if (k % 2) return v[k / 2];                      /* column_median */
+    return (v[k / 2 - 1] + v[k / 2]) / 2.0;
+}
+
+/* match points p (cnt, 2) against the current pins listed in cols (nc of them, or all
+   when cols is NULL), gate g; out[i] = row of c or -1 */
+static int tf_match_sub(tf_grow_state *S, const double *p, int64_t cnt, const int64_t *cols,
+                        int64_t nc, double g, int64_t *out) {
+    for (int64_t i = 0; i < cnt; i++) out[i] = -1;
+    if (cnt == 0 || nc == 0) return 0;
+    const double *cc = S->c;
+    if (cols) {
+        for (int64_t j = 0; j < nc; j++) {
+            S->pb[2 * j] = S->c[2 * cols[j]];
+            S->pb[2 * j + 1] = S->c[2 * cols[j] + 1];
+        }
+        cc = S->pb;
+    }
+    if (tf_match(p, cnt, cc, nc, g * g, out) != 0) return -1;
+    if (cols)
+        for (int64_t i = 0; i < cnt; i++)
+            if (out[i] >= 0) out[i] = cols[out[i]];
+    return 0;
+}
+
+/* neighbour_median over ed for rows[0..nr), then the prediction of predict():
+   writes dd and supported; sup[i] = 1 where row i has min_support neighbours */
+static void tf_predict(tf_grow_state *S, const int64_t *rows, int64_t nr, int64_t min_support,
+                       unsigned char *sup) {
+    int64_t k = S->k;
+    double g2 = S->gate * S->gate;
+    for (int64_t t = 0; t < nr; t++) {
+        int64_t i = rows[t], count = 0;
+        const int64_t *nbi = S->nb + i * k;
+        const unsigned char *vi = S->valid + i * k;
+        double med[4] = {0.0, 0.0, 0.0, 0.0};
+        for (int64_t j = 0; j < k; j++)
+            if (vi[j] && S->ok[nbi[j]]) count++;
+        if (count > 0) {
+            for (int d = 0; d < 4; d++) {
+                int64_t q = 0;
+                for (int64_t j = 0; j < k; j++)
+                    if (vi[j] && S->ok[nbi[j]]) S->vals[q++] = S->ed[4 * nbi[j] + d];
+                med[d] = tf_median(S->vals, count, 1);
+            }
+        }
+        int s = count >= min_support;
+        S->supported[i] = (unsigned char)s;
+        sup[t] = (unsigned char)s;
+        if (s) {
+            double ownx = S->prior[2 * i] + med[0], owny = S->prior[2 * i + 1] + med[1];
+            double devx = ownx - med[2], devy = owny - med[3];
+            int agree = devx * devx + devy * devy <= g2;
+            S->ed[4 * i + 2] = agree ? ownx : med[2];
+            S->ed[4 * i + 3] = agree ? owny : med[3];
+        }
+    }
+}
+
+/* take(): match rows at r + dd against the free current pins with gate g; the pins
+   caught become tracked. Returns how many were caught; their rows go to got. */
+static int64_t tf_take(tf_grow_state *S, const int64_t *rows, int64_t nr, double g, int64_t *got) {
+    int64_t nc = 0;
+    for (int64_t j = 0; j < S->n; j++)
+        if (S->freec[j]) S->fc[nc++] = j;
+    for (int64_t t = 0; t < nr; t++) {
+        int64_t i = rows[t];
+        S->pa[2 * t] = S->r[2 * i] + S->ed[4 * i + 2];
+        S->pa[2 * t + 1] = S->r[2 * i + 1] + S->ed[4 * i + 3];
+    }
+    if (tf_match_sub(S, S->pa, nr, S->fc, nc, g, S->sub) != 0) return -1;
+    int64_t ng = 0;
+    for (int64_t t = 0; t < nr; t++) {
+        if (S->sub[t] < 0) continue;
+        int64_t i = rows[t], j = S->sub[t];
+        S->idx[i] = j;
+        S->ok[i] = 1;
+        S->freec[j] = 0;
+        double ddx = S->c[2 * j] - S->r[2 * i], ddy = S->c[2 * j + 1] - S->r[2 * i + 1];
+        S->ed[4 * i + 2] = ddx;
+        S->ed[4 * i + 3] = ddy;
+        S->ed[4 * i] = ddx - S->prior[2 * i];
+        S->ed[4 * i + 1] = ddy - S->prior[2 * i + 1];
+        got[ng++] = i;
+    }
+    return ng;
+}
+
+static int64_t tf_count_ok(const tf_grow_state *S) {
+    int64_t q = 0;
+    for (int64_t i = 0; i < S->m; i++) q += S->ok[i];
+    return q;
+}
+
+static int tf_any_free(const tf_grow_state *S) {
+    for (int64_t j = 0; j < S->n; j++)
+        if (S->freec[j]) return 1;
+    return 0;
+}
+
+int tf_grow(const double *r, int64_t m, const double *c, int64_t n, const double *pred,
+            const int64_t *nb, const unsigned char *valid, int64_t k, double gate,
+            int64_t grow_rounds, int64_t min_support, int64_t final_rounds,
+            int64_t *idx_out, double *disp, int64_t *n_conf) {
+    if (m <= 0 || n <= 0) return 1;
+    tf_grow_state S;
+    S.m = m; S.n = n; S.k = k; S.r = r; S.c = c; S.nb = nb; S.valid = valid; S.gate = gate;
+    int64_t big = m > n ? m : n;
+    S.prior = (double *)malloc((size_t)m * 2 * sizeof(double));
+    S.ed = (double *)malloc((size_t)m * 4 * sizeof(double));
+    S.ok = (unsigned char *)calloc((size_t)m, 1);
+    S.freec = (unsigned char *)malloc((size_t)n);
+    S.supported = (unsigned char *)calloc((size_t)m, 1);
+    S.newly = (unsigned char *)calloc((size_t)m, 1);
+    S.idx = (int64_t *)malloc((size_t)m * sizeof(int64_t));
+    S.pa = (double *)malloc((size_t)big * 2 * sizeof(double));
+    S.pb = (double *)malloc((size_t)big * 2 * sizeof(double));
+    S.vals = (double *)malloc((size_t)(k > big ? k : big) * sizeof(double));
+    S.rows = (int64_t *)malloc((size_t)m * sizeof(int64_t));
+    S.rows2 = (int64_t *)malloc((size_t)m * sizeof(int64_t));
+    S.fc = (int64_t *)malloc((size_t)n * sizeof(int64_t));
+    S.sub = (int64_t *)malloc((size_t)big * sizeof(int64_t));
+    unsigned char *sup = (unsigned char *)malloc((size_t)m);
+    int64_t *wide = (int64_t *)malloc((size_t)m * sizeof(int64_t));
+    int64_t *got = (int64_t *)malloc((size_t)m * sizeof(int64_t));
+    int rc = -1;
+    if (!S.prior || !S.ed || !S.ok || !S.freec || !S.supported || !S.newly || !S.idx || !S.pa ||
+        !S.pb || !S.vals || !S.rows || !S.rows2 || !S.fc || !S.sub || !sup || !wide || !got)
+        goto done;
+    /* prior = pred; pos = r + prior; every position usable, else the numpy path */
+    for (int64_t i = 0; i < 2 * m; i++) {
+        S.prior[i] = pred[i];
+        double p = r[i] + pred[i];
+        if (!(p <= 1e6 && p >= -1e6)) { rc = 1; goto done; }
+        S.pa[i] = p;
+    }
+    /* 1. confident matches with half the gate */
+    if (tf_match_sub(&S, S.pa, m, NULL, n, 0.5 * gate, S.idx) != 0) goto done;
+    int64_t n_ok = 0;
+    for (int64_t i = 0; i < m; i++) { S.ok[i] = S.idx[i] >= 0; n_ok += S.ok[i]; }
+    if (n_ok < 0.5 * m) {
+        /* a common jump: shift every prediction by the median offset of wide matches */
+        if (tf_match_sub(&S, S.pa, m, NULL, n, 1.25 * gate, wide) != 0) goto done;
+        int64_t nh = 0;
+        for (int64_t i = 0; i < m; i++) nh += wide[i] >= 0;
+        if (nh > 0) {
+            double shift[2];
+            for (int d = 0; d < 2; d++) {
+                int64_t q = 0;
+                for (int64_t i = 0; i < m; i++)
+                    if (wide[i] >= 0) S.vals[q++] = c[2 * wide[i] + d] - S.pa[2 * i + d];
+                shift[d] = tf_median(S.vals, q, 0);
+            }
+            for (int64_t i = 0; i < m; i++) {
+                S.pb[2 * i] = S.pa[2 * i] + shift[0];
+                S.pb[2 * i + 1] = S.pa[2 * i + 1] + shift[1];
+            }
+            /* idx2 = match(pos + shift, c, 0.5 gate); pb is tf_match_sub's scratch
+               only when it is given cols, so it may hold pos + shift here */
+            if (tf_match_sub(&S, S.pb, m, NULL, n, 0.5 * gate, S.sub) != 0) goto done;
+            int64_t n2 = 0, kept = 0;
+            for (int64_t i = 0; i < m; i++) {
+                n2 += S.sub[i] >= 0;
+                if (S.ok[i] && S.sub[i] == S.idx[i]) kept++;
+            }
+            if (n2 > n_ok && 2 * kept >= n_ok) {
+                for (int64_t i = 0; i < m; i++) {
+                    S.prior[2 * i] += shift[0];
+                    S.prior[2 * i + 1] += shift[1];
+                    S.pa[2 * i] += shift[0];
+                    S.pa[2 * i + 1] += shift[1];
+                    S.idx[i] = S.sub[i];
+                    S.ok[i] = S.sub[i] >= 0;
+                }
+                n_ok = n2;
+            }
+        }
+    }
+    *n_conf = n_ok;
+    /* ed: dd = prior, measured for tracked pins; err = dd - prior */
+    for (int64_t j = 0; j < n; j++) S.freec[j] = 1;
+    for (int64_t i = 0; i < m; i++) {
+        double ddx = S.prior[2 * i], ddy = S.prior[2 * i + 1];
+        if (S.ok[i]) {
+            int64_t j = S.idx[i];
+            ddx = c[2 * j] - r[2 * i];
+            ddy = c[2 * j + 1] - r[2 * i + 1];
+            S.freec[j] = 0;
+        }
+        S.ed[4 * i + 2] = ddx;
+        S.ed[4 * i + 3] = ddy;
+        S.ed[4 * i] = ddx - S.prior[2 * i];
+        S.ed[4 * i + 1] = ddy - S.prior[2 * i + 1];
+    }
+    /* 2. grow from tracked neighbours, half the gate */
+    int64_t n_pred = -1, nr = 0;
+    for (int64_t i = 0; i < m; i++)
+        if (!S.ok[i]) S.rows[nr++] = i;
+    for (int64_t round = 0; round < grow_rounds; round++) {
+        if (nr == 0 || tf_count_ok(&S) == 0) break;
+        tf_predict(&S, S.rows, nr, min_support, sup);
+        n_pred = tf_count_ok(&S);
+        int64_t ns = 0;
+        for (int64_t t = 0; t < nr; t++)
+            if (sup[t]) S.rows2[ns++] = S.rows[t];
+        if (ns == 0 || !tf_any_free(&S)) break;
+        int64_t ng = tf_take(&S, S.rows2, ns, 0.5 * gate, got);
+        if (ng < 0) goto done;
+        if (ng == 0) break;
+        for (int64_t i = 0; i < m; i++) S.newly[i] = 0;
+        for (int64_t t = 0; t < ng; t++) S.newly[got[t]] = 1;
+        nr = 0;
+        for (int64_t i = 0; i < m; i++) {
+            if (S.ok[i]) continue;
+            for (int64_t j = 0; j < k; j++)
+                if (valid[i * k + j] && S.newly[nb[i * k + j]]) { S.rows[nr++] = i; break; }
+        }
+        if (nr == 0) n_pred = tf_count_ok(&S);
+    }
+    /* 3. every pin still lost, with the full gate */
+    for (int64_t round = 0; round < final_rounds; round++) {
+        int64_t nl = 0;
+        for (int64_t i = 0; i < m; i++)
+            if (!S.ok[i]) S.rows[nl++] = i;
+        int64_t n_now = m - nl;
+        if (nl == 0 || n_now == 0) break;
+        if (n_now != n_pred) {
+            tf_predict(&S, S.rows, nl, min_support, sup);
+            n_pred = n_now;
+        }
+        int64_t nf = 0;
+        for (int64_t t = 0; t < nl; t++)
+            if (!S.supported[S.rows[t]]) S.rows2[nf++] = S.rows[t];
+        if (n_now >= 3 && nf > 0) {
+            double cm[2];
+            for (int d = 0; d < 2; d++) {
+                int64_t q = 0;
+                for (int64_t i = 0; i < m; i++)
+                    if (S.ok[i]) S.vals[q++] = S.ed[4 * i + d];
+                cm[d] = tf_median(S.vals, q, 0);
+            }
+            for (int64_t t = 0; t < nf; t++) {
+                int64_t i = S.rows2[t];
+                S.ed[4 * i + 2] = S.prior[2 * i] + cm[0];
+                S.ed[4 * i + 3] = S.prior[2 * i + 1] + cm[1];
+            }
+        }
+        if (!tf_any_free(&S)) break;
+        int64_t ng = tf_take(&S, S.rows, nl, gate, got);
+        if (ng < 0) goto done;
+        if (ng == 0) break;
+    }
+    for (int64_t i = 0; i < m; i++) {
+        idx_out[i] = S.idx[i];
+        disp[2 * i] = S.ed[4 * i + 2];
+        disp[2 * i + 1] = S.ed[4 * i + 3];
+    }
+    rc = 0;
+done:
+    free(S.prior); free(S.ed); free(S.ok); free(S.freec); free(S.supported); free(S.newly);
+    free(S.idx); free(S.pa); free(S.pb); free(S.vals); free(S.rows); free(S.rows2); free(S.fc);
+    free(S.sub); free(sup); free(wide); free(got);
+    return rc;
 }

@@ -1,11 +1,16 @@
-"""The tracker's compiled matching kernel (``match.c``), built on the machine that runs it.
+"""The tracker's compiled kernels (``match.c``), built on the machine that runs it.
 
-The kernel is the C twin of :func:`device.pi.vision.matching._match_finite`. The
-numpy version remains the specification and the fallback. Both give the same
-assignment: the same candidate pairs (squared distances to the bit, because
-the C file is compiled with ``-ffp-contract=off``), taken shortest first. Only
-pairs at exactly the same distance may be taken in another order, which the
-matching's contract leaves open.
+Two kernels, each the C twin of numpy code that remains the specification and the
+fallback:
+
+- ``tf_match``: :func:`device.pi.vision.matching._match_finite`, one-to-one matching
+  within a gate. The same candidate pairs (squared distances to the bit, because
+  the C file is compiled with ``-ffp-contract=off``), taken shortest first. Only
+  pairs at exactly the same distance may be taken in another order, which the
+  matching's contract leaves open.
+- ``tf_grow``: :func:`device.pi.vision.neighbours.match_and_grow`, the tracker's
+  per-frame matching and growth into lost pins, step for step (the same
+  neighbour medians, predictions and matches, the same doubles).
 
 A wheel built on the host cannot carry a library for the Pi, so the library is
 compiled where it runs:
@@ -35,11 +40,11 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "library_path", "build", "kernel", "load", "match_into",
-           "active", "status"]
+           "grow_into", "active", "status"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 1
+ABI_VERSION = 2
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit
 CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
 
@@ -87,6 +92,9 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
             raise NativeBuildError(f"{compiler} failed on {SOURCE.name}: {run.stderr.strip()[-400:]}")
         kernel(Path(tmp))                       # refuse a library that does not load
         os.replace(tmp, out)
+        for old in out.parent.glob("_match-*.so"):  # libraries of an older match.c
+            if old != out:
+                old.unlink(missing_ok=True)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -104,6 +112,13 @@ def kernel(path: Path):
     fn.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64,
                    ctypes.c_double, ctypes.c_void_p]
     fn.restype = ctypes.c_int
+    grow = lib.tf_grow
+    grow.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64,
+                     ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64,
+                     ctypes.c_double, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64,
+                     ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+    grow.restype = ctypes.c_int
+    fn.grow = grow
     return fn
 
 
@@ -150,6 +165,37 @@ def match_into(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> 
     if not c.flags.c_contiguous:
         c = np.ascontiguousarray(c)
     return fn(r.ctypes.data, r.shape[0], c.ctypes.data, c.shape[0], max_d2, idx.ctypes.data) == 0
+
+
+_N_CONF = np.zeros(1, np.int64)
+
+
+def grow_into(r: np.ndarray, c: np.ndarray, pred: np.ndarray, nb: np.ndarray, valid: np.ndarray,
+              gate: float, grow_rounds: int, min_support: int, final_rounds: int,
+              disp: np.ndarray):
+    """The compiled :func:`device.pi.vision.neighbours.match_and_grow` for its usual
+    case (every reference pin finite): ``(idx, n_confident)``, ``disp`` written, or
+    None (kernel not loaded, a predicted position beyond +-1e6 px, or no memory:
+    nothing written, use the numpy path). ``r``, ``pred``, ``disp`` (m, 2) and ``c``
+    (n, 2) float64, ``nb`` int64 and ``valid`` bool (m, k)."""
+    fn = _FN
+    if fn is None:
+        return None
+    m, n = r.shape[0], c.shape[0]
+    if m == 0 or n == 0:
+        return None
+    arrs = [np.ascontiguousarray(a) for a in (r, c, pred, nb, valid)]
+    if not (disp.flags.c_contiguous and disp.dtype == np.float64 and arrs[3].dtype == np.int64
+            and arrs[4].dtype == np.bool_ and arrs[2].dtype == np.float64):
+        return None
+    r, c, pred, nb, valid = arrs
+    idx = np.empty(m, np.int64)
+    rc = fn.grow(r.ctypes.data, m, c.ctypes.data, n, pred.ctypes.data, nb.ctypes.data,
+                 valid.ctypes.data, nb.shape[1], gate, grow_rounds, min_support, final_rounds,
+                 idx.ctypes.data, disp.ctypes.data, _N_CONF.ctypes.data)
+    if rc != 0:
+        return None
+    return idx, int(_N_CONF[0])
 
 
 load()

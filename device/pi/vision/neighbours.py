@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from device.checks import finite_number, positive_number, whole_number
+from device.pi.vision import native
 from device.pi.vision.matching import (all_rows_usable, as_points, match_pins, match_pins_unchecked,
                                        pair_d2, usable_rows)
 
@@ -424,14 +425,24 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
        neighbour prediction, or, when the growth never reached it, at its own
        prediction corrected by the median error of all tracked pins.
 
+    When every reference pin is finite this runs compiled (``tf_grow`` in
+    ``match.c``, :mod:`device.pi.vision.native`) if the kernel is built: the same
+    steps and the same numbers; this code is its specification and fallback.
+
     ``c`` (n, 2) float64 holds usable rows only (finite, within
     ``MAX_COORD_PX``: both callers drop the others first). ``disp`` (m, 2)
     float64 is written in place (it may be ``pred``): the
     measured displacement of tracked pins and the best prediction of lost
     ones. Returns ``idx`` and the number of confident matches of step 1.
     """
-    prior = np.array(pred, dtype=np.float64)            # the caller's prediction, kept
     all_fin = bool(fin_r.all())
+    if all_fin and nb.ndim == 2:
+        # compiled (device/pi/vision/match.c, tf_grow): the same steps, the same numbers
+        done = native.grow_into(r, c, pred, nb, valid, gate, grow_rounds, min_support,
+                                _FINAL_ROUNDS, disp)
+        if done is not None:
+            return done
+    prior = np.array(pred, dtype=np.float64)            # the caller's prediction, kept
     if not all_fin:
         prior[~fin_r] = 0.0
     pos = r + prior

@@ -200,3 +200,76 @@ def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(monkeypatc
         np.testing.assert_array_equal(a.lost, b.lost)
         np.testing.assert_array_equal(a.pins, b.pins)
         assert a.faults == b.faults
+
+
+def _grow_both(monkeypatch, r, c, pred, gate, grow_rounds=4, min_support=2, matcher="numpy"):
+    """match_and_grow compiled, and in numpy: with the numpy matcher too
+    (``matcher="numpy"``), or with the compiled matcher (``"compiled"``: the same
+    tie order, so only the growth differs)."""
+    from device.pi.vision.neighbours import layout_neighbours, match_and_grow
+    nb, valid = layout_neighbours(r, 6)
+    fin = np.ones(r.shape[0], bool)
+    d_fast = np.zeros_like(r)
+    fast = match_and_grow(r, fin, c, pred, nb, valid, gate, grow_rounds, min_support, d_fast)
+    with monkeypatch.context() as mp:
+        mp.setattr(native, "grow_into", lambda *a: None)
+        if matcher == "numpy":
+            mp.setattr(native, "_FN", None)
+        d_slow = np.zeros_like(r)
+        slow = match_and_grow(r, fin, c, pred, nb, valid, gate, grow_rounds, min_support, d_slow)
+    return fast, d_fast, slow, d_slow
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 160), drop=st.floats(0, 0.6),
+       extra=st.integers(0, 30), jump=st.floats(0, 25), noise=st.floats(0, 4),
+       pred_kind=st.sampled_from(["zero", "true", "half", "wrong"]), grow_rounds=st.integers(0, 5),
+       min_support=st.integers(1, 4), rounded=st.booleans())
+def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n, drop, extra, jump,
+                                                           noise, pred_kind, grow_rounds,
+                                                           min_support, rounded):
+    """match_and_grow compiled (tf_grow) against numpy on random layouts: pins dropped,
+    spurious blobs, a common jump (the shift step), noise, good and bad predictions,
+    every growth setting. The same idx, n_confident and displacements, to the bit.
+    Points rounded to whole pixels tie exactly, and the numpy matcher may take such
+    ties in another order (the matching's contract leaves it open), so those are
+    compared with the compiled matcher on both sides."""
+    if not native.active():
+        pytest.skip("the kernel is not built here (make native)")
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n)))
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
+    g[:, 0] += 0.5 * (g[:, 1] % 2)
+    r = g * 12.0 + 100.0
+    move = rng.normal(0, 1.5, r.shape) + rng.normal(0, jump, 2)
+    cur = r + move + rng.normal(0, noise, r.shape)
+    cur = cur[rng.random(n) >= drop]
+    cur = np.concatenate([cur, rng.uniform(80, 100 + 12 * side, (extra, 2))])
+    cur = cur[rng.permutation(len(cur))]
+    if rounded:
+        cur, r = np.round(cur), np.round(r)
+    pred = {"zero": np.zeros_like(r), "true": move.copy(), "half": 0.5 * move,
+            "wrong": rng.normal(0, 6, r.shape)}[pred_kind]
+    if len(cur) == 0:
+        return
+    (i1, c1), d1, (i2, c2), d2 = _grow_both(monkeypatch, r, cur, pred, 0.4 * 12.0, grow_rounds,
+                                            min_support, "compiled" if rounded else "numpy")
+    np.testing.assert_array_equal(i1, i2)
+    assert c1 == c2
+    np.testing.assert_array_equal(d1, d2)
+
+
+def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(monkeypatch):
+    """A prediction that puts a pin beyond 1e6 px: the kernel declines and numpy answers."""
+    if not native.active():
+        pytest.skip("the kernel is not built here (make native)")
+    r = np.array([[0.0, 0.0], [12.0, 0.0], [6.0, 10.0], [18.0, 10.0]])
+    pred = np.zeros_like(r)
+    pred[0] = 2e6
+    from device.pi.vision.neighbours import layout_neighbours
+    nb, valid = layout_neighbours(r, 3)
+    assert native.grow_into(r, r.copy(), pred, nb, valid, 4.8, 4, 2, 4, np.zeros_like(r)) is None
+    (i1, c1), d1, (i2, c2), d2 = _grow_both(monkeypatch, r, r.copy(), pred, 4.8)
+    np.testing.assert_array_equal(i1, i2)
+    np.testing.assert_array_equal(d1, d2)
+    assert (i1[1:] == [1, 2, 3]).all()
