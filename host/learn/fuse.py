@@ -6,7 +6,9 @@ sessions cost more in the loop than their sum alone (each session's caches are
 cold after the marker pipeline), so :func:`fuse_models` puts them side by side in
 one graph: each model's nodes, initialisers, input and output renamed with its
 task as prefix (``surface/x`` -> ``surface/probabilities``), no edge between them.
-Only the output the runtime reads is kept (a classifier's probabilities, the
+Members that read the same window encoding (surface and slip: T frames of vectors
+with the IMU) share one input, and a node that repeats another (the same features
+computed from it) is computed once. Only the output the runtime reads is kept (a classifier's probabilities, the
 regressor's value), and only the nodes it needs, so the label branch is not in the
 graph (ONNX Runtime runs every node of a graph, read or not).
 
@@ -112,6 +114,7 @@ def fused_graph(members: list[dict]):
             opsets[o.domain] = max(opsets.get(o.domain, 0), o.version)
     nodes, inits, inputs, outputs, vinfo, recs = [], [], [], [], [], []
     ir = max(p.ir_version for p in protos)
+    first_of: dict[tuple, str] = {}             # window encoding -> the input that reads it
     for m, p in zip(members, protos):
         have = {o.domain: o.version for o in p.opset_import}
         if have.get("", opsets.get("", 0)) != opsets.get("", 0):
@@ -126,15 +129,71 @@ def fused_graph(members: list[dict]):
         g = p.graph
         if len(g.input) != 1:
             raise FuseError(f"{m['onnx']}: has {len(g.input)} inputs; a member reads one window")
+        name = g.input[0].name
+        enc = _encoding(m)
+        if enc is not None and enc in first_of:
+            # the same window, encoded the same way, as an earlier member: read its input
+            for n in g.node:
+                n.input[:] = [first_of[enc] if i == name else i for i in n.input]
+            name = first_of[enc]
+        else:
+            inputs += list(g.input)
+            if enc is not None:
+                first_of[enc] = name
         nodes += list(g.node)
         inits += list(g.initializer)
-        inputs += list(g.input)
         outputs += [o for o in g.output if o.name == prefix + keep]
         vinfo += list(g.value_info)
-        recs.append({"task": m["task"], "input": g.input[0].name, "output": prefix + keep})
+        recs.append({"task": m["task"], "input": name, "output": prefix + keep})
+    nodes = _shared_nodes(nodes, inits, {o.name for o in outputs})
     model = _graph_for(nodes, inputs, outputs, inits, vinfo,
                        [helper.make_opsetid(d, v) for d, v in sorted(opsets.items())], ir)
     return onnx.shape_inference.infer_shapes(model), recs
+
+
+def _encoding(member: dict) -> tuple | None:
+    """What a classifier member reads (T, input layout, IMU or not, input shape):
+    members that read the same share one input of the fused graph, as the leg
+    gives them the same window encoding. None for the regressor (its input is
+    clipped to its own training range)."""
+    doc = member["doc"]
+    if member["task"] == "pressure":
+        return None
+    return (doc.get("T"), doc.get("input_layout"), bool(doc.get("uses_imu", False)),
+            json.dumps(doc.get("input", {}).get("shape")))
+
+
+def _shared_nodes(nodes, inits, outputs: set) -> list:
+    """``nodes`` with each node that repeats an earlier one (the same operator and
+    attributes on the same inputs, constants compared by value) left out and its
+    outputs read from the earlier node's: members that compute the same features
+    from one input compute them once, value for value. A node that gives a graph
+    output (``outputs``) is kept."""
+    import hashlib
+
+    import onnx
+
+    consts = {}
+    for t in inits:
+        c = onnx.TensorProto()
+        c.CopyFrom(t)
+        c.name = ""
+        consts[t.name] = ("const", hashlib.sha256(c.SerializeToString()).hexdigest())
+    same: dict[str, str] = {}                   # a left-out output -> the earlier one
+    seen: dict[tuple, object] = {}
+    keep = []
+    for n in nodes:
+        n.input[:] = [same.get(i, i) for i in n.input]
+        key = (n.domain, n.op_type, tuple(a.SerializeToString() for a in n.attribute),
+               tuple(consts.get(i, i) for i in n.input))
+        first = seen.get(key)
+        if first is not None and not outputs.intersection(n.output) \
+                and len(first.output) == len(n.output):
+            same.update(zip(n.output, first.output))
+            continue
+        seen.setdefault(key, n)
+        keep.append(n)
+    return keep
 
 
 def _graph_for(nodes, inputs, outputs, inits, vinfo, opsets, ir: int):

@@ -83,14 +83,23 @@ class FusedModels:
         self.tasks = tuple(r["task"] for r in rows)
         self._in = {}
         self._out_name = {}
+        bufs: dict = {}
+        #: {task: the earlier member whose input it reads} (the same window encoding)
+        self._reads = {}
         for r in rows:
             mod = members[r["task"]]
-            self._in[r["task"]] = np.zeros(mod._x.shape, np.float32)
+            if r["input"] in bufs:
+                self._reads[r["task"]] = bufs[r["input"]][0]
+            else:
+                bufs[r["input"]] = (r["task"], np.zeros(mod._x.shape, np.float32))
+            self._in[r["task"]] = bufs[r["input"]][1]
             self._out_name[r["task"]] = r["output"]
         by_task = {r["task"]: r for r in rows}
 
         def runner(session, tasks):
-            return MultiBoundRun(session, {by_task[t]["input"]: self._in[t] for t in tasks},
+            names = {i.name for i in session.get_inputs()}
+            return MultiBoundRun(session, {by_task[t]["input"]: self._in[t] for t in tasks
+                                           if by_task[t]["input"] in names},
                                  [by_task[t]["output"] for t in tasks])
         self._runner = runner(model.session, self.tasks)
         # (tasks, runner), fewest tasks first: a frame runs the first that covers it
@@ -111,6 +120,12 @@ class FusedModels:
         keep their last input; their outputs are not read."""
         for task, w in windows.items():
             mod = self.members[task]
+            first = self._reads.get(task)
+            if first is not None and first in windows:
+                if windows[first] is not w:
+                    raise ModelError(f"{self.model.path}: {task} and {first} read one input "
+                                     f"of the fused graph; give them the same window")
+                continue                   # its input is written: the same window
             if task == "pressure":
                 self._bad_input[task] = mod.prepare_window(w, self._in[task])
             else:
@@ -129,6 +144,15 @@ class FusedModels:
                 p = mod.probabilities_from_output(o)
                 res[task] = (int(np.argmax(p)), p)
         return res
+
+
+def _reads_same(a, b) -> bool:
+    """Whether two loaded classifiers take the same window encoding (the same T,
+    layout, IMU or not and input size), so one input of the fused graph serves both
+    (never a regressor: its input is clipped to its own range)."""
+    key = ("T", "input_layout", "uses_imu", "n_features")
+    return all(hasattr(m, "fill_window") and all(hasattr(m, k) for k in key) for m in (a, b)) \
+        and all(getattr(a, k) == getattr(b, k) for k in key)
 
 
 def _onnx_sha(mod) -> str | None:
@@ -199,6 +223,12 @@ def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
             if inp is None or r.get("output") not in names_out or \
                     int(np.prod(dims or [0])) != mod._x.size:
                 return None, f"{mf}: its {task} member's input or output is not the model's"
+        for task, r in want.items():
+            other = [t for t, o in want.items() if t != task and o.get("input") == r.get("input")]
+            if other and not all(_reads_same(loaded[task], loaded[t]) for t in other):
+                return None, (f"{mf}: its {task} member shares the input of {other}, which the "
+                              f"loaded models do not read the same way; rebuild it "
+                              f"(python -m host.learn.fuse)")
         subsets = _subsets(model, mf, want)
         return FusedModels(model, loaded, [want[t] for t in FUSED_TASKS if t in want],
                            subsets), ""

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from device.pi.models.classifier import Classifier
+from device.pi.models.artefact import ModelError
 from device.pi.models.fused import FUSED_DIR, load_fused
 from device.pi.models.regressor import Regressor
 from device.pi.models.signature import SignatureError
@@ -136,3 +137,47 @@ def test_a_bad_subset_graph_leaves_the_individual_sessions_naming_it(with_textur
     mf.write_text(json.dumps(doc))
     fused, why = load_fused(with_texture, "int8", loaded)
     assert fused is None and "subset's tasks" in why and "depth" in why
+
+
+def test_members_that_read_one_window_encoding_share_one_input(model_dir, tmp_path):
+    """Issue #25: surface and slip read the same encoding of the same window; the
+    fused graph has one input for both (written once a frame) and their results
+    are still each model's own. Two different windows for them, or loaded models
+    that read the window differently, are refused."""
+    d = tmp_path / "shared"
+    for t in ("surface", "pressure"):
+        shutil.copytree(model_dir / t, d / t)
+    shutil.copytree(model_dir / "surface", d / "slip")      # the same encoding as surface
+
+    def loaded():
+        return {**_loaded(d), "slip": Classifier.load(d / "slip")}
+    fuse_models(d)
+    ones, mine = loaded(), loaded()
+    fused, why = load_fused(d, "int8", mine)
+    assert fused is not None and why == ""
+    assert [i.name for i in fused.model.session.get_inputs()] == ["surface/x", "pressure/x"]
+    assert fused._in["slip"] is fused._in["surface"]
+    w = RollingWindow(3, 133)
+    rng = np.random.default_rng(6)
+    for i in range(10):
+        w.push(vectors=rng.normal(0, 2 + i, (133, 2)), imu=rng.normal(0, 1, 6))
+        if not w.full:
+            continue
+        due = {"slip": w, "pressure": w} if i == 5 else {"slip": w, "surface": w,
+                                                          "pressure": w}
+        got = fused.run(due)
+        for task in due:
+            want = ones[task].predict_window(w)
+            if task == "pressure":
+                assert got[task] == want
+            else:
+                assert got[task][0] == want[0]
+                np.testing.assert_array_equal(got[task][1], want[1])
+    other = RollingWindow(3, 133)
+    other.push(vectors=np.ones((133, 2)), imu=np.zeros(6))
+    with pytest.raises(ModelError, match="slip and surface read one input"):
+        fused.run({"surface": w, "slip": other})
+    odd = loaded()
+    odd["slip"].uses_imu = not odd["slip"].uses_imu
+    fused, why = load_fused(d, "int8", odd)
+    assert fused is None and "surface member shares the input of ['slip']" in why
