@@ -8,9 +8,10 @@ one graph: each model's nodes, initialisers, input and output renamed with its
 task as prefix (``surface/x`` -> ``surface/probabilities``), no edge between them.
 Members that read the same window encoding (surface and slip: T frames of vectors
 with the IMU) share one input, and a node that repeats another (the same features
-computed from it) is computed once. Only the output the runtime reads is kept (a classifier's probabilities, the
-regressor's value), and only the nodes it needs, so the label branch is not in the
-graph (ONNX Runtime runs every node of a graph, read or not).
+computed from it) is computed once. Only the output the runtime reads is kept (a
+classifier's probabilities, the regressor's value), and only the nodes it needs, so
+the label branch is not in the graph (ONNX Runtime runs every node of a graph, read
+or not).
 
 The fused graph is written as a model folder, ``MODELS/fused``, beside the
 artefacts it was built from::

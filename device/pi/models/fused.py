@@ -15,6 +15,10 @@ it (a classifier's window encoding as it is; the regressor's cleaned and clipped
 the graph runs once over I/O-bound buffers, and each member's output goes through
 its own post-processing (probabilities cleaned, the regressor's fallback and fault
 flag). The results are those of the members' ``predict_window``, value for value.
+Two classifiers that read the same window encoding share one input of the graph,
+written once (the loaded models must read it the same way, else the graph is not
+used). A frame whose members are all in one of the manifest's ``subsets`` (the graph
+without texture, for frames out of contact) runs that smaller graph instead.
 """
 from __future__ import annotations
 
