@@ -92,7 +92,11 @@ def test_demo_writes_preview_and_truth_plot(tmp_path, capsys):
     assert res["runtime"]["gait_packets"] > 0.9 * rt["frames"] and len(stance) > 100
     assert all(abs(d["expected_mag_px"] - 8.0 * 0.42) < 1e-3 for d in stance)
     # ... and with it the walk's drag steps come out as the ground truth says
-    drags = [r for r in res["segments"] if r["action"] == "drag" and r["contact_frames"] > 20]
+    # (a drag holds over 20 contact frames when every frame is decided; dropped frames
+    # thin every segment alike, so the bar scales with the share decided)
+    decided = rt["frames"] / res["frames"]
+    drags = [r for r in res["segments"]
+             if r["action"] == "drag" and r["contact_frames"] > 20 * decided]
     assert len(drags) == 8
     assert sum(r["reported"] == r["truth"] for r in drags) >= 6
     assert sum(p["slip"] for p in surf) > 0
