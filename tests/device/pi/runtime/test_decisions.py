@@ -349,3 +349,63 @@ def test_the_fused_graph_decides_exactly_as_one_session_per_model(model_dir, tmp
                 np.testing.assert_array_equal(x, y)
         n += a.model_probs is not None and a.pressure is not None
     assert n > 20                        # both models decided on most frames
+
+
+def test_the_fused_graph_with_texture_decides_as_one_session_per_model_in_and_out_of_contact(
+        model_dir, tmp_path):
+    """Issue #25: with a texture member, frames in contact run the whole fused graph
+    and frames out of contact the graph without texture; surface and slip read one
+    input. Every decision is still one session per model's, field for field."""
+    import shutil
+
+    from host.learn.fuse import fuse_models
+
+    one_dir, fused_dir = tmp_path / "one", tmp_path / "fused"
+    for d in (one_dir, fused_dir):
+        for t in ("surface", "pressure"):
+            shutil.copytree(model_dir / t, d / t)
+        for t in ("texture", "slip"):        # the surface fnn serving as texture and slip
+            shutil.copytree(model_dir / "surface", d / t)
+            for mf in (d / t).glob("manifest*.json"):
+                doc = json.loads(mf.read_text())
+                doc["kind"] = doc["task"] = t
+                if t == "slip":
+                    doc["classes"] = ["a", "slip", "b", "c"]
+                mf.write_text(json.dumps(doc))
+    fuse_models(fused_dir)
+    one = load_models(one_dir, "int8", N_PINS, LegConfig())
+    fused = load_models(fused_dir, "int8", N_PINS, LegConfig())
+    assert one.fused is None and fused.fused is not None
+    assert fused.fused._reads == {"texture": "surface", "slip": "surface"}
+    ran = []
+    pick = fused.fused._runner_for
+
+    def counted(tasks):
+        ran.append(pick(tasks))
+        return ran[-1]
+    fused.fused._runner_for = counted
+    ws = {id(m): {3: RollingWindow(3, N_PINS)} for m in (one, fused)}
+    rng = np.random.default_rng(8)
+    seen = set()
+    for i in range(30):
+        v = rng.normal(0, 1 + i % 4, (N_PINS, 2)).astype(np.float32)
+        imu = rng.normal(0, 1, 6).astype(np.float32)
+        kw = dict(contact_seen=i % 3 != 0, referenced=True, expected_mag_px=None,
+                  expected_motion_px=None, gait=None, gait_rule_weight=0.5)
+        got = []
+        for m in (one, fused):
+            ws[id(m)][3].push(vectors=v, imu=imu)
+            got.append(decide(m, ws[id(m)], **kw))
+        a, b = got
+        for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
+                  "model_fault", "measures"):
+            assert getattr(a, f) == getattr(b, f), (i, f)
+        for f in ("probs", "rule_probs", "model_probs"):
+            x, y = getattr(a, f), getattr(b, f)
+            assert (x is None) == (y is None)
+            if x is not None:
+                np.testing.assert_array_equal(x, y)
+        if a.model_probs is not None:
+            seen.add(a.texture is not None)
+    assert seen == {True, False}            # frames with texture and frames without
+    assert set(ran) == {fused.fused._runner, fused.fused._subsets[0][1]}
