@@ -169,11 +169,15 @@ def _shared_nodes(nodes, inits, outputs: set) -> list:
     attributes on the same inputs, constants compared by value) left out and its
     outputs read from the earlier node's: members that compute the same features
     from one input compute them once, value for value. A node that gives a graph
-    output (``outputs``) is kept."""
+    output (``outputs``) is kept. A graph with control flow (a node holding a
+    subgraph, which may read any outer name) is left as it is."""
     import hashlib
 
     import onnx
 
+    if any(a.type in (onnx.AttributeProto.GRAPH, onnx.AttributeProto.GRAPHS)
+           for n in nodes for a in n.attribute):
+        return list(nodes)
     consts = {}
     for t in inits:
         c = onnx.TensorProto()

@@ -144,3 +144,29 @@ def test_a_fused_copy_links_the_models_and_leaves_their_folder_alone(shipped, tm
     assert all((d / t).is_symlink() for t in TASKS) and (d / "fused" / "manifest.json").is_file()
     m = load_models(d, "int8", 133, LegConfig())
     assert m.fused is not None and m.fused.tasks == TASKS
+
+
+def test_repeated_nodes_are_computed_once_and_control_flow_is_left_alone():
+    """_shared_nodes drops a node that repeats an earlier one (constants compared by
+    value, not by name) and reads its output instead; a node giving a graph output
+    stays; a graph holding a subgraph is not touched."""
+    from onnx import helper, numpy_helper
+
+    from host.learn.fuse import _shared_nodes
+
+    c1 = numpy_helper.from_array(np.array([2.0], np.float32), "a/c")
+    c2 = numpy_helper.from_array(np.array([2.0], np.float32), "b/c")
+    c3 = numpy_helper.from_array(np.array([3.0], np.float32), "b/d")
+    nodes = [helper.make_node("Mul", ["x", "a/c"], ["a/m"]),
+             helper.make_node("Mul", ["x", "b/c"], ["b/m"]),            # = a/m
+             helper.make_node("Mul", ["x", "b/d"], ["b/n"]),            # another constant
+             helper.make_node("Relu", ["b/m"], ["b/r"]),
+             helper.make_node("Relu", ["a/m"], ["a/out"])]              # a graph output
+    kept = _shared_nodes(nodes, [c1, c2, c3], {"a/out", "b/r"})
+    assert [n.output[0] for n in kept] == ["a/m", "b/n", "b/r", "a/out"]
+    assert list(kept[2].input) == ["a/m"]
+    body = helper.make_graph([], "body", [], [])
+    loop = [helper.make_node("If", ["x"], ["y"], then_branch=body, else_branch=body)]
+    again = [helper.make_node("Mul", ["x", "a/c"], ["a/m"]),
+             helper.make_node("Mul", ["x", "b/c"], ["b/m"])] + loop
+    assert len(_shared_nodes(again, [c1, c2], set())) == 3
