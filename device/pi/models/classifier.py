@@ -209,6 +209,13 @@ class Classifier:
         o = np.asarray(out, dtype=np.float64).reshape(-1)
         C = self.n_classes
         if self.output_kind == "probabilities" and o.size == C:
+            # the usual output, in 0..1 (so finite) and not all 0: clean_probabilities'
+            # own first case, without its call and a second finiteness check
+            if o.min() >= 0.0 and o.max() <= 1.0:
+                s = o.sum()
+                if s > 0:
+                    self.fault = False
+                    return o / s
             p, fault = clean_probabilities(o)            # finite, sums to 1
             self.fault = fault or not np.isfinite(o).all()
             return p

@@ -146,7 +146,7 @@ class FusedModels:
                 res[task] = mod.finish(o, self._bad_input[task])
             else:
                 p = mod.probabilities_from_output(o)
-                res[task] = (int(np.argmax(p)), p)
+                res[task] = (int(p.argmax()), p)
         return res
 
 

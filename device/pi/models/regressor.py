@@ -84,9 +84,10 @@ class Regressor:
         if f.size != self.n_features:
             raise ModelError(f"{self.model.path}: expects {self.n_features} features, "
                              f"got {f.size}")
-        x[0] = finite(f)
+        clean = bool(np.isfinite(f).all())
+        x[0] = f if clean else finite(f)
         # NaN/inf became 0 (finite); beyond ENCODED_BOUND no encoder gives it
-        bad_input = not (np.isfinite(f).all() and float(np.abs(x).max()) <= ENCODED_BOUND)
+        bad_input = not (clean and float(np.abs(x).max()) <= ENCODED_BOUND)
         if self._lo is not None:
             zero = x == 0
             np.clip(x, self._lo, self._hi, out=x)
