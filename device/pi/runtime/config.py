@@ -23,7 +23,9 @@ Sections and keys (units in the names)::
                mm of expected foot travel), gait_timeout_ms (older GAIT = nominal),
                gait_rule_weight (share of the gait-aware rule in the surface call
                when a learned surface model is loaded and GAIT is fresh)
-    [rezero]   auto (bool), still_px, still_frames, min_interval_s
+    [rezero]   auto (bool), still_px, still_frames, min_interval_s; reacquire (where
+               the tracker's coarse search after a jump runs: "background", beside the
+               loop, the jump frame reporting every pin lost, or "inline")
     [status]   interval_s (how often --status FILE is rewritten)
     [mcap]     the ``--mcap FILE`` log (docs/viewing.md): image_every (log every Nth
                camera frame, with its pin annotations), image_width (px, the logged
@@ -98,6 +100,7 @@ class RezeroConfig:
     still_px: float = 0.3
     still_frames: int = 10
     min_interval_s: float = 2.0
+    reacquire: str = "background"
 
 
 @dataclass
@@ -206,7 +209,8 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
                           max=100.0),
         still_frames=r.integer("still_frames", d.rezero.still_frames, min=1, max=100_000),
         min_interval_s=r.number("min_interval_s", d.rezero.min_interval_s, min=0.0,
-                                max=3600.0))
+                                max=3600.0),
+        reacquire=r.string("reacquire", d.rezero.reacquire, choices=("background", "inline")))
     r.done()
 
     st = top.sub("status", {})

@@ -89,7 +89,7 @@ class LegRuntime:
                         for c in (models.surface, models.texture, models.slip) if c is not None)
         self.encoder = FrameEncoder(models.profile_source or cfg.models.profile,
                                     crop_px=CROP_PX if need_crop else None,
-                                    localiser=models.localiser)
+                                    localiser=models.localiser, reacquire=cfg.rezero.reacquire)
         self.stream = self.encoder.stream
         self.n_pins = self.encoder.n_pins
         self._prev_v = np.zeros((self.n_pins, 2), np.float32)

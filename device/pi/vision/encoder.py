@@ -46,12 +46,13 @@ class FrameEncoder:
 
     ``profile`` is a built-in sensor profile name or a TOML path; ``layout_px`` is
     the fixed pin layout (default: the profile's own); ``localiser`` is an optional
-    fixed-count localiser handed to the marker stream.
+    fixed-count localiser handed to the marker stream; ``reacquire`` where the
+    tracker's coarse search runs (:class:`device.pi.vision.tracking.Tracker`).
     """
 
     def __init__(self, profile: str = "roboskin", *, crop_px: int | None = 32,
-                 layout_px: np.ndarray | None = None, localiser=None):
-        self.stream = MarkerStream(profile, localiser=localiser)
+                 layout_px: np.ndarray | None = None, localiser=None, reacquire: str = "inline"):
+        self.stream = MarkerStream(profile, localiser=localiser, reacquire=reacquire)
         layout = layout_for_profile(profile) if layout_px is None else layout_px
         self.mapper = LayoutMapper(layout, self.stream.profile.match_gate_px)
         if crop_px is not None and int(crop_px) < 1:

@@ -106,14 +106,15 @@ class MarkerStream:
     """
 
     def __init__(self, profile: PipelineProfile | str = "roboskin", localiser=None,
-                 warmup: int = 5, still_px: float = 0.75):
+                 warmup: int = 5, still_px: float = 0.75, reacquire: str = "inline"):
         self.profile = (profile if isinstance(profile, PipelineProfile)
                         else load_pipeline_profile(profile))
         self.localiser = localiser
         self.warmup = max(1, int(warmup))
         self.still_px = float(still_px)
         p = self.profile
-        self.tracker = Tracker(max_dist_px=p.match_gate_px, pitch_px=p.pitch_px)
+        self.tracker = Tracker(max_dist_px=p.match_gate_px, pitch_px=p.pitch_px,
+                               reacquire=reacquire)
         self.grid = ContactGrid(p.grid_n, p.grid_gamma, p.grid_contact)
         self.plausibility = FramePlausibility(p.n_pins)
         #: why the last implausible frame failed ('' while frames pass)

@@ -47,6 +47,7 @@ _VEL_ALPHA = 0.5
 # --------------------------------------------------------------------------
 
 _FILL_MODES = ("predict", "hold", "zero")
+_REACQUIRE_MODES = ("inline", "background")
 
 
 #: the coarse re-acquisition's schedule from scratch: annealing from 3 pitches, 16
@@ -88,6 +89,16 @@ class Tracker:
     (:func:`host.analysis.pipeline_eval.evaluate_scene` with ``stride``), but
     after a jump of more than a pitch from rest it places 94 % of the pins
     right, against 97 %.
+
+    ``reacquire`` says where that coarse search runs. ``"inline"`` (default): in
+    the update, which then takes it (3-9 ms on the real clips). ``"background"``
+    (the leg's runtime): on a worker thread, so the jump frame returns at once,
+    with every pin reported lost at its prediction and ``FAULT_TOO_FEW_PINS`` (a pin
+    found near its prediction after a jump can be its neighbour); the next update
+    first takes the search's answer (waiting for it if needed) and, when it wins,
+    puts the state where the inline search would have left it, so every later
+    frame's output is the inline one. ``reacquire_errors`` counts searches that
+    raised (the frame's fast answer is then kept).
 
     Lost pins are flagged in ``lost`` and never invented: their vector is
     filled according to ``fill``:
@@ -140,6 +151,7 @@ class Tracker:
         grow_rounds: int = 4,
         velocity_gain: float = 1.0,
         reacquire_schedule: tuple[float, int, int] = FULL_SEARCH_SCHEDULE,
+        reacquire: str = "inline",
     ) -> None:
         self.max_dist_px = None if max_dist_px is None else positive_number("max_dist_px", max_dist_px)
         self.pitch_px = None if pitch_px is None else positive_number("pitch_px", pitch_px)
@@ -158,6 +170,12 @@ class Tracker:
         self.reacquire_schedule = (positive_number("reacquire_schedule[0]", reacquire_schedule[0]),
                                    whole_number("reacquire_schedule[1]", reacquire_schedule[1], 1),
                                    whole_number("reacquire_schedule[2]", reacquire_schedule[2], 1))
+        if reacquire not in _REACQUIRE_MODES:
+            raise ValueError(f"reacquire must be one of {_REACQUIRE_MODES}, got reacquire={reacquire!r}")
+        self.reacquire = reacquire
+        self._job = None               # a background re-acquisition: (future, frame's state)
+        self._pool = None
+        self.reacquire_errors = 0      # background searches that raised (their frame kept)
         self.faults = FAULT_NO_REFERENCE
         self.n_tracked = 0
         self.reacquired = 0            # 1 when the last update ran the coarse re-acquisition
@@ -188,6 +206,7 @@ class Tracker:
         """Make ``pins`` (m, 2) px the reference layout (rows with NaN/inf are dropped)."""
         r = as_points("pins", pins)
         r = r[usable_rows(r)]
+        self._job = None                # a search for the old layout is dropped
         self._ref = np.ascontiguousarray(r)
         m = r.shape[0]
         pitch = self.pitch_px if self.pitch_px is not None else layout_pitch_px(r)
@@ -209,6 +228,7 @@ class Tracker:
             return
         if self._ref is None:
             return
+        self._settle()
         self._ref = self._ref + self._disp
         self._nb, self._valid = layout_neighbours(self._ref, self.k)
         self._disp[:] = 0.0
@@ -221,6 +241,76 @@ class Tracker:
             return 0.0
         d = self._work[ok] - self._pred[ok]
         return float(np.median(np.hypot(d[:, 0], d[:, 1])))
+
+    # -- re-acquisition ----------------------------------------------------------
+    def _advance(self, work: np.ndarray, lost: np.ndarray, n_ok: int, steps: int) -> None:
+        """Move the prediction's state (last vectors, velocity) to this frame's ``work``.
+        A frame with too few pins tracked (garbage, a gap) does not move it."""
+        m = work.shape[0]
+        if n_ok >= self.min_tracked_frac * m:
+            # exponential average of the change, so centroid noise is not
+            # doubled into the prediction
+            vel = self._vel
+            vel *= 1.0 - _VEL_ALPHA
+            np.subtract(work, self._disp, out=self._disp)              # the change, in place
+            self._disp *= _VEL_ALPHA / steps                           # per frame
+            vel += self._disp
+            if n_ok < m:
+                vel[lost] *= 0.8
+            cap = 0.5 * self._pitch
+            np.minimum(vel, cap, out=vel)
+            np.maximum(vel, -cap, out=vel)
+            np.copyto(self._disp, work)
+
+    def _coarse_kwargs(self, pred: np.ndarray) -> dict:
+        """The coarse annealed search's arguments besides the two point sets, bound
+        now (a search on the worker thread never reads the tracker)."""
+        a_start, a_steps, a_iters = self.reacquire_schedule
+        return dict(init_disp_px=pred, neighbours=(self._nb, self._valid),
+                    gate_frac=self._gate / self._pitch, coarse=True, grow_rounds=self.grow_rounds,
+                    anneal_start=a_start, anneal_steps=a_steps, sinkhorn_iters=a_iters)
+
+    def _coarse(self, r: np.ndarray, c: np.ndarray, pred: np.ndarray):
+        """The coarse annealed search of one frame: (idx, displacements)."""
+        return track_with_neighbours(r, c, self._pitch, **self._coarse_kwargs(pred))
+
+    def _coarse_wins(self, work, idx, work2, idx2) -> bool:
+        """Keep the answer whose pins move more like their neighbours (wrong
+        assignments do not); the fast one on a tie."""
+        q1 = neighbour_consistency(work, idx >= 0, self._nb, self._valid, self._gate)
+        q2 = neighbour_consistency(work2, idx2 >= 0, self._nb, self._valid, self._gate)
+        return q2 > q1
+
+    def _start_coarse(self, r, c, idx, steps) -> np.ndarray:
+        """Start the coarse search of this frame on the worker thread; returns the
+        pins to report lost on this frame: every pin. After a jump a pin found near
+        its prediction can still be its neighbour (a deformation beyond the pitch),
+        so no pin's vector is trusted until the search has answered."""
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tacfoot-reacquire")
+        pred = self._pred.copy()
+        fut = self._pool.submit(track_with_neighbours, r, c.copy(), self._pitch,
+                                **self._coarse_kwargs(pred))
+        self._job = (fut, self._work.copy(), idx.copy(), self._disp.copy(), self._vel.copy(), steps)
+        return np.ones(idx.shape[0], bool)
+
+    def _settle(self) -> None:
+        """Take a background search's answer (waiting for it if it is still running):
+        when it wins, the state becomes what the inline search would have left."""
+        job, self._job = self._job, None
+        if job is None:
+            return
+        fut, work, idx, disp0, vel0, steps = job
+        try:
+            idx2, work2 = fut.result()
+        except Exception:             # the frame keeps the fast answer
+            self.reacquire_errors += 1
+            return
+        if self._coarse_wins(work, idx, work2, idx2):
+            np.copyto(self._disp, disp0)
+            np.copyto(self._vel, vel0)
+            self._advance(work2, idx2 < 0, int(np.count_nonzero(idx2 >= 0)), steps)
 
     # -- per frame ---------------------------------------------------------------
     def update(self, cur, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -236,9 +326,11 @@ class Tracker:
             self.faults = FAULT_NO_REFERENCE
             self.n_tracked = 0
             return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+        self._settle()
         faults = 0
         cols = None
         self.reacquired = 0
+        doubtful = None
         try:
             c = np.asarray(cur, dtype=np.float64)
             if c.ndim != 2 or c.shape[1] != 2:
@@ -271,18 +363,18 @@ class Tracker:
                 # find them or found them far from where they were predicted: track
                 # the frame again with the coarse matching.
                 self.reacquired = 1
-                a_start, a_steps, a_iters = self.reacquire_schedule
-                idx2, work2 = track_with_neighbours(
-                    r, c, self._pitch, init_disp_px=self._pred, neighbours=(self._nb, self._valid),
-                    gate_frac=self._gate / self._pitch, coarse=True, grow_rounds=self.grow_rounds,
-                    anneal_start=a_start, anneal_steps=a_steps, sinkhorn_iters=a_iters)
-                # keep the answer whose pins move more like their neighbours
-                # (wrong assignments do not), the first one on a tie
-                q1 = neighbour_consistency(self._work, idx >= 0, self._nb, self._valid, self._gate)
-                q2 = neighbour_consistency(work2, idx2 >= 0, self._nb, self._valid, self._gate)
-                if q2 > q1:
-                    idx, n_ok = idx2, int(np.count_nonzero(idx2 >= 0))
-                    self._work[:] = work2
+                if self.reacquire == "inline":
+                    idx2, work2 = self._coarse(r, c, self._pred)
+                    if self._coarse_wins(self._work, idx, work2, idx2):
+                        idx, n_ok = idx2, int(np.count_nonzero(idx2 >= 0))
+                        self._work[:] = work2
+                else:
+                    # beside the loop: this frame keeps the fast answer for the state
+                    # (what the inline search keeps when it loses) and reports every
+                    # pin lost at its prediction (too few pins: a fault); the next
+                    # update takes the search's answer for this frame if it wins, as
+                    # inline would, so every later frame is the inline one
+                    doubtful = self._start_coarse(r, c, idx, steps)
         else:
             idx = np.full(m, -1, np.int64)
             self._work[:] = self._disp
@@ -295,20 +387,12 @@ class Tracker:
         # pin lost for long stops drifting), at most half a pitch per frame.
         # A frame with too few pins tracked (garbage, a gap) does not move
         # the prediction.
-        if n_ok >= self.min_tracked_frac * m:
-            # exponential average of the change, so centroid noise is not
-            # doubled into the prediction
-            vel = self._vel
-            vel *= 1.0 - _VEL_ALPHA
-            np.subtract(self._work, self._disp, out=self._disp)        # the change, in place
-            self._disp *= _VEL_ALPHA / steps                           # per frame
-            vel += self._disp
-            if n_ok < m:
-                vel[lost] *= 0.8
-            cap = 0.5 * self._pitch
-            np.minimum(vel, cap, out=vel)
-            np.maximum(vel, -cap, out=vel)
-            np.copyto(self._disp, self._work)
+        self._advance(self._work, lost, n_ok, steps)
+        if doubtful is not None and doubtful.any():
+            lost = lost | doubtful
+            idx = np.where(doubtful, -1, idx)
+            n_ok = int(np.count_nonzero(idx >= 0))
+            self._work[doubtful] = self._pred[doubtful]          # their prediction
         if self.fill == "hold":
             np.copyto(self._vec, self._work, casting="unsafe", where=~lost[:, None])
         else:

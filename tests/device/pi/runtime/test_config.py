@@ -28,6 +28,9 @@ def test_empty_file_takes_defaults_and_values_are_read(tmp_path):
             cfg.decision.mag_px_per_n) == (90.0, "YUYV", False, 1.5)
     assert cfg.models.localiser is False                   # the localiser is off by default
     assert parse_leg_config({"models": {"localiser": True}}).models.localiser is True
+    # the tracker's coarse search runs beside the loop on a leg unless set inline
+    assert cfg.rezero.reacquire == "background"
+    assert parse_leg_config({"rezero": {"reacquire": "inline"}}).rezero.reacquire == "inline"
 
 
 @pytest.mark.parametrize("text, key, value", [
@@ -39,6 +42,7 @@ def test_empty_file_takes_defaults_and_values_are_read(tmp_path):
     ('[models]\nvariant = "int4"\n', "models.variant", "int4"),
     ("[decision]\nmag_px_per_n = 0\n", "decision.mag_px_per_n", "0"),
     ("[rezero]\nauto = 1\n", "rezero.auto", "1"),
+    ('[rezero]\nreacquire = "later"\n', "rezero.reacquire", "later"),
     ('[models]\nlocaliser = "yes"\n', "models.localiser", "yes"),
     ("[status]\ninterval_s = 5\n", "status.interval_s", "5"),
     ("[mcap]\nimage_every = 0\n", "mcap.image_every", "0"),

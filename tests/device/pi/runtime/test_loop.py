@@ -600,3 +600,13 @@ def test_run_on_an_image_folder_flags_every_garbage_frame_with_no_contact(tmp_pa
         assert "frame" in r["faults"] and r["contact"] is False, r
         assert r["class"] == "no-touch" and r["slip"] is False
     assert not any("frame" in r["faults"] for r in rows[:40])
+
+
+def test_the_leg_runs_the_coarse_search_where_its_config_says(tmp_path):
+    """rezero.reacquire reaches the tracker: beside the loop by default, inline when set."""
+    rt, _, _ = make_runtime(tmp_path)
+    assert rt.stream.tracker.reacquire == "background"
+    cfg = LegConfig()
+    cfg.rezero.reacquire = "inline"
+    rt2, _, _ = make_runtime(tmp_path, cfg=cfg)
+    assert rt2.stream.tracker.reacquire == "inline"

@@ -457,3 +457,125 @@ def test_real_glare_and_fast_shear_rarely_need_the_coarse_search():
         assert np.isfinite(out.vectors).all()
     cap.release()
     assert frames == 540 and searched <= 0.02 * frames
+
+
+# -- the coarse search beside the loop (reacquire="background") -------------------------
+
+def _jump_sequence(seed=5, n_after=6):
+    """A hex layout: a small step, a large deformation in one frame (the coarse
+    search runs and wins), then small steps around the deformed layout."""
+    rng = np.random.default_rng(seed)
+    ref = hex_pins(8, 16.0)
+    moved = big_deformation(ref, 16.0, rng)
+    frames = [ref + [0.5, 0.0], moved]
+    for k in range(n_after):
+        frames.append(moved + [0.3 * (k + 1), -0.2 * k] + rng.normal(0, 0.1, ref.shape))
+    return ref, frames
+
+
+def _run(mode, ref, frames, **kw):
+    tr = Tracker(reacquire=mode, **kw)
+    tr.set_reference(ref)
+    out = []
+    for f in frames:
+        v, lost = tr.update(f)
+        out.append((v, lost, tr.idx.copy(), tr.n_tracked, tr.faults, tr.reacquired))
+    return tr, out
+
+
+@pytest.mark.parametrize("fill", ["predict", "hold", "zero"])
+def test_background_search_reports_the_jump_frame_lost_then_matches_inline(fill):
+    """The jump frame goes out at once with every pin reported lost at its prediction
+    and the too-few-pins fault (after a jump a pin near its prediction may be its
+    neighbour: no vector is trusted before the search answers); from the next frame
+    on, every output is the inline search's, to the bit."""
+    ref, frames = _jump_sequence()
+    _, inline = _run("inline", ref, frames, fill=fill)
+    tr, bg = _run("background", ref, frames, fill=fill)
+    assert inline[1][5] == 1 and bg[1][5] == 1                    # the search ran on frame 1
+    # the jump frame: every pin lost, the fault raised, vectors finite (the fill)
+    v_b, lost_b, idx_b, n_b, faults_b = bg[1][:5]
+    assert lost_b.all() and (idx_b == -1).all() and n_b == 0
+    assert faults_b & FAULT_TOO_FEW_PINS and np.isfinite(v_b).all()
+    if fill == "zero":
+        assert not v_b.any()
+    if fill == "hold":
+        np.testing.assert_array_equal(v_b, bg[0][0])           # the last frame's values
+    assert inline[1][4] == 0 and inline[1][1].mean() < 0.1     # inline: found them
+    # every later frame: the inline answer (with fill="hold" a pin lost since then
+    # holds the value it last reported, which differs on the jump frame)
+    for a, b in zip(inline[2:], bg[2:]):
+        shown = ~a[1] if fill == "hold" else np.ones(len(ref), bool)
+        np.testing.assert_array_equal(a[0][shown], b[0][shown])
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2])
+        assert a[3:] == b[3:]
+    assert tr.reacquire_errors == 0
+
+
+def test_a_rezero_or_new_reference_while_the_search_runs_drops_or_takes_it():
+    ref, frames = _jump_sequence()
+    tr = Tracker(reacquire="background")
+    tr.set_reference(ref)
+    tr.update(frames[0])
+    tr.update(frames[1])
+    tr.set_reference(frames[1])          # the search was for the old layout: dropped
+    v, lost = tr.update(frames[1])
+    assert not lost.any() and np.abs(v).max() == 0.0
+    # a re-zero takes the search's answer first: the new reference is where the
+    # inline tracker has the pins
+    inl = Tracker(reacquire="inline")
+    bg = Tracker(reacquire="background")
+    for t in (inl, bg):
+        t.set_reference(ref)
+        t.update(frames[0])
+        t.update(frames[1])
+        t.rezero()
+    np.testing.assert_array_equal(inl.reference, bg.reference)
+
+
+def test_a_search_that_raises_keeps_the_frame_and_is_counted(monkeypatch):
+    import device.pi.vision.tracking as T
+
+    def broken(*a, **k):
+        raise MemoryError("no room")
+    monkeypatch.setattr(T, "track_with_neighbours", broken)
+    ref, frames = _jump_sequence()
+    tr, out = _run("background", ref, frames)
+    assert tr.reacquire_errors >= 1
+    for v, lost, idx, n, faults, _ in out:
+        assert np.isfinite(v).all() and (idx[lost] == -1).all()
+
+
+def test_reacquire_mode_is_checked():
+    with pytest.raises(ValueError, match="reacquire must be one of"):
+        Tracker(reacquire="later")
+
+
+def test_background_search_on_real_clips_differs_only_on_the_jump_frames():
+    """concrete.avi, every frame: the background mode's vectors and lost flags equal
+    the inline mode's on every frame but those the search ran on."""
+    import cv2
+
+    from device.pi.vision.pipeline import MarkerStream
+    from tests.realdata import real_data_dir
+    clip = real_data_dir("roboskin/concrete.avi") / "roboskin" / "concrete.avi"
+    cap = cv2.VideoCapture(str(clip))
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    runs = {}
+    for mode in ("inline", "background"):
+        s = MarkerStream("roboskin", reacquire=mode)
+        runs[mode] = [(s.process(f, i / 120.0), s.tracker.reacquired) for i, f in enumerate(frames)]
+    jumps = [i for i, (_, re) in enumerate(runs["inline"]) if re]
+    assert jumps and jumps == [i for i, (_, re) in enumerate(runs["background"]) if re]
+    for i, ((a, _), (b, _)) in enumerate(zip(runs["inline"], runs["background"])):
+        if i in jumps:
+            assert b.lost.sum() >= a.lost.sum()
+            continue
+        np.testing.assert_array_equal(a.vectors, b.vectors)
+        np.testing.assert_array_equal(a.lost, b.lost)
