@@ -110,11 +110,22 @@ class FusedModels:
         self._subsets = [(frozenset(t), runner(sess, [x for x in self.tasks if x in t]))
                          for t, sess in sorted(subsets, key=lambda ts: len(ts[0]))]
         self._bad_input = dict.fromkeys(self.tasks, False)
+        #: how many frames ran each graph: {members of the graph run: count}
+        self.graph_runs: dict[tuple, int] = {}
+
+    @property
+    def shared_inputs(self) -> dict:
+        """{task: the earlier member whose graph input it reads} (the same window
+        encoding, written once a frame)."""
+        return dict(self._reads)
 
     def _runner_for(self, tasks) -> MultiBoundRun:
         for have, run in self._subsets:
             if have.issuperset(tasks):
+                key = tuple(t for t in self.tasks if t in have)
+                self.graph_runs[key] = self.graph_runs.get(key, 0) + 1
                 return run
+        self.graph_runs[self.tasks] = self.graph_runs.get(self.tasks, 0) + 1
         return self._runner
 
     def run(self, windows: dict) -> dict:

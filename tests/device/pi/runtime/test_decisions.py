@@ -306,6 +306,18 @@ def test_a_rule_slip_model_sees_the_gait_context_and_a_learned_one_does_not(tmp_
     assert learned.calls == [{}]
 
 
+
+def assert_same_decision(a, b, frame) -> None:
+    """Two decisions equal field for field (the probabilities element for element)."""
+    for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
+              "model_fault", "measures"):
+        assert getattr(a, f) == getattr(b, f), (frame, f)
+    for f in ("probs", "rule_probs", "model_probs"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert (x is None) == (y is None), (frame, f)
+        if x is not None:
+            np.testing.assert_array_equal(x, y)
+
 def test_the_fused_graph_decides_exactly_as_one_session_per_model(model_dir, tmp_path):
     """Issue #25: with the fused graph (one model call per frame) every decision is
     the one the individual sessions give, field for field, frame by frame; with
@@ -339,14 +351,7 @@ def test_the_fused_graph_decides_exactly_as_one_session_per_model(model_dir, tmp
             ws[id(m)][3].push(vectors=v, imu=imu)
             got.append(decide(m, ws[id(m)], **kw))
         a, b = got
-        for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
-                  "model_fault", "measures"):
-            assert getattr(a, f) == getattr(b, f), (i, f)
-        for f in ("probs", "rule_probs", "model_probs"):
-            x, y = getattr(a, f), getattr(b, f)
-            assert (x is None) == (y is None)
-            if x is not None:
-                np.testing.assert_array_equal(x, y)
+        assert_same_decision(a, b, i)
         n += a.model_probs is not None and a.pressure is not None
     assert n > 20                        # both models decided on most frames
 
@@ -376,14 +381,7 @@ def test_the_fused_graph_with_texture_decides_as_one_session_per_model_in_and_ou
     one = load_models(one_dir, "int8", N_PINS, LegConfig())
     fused = load_models(fused_dir, "int8", N_PINS, LegConfig())
     assert one.fused is None and fused.fused is not None
-    assert fused.fused._reads == {"texture": "surface", "slip": "surface"}
-    ran = []
-    pick = fused.fused._runner_for
-
-    def counted(tasks):
-        ran.append(pick(tasks))
-        return ran[-1]
-    fused.fused._runner_for = counted
+    assert fused.fused.shared_inputs == {"texture": "surface", "slip": "surface"}
     ws = {id(m): {3: RollingWindow(3, N_PINS)} for m in (one, fused)}
     rng = np.random.default_rng(8)
     seen = set()
@@ -397,15 +395,11 @@ def test_the_fused_graph_with_texture_decides_as_one_session_per_model_in_and_ou
             ws[id(m)][3].push(vectors=v, imu=imu)
             got.append(decide(m, ws[id(m)], **kw))
         a, b = got
-        for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
-                  "model_fault", "measures"):
-            assert getattr(a, f) == getattr(b, f), (i, f)
-        for f in ("probs", "rule_probs", "model_probs"):
-            x, y = getattr(a, f), getattr(b, f)
-            assert (x is None) == (y is None)
-            if x is not None:
-                np.testing.assert_array_equal(x, y)
+        assert_same_decision(a, b, i)
         if a.model_probs is not None:
             seen.add(a.texture is not None)
     assert seen == {True, False}            # frames with texture and frames without
-    assert set(ran) == {fused.fused._runner, fused.fused._subsets[0][1]}
+    # both graphs ran: the whole one in contact, the one without texture out of it
+    runs = fused.fused.graph_runs
+    assert set(runs) == {("surface", "texture", "slip", "pressure"), ("surface", "slip", "pressure")}, runs
+    assert all(n > 0 for n in runs.values())
