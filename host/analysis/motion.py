@@ -39,14 +39,18 @@ def window_motion(vectors: np.ndarray, lost: np.ndarray) -> dict:
     n = seen.sum(axis=1)
     ok = n >= 3
     w = seen / np.maximum(n, 1)[:, None]
-    d = np.where(np.isfinite(v[:, -1] - v[:, -2]), v[:, -1] - v[:, -2], 0.0)
-    mag = np.linalg.norm(np.nan_to_num(v[:, -1]), axis=-1)
-    common = np.einsum("nm,nmk->nk", w, d)
-    resid = np.linalg.norm(d - common[:, None, :], axis=-1)
-    out = {"displacement_px": np.where(ok, (w * mag).sum(axis=1), 0.0),
-           "common_px": np.where(ok, np.linalg.norm(common, axis=-1), 0.0),
-           "jitter_px": np.where(ok, (w * resid).sum(axis=1), 0.0),
-           "lost_share": lo[:, -1].mean(axis=1) if lo.shape[2] else np.zeros(len(v))}
+    # inf/NaN/huge vectors (the hard cases) give inf or NaN on the way; the answer
+    # maps them to 0 below, so numpy's warnings about them are expected here
+    with np.errstate(invalid="ignore", over="ignore"):
+        step = v[:, -1] - v[:, -2]
+        d = np.where(np.isfinite(step), step, 0.0)
+        mag = np.linalg.norm(np.nan_to_num(v[:, -1]), axis=-1)
+        common = np.einsum("nm,nmk->nk", w, d)
+        resid = np.linalg.norm(d - common[:, None, :], axis=-1)
+        out = {"displacement_px": np.where(ok, (w * mag).sum(axis=1), 0.0),
+               "common_px": np.where(ok, np.linalg.norm(common, axis=-1), 0.0),
+               "jitter_px": np.where(ok, (w * resid).sum(axis=1), 0.0),
+               "lost_share": lo[:, -1].mean(axis=1) if lo.shape[2] else np.zeros(len(v))}
     return {k: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for k, x in out.items()}
 
 
