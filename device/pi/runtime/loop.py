@@ -51,6 +51,7 @@ from device.pi.runtime.status import JsonLog, write_status_file
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
 from device.pi.sources.options import opt_bool
+from device.pi.vision import native
 from device.pi.vision.encoder import FrameEncoder
 from device.profile import load_pipeline_profile
 
@@ -440,10 +441,16 @@ class LegRuntime:
                 "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps,
                 "models_fused": self.models.fused is not None,
+                "tracker": self._tracker_status(),
                 "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
                 "link_write_errors": w.write_errors, "json_log_lines_lost":
                     0 if self.json_log is None else self.json_log.lines_lost,
                 **({} if self.mcap is None else self.mcap.status())}
+
+    def _tracker_status(self) -> dict:
+        t = self.stream.tracker
+        return {"matcher": "compiled" if native.active() else "numpy", "reacquire": t.reacquire,
+                "reacquisitions": t.reacquisitions, "reacquire_errors": t.reacquire_errors}
 
     def write_status(self, force: bool = False) -> None:
         if not self.status_path:

@@ -176,6 +176,7 @@ class Tracker:
         self._job = None               # a background re-acquisition: (future, frame's state)
         self._pool = None
         self.reacquire_errors = 0      # background searches that raised (their frame kept)
+        self.reacquisitions = 0        # frames the coarse search ran on, in all
         self.faults = FAULT_NO_REFERENCE
         self.n_tracked = 0
         self.reacquired = 0            # 1 when the last update ran the coarse re-acquisition
@@ -363,6 +364,7 @@ class Tracker:
                 # find them or found them far from where they were predicted: track
                 # the frame again with the coarse matching.
                 self.reacquired = 1
+                self.reacquisitions += 1
                 if self.reacquire == "inline":
                     idx2, work2 = self._coarse(r, c, self._pred)
                     if self._coarse_wins(self._work, idx, work2, idx2):

@@ -610,3 +610,21 @@ def test_the_leg_runs_the_coarse_search_where_its_config_says(tmp_path):
     cfg.rezero.reacquire = "inline"
     rt2, _, _ = make_runtime(tmp_path, cfg=cfg)
     assert rt2.stream.tracker.reacquire == "inline"
+
+
+def test_the_status_says_how_the_tracker_runs(tmp_path, monkeypatch):
+    """status()["tracker"]: the matcher in use, where the coarse search runs, and how
+    many frames it ran on (counted as the runtime saw them)."""
+    from device.pi.vision import native
+    seen = {}
+
+    def hook(r):                           # once per frame decided
+        seen[r.frames] = r.stream.tracker.reacquired
+    rt, _, _ = make_runtime(tmp_path)
+    run_for(rt, frames=80, hook=hook)
+    st = rt.status()["tracker"]
+    assert st == {"matcher": "compiled" if native.active() else "numpy",
+                  "reacquire": "background", "reacquisitions": sum(seen.values()),
+                  "reacquire_errors": 0}
+    monkeypatch.setattr(native, "_FN", None)
+    assert rt.status()["tracker"]["matcher"] == "numpy"
