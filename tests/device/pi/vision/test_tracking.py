@@ -119,10 +119,11 @@ garbage = st.one_of(
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(frames=st.lists(garbage, min_size=1, max_size=6), with_ref=st.booleans())
-def test_tracker_never_raises_and_stays_finite(frames, with_ref):
+@given(frames=st.lists(garbage, min_size=1, max_size=6), with_ref=st.booleans(),
+       mode=st.sampled_from(["inline", "background"]))
+def test_tracker_never_raises_and_stays_finite(frames, with_ref, mode):
     ref = hex_pins(3, 10.0, centre=(150.0, 150.0))
-    tr = Tracker()
+    tr = Tracker(reacquire=mode)
     if with_ref:
         tr.set_reference(ref)
     good = ref + [1.0, -1.0]
@@ -139,7 +140,10 @@ def test_tracker_never_raises_and_stays_finite(frames, with_ref):
         else:
             assert tr.faults == FAULT_NO_REFERENCE
     if with_ref:
+        if tr.reacquired:                  # a search beside the loop answers a frame later
+            vec, lost = tr.update(good)
         assert tr.n_tracked == len(ref)                               # recovers on a good frame
+        assert tr.reacquire_errors == 0
 
 
 def test_tracker_flags_bad_rows_but_uses_the_rest():
