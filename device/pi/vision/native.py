@@ -167,7 +167,6 @@ def match_into(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> 
     return fn(r.ctypes.data, r.shape[0], c.ctypes.data, c.shape[0], max_d2, idx.ctypes.data) == 0
 
 
-_N_CONF = np.zeros(1, np.int64)
 
 
 def grow_into(r: np.ndarray, c: np.ndarray, pred: np.ndarray, nb: np.ndarray, valid: np.ndarray,
@@ -190,12 +189,13 @@ def grow_into(r: np.ndarray, c: np.ndarray, pred: np.ndarray, nb: np.ndarray, va
         return None
     r, c, pred, nb, valid = arrs
     idx = np.empty(m, np.int64)
+    n_conf = ctypes.c_int64(0)            # per call: the worker thread runs it too
     rc = fn.grow(r.ctypes.data, m, c.ctypes.data, n, pred.ctypes.data, nb.ctypes.data,
                  valid.ctypes.data, nb.shape[1], gate, grow_rounds, min_support, final_rounds,
-                 idx.ctypes.data, disp.ctypes.data, _N_CONF.ctypes.data)
+                 idx.ctypes.data, disp.ctypes.data, ctypes.addressof(n_conf))
     if rc != 0:
         return None
-    return idx, int(_N_CONF[0])
+    return idx, int(n_conf.value)
 
 
 load()
