@@ -217,11 +217,12 @@ def _greedy_pairs(rows: np.ndarray, cols: np.ndarray, d2: np.ndarray, m: int, n:
 def _match_finite(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> None:
     """Greedy-by-distance one-to-one matching of finite points; writes ``idx`` in place.
 
-    The compiled kernel (:mod:`device.pi.vision.native`) when it is built, the
-    same assignment; otherwise numpy. Few pairs: every pair is scored (:func:`pair_d2`); many: only the pairs
-    within the gate, found on a cell grid (:func:`gated_pairs`), so the cost
-    grows with the pin count, not with its square. Either way the pairs are
-    the exact squared distances, and the choice is :func:`_greedy_pairs`.
+    The compiled kernel (:mod:`device.pi.vision.native`) when it is built, with
+    the same assignment; otherwise numpy. Few pairs: every pair is scored
+    (:func:`pair_d2`); many: only the pairs within the gate, found on a cell grid
+    (:func:`gated_pairs`), so the cost grows with the pin count, not with its
+    square. Either way the pairs are the exact squared distances, and the choice
+    is :func:`_greedy_pairs`.
     """
     if native.match_into(r, c, max_d2, idx):
         return

@@ -436,7 +436,7 @@ def match_and_grow(r, fin_r, c, pred, nb, valid, gate, grow_rounds, min_support,
     ones. Returns ``idx`` and the number of confident matches of step 1.
     """
     all_fin = bool(fin_r.all())
-    if all_fin and nb.ndim == 2:
+    if all_fin:
         # compiled (device/pi/vision/match.c, tf_grow): the same steps, the same numbers
         done = native.grow_into(r, c, pred, nb, valid, gate, grow_rounds, min_support,
                                 _FINAL_ROUNDS, disp)

@@ -282,11 +282,9 @@ class Tracker:
         q2 = neighbour_consistency(work2, idx2 >= 0, self._nb, self._valid, self._gate)
         return q2 > q1
 
-    def _start_coarse(self, r, c, idx, steps) -> np.ndarray:
-        """Start the coarse search of this frame on the worker thread; returns the
-        pins to report lost on this frame: every pin. After a jump a pin found near
-        its prediction can still be its neighbour (a deformation beyond the pitch),
-        so no pin's vector is trusted until the search has answered."""
+    def _start_coarse(self, r, c, idx, steps) -> None:
+        """Start the coarse search of this frame on the worker thread, keeping what
+        :meth:`_settle` needs to replay the frame with its answer."""
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="tacfoot-reacquire")
@@ -294,7 +292,6 @@ class Tracker:
         fut = self._pool.submit(track_with_neighbours, r, c.copy(), self._pitch,
                                 **self._coarse_kwargs(pred))
         self._job = (fut, self._work.copy(), idx.copy(), self._disp.copy(), self._vel.copy(), steps)
-        return np.ones(idx.shape[0], bool)
 
     def _settle(self) -> None:
         """Take a background search's answer (waiting for it if it is still running):
@@ -331,7 +328,7 @@ class Tracker:
         faults = 0
         cols = None
         self.reacquired = 0
-        doubtful = None
+        searching = False              # a background search holds this frame's answer
         try:
             c = np.asarray(cur, dtype=np.float64)
             if c.ndim != 2 or c.shape[1] != 2:
@@ -376,7 +373,8 @@ class Tracker:
                     # pin lost at its prediction (too few pins: a fault); the next
                     # update takes the search's answer for this frame if it wins, as
                     # inline would, so every later frame is the inline one
-                    doubtful = self._start_coarse(r, c, idx, steps)
+                    self._start_coarse(r, c, idx, steps)
+                    searching = True
         else:
             idx = np.full(m, -1, np.int64)
             self._work[:] = self._disp
@@ -390,11 +388,14 @@ class Tracker:
         # A frame with too few pins tracked (garbage, a gap) does not move
         # the prediction.
         self._advance(self._work, lost, n_ok, steps)
-        if doubtful is not None and doubtful.any():
-            lost = lost | doubtful
-            idx = np.where(doubtful, -1, idx)
-            n_ok = int(np.count_nonzero(idx >= 0))
-            self._work[doubtful] = self._pred[doubtful]          # their prediction
+        if searching:
+            # after a jump a pin found near its prediction can still be its neighbour
+            # (a deformation beyond the pitch): no vector is trusted before the search
+            # answers, so every pin is reported lost at its prediction
+            lost = np.ones(m, bool)
+            idx = np.full(m, -1, np.int64)
+            n_ok = 0
+            np.copyto(self._work, self._pred)
         if self.fill == "hold":
             np.copyto(self._vec, self._work, casting="unsafe", where=~lost[:, None])
         else:
