@@ -48,17 +48,25 @@ INPUT_CLIP = 1.0e6
 # Numerics
 # ----------------------------------------------------------------------------
 
+def _usual_scaled(p: np.ndarray) -> np.ndarray | None:
+    """The usual model output, a non-empty float64 row in 0..1 (so finite) and not all
+    0, divided by its sum (the same sum and division as :func:`clean_probabilities`'
+    general case); None for any other row (NaN included)."""
+    if p.min() >= 0.0 and p.max() <= 1.0:              # False for a NaN
+        s = p.sum()
+        if s > 0:
+            return p / s
+    return None
+
+
 def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bool]:
     """(probabilities, fault): NaN -> 0, clipped to 0..1, renormalised to sum 1. A
     row with nothing left (all zero) becomes uniform and sets the fault flag."""
     p = np.asarray(p, dtype=np.float64)
     if p.ndim == 1 and p.size and (n_classes is None or p.size == n_classes):
-        # the usual model output: in 0..1 (so finite) and not all 0: only the scale
-        # changes, by the same sum and division as below
-        if p.min() >= 0.0 and p.max() <= 1.0:          # False for a NaN
-            s = p.sum()
-            if s > 0:
-                return p / s, False
+        q = _usual_scaled(p)
+        if q is not None:
+            return q, False
     squeeze = p.ndim == 1
     p = np.atleast_2d(p).copy()
     if n_classes is not None and p.shape[1] != n_classes:
@@ -209,13 +217,10 @@ class Classifier:
         o = np.asarray(out, dtype=np.float64).reshape(-1)
         C = self.n_classes
         if self.output_kind == "probabilities" and o.size == C:
-            # the usual output, in 0..1 (so finite) and not all 0: clean_probabilities'
-            # own first case, without its call and a second finiteness check
-            if o.min() >= 0.0 and o.max() <= 1.0:
-                s = o.sum()
-                if s > 0:
-                    self.fault = False
-                    return o / s
+            q = _usual_scaled(o)                          # the usual output: no fault
+            if q is not None:
+                self.fault = False
+                return q
             p, fault = clean_probabilities(o)            # finite, sums to 1
             self.fault = fault or not np.isfinite(o).all()
             return p

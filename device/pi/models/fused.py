@@ -106,9 +106,12 @@ class FusedModels:
                                            if by_task[t]["input"] in names},
                                  [by_task[t]["output"] for t in tasks])
         self._runner = runner(model.session, self.tasks)
-        # (tasks, runner), fewest tasks first: a frame runs the first that covers it
-        self._subsets = [(frozenset(t), runner(sess, [x for x in self.tasks if x in t]))
-                         for t, sess in sorted(subsets, key=lambda ts: len(ts[0]))]
+        # (tasks, members in order, runner), fewest tasks first: a frame runs the first
+        # that covers it
+        self._subsets = []
+        for t, sess in sorted(subsets, key=lambda ts: len(ts[0])):
+            members = tuple(x for x in self.tasks if x in t)
+            self._subsets.append((frozenset(t), members, runner(sess, list(members))))
         self._bad_input = dict.fromkeys(self.tasks, False)
         #: how many frames ran each graph: {members of the graph run: count}
         self.graph_runs: dict[tuple, int] = {}
@@ -120,10 +123,9 @@ class FusedModels:
         return dict(self._reads)
 
     def _runner_for(self, tasks) -> MultiBoundRun:
-        for have, run in self._subsets:
+        for have, members, run in self._subsets:
             if have.issuperset(tasks):
-                key = tuple(t for t in self.tasks if t in have)
-                self.graph_runs[key] = self.graph_runs.get(key, 0) + 1
+                self.graph_runs[members] = self.graph_runs.get(members, 0) + 1
                 return run
         self.graph_runs[self.tasks] = self.graph_runs.get(self.tasks, 0) + 1
         return self._runner
