@@ -307,6 +307,17 @@ def test_a_rule_slip_model_sees_the_gait_context_and_a_learned_one_does_not(tmp_
 
 
 
+def decide_both(one, fused, ws, v, imu, kw, frame):
+    """Push one frame into each model set's windows (``ws[id(models)]``), decide with
+    both, check the decisions are equal field for field; returns the first."""
+    got = []
+    for m in (one, fused):
+        ws[id(m)][3].push(vectors=v, imu=imu)
+        got.append(decide(m, ws[id(m)], **kw))
+    assert_same_decision(*got, frame)
+    return got[0]
+
+
 def assert_same_decision(a, b, frame) -> None:
     """Two decisions equal field for field (the probabilities element for element)."""
     for f in ("class_id", "contact", "slip", "slip_conf", "texture", "pressure",
@@ -346,12 +357,7 @@ def test_the_fused_graph_decides_exactly_as_one_session_per_model(model_dir, tmp
                   expected_mag_px=None if i % 2 else 2.0,
                   expected_motion_px=None if i % 2 else 0.5,
                   gait=None if i % 2 else {"stance": True}, gait_rule_weight=0.5)
-        got = []
-        for m in (one, fused):
-            ws[id(m)][3].push(vectors=v, imu=imu)
-            got.append(decide(m, ws[id(m)], **kw))
-        a, b = got
-        assert_same_decision(a, b, i)
+        a = decide_both(one, fused, ws, v, imu, kw, i)
         n += a.model_probs is not None and a.pressure is not None
     assert n > 20                        # both models decided on most frames
 
@@ -390,12 +396,7 @@ def test_the_fused_graph_with_texture_decides_as_one_session_per_model_in_and_ou
         imu = rng.normal(0, 1, 6).astype(np.float32)
         kw = dict(contact_seen=i % 3 != 0, referenced=True, expected_mag_px=None,
                   expected_motion_px=None, gait=None, gait_rule_weight=0.5)
-        got = []
-        for m in (one, fused):
-            ws[id(m)][3].push(vectors=v, imu=imu)
-            got.append(decide(m, ws[id(m)], **kw))
-        a, b = got
-        assert_same_decision(a, b, i)
+        a = decide_both(one, fused, ws, v, imu, kw, i)
         if a.model_probs is not None:
             seen.add(a.texture is not None)
     assert seen == {True, False}            # frames with texture and frames without
