@@ -17,6 +17,7 @@ import threading
 
 
 from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
+from device.pi.vision import native
 
 #: after a stop signal, the loop has this long to finish before the process ends anyway
 STOP_GRACE_S = 0.8
@@ -66,6 +67,11 @@ def main(argv: list[str] | None = None) -> int:
         if err:
             print(f"device.pi run: error: {err}", file=sys.stderr)
             return EXIT_BAD_INPUT
+    refused = native.refused()          # a library is there but was not loaded: say why
+    if refused:
+        print(f"device.pi run: warning: the tracker's compiled kernel is not loaded: {refused}; "
+              "the tracker runs on numpy (rebuild: python -m device.pi.vision.native build)",
+              file=sys.stderr)
     try:
         rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
                            config=args.config, fps=args.fps, json_log=args.json_log,

@@ -449,7 +449,8 @@ class LegRuntime:
 
     def _tracker_status(self) -> dict:
         t = self.stream.tracker
-        return {"matcher": "compiled" if native.active() else "numpy", "reacquire": t.reacquire,
+        return {"matcher": "compiled" if native.active() else "numpy",
+                "matcher_reason": native.status(), "reacquire": t.reacquire,
                 "reacquisitions": t.reacquisitions, "reacquire_errors": t.reacquire_errors}
 
     def write_status(self, force: bool = False) -> None:

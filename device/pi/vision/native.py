@@ -23,15 +23,24 @@ leg, after the release is installed. Without a C compiler, or with
 ``TACFOOT_NATIVE=0`` in the environment, the tracker uses numpy: the same
 numbers, slower. The library's file name carries a hash of ``match.c`` and the
 machine, so a library from an older source or another machine is never loaded.
+
+Before the library is opened, :func:`check_library` reads its ELF headers without
+loading it: a file cut short (``dlopen`` maps past its end, and the first touch of
+a missing page kills the process with SIGBUS), a file built for another CPU, or
+anything that is not a shared library is refused with a one-line reason
+(:func:`refused`), and the tracker runs on numpy.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import platform
 import shutil
+import stat
+import struct
 import subprocess
 import sys
 import tempfile
@@ -39,8 +48,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SOURCE", "NativeBuildError", "library_path", "build", "kernel", "load", "match_into",
-           "grow_into", "active", "status"]
+__all__ = ["SOURCE", "NativeBuildError", "library_path", "check_library",
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: the kernel's ABI; tf_abi_version() must return it
@@ -51,6 +60,132 @@ CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
 
 class NativeBuildError(RuntimeError):
     """The kernel could not be compiled (no compiler, or it failed)."""
+
+
+#: e_machine numbers of the CPUs a leg or a development machine may have, for messages
+_MACHINES = {3: "i386", 8: "mips", 20: "ppc", 21: "ppc64", 22: "s390x", 40: "arm", 62: "x86_64",
+             183: "aarch64", 243: "riscv"}
+_MACHINE_OF = {"x86_64": 62, "amd64": 62, "i386": 3, "i686": 3, "aarch64": 183, "arm64": 183,
+               "armv6l": 40, "armv7l": 40, "armv8l": 40, "riscv64": 243, "ppc64le": 21,
+               "ppc64": 21, "s390x": 22}
+_ET_DYN = 3
+
+
+def _machine_name(e_machine: int) -> str:
+    return _MACHINES.get(e_machine, f"ELF machine {e_machine}")
+
+
+def _elf_ident(head: bytes):
+    """``(is64, little, e_machine)`` of an ELF header, or None for anything else."""
+    if len(head) < 20 or head[:4] != b"\x7fELF" or head[4] not in (1, 2) or head[5] not in (1, 2):
+        return None
+    little = head[5] == 1
+    return head[4] == 2, little, struct.unpack_from("<H" if little else ">H", head, 18)[0]
+
+
+@functools.lru_cache(maxsize=1)
+def _this_machine():
+    """``(is64, little, e_machine)`` a library must have to load into this process: the
+    interpreter's own ELF header (a 32-bit Python on a 64-bit kernel, as on many
+    Raspberry Pi systems, loads 32-bit libraries only), else the word size, byte order
+    and ``platform.machine()``; e_machine None when it cannot be told."""
+    for exe in (os.path.realpath(sys.executable or ""), "/proc/self/exe"):
+        try:
+            with open(exe, "rb") as f:
+                ident = _elf_ident(f.read(20))
+        except OSError:
+            continue
+        if ident is not None:
+            return ident
+    return (struct.calcsize("P") == 8, sys.byteorder == "little",
+            _MACHINE_OF.get(platform.machine().lower()))
+
+
+def check_library(path) -> str | None:
+    """Why the library at ``path`` must not be loaded, in one line, or None when its
+    structure allows it. Reads only the ELF headers, never maps or runs the file:
+    a regular file; an ELF shared library of this process's word size, byte order
+    and CPU; its program headers, every segment (``p_offset + p_filesz``), the
+    section header table and every section's bytes inside the file. ``dlopen`` on
+    a file cut short maps pages past its end and the process dies of SIGBUS at the
+    first touch, so this runs before any ``ctypes.CDLL``."""
+    path = Path(path)
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            return "is not a regular file"
+        size = st.st_size
+        with open(path, "rb") as f:
+            return _check_elf(f, size)
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+
+
+def _check_elf(f, size: int) -> str | None:
+    head = f.read(64)
+    ident = _elf_ident(head)
+    if ident is None:
+        return f"is not an ELF library ({size} bytes)" if size else "is empty"
+    is64, little, e_machine = ident
+    want64, want_little, want_machine = _this_machine()
+    if is64 != want64:
+        return f"is a {64 if is64 else 32}-bit library, this Python is {64 if want64 else 32}-bit"
+    if little != want_little:
+        return (f"is {'little' if little else 'big'}-endian, this machine is "
+                f"{'little' if want_little else 'big'}-endian")
+    if want_machine is not None and e_machine != want_machine:
+        return f"built for {_machine_name(e_machine)}, this machine is {_machine_name(want_machine)}"
+    e = "<" if little else ">"
+    ehsize = 64 if is64 else 52
+    if len(head) < ehsize:
+        return f"is cut short: {size} bytes, less than its {ehsize}-byte ELF header"
+    (e_type, _, _, _, phoff, shoff, _, _, phentsize, phnum, shentsize, shnum, _) = struct.unpack_from(
+        e + ("HHIQQQIHHHHHH" if is64 else "HHIIIIIHHHHHH"), head, 16)
+    if e_type != _ET_DYN:
+        return f"is not a shared library (ELF type {e_type})"
+    ph_size, sh_size = (56, 64) if is64 else (32, 40)
+    sec = e + ("IIQQQQIIQQ" if is64 else "IIIIIIIIII")
+
+    def read(off: int, n: int) -> bytes:
+        f.seek(off)
+        return f.read(n)
+
+    if shoff and (shnum == 0 or phnum == 0xFFFF):          # extended numbering: section 0 holds it
+        if shentsize != sh_size or shoff + sh_size > size:
+            return f"is cut short: its section header table starts at byte {shoff}, the file has {size} bytes"
+        s0 = struct.unpack(sec, read(shoff, sh_size))
+        shnum = shnum or s0[5]
+        phnum = s0[7] if phnum == 0xFFFF else phnum
+    if phnum == 0:
+        return "has no program headers"
+    if phentsize != ph_size:
+        return f"has {phentsize}-byte program headers, expected {ph_size}"
+    if phoff + phnum * ph_size > size:
+        return (f"is cut short: its program headers end at byte {phoff + phnum * ph_size}, "
+                f"the file has {size} bytes")
+    table = read(phoff, phnum * ph_size)
+    for i in range(phnum):
+        if is64:
+            _, _, p_offset, _, _, p_filesz, _, _ = struct.unpack_from(e + "IIQQQQQQ", table, i * ph_size)
+        else:
+            _, p_offset, _, _, p_filesz, _, _, _ = struct.unpack_from(e + "IIIIIIII", table, i * ph_size)
+        if p_offset + p_filesz > size:
+            return (f"is cut short: segment {i} ends at byte {p_offset + p_filesz}, "
+                    f"the file has {size} bytes")
+    if shoff == 0:
+        return None
+    if shnum and shentsize != sh_size:
+        return f"has {shentsize}-byte section headers, expected {sh_size}"
+    if shoff + shnum * sh_size > size:
+        return (f"is cut short: its section headers end at byte {shoff + shnum * sh_size}, "
+                f"the file has {size} bytes")
+    table = read(shoff, shnum * sh_size)
+    for i in range(1, shnum):
+        _, sh_type, _, _, sh_offset, sh_bytes, *_ = struct.unpack_from(sec, table, i * sh_size)
+        if sh_type != 8 and sh_offset + sh_bytes > size:          # SHT_NOBITS has no bytes
+            return (f"is cut short: section {i} ends at byte {sh_offset + sh_bytes}, "
+                    f"the file has {size} bytes")
+    return None
 
 
 def _tag() -> str:
@@ -104,7 +239,11 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
 def kernel(path: Path):
     """The matching function of the library at ``path``:
     ``fn(r_ptr, m, c_ptr, n, max_d2, idx_ptr) -> 0 | -1`` (see ``match.c``).
-    Raises OSError for a file that is not a library, NativeBuildError for another ABI."""
+    Raises NativeBuildError for a file :func:`check_library` refuses (never opened)
+    or another ABI, OSError for one the dynamic loader refuses."""
+    why = check_library(path)
+    if why is not None:
+        raise NativeBuildError(f"{path} {why}")
     lib = ctypes.CDLL(str(Path(path).resolve()))
     if lib.tf_abi_version() != ABI_VERSION:
         raise NativeBuildError(f"{path} is ABI {lib.tf_abi_version()}, expected {ABI_VERSION}")
@@ -124,22 +263,26 @@ def kernel(path: Path):
 
 _FN = None
 _WHY = "not loaded yet"
+_REFUSED: str | None = None
 
 
 def load():
-    """The kernel's function, or None (not built, disabled, or broken; see :func:`status`)."""
-    global _FN, _WHY
+    """The kernel's function, or None (not built, disabled, or refused; see :func:`status`
+    and :func:`refused`)."""
+    global _FN, _WHY, _REFUSED
+    _FN, _REFUSED = None, None
     if os.environ.get("TACFOOT_NATIVE", "1") == "0":
-        _FN, _WHY = None, "disabled by TACFOOT_NATIVE=0"
+        _WHY = "disabled by TACFOOT_NATIVE=0"
         return None
     path = library_path()
     if not path.exists():
-        _FN, _WHY = None, f"not built ({path.name} missing: python -m device.pi.vision.native build)"
+        _WHY = f"not built ({path.name} missing: python -m device.pi.vision.native build)"
         return None
     try:
         _FN, _WHY = kernel(path), f"compiled ({path})"
     except (OSError, AttributeError, NativeBuildError) as exc:
-        _FN, _WHY = None, f"{path.name} does not load: {exc}"
+        _REFUSED = " ".join(str(exc).split()) or f"{path}: {type(exc).__name__}"  # one line
+        _WHY = f"does not load: {_REFUSED} (rebuild: python -m device.pi.vision.native build)"
     return _FN
 
 
@@ -151,6 +294,13 @@ def active() -> bool:
 def status() -> str:
     """``"compiled (path)"`` or why the numpy matcher runs."""
     return _WHY
+
+
+def refused() -> str | None:
+    """Why a library that is there was not loaded (cut short, another CPU, another
+    ABI, the loader's error), in one line; None when it loaded, is not built, or
+    the kernel is disabled."""
+    return _REFUSED
 
 
 def match_into(r: np.ndarray, c: np.ndarray, max_d2: float, idx: np.ndarray) -> bool:

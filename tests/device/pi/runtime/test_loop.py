@@ -624,7 +624,7 @@ def test_the_status_says_how_the_tracker_runs(tmp_path, monkeypatch):
     run_for(rt, frames=80, hook=hook)
     st = rt.status()["tracker"]
     assert st == {"matcher": "compiled" if native.active() else "numpy",
-                  "reacquire": "background", "reacquisitions": sum(seen.values()),
+                  "matcher_reason": native.status(), "reacquire": "background", "reacquisitions": sum(seen.values()),
                   "reacquire_errors": 0}
     monkeypatch.setattr(native, "_FN", None)
     assert rt.status()["tracker"]["matcher"] == "numpy"

@@ -3,8 +3,11 @@ matcher's assignment, builds atomically, and falls back to numpy when it cannot 
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import stat
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -22,12 +25,17 @@ needs_cc = pytest.mark.skipif(shutil.which(os.environ.get("CC", "cc")) is None,
 
 
 @pytest.fixture(scope="module")
-def compiled(tmp_path_factory):
-    """The kernel built into a private folder (not the package's)."""
+def built(tmp_path_factory):
+    """The library built into a private folder (not the package's): its path."""
     if shutil.which(os.environ.get("CC", "cc")) is None:
         pytest.skip("no C compiler here: the tracker runs on numpy")
-    path = native.build(folder=tmp_path_factory.mktemp("native"))
-    return native.kernel(path)
+    return native.build(folder=tmp_path_factory.mktemp("native"))
+
+
+@pytest.fixture(scope="module")
+def compiled(built):
+    """The kernel's function, from the library built into a private folder."""
+    return native.kernel(built)
 
 
 def run_c(fn, r, c, gate):
@@ -127,6 +135,7 @@ def test_a_broken_or_foreign_library_is_not_loaded(tmp_path, monkeypatch):
         assert native.load() is None
         assert not native.active()
         assert "does not load" in native.status()
+        assert native.refused() == f"{native.library_path()} is not an ELF library (19 bytes)"
         idx = matching.match_pins([[0.0, 0.0], [10.0, 0.0]], [[10.5, 0.0], [0.2, 0.0]], 1.0)
         np.testing.assert_array_equal(idx, [1, 0])
     finally:
@@ -273,3 +282,167 @@ def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(monkeypat
     np.testing.assert_array_equal(i1, i2)
     np.testing.assert_array_equal(d1, d2)
     assert (i1[1:] == [1, 2, 3]).all()
+
+
+# --- a library that is there but must not be loaded (issue 29, items 1, 9 and 10) ---
+
+def _env(folder, **more) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "TACFOOT_NATIVE"}
+    return dict(env, TACFOOT_NATIVE_DIR=str(folder), **more)
+
+
+def _place(built: Path, folder: Path, data: bytes) -> Path:
+    """``data`` at the library's name in ``folder`` (what TACFOOT_NATIVE_DIR names)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = folder / built.name
+    out.write_bytes(data)
+    return out
+
+
+def _run_leg(folder: Path, tmp_path: Path):
+    """``device.pi run`` on sim:// for 20 frames with the library folder ``folder``:
+    the process, its JSON summary (or None) and its status file's tracker block."""
+    status = tmp_path / "status.json"
+    run = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", "sim://walk",
+                          "--imu", "sim://walk", "--serial", "loop://", "--frames", "20", "--json",
+                          "--status", str(status)],
+                         capture_output=True, text=True, env=_env(folder), timeout=120)
+    summary = json.loads(run.stdout) if run.returncode == 0 else None
+    tracker = json.loads(status.read_text())["tracker"] if status.exists() else None
+    return run, summary, tracker
+
+
+def _other_machine() -> tuple[int, str]:
+    """An e_machine this machine is not: aarch64, or x86_64 on an aarch64 machine."""
+    return (62, "x86_64") if native._this_machine()[2] == 183 else (183, "aarch64")
+
+
+def test_every_cut_of_a_real_library_is_refused_without_loading_it(built, tmp_path):
+    """The built library cut at every 61st length and at 1,000, 8,192, 20,000 and
+    len-1 bytes: check_library gives a one-line reason for each (a structural read:
+    loading one of these would kill this process with SIGBUS); the whole file passes."""
+    data = built.read_bytes()
+    assert native.check_library(built) is None
+    cuts = sorted({*range(0, len(data), 61), 1000, 8192, 20000, len(data) - 1})
+    for n in cuts:
+        cut = _place(built, tmp_path, data[:n])
+        why = native.check_library(cut)
+        assert why is not None and "\n" not in why, n
+        if n >= 64:
+            assert why.startswith("is cut short: ") and why.endswith(f"the file has {n} bytes"), why
+
+
+@pytest.mark.parametrize("cut", [1000, 8192, 20000, -1])
+def test_a_cut_library_runs_the_leg_on_numpy_with_one_line(built, tmp_path, cut):
+    """A library cut short in TACFOOT_NATIVE_DIR (a build interrupted by a power cut):
+    the runtime and `host --help` exit 0 (before: SIGBUS, exit 135, no message); the
+    runtime says in one line on stderr that the kernel is not loaded and why, and the
+    status file's tracker block carries the reason."""
+    data = built.read_bytes()
+    n = len(data) + cut if cut < 0 else cut
+    folder = tmp_path / "lib"
+    lib = _place(built, folder, data[:n])
+    run, summary, tracker = _run_leg(folder, tmp_path)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert summary["frames"] == 20
+    lines = run.stderr.splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("device.pi run: warning: the tracker's compiled kernel is not loaded: "
+                               f"{lib} is cut short: ")
+    assert f"the file has {n} bytes; the tracker runs on numpy" in lines[0]
+    assert tracker["matcher"] == "numpy"
+    assert f"{lib} is cut short: " in tracker["matcher_reason"]
+    helped = subprocess.run([sys.executable, "-m", "host", "--help"], capture_output=True, text=True,
+                            env=_env(folder), timeout=60)
+    assert helped.returncode == 0 and "usage:" in helped.stdout, helped.stderr[-2000:]
+    assert lib.read_bytes() == data[:n]                 # reported, not touched
+
+
+def test_a_cut_library_is_rebuilt_by_native_build(built, tmp_path):
+    data = built.read_bytes()
+    lib = _place(built, tmp_path, data[:8192])
+    run = subprocess.run([sys.executable, "-m", "device.pi.vision.native", "build"],
+                         capture_output=True, text=True, env=_env(tmp_path), timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.strip() == f"built {lib}"
+    assert native.check_library(lib) is None and lib.stat().st_size > 8192
+
+
+def test_a_library_for_another_cpu_says_so(built, tmp_path):
+    """The library with its ELF header's e_machine patched to another CPU: refused
+    before loading, with both CPUs named (before: no line at start, the status said
+    numpy with no reason, and the loader's message was 'No such file or directory')."""
+    other, name = _other_machine()
+    data = bytearray(built.read_bytes())
+    data[18:20] = other.to_bytes(2, sys.byteorder)
+    folder = tmp_path / "lib"
+    lib = _place(built, folder, bytes(data))
+    here = native._machine_name(native._this_machine()[2])
+    assert native.check_library(lib) == f"built for {name}, this machine is {here}"
+    run, summary, tracker = _run_leg(folder, tmp_path)
+    assert run.returncode == 0 and summary["frames"] == 20, run.stderr[-2000:]
+    assert run.stderr.splitlines() == [
+        f"device.pi run: warning: the tracker's compiled kernel is not loaded: {lib} built for "
+        f"{name}, this machine is {here}; the tracker runs on numpy (rebuild: python -m "
+        "device.pi.vision.native build)"]
+    assert tracker["matcher"] == "numpy"
+    assert f"built for {name}, this machine is {here}" in tracker["matcher_reason"]
+    assert "No such file" not in run.stderr + tracker["matcher_reason"]
+
+
+@pytest.mark.parametrize("offset, value, why", [
+    (0, b"\x7fELG", "is not an ELF library"),
+    (4, bytes([1 if struct.calcsize("P") == 8 else 2]), "-bit library, this Python is "),
+    (5, bytes([2 if sys.byteorder == "little" else 1]), "-endian, this machine is "),
+    (16, (2).to_bytes(2, sys.byteorder), "is not a shared library (ELF type 2)"),
+    (58, (63).to_bytes(2, sys.byteorder), "63-byte section headers"),
+])
+def test_a_patched_header_is_refused_with_its_reason(built, tmp_path, offset, value, why):
+    """Another word size, byte order, file type or header layout: one line, never loaded."""
+    data = bytearray(built.read_bytes())
+    data[offset:offset + len(value)] = value
+    assert why in native.check_library(_place(built, tmp_path, bytes(data)))
+
+
+def test_what_is_not_a_file_is_refused(tmp_path):
+    (tmp_path / "dir.so").mkdir()
+    assert native.check_library(tmp_path / "dir.so") == "is not a regular file"
+    assert native.check_library(tmp_path / "none.so").startswith("cannot be read (")
+    (tmp_path / "empty.so").write_bytes(b"")
+    assert native.check_library(tmp_path / "empty.so") == "is empty"
+
+
+@needs_cc
+def test_a_library_of_another_abi_is_refused_and_reported(tmp_path, monkeypatch):
+    """A well-formed library at the name whose tf_abi_version is not ours: not used,
+    and refused() says which ABI it is (the runtime prints it at start)."""
+    src = tmp_path / "old.c"
+    src.write_text("int tf_abi_version(void) { return 1; }\n")
+    monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(tmp_path))
+    lib = native.library_path()
+    subprocess.run([os.environ.get("CC", "cc"), "-shared", "-fPIC", "-o", str(lib), str(src)],
+                   check=True, timeout=60)
+    try:
+        assert native.check_library(lib) is None
+        assert native.load() is None
+        assert native.refused() == f"{lib} is ABI 1, expected {native.ABI_VERSION}"
+    finally:
+        monkeypatch.delenv("TACFOOT_NATIVE_DIR")
+        native.load()
+
+
+def test_not_built_or_disabled_is_not_a_refusal(tmp_path, monkeypatch):
+    """No library, or TACFOOT_NATIVE=0: refused() is None and the runtime says nothing."""
+    monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(tmp_path))
+    try:
+        assert native.load() is None and native.refused() is None
+        assert native.status().startswith("not built (")
+        monkeypatch.setenv("TACFOOT_NATIVE", "0")
+        assert native.load() is None and native.refused() is None
+    finally:
+        monkeypatch.delenv("TACFOOT_NATIVE_DIR")
+        monkeypatch.delenv("TACFOOT_NATIVE")
+        native.load()
+    run, summary, tracker = _run_leg(tmp_path, tmp_path)
+    assert run.returncode == 0 and run.stderr == ""
+    assert tracker["matcher_reason"].startswith("not built (")
