@@ -28,7 +28,9 @@ Before the library is opened, :func:`check_library` reads its ELF headers withou
 loading it: a file cut short (``dlopen`` maps past its end, and the first touch of
 a missing page kills the process with SIGBUS), a file built for another CPU, or
 anything that is not a shared library is refused with a one-line reason
-(:func:`refused`), and the tracker runs on numpy.
+(:func:`refused`), and the tracker runs on numpy. The build syncs the library to
+disk before renaming it into place, and the folder after, so a power cut leaves
+the old state or the whole new file.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SOURCE", "NativeBuildError", "library_path", "check_library",
+__all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
            "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused"]
 
 SOURCE = Path(__file__).with_name("match.c")
@@ -60,6 +62,10 @@ CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
 
 class NativeBuildError(RuntimeError):
     """The kernel could not be compiled (no compiler, or it failed)."""
+
+
+class NativeFolderError(NativeBuildError):
+    """The library's folder cannot be created or written (read-only, or not a folder)."""
 
 
 #: e_machine numbers of the CPUs a leg or a development machine may have, for messages
@@ -203,8 +209,10 @@ def library_path(folder: Path | None = None) -> Path:
 
 def build(folder: Path | None = None, cc: str | None = None, force: bool = False) -> Path:
     """Compile ``match.c`` into :func:`library_path` (unless it is there already and
-    loads, or ``force``); returns the path. The file appears whole or not at all
-    (compiled to a temporary name, checked, then renamed)."""
+    loads, or ``force``); returns the path. The file appears whole or not at all,
+    power cuts included: compiled to a temporary name, checked, synced to disk,
+    renamed, then the folder synced. A folder that cannot be made or written raises
+    :class:`NativeFolderError`."""
     out = library_path(folder)
     if out.exists() and not force:
         try:
@@ -217,16 +225,25 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
     if exe is None:
         raise NativeBuildError(f"no C compiler {compiler!r} on PATH (install gcc, or set CC); "
                                "the tracker runs on numpy meanwhile")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".match-", suffix=".so", dir=out.parent)
-    os.close(fd)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".match-", suffix=".so", dir=out.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise NativeFolderError(f"cannot write the library into {out.parent}: "
+                                f"{exc.strerror or exc}; the tracker runs on numpy") from None
     try:
         run = subprocess.run([exe, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"],
                              capture_output=True, text=True, timeout=120)
         if run.returncode != 0:
             raise NativeBuildError(f"{compiler} failed on {SOURCE.name}: {run.stderr.strip()[-400:]}")
+        _fsync(tmp, os.O_RDONLY)                # the compiler wrote it under its own descriptor
         kernel(Path(tmp))                       # refuse a library that does not load
         os.replace(tmp, out)
+        try:                                    # the rename itself survives a power cut
+            _fsync(out.parent, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        except OSError:
+            pass                                # a file system that cannot sync a folder
         for old in out.parent.glob("_match-*.so"):  # libraries of an older match.c
             if old != out:
                 old.unlink(missing_ok=True)
@@ -234,6 +251,14 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
         if os.path.exists(tmp):
             os.unlink(tmp)
     return out
+
+
+def _fsync(path, flags: int) -> None:
+    fd = os.open(path, flags)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def kernel(path: Path):
@@ -364,6 +389,9 @@ def main(argv=None) -> int:
         return 0 if active() else 1
     try:
         path = build(force=a.force)
+    except NativeFolderError as exc:
+        print(f"native build: error: {exc}", file=sys.stderr)
+        return 2
     except NativeBuildError as exc:
         print(f"native build: {exc}", file=sys.stderr)
         return 1

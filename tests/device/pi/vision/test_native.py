@@ -446,3 +446,62 @@ def test_not_built_or_disabled_is_not_a_refusal(tmp_path, monkeypatch):
     run, summary, tracker = _run_leg(tmp_path, tmp_path)
     assert run.returncode == 0 and run.stderr == ""
     assert tracker["matcher_reason"].startswith("not built (")
+
+
+@needs_cc
+def test_the_build_syncs_the_library_before_the_rename_and_the_folder_after(tmp_path, monkeypatch):
+    """A power cut cannot leave a library cut short: the compiled file is on disk
+    before it takes the library's name, and the rename is on disk before build returns."""
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd):
+        st = os.fstat(fd)
+        events.append(("fsync", st.st_ino, stat.S_ISDIR(st.st_mode)))
+        return real_fsync(fd)
+
+    def replace(a, b):
+        events.append(("replace", os.stat(a).st_ino, False))
+        return real_replace(a, b)
+
+    monkeypatch.setattr(native.os, "fsync", fsync)
+    monkeypatch.setattr(native.os, "replace", replace)
+    lib = native.build(folder=tmp_path, force=True)
+    ino = lib.stat().st_ino
+    assert events == [("fsync", ino, False), ("replace", ino, False),
+                      ("fsync", tmp_path.stat().st_ino, True)]
+
+
+def _build_into(folder) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "device.pi.vision.native", "build"],
+                          capture_output=True, text=True, env=_env(folder), timeout=120)
+
+
+def test_a_build_under_a_file_is_one_line_and_exit_2(tmp_path):
+    """TACFOOT_NATIVE_DIR below a regular file (the folder cannot be made): one line
+    naming the folder, exit 2, nothing written (before: a NotADirectoryError traceback)."""
+    (tmp_path / "file").write_text("x")
+    folder = tmp_path / "file" / "sub"
+    run = _build_into(folder)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [f"native build: error: cannot write the library into "
+                                       f"{folder}: Not a directory; the tracker runs on numpy"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_a_build_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path):
+    """A folder the build may not write (before: a PermissionError traceback)."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        if os.access(folder, os.W_OK):
+            pytest.skip("running as root: chmod 0o555 does not make a folder read-only "
+                        "(the folder-under-a-file test covers the path)")
+        run = _build_into(folder)
+        assert run.returncode == 2
+        assert run.stderr.splitlines() == [f"native build: error: cannot write the library into "
+                                           f"{folder}: Permission denied; the tracker runs on numpy"]
+        assert list(folder.iterdir()) == []
+    finally:
+        folder.chmod(0o755)
