@@ -51,13 +51,23 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused"]
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
+#: every C file of the library: the tracker's kernels and the pin detection
+#: (``detect.c``, :mod:`device.pi.vision.core`)
+SOURCES = (SOURCE, SOURCE.with_name("detect.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 2
-#: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit
-CFLAGS = ("-O2", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
+ABI_VERSION = 3
+#: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
+#: -O3 vectorises detect.c's integer loops (the same integers in every lane)
+CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
+
+
+def _cflags() -> tuple[str, ...]:
+    """CFLAGS plus ``TACFOOT_NATIVE_CFLAGS`` (the tests' sanitizer build: its library
+    gets its own name)."""
+    return CFLAGS + tuple(os.environ.get("TACFOOT_NATIVE_CFLAGS", "").split())
 
 
 class NativeBuildError(RuntimeError):
@@ -195,7 +205,10 @@ def _check_elf(f, size: int) -> str | None:
 
 
 def _tag() -> str:
-    h = hashlib.sha256(SOURCE.read_bytes())
+    h = hashlib.sha256()
+    for src in SOURCES:
+        h.update(src.read_bytes())
+    h.update(" ".join(_cflags()).encode())
     h.update(platform.machine().encode())
     return h.hexdigest()[:12]
 
@@ -233,7 +246,7 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
         raise NativeFolderError(f"cannot write the library into {out.parent}: "
                                 f"{exc.strerror or exc}; the tracker runs on numpy") from None
     try:
-        run = subprocess.run([exe, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"],
+        run = subprocess.run([exe, *_cflags(), "-o", tmp, *map(str, SOURCES), "-lm"],
                              capture_output=True, text=True, timeout=120)
         if run.returncode != 0:
             raise NativeBuildError(f"{compiler} failed on {SOURCE.name}: {run.stderr.strip()[-400:]}")
@@ -283,7 +296,25 @@ def kernel(path: Path):
                      ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     grow.restype = ctypes.c_int
     fn.grow = grow
+    fn.detect = _detect_fn(lib)
     return fn
+
+
+def _detect_fn(lib):
+    det = lib.tf_detect
+    det.argtypes = [ctypes.c_void_p]
+    det.restype = ctypes.c_int64
+    from device.pi.vision.core import S_SLOTS
+    if lib.tf_detect_slots() != S_SLOTS:
+        raise NativeBuildError(f"tf_detect has {lib.tf_detect_slots()} context slots, "
+                               f"expected {S_SLOTS}")
+    return det
+
+
+def detect_fn():
+    """``tf_detect`` of the loaded library (:mod:`device.pi.vision.core`), or None."""
+    fn = _FN
+    return None if fn is None else fn.detect
 
 
 _FN = None

@@ -1,0 +1,357 @@
+/* Pin detection in one call: the compiled twin of PinDetector.detect_gray.
+ *
+ * device/pi/vision/extract.py is the specification and the fallback: OpenCV's
+ * GaussianBlur (its bit-exact fixed-point path for 8-bit images), a box-mean
+ * threshold (cv2.boxFilter, cv2.subtract, cv2.threshold, the dome mask) and
+ * connectedComponentsWithStats (8-connected, Grana's block-based labelling), then
+ * the size filter. Every step here is integer arithmetic that gives the same bytes:
+ *
+ * - blur: the row pass sums k[i] * pixel (kernel in 1/256ths, so at most
+ *   256 * 255), the column pass sums k[j] * row, and the pixel is (sum + 2^15) >> 16; borders reflect without repeating the edge (BORDER_DEFAULT);
+ * - local mean: the block's sum S (block <= 15) rounded to the nearest whole mean
+ *   (no sum lies half-way: block^2 is odd), as a 16-bit multiply-high and a shift
+ *   (core.py checks the pair for every sum); borders replicate the edge of the
+ *   region the mean is taken over;
+ * - threshold: 255 where pixel - mean (saturated at 0) > floor(offset), inside the
+ *   mask;
+ * - blobs: 8-connected components, ordered as OpenCV's block-based labelling orders
+ *   them (by the first 2x2 block, in raster order of blocks, that holds a pixel of
+ *   the blob), with the area and the centroid (the integer sums of x and y divided
+ *   by the area, in double).
+ *
+ * Python passes one context: an int64 array (TF_D_* slots) that holds the sizes,
+ * the parameters and the addresses of preallocated buffers, so a frame is one call
+ * with one argument. tf_detect returns the number of pins kept (>= 0), or -1 for a
+ * context it refuses (sizes that do not fit the buffers it declares).
+ */
+#include <stdint.h>
+#include <string.h>
+
+/* On x86-64 the vector loops are also built for AVX2 and picked at load time (as
+   OpenCV picks its own); every lane computes the same integers either way. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(TF_NO_CLONES)
+#define TF_VECTOR __attribute__((target_clones("avx2", "default")))
+#else
+#define TF_VECTOR
+#endif
+
+/* context slots (device/pi/vision/native.py names them the same) */
+enum {
+    TF_D_GRAY = 0,      /* const uint8 *: the gray dome box, bh x bw */
+    TF_D_GRAY_STRIDE,   /* its row stride, bytes */
+    TF_D_BH, TF_D_BW,   /* the box's height and width */
+    TF_D_KN,            /* blur taps (odd, 1..15); 0: no blur */
+    TF_D_KERNEL,        /* const uint16 *: KN taps in 1/256ths */
+    TF_D_ROWS,          /* uint16 *: bh x bw scratch, the row pass */
+    TF_D_SMOOTH,        /* uint8 *: bh x bw, the blurred box (written) */
+    TF_D_BLOCK,         /* the mean's block side (odd, 3..15) */
+    TF_D_FLOOR_OFFSET,  /* floor(offset) >= 0 */
+    TF_D_DIV_SCALE, TF_D_DIV_DELTA,   /* the mean's multiplier and shift */
+    TF_D_GY0, TF_D_GX0, TF_D_GY1, TF_D_GX1,   /* the mean's region, box px */
+    TF_D_CY0, TF_D_CX0, TF_D_CY1, TF_D_CX1,   /* the thresholded core, box px */
+    TF_D_MASK,          /* const uint8 *: (cy1-cy0) x (cx1-cx0), 0 or 255 */
+    TF_D_COLSUM,        /* uint16 *: (gx1 - gx0) + (cx1 - cx0) + 15 scratch */
+    TF_D_BINARY,        /* uint8 *: the binary buffer (0 outside the core) */
+    TF_D_BIN_STRIDE,    /* its row stride (>= cx1) */
+    TF_D_LABELS,        /* int32 *: (cy1-cy0) x (cx1-cx0) scratch */
+    TF_D_CAP,           /* provisional labels the next buffers hold (>= 1 + core pixels / 2) */
+    TF_D_PARENT,        /* int32 *: CAP */
+    TF_D_ACC,           /* int64 *: CAP x 4: area, sum x, sum y, first block */
+    TF_D_ORDER,         /* int32 *: CAP */
+    TF_D_MIN_AREA, TF_D_MAX_AREA,
+    TF_D_OX, TF_D_OY,   /* the box's origin in the frame, px */
+    TF_D_XY,            /* float *: OUT_CAP x 2, pins kept (frame px) */
+    TF_D_AREAS,         /* int32 *: OUT_CAP, their areas */
+    TF_D_OUT_CAP,
+    TF_D_N_BLOBS,       /* written: blobs of any size */
+    TF_D_N_SLOTS
+};
+
+int tf_detect_slots(void) { return TF_D_N_SLOTS; }
+
+static inline int64_t reflect101(int64_t p, int64_t len) {
+    if (len == 1) return 0;
+    while (p < 0 || p >= len) {
+        if (p < 0) p = -p;
+        else p = 2 * (len - 1) - p;
+    }
+    return p;
+}
+
+static inline int64_t clampi(int64_t p, int64_t lo, int64_t hi) {
+    return p < lo ? lo : (p > hi ? hi : p);
+}
+
+/* One row of the blur's row pass, interior columns lo..hi-1, for a constant tap
+   count (the taps are symmetric: k[i] == k[kn-1-i]); 16-bit lanes suffice, the sum
+   is at most 256 * 255. */
+static inline void row_taps(const uint8_t *src, uint16_t *dst, int64_t lo, int64_t hi,
+                            const uint16_t *k, const int kn) {
+    const int r = kn / 2;
+    for (int64_t x = lo; x < hi; x++) {
+        uint16_t t = (uint16_t)(k[r] * src[x]);
+        for (int i = 0; i < r; i++)
+            t = (uint16_t)(t + k[i] * (uint16_t)(src[x - r + i] + src[x + r - i]));
+        dst[x] = t;
+    }
+}
+
+/* One row of the column pass: the pixel is (sum_j k[j] * rows[j] + 2^15) >> 16. Each
+   row value (at most 65280) is split into its high and low bytes, so both sums stay
+   within 16 bits: (A + (B >> 8) + 128) >> 8 with A = sum k[j] * hi[j] and
+   B = sum k[j] * lo[j] (A + B / 256 <= 255 * 256, so no lane overflows). */
+static inline void col_taps(const uint16_t *const *s, uint8_t *out, int64_t bw,
+                            const uint16_t *k, const int kn) {
+    const int r = kn / 2;
+    for (int64_t x = 0; x < bw; x++) {
+        uint16_t a = (uint16_t)(k[r] * (uint16_t)(s[r][x] >> 8));
+        uint16_t b = (uint16_t)(k[r] * (uint16_t)(s[r][x] & 255));
+        for (int j = 0; j < r; j++) {
+            a = (uint16_t)(a + k[j] * (uint16_t)((s[j][x] >> 8) + (s[kn - 1 - j][x] >> 8)));
+            b = (uint16_t)(b + k[j] * (uint16_t)((s[j][x] & 255) + (s[kn - 1 - j][x] & 255)));
+        }
+        out[x] = (uint8_t)((uint16_t)(a + (b >> 8) + 128) >> 8);
+    }
+}
+
+#define TF_FOR_ODD_TAPS(X) X(3) X(5) X(7) X(9) X(11) X(13) X(15)
+
+/* the blurred box into smooth (bh x bw, contiguous) */
+TF_VECTOR static void blur(const int64_t *ctx) {
+    const uint8_t *gray = (const uint8_t *)(intptr_t)ctx[TF_D_GRAY];
+    const int64_t gs = ctx[TF_D_GRAY_STRIDE], bh = ctx[TF_D_BH], bw = ctx[TF_D_BW];
+    const int64_t kn = ctx[TF_D_KN];
+    uint8_t *smooth = (uint8_t *)(intptr_t)ctx[TF_D_SMOOTH];
+    if (kn <= 1) {
+        for (int64_t y = 0; y < bh; y++) memcpy(smooth + y * bw, gray + y * gs, (size_t)bw);
+        return;
+    }
+    const uint16_t *k = (const uint16_t *)(intptr_t)ctx[TF_D_KERNEL];
+    uint16_t *rows = (uint16_t *)(intptr_t)ctx[TF_D_ROWS];
+    const int64_t r = kn / 2;
+    const int64_t lo = r < bw ? r : bw, hi = bw - r > lo ? bw - r : lo;
+    for (int64_t y = 0; y < bh; y++) {
+        const uint8_t *src = gray + y * gs;
+        uint16_t *dst = rows + y * bw;
+        switch (kn) {
+#define TF_ROW_CASE(N) case N: row_taps(src, dst, lo, hi, k, N); break;
+            TF_FOR_ODD_TAPS(TF_ROW_CASE)
+#undef TF_ROW_CASE
+        }
+        /* the r columns at each edge reflect */
+        for (int64_t x = 0; x < bw; x++) {
+            if (x == lo && hi > lo) { x = hi - 1; continue; }
+            uint32_t t = 0;
+            for (int64_t i = 0; i < kn; i++) t += (uint32_t)k[i] * src[reflect101(x + i - r, bw)];
+            dst[x] = (uint16_t)t;
+        }
+    }
+    const uint16_t *s[15];
+    for (int64_t y = 0; y < bh; y++) {
+        for (int64_t j = 0; j < kn; j++) s[j] = rows + reflect101(y + j - r, bh) * bw;
+        switch (kn) {
+#define TF_COL_CASE(N) case N: col_taps(s, smooth + y * bw, bw, k, N); break;
+            TF_FOR_ODD_TAPS(TF_COL_CASE)
+#undef TF_COL_CASE
+        }
+    }
+}
+
+/* One core row's binary from its column sums: the block sums of the padded sums
+   pc (pc[i] is the column cx0 - half + i, replicated at the region's edge), the
+   mean by a 16-bit multiply-high (mean = (((S + bias) * mult) >> 16) >> shift,
+   checked in core.py for every sum), and the threshold inside the mask. */
+static inline void threshold_row(const uint16_t *pc, const uint8_t *srow, const uint8_t *mrow,
+                                 uint8_t *brow, int64_t cw, uint16_t bias, uint16_t mult,
+                                 unsigned shift, int16_t fo, const int block) {
+    for (int64_t x = 0; x < cw; x++) {
+        uint16_t sum = 0;
+        for (int t = 0; t < block; t++) sum = (uint16_t)(sum + pc[x + t]);
+        uint16_t mean = (uint16_t)(((uint32_t)(uint16_t)(sum + bias) * mult) >> 16) >> shift;
+        brow[x] = (uint8_t)(((int16_t)srow[x] > (int16_t)(mean + fo) ? 255 : 0) & mrow[x]);
+    }
+}
+
+/* the core's binary: smooth minus its local mean, thresholded, masked */
+TF_VECTOR static void threshold(const int64_t *ctx) {
+    const uint8_t *smooth = (const uint8_t *)(intptr_t)ctx[TF_D_SMOOTH];
+    const int64_t bw = ctx[TF_D_BW], block = ctx[TF_D_BLOCK];
+    const int64_t half = block / 2;
+    const int16_t fo = (int16_t)ctx[TF_D_FLOOR_OFFSET];
+    const uint16_t mult = (uint16_t)ctx[TF_D_DIV_SCALE];
+    const unsigned shift = (unsigned)ctx[TF_D_DIV_DELTA];
+    const uint16_t bias = (uint16_t)((block * block - 1) / 2);
+    const int64_t gy0 = ctx[TF_D_GY0], gx0 = ctx[TF_D_GX0], gy1 = ctx[TF_D_GY1], gx1 = ctx[TF_D_GX1];
+    const int64_t cy0 = ctx[TF_D_CY0], cx0 = ctx[TF_D_CX0], cy1 = ctx[TF_D_CY1], cx1 = ctx[TF_D_CX1];
+    const uint8_t *mask = (const uint8_t *)(intptr_t)ctx[TF_D_MASK];
+    uint8_t *bin = (uint8_t *)(intptr_t)ctx[TF_D_BINARY];
+    const int64_t bst = ctx[TF_D_BIN_STRIDE];
+    /* the scratch holds the column sums (gx1 - gx0) then the padded row (cw + block) */
+    uint16_t *col = (uint16_t *)(intptr_t)ctx[TF_D_COLSUM];
+    const int64_t gw = gx1 - gx0, cw = cx1 - cx0;
+    uint16_t *pc = col + gw;
+    for (int64_t x = 0; x < gw; x++) col[x] = 0;
+    for (int64_t dy = -half; dy <= half; dy++) {
+        const uint8_t *s = smooth + clampi(cy0 + dy, gy0, gy1 - 1) * bw + gx0;
+        for (int64_t x = 0; x < gw; x++) col[x] = (uint16_t)(col[x] + s[x]);
+    }
+    for (int64_t y = cy0; y < cy1; y++) {
+        if (y > cy0) {   /* slide the block's rows down by one */
+            const uint8_t *add = smooth + clampi(y + half, gy0, gy1 - 1) * bw + gx0;
+            const uint8_t *sub = smooth + clampi(y - half - 1, gy0, gy1 - 1) * bw + gx0;
+            for (int64_t x = 0; x < gw; x++) col[x] = (uint16_t)(col[x] + add[x] - sub[x]);
+        }
+        /* the columns the row's blocks read, the region's edge columns repeated */
+        const int64_t i0 = gx0 - (cx0 - half), i1 = gx1 - (cx0 - half);
+        const int64_t np_ = cw + 2 * half;
+        const int64_t a = i0 > 0 ? i0 : 0, b = i1 < np_ ? i1 : np_;
+        for (int64_t i = 0; i < a; i++) pc[i] = col[0];
+        memcpy(pc + a, col + (cx0 - half + a - gx0), (size_t)(b - a) * sizeof(uint16_t));
+        for (int64_t i = b; i < np_; i++) pc[i] = col[gw - 1];
+        const uint8_t *srow = smooth + y * bw + cx0;
+        const uint8_t *mrow = mask + (y - cy0) * cw;
+        uint8_t *brow = bin + y * bst + cx0;
+        switch (block) {
+#define TF_THR_CASE(N) case N: threshold_row(pc, srow, mrow, brow, cw, bias, mult, shift, fo, N); break;
+            TF_FOR_ODD_TAPS(TF_THR_CASE)
+#undef TF_THR_CASE
+        }
+    }
+}
+
+static inline int32_t find_root(int32_t *parent, int32_t a) {
+    int32_t r = a;
+    while (parent[r] != r) r = parent[r];
+    while (parent[a] != r) { int32_t n = parent[a]; parent[a] = r; a = n; }
+    return r;
+}
+
+static inline int32_t unite(int32_t *parent, int32_t a, int32_t b) {
+    a = find_root(parent, a);
+    b = find_root(parent, b);
+    if (a < b) { parent[b] = a; return a; }
+    parent[a] = b;
+    return b;
+}
+
+/* insertion sort of the roots by their first block (a few hundred at most on a
+   dome; a noisy frame's thousands still sort in well under a frame's time) */
+static void sort_by_block(int32_t *order, int64_t n, const int64_t *acc) {
+    for (int64_t i = 1; i < n; i++) {
+        int32_t v = order[i];
+        int64_t key = acc[4 * v + 3], j = i - 1;
+        while (j >= 0 && acc[4 * order[j] + 3] > key) { order[j + 1] = order[j]; j--; }
+        order[j + 1] = v;
+    }
+}
+
+static int64_t label(int64_t *ctx) {
+    const int64_t cy0 = ctx[TF_D_CY0], cx0 = ctx[TF_D_CX0], cy1 = ctx[TF_D_CY1], cx1 = ctx[TF_D_CX1];
+    const uint8_t *bin = (const uint8_t *)(intptr_t)ctx[TF_D_BINARY];
+    const int64_t bst = ctx[TF_D_BIN_STRIDE];
+    int32_t *lab = (int32_t *)(intptr_t)ctx[TF_D_LABELS];
+    int32_t *parent = (int32_t *)(intptr_t)ctx[TF_D_PARENT];
+    int64_t *acc = (int64_t *)(intptr_t)ctx[TF_D_ACC];
+    int32_t *order = (int32_t *)(intptr_t)ctx[TF_D_ORDER];
+    const int64_t cap = ctx[TF_D_CAP], cw = cx1 - cx0, bwb = (ctx[TF_D_BW] + 1) / 2 + 1;
+    int32_t next = 1;
+    for (int64_t y = cy0; y < cy1; y++) {
+        const uint8_t *b = bin + y * bst, *bu = y > cy0 ? b - bst : NULL;
+        int32_t *l = lab + (y - cy0) * cw, *lu = y > cy0 ? l - cw : NULL;
+        const int64_t yb = (y >> 1) * bwb;
+        for (int64_t x = cx0; x < cx1; x++) {
+            if (!b[x]) {
+                /* skip runs of background eight bytes at a time */
+                while (x + 8 < cx1) {
+                    uint64_t w;
+                    memcpy(&w, b + x + 1, 8);
+                    if (w) break;
+                    x += 8;
+                }
+                continue;
+            }
+            /* the neighbours already seen: left, and the three above. When the
+               left pixel is set, the two above it joined its blob already; when
+               the one above is set, so did its right neighbour */
+            int32_t lb = 0;
+            const int up_l = bu && x > cx0 && bu[x - 1], up = bu && bu[x];
+            const int up_r = bu && x + 1 < cx1 && bu[x + 1];
+            if (x > cx0 && b[x - 1]) {
+                lb = l[x - cx0 - 1];
+                if (up_r && !up && lu[x - cx0 + 1] != lb) lb = unite(parent, lb, lu[x - cx0 + 1]);
+            } else if (up) {
+                lb = lu[x - cx0];
+            } else if (up_l) {
+                lb = lu[x - cx0 - 1];
+                if (up_r && lu[x - cx0 + 1] != lb) lb = unite(parent, lb, lu[x - cx0 + 1]);
+            } else if (up_r) {
+                lb = lu[x - cx0 + 1];
+            }
+            if (!lb) {
+                if (next >= cap) return -1;
+                lb = next++;
+                parent[lb] = lb;
+                int64_t *a = acc + 4 * lb;
+                a[0] = a[1] = a[2] = 0;
+                a[3] = INT64_MAX;
+            }
+            l[x - cx0] = lb;
+            int64_t *a = acc + 4 * lb;
+            a[0] += 1;
+            a[1] += x;
+            a[2] += y;
+            int64_t key = yb + (x >> 1);
+            if (key < a[3]) a[3] = key;
+        }
+    }
+    /* fold each provisional label's sums into its root; the roots are the blobs */
+    int64_t n = 0;
+    for (int32_t i = 1; i < next; i++) {
+        int32_t r = find_root(parent, i);
+        if (r == i) { order[n++] = i; continue; }
+        int64_t *a = acc + 4 * i, *ar = acc + 4 * r;
+        ar[0] += a[0];
+        ar[1] += a[1];
+        ar[2] += a[2];
+        if (a[3] < ar[3]) ar[3] = a[3];
+    }
+    sort_by_block(order, n, acc);
+    return n;
+}
+
+int64_t tf_detect(int64_t *ctx) {
+    const int64_t bh = ctx[TF_D_BH], bw = ctx[TF_D_BW], kn = ctx[TF_D_KN];
+    const int64_t block = ctx[TF_D_BLOCK];
+    const int64_t cy0 = ctx[TF_D_CY0], cx0 = ctx[TF_D_CX0], cy1 = ctx[TF_D_CY1], cx1 = ctx[TF_D_CX1];
+    const int64_t gy0 = ctx[TF_D_GY0], gx0 = ctx[TF_D_GX0], gy1 = ctx[TF_D_GY1], gx1 = ctx[TF_D_GX1];
+    if (bh < 1 || bw < 1 || kn < 0 || kn > 15 || (kn > 0 && kn % 2 == 0) || block < 3
+        || block > 15 || block % 2 == 0 || ctx[TF_D_FLOOR_OFFSET] < 0
+        || ctx[TF_D_GRAY_STRIDE] < bw || ctx[TF_D_BIN_STRIDE] < cx1
+        || !(0 <= gy0 && gy0 <= cy0 && cy0 < cy1 && cy1 <= gy1 && gy1 <= bh)
+        || !(0 <= gx0 && gx0 <= cx0 && cx0 < cx1 && cx1 <= gx1 && gx1 <= bw)
+        || ctx[TF_D_CAP] < 2 || ctx[TF_D_OUT_CAP] < 0)
+        return -1;
+    blur(ctx);
+    threshold(ctx);
+    int64_t n = label(ctx);
+    if (n < 0) return -1;
+    ctx[TF_D_N_BLOBS] = n;
+    const int64_t *acc = (const int64_t *)(intptr_t)ctx[TF_D_ACC];
+    const int32_t *order = (const int32_t *)(intptr_t)ctx[TF_D_ORDER];
+    const int64_t lo = ctx[TF_D_MIN_AREA], hi = ctx[TF_D_MAX_AREA], cap = ctx[TF_D_OUT_CAP];
+    const float ox = (float)ctx[TF_D_OX], oy = (float)ctx[TF_D_OY];
+    float *xy = (float *)(intptr_t)ctx[TF_D_XY];
+    int32_t *areas = (int32_t *)(intptr_t)ctx[TF_D_AREAS];
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; i++) {
+        const int64_t *a = acc + 4 * order[i];
+        if (a[0] < lo || a[0] > hi) continue;
+        if (k >= cap) return -1;
+        double area = (double)a[0];
+        xy[2 * k] = (float)((double)a[1] / area) + ox;
+        xy[2 * k + 1] = (float)((double)a[2] / area) + oy;
+        areas[k] = (int32_t)a[0];
+        k++;
+    }
+    return k;
+}

@@ -1,0 +1,205 @@
+"""device/pi/vision/core.py and detect.c: the compiled pin detection gives the numpy
+(OpenCV) path's smoothed box, binary image, pins, areas and blob count to the byte."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from device.pi.vision import core, native
+from device.pi.vision.extract import PinDetector
+from device.profile import VisionParams
+from tests import REPO_ROOT
+from tests.realdata import real_data_dir
+
+
+@pytest.fixture(scope="module")
+def fn(tmp_path_factory):
+    """tf_detect from a library built into a private folder (or the one
+    TACFOOT_NATIVE_DIR names: the sanitizer run's)."""
+    if native.detect_fn() is not None and os.environ.get("TACFOOT_NATIVE_DIR"):
+        return native.detect_fn()
+    if shutil.which(os.environ.get("CC", "cc")) is None:
+        pytest.skip("no C compiler here: detection runs on OpenCV")
+    return native.kernel(native.build(folder=tmp_path_factory.mktemp("native"))).detect
+
+
+def image(kind: str, h: int, w: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    if kind == "black":
+        return np.zeros((h, w), np.uint8)
+    if kind == "white":
+        return np.full((h, w), 255, np.uint8)
+    if kind == "noise":
+        return rng.integers(0, 256, (h, w), dtype=np.uint8)
+    if kind == "salt":
+        a = np.full((h, w), 60, np.uint8)
+        a[rng.random((h, w)) < 0.05] = 255
+        return a
+    a = rng.integers(30, 80, (h, w), dtype=np.uint8)          # a dome: dots on a floor
+    for cx, cy, r in zip(rng.uniform(0, w, 200), rng.uniform(0, h, 200), rng.uniform(1, 6, 200)):
+        cv2.circle(a, (int(cx), int(cy)), int(r), int(rng.integers(120, 256)), -1)
+    return a
+
+
+def both(fn, det: PinDetector, crop: np.ndarray):
+    """(numpy's, the core's) outputs of one crop on one detector."""
+    xy, areas = det.detect_numpy(crop)
+    want = (xy, areas, det._smooth.copy(), det._binary_even.copy(), det.n_blobs)
+    c = core.DetectCore(fn, det)
+    det._smooth[:] = 7
+    det._binary_even[:] = 0
+    n = c.detect(crop)
+    assert n >= 0
+    return want, (c.xy[:n].copy(), c.areas[:n].copy(), det._smooth.copy(),
+                  det._binary_even.copy(), c.n_blobs)
+
+
+def assert_same(want, got):
+    for name, a, b in zip(("pins", "areas", "smooth", "binary", "blobs"), want, got):
+        assert np.array_equal(a, b), name
+
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(h=st.integers(8, 120), w=st.integers(8, 120), seed=st.integers(0, 2**31),
+       kind=st.sampled_from(["dots", "noise", "salt", "black", "white"]),
+       block=st.sampled_from([3, 5, 7, 9, 11, 13, 15]),
+       sigma=st.sampled_from([0.0, 0.5, 1.0, 1.7, 3.0]), offset=st.floats(0, 60),
+       min_area=st.integers(1, 30), extra=st.integers(0, 300),
+       dome=st.one_of(st.none(), st.tuples(st.floats(0.2, 0.8), st.floats(0.2, 0.8),
+                                           st.floats(0.1, 0.7))),
+       shrink=st.floats(0.5, 1.0))
+def test_the_core_gives_opencvs_bytes(fn, h, w, seed, kind, block, sigma, offset, min_area,
+                                      extra, dome, shrink):
+    params = VisionParams(block=block, offset=offset, blur_sigma_px=sigma, min_area_px=min_area,
+                          max_area_px=min_area + extra, roi_shrink=shrink)
+    d = None if dome is None else (dome[0] * w, dome[1] * h, dome[2] * min(h, w))
+    det = PinDetector(params, (h, w), d)
+    frame = image(kind, h, w, seed)
+    crop = det.gray_crop(frame)
+    assert_same(*both(fn, det, crop))
+
+
+@pytest.mark.parametrize("block", [3, 5, 7, 9, 11, 13, 15])
+def test_the_16_bit_mean_is_the_rounded_mean_for_every_sum(block):
+    mult, shift = core.box_divisor(block)
+    d = block * block
+    s = np.arange(d * 255 + 1, dtype=np.int64)
+    mean = (((s + (d - 1) // 2) * mult) >> 16) >> shift
+    assert np.array_equal(mean, np.floor(s / d + 0.5).astype(np.int64))
+    assert mult < 65536
+
+
+@pytest.mark.parametrize("ksize, sigma", [(3, 0.5), (5, 1.0), (7, 1.5), (15, 3.5)])
+def test_the_taps_are_opencvs_fixed_point_kernel(ksize, sigma):
+    taps = core.gaussian_taps(ksize, sigma)
+    assert int(taps.sum()) == 256 and np.array_equal(taps, taps[::-1])
+    # a bright row pixel spreads as the taps: the row pass of a one-row image
+    a = np.zeros((1, 64), np.uint8)
+    a[0, 32] = 255
+    out = cv2.GaussianBlur(a, (ksize, 1), sigma)
+    r = ksize // 2
+    assert np.array_equal(out[0, 32 - r:33 + r], (taps.astype(np.int64) * 255 * 256 + 32768) >> 16)
+
+
+def test_a_detector_whose_core_disagrees_keeps_opencv(fn, monkeypatch):
+    """The self-check at start: a core with a wrong blur is refused, and why is said."""
+    real = core.gaussian_taps
+    monkeypatch.setattr(core, "gaussian_taps", lambda k, s: np.roll(real(k, s), 1))
+    monkeypatch.setattr(native, "detect_fn", lambda: fn)
+    det = PinDetector(VisionParams(), (200, 240), (120.0, 100.0, 80.0))
+    assert not det.compiled
+    assert "differ from OpenCV" in det.compiled_why
+    monkeypatch.setattr(core, "gaussian_taps", real)
+    det = PinDetector(VisionParams(), (200, 240), (120.0, 100.0, 80.0))
+    assert det.compiled and det.compiled_why == ""
+
+
+def test_a_negative_offset_goes_back_to_opencv(fn, monkeypatch):
+    monkeypatch.setattr(native, "detect_fn", lambda: fn)
+    det = PinDetector(VisionParams(), (200, 240), (120.0, 100.0, 80.0))
+    assert det.compiled
+    det.set_offset(-3.0)
+    assert not det.compiled and "negative" in det.compiled_why
+    frame = image("dots", 200, 240, 1)
+    xy, _ = det.detect(frame)
+    assert np.isfinite(xy).all()
+
+
+def _pipeline_digest(clip, compiled: bool) -> str:
+    from device.pi.vision.pipeline import MarkerStream
+    cap = cv2.VideoCapture(str(clip))
+    ms, h, n = MarkerStream("roboskin"), hashlib.sha256(), 0
+    while n < 200:
+        ok, f = cap.read()
+        if not ok:
+            break
+        if not compiled and ms.detector is not None:
+            ms.detector._compiled = None
+        ff = ms.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
+        for a in (ff.pins, ff.vectors, ff.lost, ff.grid):
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(repr((ff.contact, ff.shear_x, ff.shear_y, ff.magnitude_sum, ff.faults)).encode())
+        n += 1
+    assert n > 100 and ms.detector.compiled == compiled
+    return h.hexdigest()
+
+
+@pytest.mark.real
+@pytest.mark.parametrize("clip", ["lego_train.avi", "smooth.avi"])
+def test_real_clips_are_identical_with_the_compiled_detection(fn, monkeypatch, clip):
+    path = real_data_dir(f"roboskin/{clip}") / "roboskin" / clip
+    monkeypatch.setattr(native, "detect_fn", lambda: fn)
+    assert _pipeline_digest(path, True) == _pipeline_digest(path, False)
+
+
+# Every C entry point (detect.c's tf_detect, match.c's tf_match and tf_grow) under
+# AddressSanitizer and UndefinedBehaviorSanitizer: the library is built with both, and
+# the hypothesis equivalence tests of this file and test_native.py run against it in a
+# child Python (the sanitizer runtime preloaded). Any error report fails the child.
+SAN_FLAGS = "-fsanitize=address,undefined -fno-sanitize-recover=all -fno-omit-frame-pointer -g"
+
+
+def _runtime(name: str) -> str | None:
+    cc = shutil.which(os.environ.get("CC", "cc"))
+    if cc is None:
+        return None
+    out = subprocess.run([cc, f"-print-file-name={name}"], capture_output=True, text=True).stdout.strip()
+    return out if os.path.isabs(out) and os.path.exists(out) else None
+
+
+@pytest.mark.slow
+def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
+    asan = _runtime("libasan.so")
+    if asan is None:
+        pytest.skip("the C compiler has no AddressSanitizer runtime (libasan) here")
+    env = dict(os.environ, TACFOOT_NATIVE_DIR=str(tmp_path), TACFOOT_NATIVE_CFLAGS=SAN_FLAGS,
+               PYTHONPATH=str(REPO_ROOT), LD_PRELOAD=asan,
+               ASAN_OPTIONS="detect_leaks=0:abort_on_error=1",
+               UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1", TACFOOT_FUZZ_EXAMPLES="80")
+    build = subprocess.run([sys.executable, "-m", "device.pi.vision.native", "build"], env=env,
+                           capture_output=True, text=True, cwd=REPO_ROOT, timeout=300)
+    if build.returncode != 0 and "sanitize" in build.stderr:
+        pytest.skip(f"the compiler cannot build with sanitizers: {build.stderr.strip()[-200:]}")
+    assert build.returncode == 0, build.stderr
+    tests = ["tests/device/pi/vision/test_core.py::test_the_core_gives_opencvs_bytes",
+             "tests/device/pi/vision/test_core.py::test_a_negative_offset_goes_back_to_opencv",
+             "tests/device/pi/vision/test_native.py::test_the_kernel_gives_the_numpy_assignment",
+             "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
+             "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors"]
+    run = subprocess.run([sys.executable, "-m", "pytest", "-x", "-p", "no:cacheprovider",
+                          "-p", "no:xdist", *tests], env=env, capture_output=True, text=True,
+                         cwd=REPO_ROOT, timeout=900)
+    out = run.stdout + run.stderr
+    assert run.returncode == 0, out[-3000:]
+    assert "ERROR: AddressSanitizer" not in out and "runtime error:" not in out
+    assert " passed" in out
