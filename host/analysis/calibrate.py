@@ -8,9 +8,18 @@ limits follow from the blobs found with that setting. The rest pin layout comes
 from :mod:`host.analysis.rest_pins`: the pins found in most of the frames at a
 steady position, with glare, duplicates and blobs cut by the region's edge
 rejected; the pitch is the layout's median nearest-neighbour distance, and
-``n_pins`` is the layout's length. The result is a ``[vision]`` and a ``[layout]``
-section (``device/profile.py``) that the Pi loads as it is and that ``host train
---profile`` maps every frame onto. Without a dome, ``dome_px`` is the circle
+``n_pins`` is the layout's length.
+
+The frames must be at rest, and :func:`calibrate` refuses (a :class:`NotAtRest`
+naming the frames) when they are not: when pins move more than ``STILL_PX``
+(median over the pins matched, the pipeline's still test) between two of the
+frames, when fewer than ``MIN_PIN_SHARE`` of the blobs the threshold finds per
+frame are steady pins, or when more than ``MAX_LOOSE_SHARE`` of the pins kept are
+loose by wandering (a pin whose core is clipped by glare is loose but not moving).
+:func:`stillest_start` finds the stillest run of frames in a clip.
+
+The result is a ``[vision]`` and a ``[layout]`` section (``device/profile.py``)
+that the Pi loads as it is and that ``host train --profile`` maps every frame onto. Without a dome, ``dome_px`` is the circle
 around the pins (with ``roi_shrink = 1``), so the pipeline needs no dome.
 """
 from __future__ import annotations
@@ -21,10 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.vision.extract import PinDetector, VisionParams, find_dome, to_gray
+from device.pi.vision.matching import match_pins
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import parse_pipeline_profile
 from host.analysis.frames import nearest_neighbour_px
-from host.analysis.rest_pins import (MIN_SEEN, Region, RestPins, agreement, find_rest_pins,
+from host.analysis.rest_pins import (MIN_SEEN, WANDER_PITCH, Region, RestPins, agreement, find_rest_pins,
                                      merge_with_flags, nn_px)
 from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
@@ -35,6 +45,67 @@ OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
 SEARCH_FRAMES = 4
 #: ... and this many of the best on all of them
 SEARCH_KEEP = 6
+#: rest frames: pins move at most this far (px, median over the pins matched) from
+#: one frame to the next (the pipeline's still test, ``MarkerStream.still_px``)
+STILL_PX = 0.75
+#: at least this share of the blobs found per frame must be steady pins ...
+MIN_PIN_SHARE = 0.5
+#: ... and at most this share of those pins loose by wandering
+MAX_LOOSE_SHARE = 0.5
+
+
+class NotAtRest(ValueError):
+    """The frames given are not a still, no-contact stretch; the message names them."""
+
+
+def frame_motion(grays: list[np.ndarray], params: VisionParams, dome, pitch_px: float
+                 ) -> np.ndarray:
+    """(len(grays) - 1,) px: how far the pins move from each frame to the next, the
+    median over the pins matched one to one within half a pitch (inf when fewer than
+    3 match), the blobs found under ``params`` in ``dome``."""
+    det = PinDetector(params, grays[0].shape, dome)
+    pins = [det.detect(g)[0] for g in grays]
+    out = np.full(max(0, len(pins) - 1), np.inf)
+    for k, (a, b) in enumerate(zip(pins, pins[1:])):
+        idx = match_pins(a, b, 0.5 * pitch_px)
+        ok = idx >= 0
+        if ok.sum() >= 3:
+            out[k] = float(np.median(np.hypot(*(b[idx[ok]] - a[ok]).T)))
+    return out
+
+
+def frames_text(start: int, n: int) -> str:
+    return f"frame {start}" if n == 1 else f"frames {start}..{start + n - 1}"
+
+
+def check_still(motion: np.ndarray, start: int) -> None:
+    """A :class:`NotAtRest` naming the frames when ``motion`` (:func:`frame_motion`
+    of frames ``start`` ..) passes ``STILL_PX`` anywhere."""
+    if len(motion) and not np.all(motion <= STILL_PX):
+        k = int(np.argmax(np.nan_to_num(motion, nan=np.inf, posinf=1e9)))
+        moved = "no pins in common" if not np.isfinite(motion[k]) else f"{motion[k]:.2f} px"
+        raise NotAtRest(f"{frames_text(start, len(motion) + 1)} are not at rest: the pins "
+                        f"move {moved} (median) from frame {start + k} to {start + k + 1}, "
+                        f"more than {STILL_PX} px; calibrate from still frames without "
+                        f"contact (--start, --frames)")
+
+
+def stillest_start(grays: list[np.ndarray], n: int) -> tuple[int, float]:
+    """The first frame of the stillest run of ``n`` frames of ``grays`` (the first
+    run whose largest frame-to-frame motion is within ``STILL_PX``, else the run with
+    the least), and that run's largest motion (px). The pins are found with the
+    threshold fitted on the first ``n`` frames."""
+    n = max(1, min(int(n), len(grays)))
+    if n < 2:
+        return 0, 0.0
+    dome = find_region(grays[:n])
+    p, info, _ = fit_threshold(grays[:n], dome)
+    motion = frame_motion(grays, p, dome, info["pitch_px"])
+    worst = np.array([motion[s:s + n - 1].max() for s in range(len(grays) - n + 1)])
+    still = np.flatnonzero(worst <= STILL_PX)
+    s = int(still[0]) if len(still) else int(np.argmin(worst))
+    return s, float(worst[s])
+
 
 
 def _score(frames, params, dome):
@@ -140,16 +211,34 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
     """Fit ``[vision]`` parameters and the rest ``[layout]`` from no-contact frames
     (gray or BGR); ``start`` is the first frame's index in its clip (recorded only).
     The result's ``rest`` (:class:`RestPins`) and ``region`` (:class:`Region`) say
-    which blobs were kept and why the others were not."""
+    which blobs were kept and why the others were not. Frames that are not at rest
+    (see the module's rules) are a :class:`NotAtRest` naming them."""
     grays = [to_gray(f) for f in frames]
     if not grays:
         raise ValueError("calibrate needs at least one frame")
     dome = find_region(grays)
     p, info, score = fit_threshold(grays, dome)
+    motion = frame_motion(grays, p, dome, info["pitch_px"])
+    check_still(motion, start)
     rest, region, scale = rest_pins(grays, dome, p, info)
     pins = rest.pins
+    which = frames_text(start, len(grays))
     if len(pins) < 3:
-        raise ValueError(f"only {len(pins)} rest pins found: is this a TacTip clip at rest?")
+        raise NotAtRest(f"{which}: only {len(pins)} rest pins found: is this a TacTip clip "
+                        f"at rest?")
+    if len(pins) < MIN_PIN_SHARE * info["count"]:
+        raise NotAtRest(f"{which}: only {len(pins)} steady pins of the {info['count']:.0f} "
+                        f"blobs found per frame (under {MIN_PIN_SHARE:.0%}): the frames are "
+                        f"not at rest, or the skin is not in view; calibrate from still "
+                        f"frames without contact (--start, --frames)")
+    kept = rest.reason == "kept"
+    wandering = int(np.count_nonzero(~(rest.wander_px[kept] <= WANDER_PITCH * rest.pitch_px))
+                    if rest.wander_px is not None else 0)
+    if wandering > MAX_LOOSE_SHARE * len(pins):
+        raise NotAtRest(f"{which}: {wandering} of the {len(pins)} pins found are loose, their "
+                        f"centres wandering over the frames (over {MAX_LOOSE_SHARE:.0%}): the "
+                        f"frames are not at rest; calibrate from still frames without contact "
+                        f"(--start, --frames)")
     pitch = float(np.median(nn_px(pins)))
     area = info["area_px"]
     if dome is None:    # no dome in view: the region is the circle around the pins
@@ -169,6 +258,7 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
     return {"name": name, "vision": vision, "layout": layout, "frames": len(grays),
             "loose": [int(i) for i in loose],
             "start": int(start), "region": region, "rest": rest,
+            "motion_px": round(float(motion.max()), 3) if len(motion) else 0.0,
             "blobs": rest.counts(), "dome_in_view": region.disc is not None,
             "spot_scale": scale, "lattice_regularity": round(lattice_regularity(pins), 3),
             "fit": {"score": score, "regular_fraction": info["regular"],

@@ -13,7 +13,7 @@ from device.pi.models.window import RollingWindow
 from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutError
 from device.pi.vision.pipeline import STAGES, fault_names
-from host.analysis.calibrate import calibrate, merge_results, write_profile
+from host.analysis.calibrate import frames_text, calibrate, merge_results, write_profile
 from host.analysis.rest_pins import write_overlay
 from host.analysis.plots import load_comparison, load_directions, plot_directions
 from host.analysis.realism import realism_table, side_by_side_png, spec_realism
@@ -192,13 +192,20 @@ def cmd_plot(args):
     emit(args, res, text)
 
 
-def _rest_frames(source: str, start: int, count: int) -> list:
-    """Frames ``start`` .. ``start + count`` of a clip (frame indices in the clip)."""
+#: without --start, calibrate looks for its still frames in this many leading frames
+#: of a clip (when its first --frames are not at rest)
+STILL_SEARCH_FRAMES = 120
+
+
+def _rest_frames(source: str, start: int, count: int, gray: bool = False) -> list:
+    """Frames ``start`` .. ``start + count`` of a clip (frame indices in the clip),
+    stopping there; fewer when the clip ends sooner."""
+    from device.pi.vision.extract import to_gray
     frames = []
     with open_source(source) as cam:
         for k, fr in enumerate(read_frames(cam)):
             if k >= start:
-                frames.append(fr.image.copy())
+                frames.append(to_gray(fr.image) if gray else fr.image.copy())
             if len(frames) >= count:
                 break
     if not frames:
@@ -206,20 +213,52 @@ def _rest_frames(source: str, start: int, count: int) -> list:
     return frames
 
 
+def _calibrate_clip(source: str, start: int | None, count: int, name: str):
+    """(the first frame used, its calibration) of one clip: from frame ``start`` on,
+    or, without ``start``, its first ``count`` frames when they are at rest, else the
+    stillest run of ``count`` frames in its first ``STILL_SEARCH_FRAMES``. Too few
+    frames after a ``start``, or frames not at rest, are a UserError naming them."""
+    from host.analysis.calibrate import NotAtRest, stillest_start
+    frames = _rest_frames(source, start or 0, count)
+    if len(frames) < count:
+        if start:
+            raise UserError(f"{source}: --start {start} --frames {count} asks for frames "
+                            f"{start}..{start + count - 1}, but the clip ends at frame "
+                            f"{start + len(frames) - 1} ({len(frames)} of them); choose an "
+                            f"earlier --start or fewer --frames")
+        print(f"host calibrate: {source}: the clip has {len(frames)} frame(s), under "
+              f"--frames {count}; calibrating from all of them", file=sys.stderr)
+    try:
+        return frames[0], calibrate(frames, name=name, start=start or 0)
+    except NotAtRest as exc:
+        if start is not None or len(frames) < count:
+            raise UserError(f"{source}: {exc}") from None
+        first = exc
+    except ValueError as exc:
+        raise UserError(f"{source}: {exc}") from None
+    head = _rest_frames(source, 0, max(STILL_SEARCH_FRAMES, 2 * count), gray=True)
+    s, worst = stillest_start(head, count)
+    if s == 0 or len(head) < s + count:
+        raise UserError(f"{source}: {first}; no stiller run of {count} frames in its first "
+                        f"{len(head)}") from None
+    try:
+        return head[s], calibrate(head[s:s + count], name=name, start=s)
+    except ValueError as exc:
+        raise UserError(f"{source}: {first}; the stillest run of {count} frames in its "
+                        f"first {len(head)}, {exc}") from None
+
+
 def cmd_calibrate(args):
     out = out_file(args.out)
     name = args.name or out.stem
     results = []
     for source in args.sources:
-        frames = _rest_frames(source, args.start, args.frames)
-        try:
-            res = calibrate(frames, name=name, start=args.start)
-        except ValueError as exc:
-            raise UserError(f"{source}: {exc}") from None
-        results.append((source, frames[0], res))
+        frame, res = _calibrate_clip(source, args.start, args.frames, name)
+        results.append((source, frame, res))
     source, frame, res = results[0]
-    clips = [{"source": s, "pins": len(r["layout"]), "loose": len(r["loose"]),
-              "blobs": r["blobs"]} for s, _, r in results]
+    clips = [{"source": s, "start": r["start"], "frames": r["frames"],
+              "pins": len(r["layout"]), "loose": len(r["loose"]), "blobs": r["blobs"]}
+             for s, _, r in results]
     if len(results) > 1:
         res = merge_results([r for _, _, r in results])
     lay = res["layout"]
@@ -236,13 +275,15 @@ def cmd_calibrate(args):
             f"{v['min_area_px']}..{v['max_area_px']} px, pitch {v['pitch_px']} px, "
             f"{len(lay)} pins ({len(res['loose'])} loose: glare-clipped or wandering)")
     if len(results) > 1:
-        text += "".join(f"\n  {c['source']}: {c['pins']} pins ({c['loose']} loose)"
-                        for c in clips)
+        text += "".join(f"\n  {c['source']}: {c['pins']} pins ({c['loose']} loose) from "
+                        f"{frames_text(c['start'], c['frames'])}" for c in clips)
         text += "".join(f"\n  {clips[a['clips'][0]]['source']} vs {clips[a['clips'][1]]['source']}: "
                         f"{a['count_difference']} pins apart, {a['matched']} matched, "
                         f"median {a['median_px']} px, max {a['max_px']} px; "
                         f"{a['steady']['matched']} steady in both, max {a['steady']['max_px']} px"
                         for a in res["agreement"])
+    else:
+        text += f", from {frames_text(res['start'], res['frames'])} of {source}"
     if args.overlay:
         text += f"\noverlay: {res['overlay']}"
     res["clips"] = clips
@@ -351,8 +392,10 @@ def register(sub) -> None:
                    help="clip.avi, a folder of images, or sim://SCENE; several clips of one "
                         "sensor are merged (the pins most of them find)")
     s.add_argument("--out", required=True, help="profile .toml to write")
-    s.add_argument("--start", type=whole(0, 10_000_000), default=0, metavar="K",
-                   help="first rest frame (its index in the clip); default 0")
+    s.add_argument("--start", type=whole(0, 10_000_000), default=None, metavar="K",
+                   help="first rest frame (its index in the clip); default: frame 0, or, "
+                        "when the first --frames are not at rest, the stillest run of "
+                        f"--frames frames in the first {STILL_SEARCH_FRAMES}")
     s.add_argument("--frames", type=whole(1, 100_000), default=16, metavar="N",
                    help="rest frames to use from --start (nothing touching); default 16")
     s.add_argument("--overlay", metavar="PNG",

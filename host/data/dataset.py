@@ -11,7 +11,7 @@ Every file is written to a temporary name in the same folder and then renamed,
 so a crash loses at most the trial being written, and ``dataset.json`` always
 lists only complete trials. A temporary name carries its writer's process id
 (``.trial_0003.npz.pid1234.x8f2.tmp``), so the next writer removes the temporary
-files of writers that are no longer running.
+files (and folders) of writers that are no longer running.
 
 One writer at a time: :class:`DatasetWriter` holds an exclusive advisory lock
 (``fcntl.flock``) on the folder itself while it is open, and a second writer is
@@ -44,6 +44,7 @@ import fcntl
 import json
 import os
 import re
+import shutil
 import tempfile
 import zipfile
 import zlib
@@ -86,20 +87,44 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _remove(p: Path) -> bool:
+    try:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+        return True
+    except FileNotFoundError:
+        return False
+
+
 def remove_stale_temp_files(folder: Path | str) -> int:
-    """Remove the temporary files in ``folder`` whose writer process is gone; the
-    count removed. Files of live processes, and names without a process id, stay."""
+    """Remove the temporary files and folders in ``folder`` whose writer process is
+    gone; the count removed. Those of live processes, and names without a process id,
+    stay."""
     n = 0
     for p in Path(folder).glob(".*.tmp"):
         m = _TMP_RE.match(p.name)
         if m is None or int(m.group(1)) == os.getpid() or _alive(int(m.group(1))):
             continue
-        try:
-            p.unlink()
-            n += 1
-        except FileNotFoundError:
-            pass
+        n += _remove(p)
     return n
+
+
+#: a temporary folder in the system's temp folder: ``tacfoot-KIND-pid<PID>-<random>``
+_SYS_TMP_RE = re.compile(r"^tacfoot-[a-z]+-pid(\d+)-")
+
+
+def system_temp_dir(kind: str) -> Path:
+    """A new temporary folder ``tacfoot-KIND-pid<PID>-...`` in the system's temp
+    folder, after removing those of processes that are no longer running (a run
+    killed with SIGKILL leaves its own behind); the caller removes it."""
+    root = Path(tempfile.gettempdir())
+    for p in root.glob("tacfoot-*-pid*"):
+        m = _SYS_TMP_RE.match(p.name)
+        if m is not None and int(m.group(1)) != os.getpid() and not _alive(int(m.group(1))):
+            _remove(p)
+    return Path(tempfile.mkdtemp(prefix=f"tacfoot-{kind}-pid{os.getpid()}-", dir=root))
 
 
 def atomic_write(path: Path, write) -> None:
@@ -247,35 +272,58 @@ def _grey(img: np.ndarray) -> np.ndarray:
 
 def decode_video(data: bytes, suffix: str, start: int, end: int) -> np.ndarray:
     """Frames ``start`` .. ``end - 1`` (grey, uint8) of a video file's bytes, read as
-    ``host record`` reads a file source."""
-    from device.pi.sources.camera import open_camera
-    with tempfile.TemporaryDirectory(prefix="tacfoot-video-") as d:
-        p = Path(d) / f"video{suffix}"
+    ``host record`` reads a file source (through a file in a temporary folder of the
+    system's, :func:`system_temp_dir`)."""
+    d = system_temp_dir("video")
+    try:
+        p = d / f"video{suffix}"
         p.write_bytes(data)
-        with open_camera(str(p), start_frame=int(start), end_frame=int(end)) as cam:
-            out = [_grey(fr.image) for fr in cam]
+        return _decode_file(p, start, end)
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+def _decode_file(path: Path, start: int, end: int) -> np.ndarray:
+    from device.pi.sources.camera import open_camera
+    with open_camera(str(path), start_frame=int(start), end_frame=int(end)) as cam:
+        out = [_grey(fr.image) for fr in cam]
     return np.stack(out) if out else np.zeros((0, 0, 0), np.uint8)
 
 
-def _video_arrays(video, start: int, frames: np.ndarray) -> dict | str:
-    """The ``video`` arrays of a trial when the file's bytes decode to exactly
-    ``frames`` from ``start`` and the frames are at least half of the file's; else
-    why not (the entry's ``frames_note``)."""
-    from device.pi.sources.camera import CameraError
-    data = Path(video).read_bytes()
+def _same_frames(path: Path, start: int, frames: np.ndarray) -> bool:
+    """Whether the video file decodes, from frame ``start``, to exactly ``frames``
+    (compared one frame at a time)."""
+    from device.pi.sources.camera import open_camera
     n = int(frames.shape[0])
-    import cv2
-    cap = cv2.VideoCapture(str(video))
-    total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    cap.release()
+    k = 0
+    with open_camera(str(path), start_frame=int(start), end_frame=int(start) + n) as cam:
+        for fr in cam:
+            img = _grey(fr.image)
+            if k >= n or img.shape != frames.shape[1:] or not np.array_equal(img, frames[k]):
+                return False
+            k += 1
+    return k == n
+
+
+def _video_arrays(video, start: int, frames: np.ndarray) -> dict | str:
+    """The ``video`` arrays of a trial when the file decodes to exactly ``frames``
+    from ``start`` and the frames are at least half of the file's; else why not (the
+    entry's ``frames_note``). The file's frames are counted (up to twice the trial's),
+    not taken from its container's estimate, and its bytes are read only when kept."""
+    from device.pi.sources.camera import CameraError
+    from host.data.video import count_frames
+    n = int(frames.shape[0])
+    total = count_frames(video, 2 * n + 1)
     if 2 * n < total:
-        return f"stored as frames: {n} frames are under half of the video's {total}"
+        return (f"stored as frames: {n} frames are under half of the video's (it has "
+                f"more than {2 * n})")
     try:
-        got = decode_video(data, Path(video).suffix, start, start + n)
+        same = _same_frames(Path(video), start, frames)
     except (CameraError, OSError, ValueError) as exc:
         return f"stored as frames: the video does not decode ({exc})"
-    if got.shape != frames.shape or not np.array_equal(got, frames):
+    if not same:
         return "stored as frames: the video does not decode to exactly the frames read"
+    data = Path(video).read_bytes()
     return {"video": np.frombuffer(data, np.uint8), "video_suffix": np.array(Path(video).suffix),
             "video_range": np.array([start, start + n], np.int64)}
 

@@ -5,7 +5,9 @@ with one label, and appends it to a dataset folder (:mod:`host.data.dataset`), a
 ``host rig run`` does: the trial file is written under a temporary name and renamed
 when complete, then the index. Frames are spooled to a temporary file in the
 folder while they arrive, so a 30 s, 120 fps recording does not sit in memory; a
-crash or Ctrl-C loses only the trial being recorded and leaves no temporary file.
+crash or Ctrl-C loses only the trial being recorded and leaves no temporary file (a
+SIGKILL leaves its temporaries, named by its process id, which the folder's next
+writer removes).
 
 A recorded trial has no ground truth for contact or load: the dataset loader takes
 contact from the marker pipeline (as for a CSV manifest of clips), and the label is
@@ -29,11 +31,15 @@ decodes to exactly the frames read (``frames_codec`` ``source-video``,
 to frame K). Otherwise it stores the frame array and says why in the trial's
 ``frames_note``. On roboskin's clips (a keyframe every 12 frames) a trial of 10 % of
 a clip takes about 1.1x the source's bytes for those frames; the frame array took
-about 13x.
+about 13x. The source is read one packet at a time, no further than the trial's
+last frame, and a trial of a video file keeps the file's own frame times in ``t_s``
+(:func:`host.data.video.frame_times`; the entry's ``timestamps`` says whose).
 """
 from __future__ import annotations
 
 import os
+import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -44,6 +50,7 @@ from device.pi.sources.camera import CameraSource
 from device.pi.sources.imu import ImuSource
 from host.data.dataset import DatasetError, DatasetWriter, addable_folder, temp_prefix
 from host.data.recordings import profile_ref, source_recording
+from host.data.video import frame_times
 from host.data.windows import LABEL_RE, check_label_name
 from host.rig.trials import RUN_STATE
 
@@ -82,28 +89,38 @@ def remux_clip(video: Path, start: int, n: int, folder: Path) -> tuple[Path, int
         import av
     except ImportError:
         return "no remux: PyAV (av) is not installed"
+    from host.data.video import video_packets
     dst = Path(folder) / f"clip{Path(video).suffix.lower()}"
     try:
         with av.open(str(video)) as ic:
             if not ic.streams.video:
                 return f"no remux: {Path(video).name} has no video stream"
             stream = ic.streams.video[0]
-            packets = [p for p in ic.demux(stream) if p.dts is not None or p.size]
-            if len(packets) < start + n:
-                return (f"no remux: {len(packets)} packets for frames {start} .. "
-                        f"{start + n - 1}")
-            dts = [p.dts for p in packets[:start + n]]
-            if (any(p.pts is None or p.pts != p.dts for p in packets[:start + n])
-                    or any(b <= a for a, b in zip(dts, dts[1:]))):
-                return "no remux: the stream's packets are not one per frame in order"
-            keys = [i for i in range(start + 1) if packets[i].is_keyframe]
-            if not keys:
+            # from the last keyframe at or before frame start through frame start + n - 1,
+            # reading no packet after it
+            kept: list = []             # the packets from the last keyframe so far
+            k = None
+            for i, p in enumerate(video_packets(ic, stream)):
+                if i < start + n and kept and (p.pts is None or p.pts != p.dts
+                                               or p.dts <= kept[-1].dts):
+                    return "no remux: the stream's packets are not one per frame in order"
+                if p.is_keyframe and i <= start:
+                    kept, k = [], i
+                if k is not None:
+                    kept.append(p)
+                if i >= start + n - 1:
+                    break
+            if k is None:
                 return f"no remux: no keyframe at or before frame {start}"
-            k = keys[-1]
+            if k + len(kept) < start + n:
+                return (f"no remux: {k + len(kept)} packets for frames {start} .. "
+                        f"{start + n - 1}")
+            if kept[0].pts is None or kept[0].pts != kept[0].dts:
+                return "no remux: the stream's packets are not one per frame in order"
             with av.open(str(dst), "w") as oc:
                 out = oc.add_stream_from_template(stream)
-                t0 = packets[k].dts
-                for p in packets[k:start + n]:
+                t0 = kept[0].dts
+                for p in kept:
                     p.stream = out
                     p.dts -= t0
                     p.pts -= t0
@@ -111,6 +128,28 @@ def remux_clip(video: Path, start: int, n: int, folder: Path) -> tuple[Path, int
     except (av.FFmpegError, OSError, ValueError) as exc:
         return f"no remux: {exc}"
     return dst, start - k
+
+
+def _frame_times(grid: list[float], src: list[float], clock, video: Path | None,
+                 camera_url: str, fps: float | None) -> tuple[list[float], dict]:
+    """The trial's ``t_s`` and the entry's ``timestamps`` note. A video file's frames
+    keep the file's own times (pts x time_base) when it has one per frame, strictly
+    increasing; else they are on the reader's uniform 1/fps grid and one warning line
+    says why (a variable-rate file's real times are then lost)."""
+    if video is None:
+        return grid, {}
+    why = clock if isinstance(clock, str) else None
+    if why is None and len(src) != len(grid):
+        why = f"{len(src)} frame times for {len(grid)} frames"
+    if why is None and (not np.all(np.isfinite(src)) or np.any(np.diff(src) <= 0)):
+        why = "its frame times are not strictly increasing"
+    if why is None:
+        t = [float(x - src[0]) for x in src]
+        return t, {"timestamps": "the file's own (pts x time_base)"}
+    rate = f"{fps:g} frames/s" if fps else "1 frame/s"
+    print(f"warning: {camera_url}: the file's own frame times are not used ({why}); "
+          f"t_s is on a uniform grid at {rate}, the rate it declares", file=sys.stderr)
+    return grid, {"timestamps": f"uniform at {rate} (the file's own not used: {why})"}
 
 
 def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: float,
@@ -160,6 +199,12 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
     shape = None
     t_s, imu_rows, imu_faults = [], [], []
     t_wall = time.time()
+    clip_dir = None
+    # a video file's own frame times (pts x time_base), read beside its frames
+    source_video = _video_file(camera_url)
+    clock = frame_times(source_video, start) if source_video is not None else None
+    clock_gen = None if isinstance(clock, str) else clock    # closed at the end
+    t_src: list[float] = []
     try:
         if imu is not None:
             for _ in range(start):          # the IMU row of the first recorded frame
@@ -180,7 +225,15 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
                     raise RecordError(f"{camera_url or camera}: frame {fr.index} is "
                                       f"{img.shape[1]}x{img.shape[0]}, the first was "
                                       f"{shape[1]}x{shape[0]}")
-                if seconds is not None and fr.t_s - t0 >= seconds:
+                t = fr.t_s - t0
+                if clock is not None and not isinstance(clock, str):
+                    ts = next(clock, None)
+                    if ts is None:
+                        clock = "the file has fewer packets than frames"
+                    else:
+                        t_src.append(ts)
+                        t = ts - t_src[0]
+                if seconds is not None and t >= seconds:
                     break
                 fh.write(np.ascontiguousarray(img, np.uint8).tobytes())
                 t_s.append(fr.t_s - t0)
@@ -198,6 +251,8 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
             raise RecordError(f"{camera_url or camera}: --frames {frames} from --start "
                               f"{start}, but the source ends after {n} frames (frame "
                               f"{start + n - 1})")
+        t_s, times_note = _frame_times(t_s, t_src[:n], clock, source_video, camera_url,
+                                       getattr(camera, "fps", None))
         data = np.memmap(spool, np.uint8, "r", shape=(n, *shape))
         code = names.index(label)
         truth = {"t_s": np.asarray(t_s, np.float64),
@@ -216,19 +271,26 @@ def record(camera: CameraSource, imu: ImuSource | None, label: str, seconds: flo
                 "fps": None if fps is None else round(fps, 3), "width": int(shape[1]),
                 "height": int(shape[0]), "recorded_at": round(t_wall, 3),
                 "seconds": round(float(t_s[-1]), 4)}
-        video, first = _video_file(camera_url), int(start)
-        with tempfile.TemporaryDirectory(prefix="tacfoot-clip-") as clip_dir:
-            if video is not None:
-                got = remux_clip(video, first, n, Path(clip_dir))
-                if isinstance(got, str):      # the whole file, when it is most of it
-                    info["frames_note"] = got
-                else:
-                    video, first = got
-            path = writer.add_trial(data, truth, info, video=video, video_start=first)
+        info.update(times_note)
+        video, first = source_video, int(start)
+        # the clip's temporary folder is a writer's temporary in --out: the next writer
+        # removes it if this process is killed
+        clip_dir = tempfile.mkdtemp(prefix=temp_prefix("clip"), suffix=".tmp", dir=out)
+        if video is not None:
+            got = remux_clip(video, first, n, Path(clip_dir))
+            if isinstance(got, str):      # the whole file, when it is most of it
+                info["frames_note"] = got
+            else:
+                video, first = got
+        path = writer.add_trial(data, truth, info, video=video, video_start=first)
         del data
         return dict(writer.index["trials"][-1], path=str(path))
     finally:
         writer.close()
+        if clock_gen is not None:
+            clock_gen.close()
+        if clip_dir is not None:
+            shutil.rmtree(clip_dir, ignore_errors=True)
         try:
             os.unlink(spool)
         except FileNotFoundError:

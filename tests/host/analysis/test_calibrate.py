@@ -265,3 +265,76 @@ def test_calibrate_writes_the_rest_contrast_the_pipeline_scales_its_offset_by():
             s.process(np.clip(np.rint(gain * f.astype(np.float64)), 0, 255).astype(np.uint8),
                       float(i))
         assert s.offset_scale == pytest.approx(want, abs=0.05) and s.reference is not None
+
+
+def _no_touch(n: int) -> list:
+    from device.sim import Simulator, load_scene
+    sim = Simulator(load_scene("no-touch"), seed=0)
+    return [sim.render(i) for i in range(n)]
+
+
+def test_calibrate_refuses_frames_whose_pins_move_or_blink():
+    """Frames that are not at rest are a NotAtRest naming them, never a profile: pins
+    that move 2 px from frame to frame (the pipeline's still test allows 0.75 px), and
+    pins hidden at random in 60 % of each frame (7 steady pins of 56 blobs a frame)."""
+    import cv2
+    from host.analysis.calibrate import NotAtRest, calibrate
+    still = _no_touch(8)
+    moving = [np.roll(f, 2 * k, axis=1) for k, f in enumerate(still)]
+    with pytest.raises(NotAtRest, match=r"^frames 30\.\.37 are not at rest: the pins move "
+                                        r"2\.00 px \(median\) from frame 30 to 31"):
+        calibrate(moving, start=30)
+    lay = np.asarray(calibrate(still)["layout"])
+    rng = np.random.default_rng(0)
+    blink = []
+    for f in still:
+        bg, hide = cv2.medianBlur(f, 21), np.zeros_like(f)
+        for x, y in lay[rng.random(len(lay)) < 0.6]:
+            cv2.circle(hide, (int(round(x)), int(round(y))), 6, 255, -1)
+        blink.append(np.where(hide > 0, bg, f))
+    with pytest.raises(NotAtRest, match=r"^frames 0\.\.7: only \d+ steady pins of the \d+ "
+                                        r"blobs found per frame"):
+        calibrate(blink)
+
+
+def test_without_start_calibrate_takes_the_stillest_run_and_names_it(tmp_path, capsys):
+    """A clip whose first 10 frames move: without --start the profile comes from the
+    first still run of --frames frames (frames 10..15), and the output says so; with
+    --start 0 the same clip is refused in one line, exit 2, and nothing is written."""
+    import cv2
+    still = _no_touch(8)
+    folder = tmp_path / "clip"
+    folder.mkdir()
+    for k in range(18):
+        f = np.roll(still[0], 2 * k, axis=1) if k < 10 else still[k - 10]
+        cv2.imwrite(str(folder / f"f{k:02d}.png"), f)
+    out = tmp_path / "p.toml"
+    assert main(["calibrate", str(folder), "--frames", "6", "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["start"] == 10 and res["frames"] == 6 and res["motion_px"] <= 0.75
+    assert abs(load_pipeline_profile(out).n_pins - 133) <= 4
+    out.unlink()
+    assert main(["calibrate", str(folder), "--start", "0", "--frames", "6",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frames 0..5 are not at rest" in err[0] and not out.exists()
+
+
+def test_calibrate_on_a_real_clip_in_contact_is_exit_2_and_writes_nothing(tmp_path, capsys):
+    """smooth.avi from frame 250 is being dragged (it gave a 4-pin profile with exit
+    0): now one line naming frames 250..265, exit 2, no file. A --start too near the
+    end (frames 530..545 of its 540) is refused naming how many there are; the leading
+    rest frames still calibrate and the output names them."""
+    from tests.realdata import real_data_dir
+    clip = real_data_dir("roboskin/smooth.avi") / "roboskin" / "smooth.avi"
+    out = tmp_path / "p.toml"
+    assert main(["calibrate", str(clip), "--start", "250", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "frames 250..265 are not at rest" in err[0], err
+    assert not out.exists()
+    assert main(["calibrate", str(clip), "--start", "530", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ends at frame 539 (10 of them)" in err[0], err
+    assert not out.exists()
+    assert main(["calibrate", str(clip), "--frames", "8", "--out", str(out)]) == 0
+    assert "from frames 0..7 of" in capsys.readouterr().out

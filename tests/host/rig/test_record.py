@@ -203,3 +203,162 @@ def test_without_pyav_a_trial_of_most_of_a_clip_stores_the_whole_file(tmp_path, 
     assert e["frames_codec"] == "source-video" and "PyAV" in e["frames_note"]
     assert e["bytes"] <= 2 * clip.stat().st_size
     assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(clip, 10, 200))
+
+
+def _mjpg(path, n: int, size=(32, 24), fps: float = 120.0):
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
+    for k in range(n):
+        vw.write(np.full((size[1], size[0], 3), (7 * k) % 250, np.uint8))
+    vw.release()
+    return path
+
+
+def _vfr_mkv(tmp_path, n: int = 100):
+    """An MJPG Matroska file of ``n`` frames 20 ms and 5 ms apart by turns (its own
+    times, in ms: 0, 20, 25, 45, ...), for which OpenCV estimates 249 frames."""
+    import fractions
+
+    import av
+    src = _mjpg(tmp_path / "cfr.avi", n)
+    dst = tmp_path / "vfr.mkv"
+    ms = fractions.Fraction(1, 1000)
+    with av.open(str(src)) as ic, av.open(str(dst), "w") as oc:
+        out = oc.add_stream_from_template(ic.streams.video[0])
+        out.time_base = ms
+        t = 0
+        for i, p in enumerate(q for q in ic.demux(ic.streams.video[0]) if q.size):
+            p.stream, p.time_base, p.pts, p.dts = out, ms, t, t
+            oc.mux(p)
+            t += 5 if i % 2 else 20
+    return dst, np.cumsum([0] + [5 if i % 2 else 20 for i in range(n - 1)]) / 1000.0
+
+
+def test_record_reads_no_further_into_the_source_than_the_frames_asked_for(tmp_path,
+                                                                          monkeypatch):
+    """--start 5 --frames 10 of a 300-frame file: every PyAV read of the source stops
+    within a reorder window after frame 14 (the whole file's packets were read into
+    memory: 10 frames of a 297 MB MJPG peaked at 425 MB), and the trial is exact."""
+    import av
+
+    from host.data.video import REORDER_PACKETS
+    src = _mjpg(tmp_path / "long.avi", 300)
+    real_open = av.open
+    reads: list[int] = []
+
+    class Counted:
+        def __init__(self, c):
+            self.c = c
+
+        def __getattr__(self, name):
+            return getattr(self.c, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return self.c.__exit__(*exc)
+
+        def demux(self, *a, **k):
+            reads.append(0)
+            for p in self.c.demux(*a, **k):
+                reads[-1] += 1
+                yield p
+
+    def counting_open(file, *a, **k):
+        c = real_open(file, *a, **k)
+        return Counted(c) if str(file) == str(src) else c
+    monkeypatch.setattr(av, "open", counting_open)
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(src), "--label", "x", "--start", "5",
+                 "--frames", "10", "--out", str(out)]) == 0
+    assert reads and max(reads) <= 15 + REORDER_PACKETS + 1, reads
+    assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(src, 5, 10))
+
+
+def test_a_variable_rate_file_keeps_its_own_frame_times(tmp_path, capsys):
+    """A file whose frames are 20 and 5 ms apart by turns keeps those times in t_s
+    (they were put on a uniform 1/200 s grid with no note), and its entry says whose
+    times they are; a file recorded without PyAV says in one line and in the entry
+    that t_s is on the declared rate's grid."""
+    clip, want = _vfr_mkv(tmp_path)
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "x", "--start", "3",
+                 "--frames", "40", "--out", str(out)]) == 0
+    t = load_trial(out, 0)
+    assert np.allclose(t["t_s"], want[3:43] - want[3], atol=1e-9), t["t_s"][:6]
+    assert "own" in t["info"]["timestamps"]
+
+
+def test_record_without_pyav_warns_that_times_are_on_a_grid(tmp_path, capsys, monkeypatch):
+    import sys
+    clip, _ = _vfr_mkv(tmp_path)
+    monkeypatch.setitem(sys.modules, "av", None)
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "x", "--frames", "10",
+                 "--out", str(out)]) == 0
+    err = [x for x in capsys.readouterr().err.splitlines() if "frame times" in x]
+    assert len(err) == 1 and "uniform grid" in err[0] and "PyAV" in err[0]
+    assert load_trial(out, 0)["info"]["timestamps"].startswith("uniform at 200 frames/s")
+
+
+def test_how_a_trial_is_stored_follows_the_frames_counted_not_opencvs_estimate(
+        tmp_path, monkeypatch):
+    """60 of a 100-frame file (OpenCV estimates 249) are more than half of it: the
+    trial keeps the file's bytes (it stored the frame array, "under half of the
+    video's 249")."""
+    import host.rig.record as rec
+    from host.data.video import count_frames
+    clip, _ = _vfr_mkv(tmp_path)
+    cap = cv2.VideoCapture(str(clip))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) != 100       # the estimate is wrong
+    cap.release()
+    assert count_frames(clip, 10_000) == 100 and count_frames(clip, 30) == 30
+    monkeypatch.setattr(rec, "remux_clip", lambda *a: "no remux: for this test")
+    out = tmp_path / "ds"
+    assert main(["record", "--camera", str(clip), "--label", "x", "--start", "20",
+                 "--frames", "60", "--out", str(out)]) == 0
+    e = read_index(out)["trials"][0]
+    assert e["frames_codec"] == "source-video", e.get("frames_note")
+    assert np.array_equal(load_trial(out, 0)["frames"], _source_frames(clip, 20, 60))
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def test_a_killed_records_temporary_copies_are_removed_by_the_next_run(tmp_path,
+                                                                       monkeypatch):
+    """record keeps its clip copy in --out under a writer's temporary name, and
+    nothing in the system's temp folder; reading a stored video uses a temp folder
+    named by its process. A temporary of a process that is gone (what a SIGKILL left)
+    is removed by the next run, in --out and in the temp folder; a live process's
+    stays."""
+    import os
+    import tempfile
+
+    from host.data.dataset import decode_video
+    systmp = tmp_path / "systmp"
+    systmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(systmp))
+    dead, live = _dead_pid(), os.getppid()
+    out = tmp_path / "ds"
+    out.mkdir()
+    for pid in (dead, live):
+        for d in (out / f".clip.pid{pid}.ab12.tmp", systmp / f"tacfoot-video-pid{pid}-cd34"):
+            d.mkdir()
+            (d / "clip.avi").write_bytes(b"partial")
+    src = _mjpg(tmp_path / "c.avi", 12)
+    assert main(["record", "--camera", str(src), "--label", "x", "--frames", "8",
+                 "--out", str(out)]) == 0
+    assert read_index(out)["trials"][0]["frames_codec"] == "source-video"
+    assert not (out / f".clip.pid{dead}.ab12.tmp").exists()
+    assert (out / f".clip.pid{live}.ab12.tmp" / "clip.avi").exists()
+    assert sorted(p.name for p in systmp.iterdir()) == sorted(      # record made none
+        [f"tacfoot-video-pid{dead}-cd34", f"tacfoot-video-pid{live}-cd34"])
+    got = decode_video(src.read_bytes(), ".avi", 2, 5)             # as load_trial does
+    assert got.shape == (3, 24, 32)
+    assert [p.name for p in systmp.iterdir()] == [f"tacfoot-video-pid{live}-cd34"]
