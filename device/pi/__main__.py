@@ -10,10 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
 import threading
+import time
 
 
 from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
@@ -21,6 +23,9 @@ from device.pi.vision import native
 
 #: after a stop signal, the loop has this long to finish before the process ends anyway
 STOP_GRACE_S = 0.8
+#: after a stop signal, the MCAP writer has this long to write what is queued; what
+#: it has not written by then (a stalled disk) is counted lost (mcap_messages_lost)
+MCAP_STOP_WAIT_S = 0.5
 EXIT_FORCED = 3
 
 
@@ -46,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
                                   "needs pip install .[viz])")
     r.add_argument("--mcap-max-mb", type=float, default=256.0,
                    help="start the next MCAP file (FILE-0001.mcap, ...) at this size, "
-                        "MB (default 256)")
+                        "MB, 1 to 1048576 (default 256)")
     r.add_argument("--foxglove", metavar="[HOST:]PORT",
                    help="serve the same channels live to Foxglove over WebSocket "
                         "(default host 127.0.0.1; 0.0.0.0:8765 for the network; "
@@ -86,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             live = LiveView(*parse_hostport(args.foxglove)) if args.foxglove else None
             rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
-                              live=live, background=True)
+                              live=live, background=True, keep_existing=True)
         except (McapLogError, ValueError) as exc:
             print(f"device.pi run: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
@@ -97,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
 
     def stop(signum, frame):
         rt.stopped = True
+        log = getattr(rt, "mcap", None)
+        if log is not None and log.close_by is None:     # within the grace
+            log.close_by = time.monotonic() + MCAP_STOP_WAIT_S
         if not guard:                 # the loop should end at its next pass; if not, end
             guard.append(threading.Timer(STOP_GRACE_S, _force_exit, (signum,)))
             guard[0].daemon = True
@@ -131,9 +139,11 @@ def main(argv: list[str] | None = None) -> int:
 def _check_mcap(args) -> str | None:
     """Why ``--mcap`` or ``--foxglove`` cannot work (checked before the sources open),
     or None."""
-    from device.pi.runtime.mcaplog import INSTALL_HINT, parse_hostport
-    if not args.mcap_max_mb > 0:
-        return f"--mcap-max-mb must be > 0, got {args.mcap_max_mb}"
+    from device.pi.runtime.mcaplog import INSTALL_HINT, MAX_MB_MAX, MAX_MB_MIN, parse_hostport
+    mb = args.mcap_max_mb
+    if not (math.isfinite(mb) and MAX_MB_MIN <= mb <= MAX_MB_MAX):
+        return (f"--mcap-max-mb must be a number of MB from {MAX_MB_MIN:g} to "
+                f"{MAX_MB_MAX:.0f}, got {mb:g}")
     if args.foxglove:
         try:
             parse_hostport(args.foxglove)

@@ -121,6 +121,7 @@ def cmd_analyse(args):
     if args.mcap:
         from host.cli.export import open_log
         log = open_log(args.mcap, args.mcap_image_every, channels=ANALYSE_CHANNEL)
+        log.prog = "host analyse"                  # its warnings name this command
     try:
         cam = open_source(args.source)
     except BaseException:

@@ -469,12 +469,12 @@ class LegRuntime:
         self.feed.stop()
         for _ in range(3):
             self.writer.pump()
+        if self.mcap is not None:     # first: the status then counts what it lost
+            self.mcap.close()
         self.write_status(force=True)
         self._notify("STOPPING=1")
         if self.json_log is not None:
             self.json_log.flush()
-        if self.mcap is not None:
-            self.mcap.close()
 
     def _heartbeat(self) -> P.Heartbeat:
         return heartbeat_message(self.clock() - self._t0, self.fps,

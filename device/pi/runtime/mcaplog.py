@@ -23,13 +23,15 @@ log, in ns). Packets and faults, which happen between frames, are logged on the
 same time line: the runtime's clock, shifted by the last frame's offset between
 the two (clamped at 0); those before the first frame at 0.
 
-Files roll over by size: ``run.mcap``, then ``run-0001.mcap``, ``run-0002.mcap``
-... once a file reaches ``max_mb``. Each is a complete MCAP file with its own
-schemas and channels. The file is written unbuffered, one chunk per write (chunk
-size ``[mcap] chunk_kb``), so a crash loses at most the chunk being filled and what
-the writer thread had not yet taken (below; normally nothing, as it keeps up):
-:func:`read_log` reads the complete chunks of a file that has no footer, and
-:func:`recover` rewrites them as a well-formed file.
+Files roll over by size (``run.mcap``, ``run-0001.mcap`` ... once a file reaches
+``max_mb``), each a complete MCAP file; the runtime's log never truncates one
+(``keep_existing``, one line names the file it takes instead): names and reading
+back are :mod:`device.pi.runtime.mcapfiles`. A chunk is at most a quarter of
+``max_mb``: a file ends at most that far past it, plus the message that filled the
+chunk and the summary (about 5 kB). A file is written unbuffered, one chunk per
+write (``[mcap] chunk_kb``), so a crash loses at most the chunk being filled and
+what the writer thread had not yet taken (below; normally nothing). A file whose
+first chunk cannot be written (a full disk) is removed and its name tried again.
 
 The loop does not wait on the log (``background=True``, the runtime's): per frame it
 copies the values the messages need and queues them; a writer thread encodes them
@@ -54,6 +56,7 @@ base install runs without them.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import threading
 import time
@@ -64,6 +67,11 @@ import numpy as np
 
 from device.pi import protocol as P
 from device.pi.runtime import mcapmsg as M
+from device.pi.runtime.mcapfiles import (  # noqa: F401  (the names this module had)
+    INSTALL_HINT, MAGIC, MAX_MB_MAX, MAX_MB_MIN, McapLogError, free_name, read_log, recover,
+    roll_name)
+from device.pi.runtime.mcapfiles import CountingFile as _CountingFile
+from device.pi.runtime.mcapfiles import writer_module as _mcap
 from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module had)
     CHANNELS, COMPRESSED_IMAGE, FRAME_ID, IMAGE_ANNOTATIONS, LINE_LIST, POINTS, annotations)
 
@@ -80,57 +88,12 @@ QUEUE_ITEMS = 128
 WRITER_POLL_S = 0.02
 #: close() waits this long for the writer thread to write what is queued, s
 CLOSE_WAIT_S = 10.0
-INSTALL_HINT = "MCAP logging needs the viz extra: pip install .[viz]"
-
-
-class McapLogError(OSError):
-    """The MCAP log cannot be opened (no ``mcap`` package, a bad path)."""
-
-
-def roll_name(path: Path, n: int) -> Path:
-    """The n-th file of a log: ``run.mcap``, ``run-0001.mcap``, ..."""
-    return path if n == 0 else path.with_name(f"{path.stem}-{n:04d}{path.suffix}")
-
-
-def _mcap():
-    try:
-        from mcap import writer
-    except ImportError:
-        raise McapLogError(INSTALL_HINT) from None
-    return writer
+#: ... and leaves one that handled nothing this long (a stalled disk), counted lost, s
+CLOSE_STALL_S = 0.5
 
 
 def _copy(a):
     return None if a is None else np.array(a, copy=True)
-
-
-class _CountingFile:
-    """An unbuffered file that counts the bytes written (the roll-over size)."""
-
-    def __init__(self, path: Path):
-        self.fh = open(path, "wb", buffering=0)
-        self.size = 0
-
-    def write(self, data) -> int:
-        n = len(data)
-        mv = memoryview(data)
-        done = 0
-        while done < n:                       # a raw write may take less than asked
-            k = self.fh.write(mv[done:])
-            if not k:
-                raise OSError("the file took no bytes")
-            done += k
-        self.size += n
-        return n
-
-    def tell(self) -> int:
-        return self.size
-
-    def flush(self) -> None:
-        pass
-
-    def close(self) -> None:
-        self.fh.close()
 
 
 class McapLog:
@@ -144,16 +107,29 @@ class McapLog:
     queue holds :data:`QUEUE_ITEMS` frames and packets; when the writer falls that
     far behind, the oldest is dropped (the newest wins) and counted in ``dropped``
     and, by its messages, in ``messages_lost``. ``background=False`` (the host's
-    offline commands, which must not drop): the caller's thread does the work."""
+    offline commands, which must not drop): the caller's thread does the work.
+
+    ``keep_existing=True`` (the runtime's): an existing log is never truncated; the
+    run takes the next free name (:func:`free_name`) and says so in one line.
+    ``prog`` names the command in its warnings."""
 
     def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None,
-                 live=None, background: bool = False):
+                 live=None, background: bool = False, keep_existing: bool = False,
+                 prog: str = "device.pi run"):
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
         self.channels = {**CHANNELS, **(channels or {})}
         self.live = live             # a LiveView (--foxglove), or None
         self.cfg = cfg
         self.clock = clock
         self.files: list[str] = []
+        self.prog = prog
+        self.keep_existing = keep_existing
+        #: close() waits no later than this (time.monotonic()); set at a stop signal
+        self.close_by: float | None = None
+        self._done = 0               # items the writer thread has handled
+        self._busy = None            # (messages, written + lost) of the item in hand
+        self._abandoned = False
+        self._head = self._file_msgs = self._file_kept = 0
         self.messages_written = 0
         self._lost = 0               # the writer's failures (its thread)
         self._dropped_msgs = 0       # messages of the items dropped from the queue
@@ -190,16 +166,20 @@ class McapLog:
                                f"{self.path / 'run.mcap'}")
         if not folder.is_dir():
             raise McapLogError(f"--mcap {str(path)!r}: the folder {folder} does not exist")
-        if not max_mb > 0:
-            raise McapLogError(f"--mcap-max-mb must be > 0, got {max_mb}")
+        if not (max_mb > 0 and np.isfinite(max_mb)):
+            raise McapLogError(f"--mcap-max-mb must be a finite number > 0, got {max_mb}")
         self.max_bytes = int(max_mb * 1024 * 1024)
         self._n = 0                  # the next file's number
         self._fh = None
         self._ids: dict[str, int] = {}
+        self._base = free_name(self.path) if self.keep_existing else self.path
         try:
             self._open()
         except OSError as exc:
             raise McapLogError(f"--mcap {str(path)!r}: {exc.strerror or exc}") from None
+        if self._base != self.path:
+            print(f"{self.prog}: --mcap {self.path} already holds an earlier log, kept; "
+                  f"this run writes {self.files[0]}", file=sys.stderr, flush=True)
 
     @property
     def messages_lost(self) -> int:
@@ -208,36 +188,76 @@ class McapLog:
 
     # -- files -----------------------------------------------------------------
     def _open(self) -> None:
+        """The next file, created (never an existing one with ``keep_existing``) with
+        its header, schemas and channels; a file whose start cannot be written is
+        removed and its number used again at the next try."""
         W = self._writer_mod
-        p = roll_name(self.path, self._n)
+        while True:
+            p = roll_name(self._base, self._n)
+            try:
+                fh = _CountingFile(p, exclusive=self.keep_existing)
+                break
+            except FileExistsError:          # appeared since: never truncated, skipped
+                self._n += 1
+        try:
+            chunk = max(1024, min(self.cfg.chunk_kb * 1024, self.max_bytes // 4))
+            w = W.Writer(fh, chunk_size=chunk, compression=W.CompressionType.ZSTD)
+            w.start(profile="", library="tacfoot")
+            schemas: dict[str, int] = {}
+            ids = {}
+            for topic, schema in self.channels.items():
+                name = schema["title"]
+                if name not in schemas:
+                    schemas[name] = w.register_schema(name, "jsonschema",
+                                                      json.dumps(schema).encode())
+                ids[topic] = w.register_channel(topic, "json", schemas[name])
+        except BaseException:
+            self._remove(fh, p)
+            raise
         self._n += 1
-        self._fh = _CountingFile(p)
+        self._fh, self._ids, self._w = fh, ids, w
         self.files.append(str(p))
-        w = W.Writer(self._fh, chunk_size=self.cfg.chunk_kb * 1024,
-                     compression=W.CompressionType.ZSTD)
-        w.start(profile="", library="tacfoot")
-        schemas: dict[str, int] = {}
-        self._ids = {}
-        for topic, schema in self.channels.items():
-            name = schema["title"]
-            if name not in schemas:
-                schemas[name] = w.register_schema(name, "jsonschema",
-                                                  json.dumps(schema).encode())
-            self._ids[topic] = w.register_channel(topic, "json", schemas[name])
-        self._w = w
+        self._head = fh.writes               # writes of a file that holds no message yet
+        self._file_msgs = self._file_kept = 0
+
+    @staticmethod
+    def _remove(fh: _CountingFile, p) -> None:
+        for step in (fh.close, lambda: os.unlink(p)):
+            try:
+                step()
+            except Exception:
+                pass
+
+    def _unflushed_lost(self) -> None:
+        """The messages of the file's chunk that never reached it: lost, not written."""
+        if self._abandoned:                  # counted by _abandon
+            return
+        n = self._file_msgs - self._file_kept
+        self._file_msgs = self._file_kept
+        self.messages_written -= n
+        self._lost += n
 
     def _drop_file(self) -> None:
+        """After a failed write: the file is closed; one that holds no message (the
+        first chunk failed) is removed and its name is used again."""
+        self._w = None
+        self._unflushed_lost()
+        if self._fh.writes <= self._head and self.files:
+            self._remove(self._fh, self.files.pop())
+            self._n -= 1
+            return
         try:
             self._fh.close()
         except Exception:
             pass
-        self._w = None
 
     def _finish(self) -> None:
         w, self._w = self._w, None
         try:
             w.finish()
+            self._file_kept = self._file_msgs
         finally:
+            self._unflushed_lost()
             self._fh.close()
 
     # -- the queue (background=True) ---------------------------------------------
@@ -257,19 +277,22 @@ class McapLog:
         """The writer thread: handle the queued items in order until closed."""
         q, wake = self._q, self._wake
         c0 = time.thread_time()
-        while True:
+        while not self._abandoned:
             self.writer_cpu_s = time.thread_time() - c0
             try:
-                fn, *args, _n = q.popleft()
+                fn, *args, n = q.popleft()
             except IndexError:
                 if self._closing:
                     return
                 wake.wait(WRITER_POLL_S)     # woken early only by close()
                 continue
+            self._busy = (n, self.messages_written + self._lost)
             try:
                 fn(*args)
             except Exception as exc:
                 self._fail(exc)
+            self._busy = None
+            self._done += 1
             time.sleep(0)            # the GIL to the loop, if it waits, between items
 
     def _do(self, fn, args: tuple, n_msgs: int) -> None:
@@ -301,6 +324,8 @@ class McapLog:
         return self._file_on or (self.live is not None and self.live.wants(topic))
 
     def _write(self, topic: str, t_ns: int, data: bytes) -> None:
+        if self._abandoned:                  # left by close(): counted there
+            return
         if self.live is not None and self.live.wants(topic):
             self.live.publish(topic, t_ns, data)
         if not self._file_on:
@@ -316,8 +341,14 @@ class McapLog:
             except Exception as exc:
                 return self._fail(exc)
         try:
+            writes = self._fh.writes
             self._w.add_message(self._ids[topic], log_time=t_ns, publish_time=t_ns, data=data)
+            if self._abandoned:
+                return
             self.messages_written += 1
+            self._file_msgs += 1
+            if self._fh.writes != writes:    # a chunk went out, this message last in it
+                self._file_kept = self._file_msgs
             if self._fh.size >= self.max_bytes:
                 self._finish()
                 self._open()
@@ -325,6 +356,8 @@ class McapLog:
             self._fail(exc)
 
     def _fail(self, exc: Exception) -> None:
+        if self._abandoned:
+            return
         self._lost += 1
         if self._w is not None:
             self._drop_file()
@@ -332,9 +365,10 @@ class McapLog:
         if not self.warned:
             self.warned = True
             err = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
-            print(f"device.pi run: warning: --mcap {self.path}: cannot write ({err}); "
-                  f"running on, counting the lost messages in the status "
-                  f"(mcap_messages_lost)", file=sys.stderr)
+            where = (" in the status (mcap_messages_lost)" if self.prog == "device.pi run"
+                     else "")
+            print(f"{self.prog}: warning: --mcap {self.path}: cannot write ({err}); "
+                  f"running on, counting the lost messages{where}", file=sys.stderr)
 
     def _now(self) -> float:
         return 0.0 if self.clock is None else float(self.clock())
@@ -416,14 +450,16 @@ class McapLog:
             self._write("/tacfoot/faults", t, M.faults_bytes(msg))
 
     def close(self) -> None:
-        """Write what is queued (waiting at most :data:`CLOSE_WAIT_S`), end the
-        file with its summary and stop the live view."""
+        """Write what is queued, end the file with its summary and stop the live
+        view. The writer thread gets at most :data:`CLOSE_WAIT_S` (or until
+        ``close_by``), and is left when it handles nothing for :data:`CLOSE_STALL_S`
+        (a stalled disk): what it had not written is counted lost."""
         if self._thread is not None:
+            self._q.append((lambda: self._w is not None and self._finish(), 0))  # + summary
             self._closing = True
             self._wake.set()
-            self._thread.join(CLOSE_WAIT_S)
-            if self._thread.is_alive():          # the disk hangs: leave it, count it
-                self._dropped_msgs += sum(x[-1] for x in list(self._q))
+            if not self._wait_writer():          # the disk hangs: leave it, count it
+                self._abandon()
                 self._thread = None
                 if self.live is not None:
                     self.live.close()
@@ -438,10 +474,45 @@ class McapLog:
         except Exception as exc:
             self._fail(exc)
 
+    def _wait_writer(self) -> bool:
+        """Whether the writer thread ended within the bounds of :meth:`close`."""
+        now = time.monotonic()
+        end = now + CLOSE_WAIT_S
+        if self.close_by is not None:
+            end = min(end, max(self.close_by, now + 0.05))
+        seen, since = self._done, now
+        while self._thread.is_alive():
+            now = time.monotonic()
+            if self._done != seen:
+                seen, since = self._done, now
+            if now >= end or now - since >= CLOSE_STALL_S:
+                return False
+            self._thread.join(0.01)
+        return True
+
+    def _abandon(self) -> None:
+        """The writer is stuck (on its disk): what is queued, the rest of its item and
+        its unwritten chunk are lost. Left, it writes nothing more if it ever wakes."""
+        self._abandoned = True
+        queued = list(self._q)
+        self._q.clear()
+        self._dropped_msgs += sum(x[-1] for x in queued)
+        busy = self._busy
+        if busy is not None:
+            n, before = busy
+            self._lost += max(0, n - (self.messages_written + self._lost - before))
+        self._w = None
+        n = self._file_msgs - self._file_kept    # the chunk that never reached the disk
+        self._file_msgs = self._file_kept
+        self.messages_written -= n
+        self._lost += n
+
     def status(self) -> dict:
         st = {"mcap_messages_written": self.messages_written,
               "mcap_messages_lost": self.messages_lost, "mcap_dropped": self.dropped,
-              "mcap_files": list(self.files), "mcap_loop_cpu_s": round(self.loop_cpu_s, 4),
+              "mcap_files": list(self.files),
+              "mcap_file": self.files[-1] if self.files else None,
+              "mcap_loop_cpu_s": round(self.loop_cpu_s, 4),
               "mcap_writer_cpu_s": round(self.writer_cpu_s, 4)}
         if self.live is not None:
             st.update(self.live.status())
@@ -522,67 +593,3 @@ def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int
         raise ValueError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
                          f"(e.g. 8765 or 0.0.0.0:8765)")
     return (host or default_host), p
-
-
-# ---------------------------------------------------------------------------
-# Reading back (tests, recovery after a crash)
-# ---------------------------------------------------------------------------
-
-def read_log(path) -> tuple[list[dict], bool]:
-    """The messages of one MCAP file in file order, as dicts (``topic``, ``schema``,
-    ``log_time``, ``data``: the decoded JSON), and whether the file was complete.
-    A file cut short (a crash) gives the messages of its complete chunks."""
-    try:
-        from mcap.exceptions import McapError
-        from mcap.records import Channel, Chunk, Message, Schema
-        from mcap.stream_reader import StreamReader, breakup_chunk
-    except ImportError:
-        raise McapLogError(INSTALL_HINT) from None
-    schemas, channels, out = {}, {}, []
-    complete = False
-
-    def take(rec):
-        if isinstance(rec, Schema):
-            schemas[rec.id] = rec.name
-        elif isinstance(rec, Channel):
-            channels[rec.id] = (rec.topic, rec.schema_id)
-        elif isinstance(rec, Message):
-            topic, sid = channels[rec.channel_id]
-            out.append({"topic": topic, "schema": schemas.get(sid), "log_time": rec.log_time,
-                        "data": json.loads(rec.data)})
-
-    with open(path, "rb") as fh:
-        try:
-            for rec in StreamReader(fh, skip_magic=False, emit_chunks=True).records:
-                if isinstance(rec, Chunk):
-                    for r in breakup_chunk(rec, validate_crc=True):
-                        take(r)
-                else:
-                    take(rec)
-            complete = True
-        except (McapError, EOFError, ValueError, KeyError, OSError):
-            pass                          # cut short: what came before stands
-    return out, complete
-
-
-def recover(src, dst) -> int:
-    """Rewrite the readable prefix of ``src`` (a log cut short by a crash) as a
-    well-formed MCAP file ``dst``; the number of messages kept."""
-    W = _mcap()
-    msgs, _ = read_log(src)
-    topics = {**CHANNELS, **{m["topic"]: {"title": m["schema"]} for m in msgs
-                             if m["topic"] not in CHANNELS}}
-    with open(dst, "wb") as fh:
-        w = W.Writer(fh, compression=W.CompressionType.ZSTD)
-        w.start(profile="", library="tacfoot")
-        sids, cids = {}, {}
-        for topic, schema in topics.items():
-            name = schema["title"]
-            if name not in sids:
-                sids[name] = w.register_schema(name, "jsonschema", json.dumps(schema).encode())
-            cids[topic] = w.register_channel(topic, "json", sids[name])
-        for m in msgs:
-            w.add_message(cids[m["topic"]], log_time=m["log_time"],
-                          publish_time=m["log_time"], data=json.dumps(m["data"]).encode())
-        w.finish()
-    return len(msgs)

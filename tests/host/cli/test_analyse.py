@@ -220,3 +220,27 @@ def test_analyse_mcap_refuses_a_bad_file_before_it_starts(tmp_path, capsys):
     rc = main(["analyse", "sim://drag-90", "--mcap", str(tmp_path / "b.mcap"),
                "--mcap-image-every", "0"])
     assert rc == 2 and "--mcap-image-every" in capsys.readouterr().err
+
+
+def test_analyse_names_itself_in_its_mcap_warning(tmp_path, capsys, monkeypatch):
+    """A write the disk refuses is warned about as ``host analyse``, not as the leg's
+    runtime (issue 29, item 15)."""
+    pytest.importorskip("mcap")
+    import errno
+
+    from device.pi.runtime import mcaplog
+    real, n = mcaplog._CountingFile.write, [0]
+
+    def write(self, data):
+        n[0] += 1
+        if n[0] > 2:                              # magic and header land, then the disk fills
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real(self, data)
+    monkeypatch.setattr(mcaplog._CountingFile, "write", write)
+    rc = main(["analyse", "sim://drag-90", "--out", str(tmp_path / "a.jsonl"), "--mcap",
+               str(tmp_path / "a.mcap")])
+    err = capsys.readouterr().err
+    warn = [x for x in err.splitlines() if "warning" in x]
+    assert len(warn) == 1 and warn[0].startswith("host analyse: warning: --mcap"), err
+    assert "device.pi run" not in err
+    assert rc == 2 and "messages could not be written" in err

@@ -144,8 +144,9 @@ def test_images_are_jpegs_of_the_configured_width_and_pins_one_point_each(run):
 
 def test_files_roll_over_by_size_and_each_reads_back(tmp_path):
     f = tmp_path / "roll.mcap"
-    r = subprocess.run(_run(tmp_path, "--mcap", f, "--mcap-max-mb", "0.03", frames=30,
-                            config="[mcap]\nchunk_kb = 8\nimage_every = 1\n"),
+    r = subprocess.run(_run(tmp_path, "--mcap", f, "--mcap-max-mb", "1", frames=30,
+                            config="[mcap]\nchunk_kb = 8\nimage_every = 1\n"
+                                   "image_width = 640\njpeg_quality = 100\n"),
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     files = json.loads(r.stdout)["mcap_files"]
