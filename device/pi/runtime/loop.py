@@ -134,6 +134,8 @@ class LegRuntime:
         self.gait_packets = 0
         self.commands = 0
         self.rates_refused = 0          # rate COMMANDs outside --fps's bound, ignored
+        self.gait_refused = 0           # GAITs with a phase not 0/1 or flagged non-finite
+        self.gait_clamped = 0           # GAITs flagged clamped, used as sent
         self.status_requests = 0        # COMMAND request-status received
         self.status_requests_coalesced = 0   # answered with an earlier one of their pass
         self._status_asked = False
@@ -421,6 +423,15 @@ class LegRuntime:
             self.mcap.packet("in", msg, self.clock())
         if isinstance(msg, P.Gait):
             self.gait_packets += 1
+            # a phase that is neither stance nor swing, or a value the MCU sent as 0
+            # for NaN/inf, is no context: refused (the last one ages out); clamped
+            # values are at their field's end, on the right side: used, counted
+            if msg.phase not in (P.PHASE_STANCE, P.PHASE_SWING) or \
+                    msg.flags & P.GAIT_FLAG_NONFINITE:
+                self.gait_refused += 1
+                return
+            if msg.flags & P.GAIT_FLAG_CLAMPED:
+                self.gait_clamped += 1
             self.gait = gait_from_message(msg, t_sent)
         elif isinstance(msg, P.Command):
             self.commands += 1
@@ -450,7 +461,8 @@ class LegRuntime:
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
                 "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
                 "frames_dropped_behind": self.feed.dropped,
-                "gait_packets": self.gait_packets,
+                "gait_packets": self.gait_packets, "gait_refused": self.gait_refused,
+                "gait_clamped": self.gait_clamped,
                 "commands": self.commands, "rates_refused": self.rates_refused,
                 "status_requests": self.status_requests,
                 "status_requests_coalesced": self.status_requests_coalesced,
