@@ -309,11 +309,11 @@ def _quant(v, scale, lo, hi):
         x = v * scale                   # value that overflows is clamped, as on the Pi)
     except (TypeError, ValueError, OverflowError):
         return (0 if lo <= 0 <= hi else lo), GAIT_FLAG_NONFINITE
-    if x < lo:
+    if x < lo - 0.5:                    # within half a step of an end: that end, unflagged
         return lo, GAIT_FLAG_CLAMPED
-    if x > hi:
+    if x > hi + 0.5:
         return hi, GAIT_FLAG_CLAMPED
-    return int(round(x)), 0
+    return max(lo, min(hi, int(round(x)))), 0
 
 
 def _clamp_int(v, lo, hi, default):

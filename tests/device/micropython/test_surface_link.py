@@ -346,6 +346,9 @@ ANY = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10*
 # a finite load whose scaled value overflows: clamped on both sides, not "non-finite"
 @example(phase=0, load_n=1.797693134862316e+307, vel=(0.0, 0.0, 0.0), seq=0, t_ms=0)
 @example(phase=1, load_n=1.0, vel=(-1e308, 1e308, float("nan")), seq=1, t_ms=5)
+# within half a step of a field's end: that end, unflagged; beyond it: clamped
+@example(phase=0, load_n=6553.54, vel=(32767.4, -32768.4, 0.0), seq=2, t_ms=6)
+@example(phase=0, load_n=-0.04, vel=(32767.6, -32768.6, 0.0), seq=3, t_ms=7)
 def test_mcu_gait_encoder_equals_the_pi_encoder_for_any_values(phase, load_n, vel, seq, t_ms):
     cpython_path()
     import machine
@@ -562,3 +565,35 @@ def test_mcu_sends_a_status_request_at_most_every_50_ms_on_micropython_and_cpyth
 
 def test_mcu_sends_a_status_request_at_most_every_50_ms_on_cpython_alone():
     _check_status_limit(json.loads(run_cpython(STATUS_LIMIT)))
+
+
+GAIT_EDGES = r"""
+import json, machine
+from binascii import hexlify
+import surface_link as SL
+
+u = machine.UART(0, 921600)
+link = SL.SurfaceLink(u, clock=lambda: 9)
+out = []
+for load, vel in ((6553.54, (32767.4, -32768.4, 0.0)), (-0.04, (0.0, 0.0, 0.0)),
+                  (6553.56, (0.0, 0.0, 0.0)), (-0.06, (32767.6, -32768.6, 0.49))):
+    u.take()
+    link.send_gait(SL.PHASE_STANCE, load, vel)
+    out.append(hexlify(u.take()).decode())
+print(json.dumps(out))
+"""
+
+
+@requires_mpy
+def test_mcu_and_pi_agree_on_values_within_half_a_step_of_a_fields_end():
+    """A value that rounds to its field's end is that end with no clamped flag, one
+    beyond is clamped, on real MicroPython as on the Pi (issue 29, item 13)."""
+    mp, cp = run_both(GAIT_EDGES)
+    assert json.loads(mp) == json.loads(cp)
+    cases = [(6553.54, (32767.4, -32768.4, 0.0), 0), (-0.04, (0.0, 0.0, 0.0), 0),
+             (6553.56, (0.0, 0.0, 0.0), P.GAIT_FLAG_CLAMPED),
+             (-0.06, (32767.6, -32768.6, 0.49), P.GAIT_FLAG_CLAMPED)]
+    for i, (wire, (load, vel, flags)) in enumerate(zip(json.loads(mp), cases)):
+        assert wire == P.Gait(P.PHASE_STANCE, load, vel).encode(i, 9).hex()
+        (raw,) = P.FrameDecoder().feed(bytes.fromhex(wire))
+        assert P.decode_message(raw).flags == flags

@@ -1,12 +1,21 @@
-"""What the leg runtime takes from the gait MCU's GAIT packets (issue 29, item 12): a
-phase other than stance (0) or swing (1), or a packet flagged non-finite, is refused
-and counted; a packet flagged clamped is used with its clamped values and counted."""
+"""Packets between the leg runtime and the gait MCU (issue 29).
+
+Item 12: what the runtime takes from GAIT packets: a phase other than stance (0) or
+swing (1), or a packet flagged non-finite, is refused and counted; a packet flagged
+clamped is used with its clamped values and counted.
+
+Item 13: the SURFACE `clamped` bit means a value beyond its field, not the pressure
+model's error around no load."""
 from __future__ import annotations
 
 import struct
 
 from device.pi import protocol as P
-from tests.device.pi.runtime.standins import make_runtime, run_for
+from device.pi.runtime.config import LegConfig
+from device.pi.runtime.load import load_models
+from device.pi.runtime.loop import LegRuntime
+from tests.device.pi.runtime.standins import (FPS, NullImu, RecordingPort, SimCamera,
+                                              make_runtime, run_for)
 
 _GAIT = struct.Struct("<BHhhhB")
 
@@ -54,3 +63,23 @@ def test_a_gait_phase_out_of_range_or_flagged_non_finite_is_refused_and_counted(
     assert st["gait_packets"] == len(PLAN)
     assert st["gait_refused"] == sum(not ok for _, _, ok in PLAN) == 4
     assert st["gait_clamped"] == 1
+
+
+def test_surface_from_the_real_models_in_a_walk_never_says_clamped():
+    """The leg's own models on sim://walk: the pressure regressor's estimate in the air
+    is a few hundredths of a newton below 0 (its error is 0.024 N), which the SURFACE
+    field (0..655.35 N) clamped and flagged on 138 of the walk's 720 frames, from
+    frame 7 on. A normal load cannot pull: below 0 it is no load, sent as 0 with no
+    fault."""
+    cfg = LegConfig()
+    models = load_models(None, "int8", None, cfg)
+    assert models.pressure is not None
+    port = RecordingPort()
+    cam = SimCamera("walk")
+    rt = LegRuntime(cfg, cam.factory, NullImu(), port, models, lossless=True, fps=FPS,
+                    notify=lambda s: None)
+    run_for(rt, frames=100)
+    surf = [m for _, m in port.frames() if isinstance(m, P.Surface)]
+    assert len(surf) >= 99
+    assert [i for i, m in enumerate(surf) if m.faults & P.FAULT_CLAMPED] == []
+    assert sum(m.load_n == 0.0 for m in surf[10:]) > 5       # the swing frames: no load
