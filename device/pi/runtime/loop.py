@@ -63,8 +63,9 @@ EXIT_BAD_INPUT = 2
 #: fault-state changes the runtime remembers (the newest)
 FAULT_LOG = 256
 #: a COMMAND request-status rewrites the status file at most this often (and at most
-#: once a pass); the requests of one pass share one HEARTBEAT answer
-STATUS_ANSWER_GAP_S = 0.01
+#: once a pass); the requests of one pass share one HEARTBEAT answer. A write costs
+#: 0.3-0.5 ms (more on an SD card); the MCU's surface_link asks at most this often too
+STATUS_ANSWER_GAP_S = 0.05
 
 
 class StartupError(Exception):
