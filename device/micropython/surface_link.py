@@ -45,6 +45,10 @@ CMD_REQUEST_STATUS = const(3)
 # (device/checks.py FPS_MIN_HZ..FPS_MAX_HZ); the Pi ignores any other
 RATE_MIN_FPS = const(1)
 RATE_MAX_FPS = const(1000)
+# CMD_REQUEST_STATUS is sent at most once per this many ms (the default of
+# SurfaceLink's status_min_ms): the Pi answers with a HEARTBEAT, which it also sends
+# on its own 5 times a second, and a FAULT comes at once on any change anyway
+STATUS_MIN_MS = const(50)
 
 FAULT_FRAME = const(0x0080)         # the frame was implausible: its SURFACE says no contact
 FAULT_CAMERA = const(0x0100)
@@ -105,7 +109,8 @@ class SurfaceLink:
     .malformed, .newer_version (via properties of the same name), plus
     unknown_type, short_payload and drops (sequence numbers missed)."""
 
-    def __init__(self, uart, stale_ms=150, rx_chunk=64, max_frame=64, clock=None):
+    def __init__(self, uart, stale_ms=150, rx_chunk=64, max_frame=64, clock=None,
+                 status_min_ms=STATUS_MIN_MS):
         self.uart = uart
         self.stale_ms = stale_ms
         self.clock = clock if clock is not None else ticks_ms
@@ -132,6 +137,10 @@ class SurfaceLink:
         self.imu = [0, 0, 0, 0, 0, 0]   # acc mg x, y, z; gyro 0.1 deg/s x, y, z
         self.imu_samples = 0
         self.rates_refused = 0      # CMD_SET_RATE outside RATE_MIN_FPS..RATE_MAX_FPS, not sent
+        self.status_min_ms = status_min_ms
+        self.status_refused = 0     # CMD_REQUEST_STATUS within status_min_ms of the last, not sent
+        self._status_ms = 0         # ticks_ms of the last CMD_REQUEST_STATUS sent
+        self._status_sent = False
 
     # -- counters of the decoder -----------------------------------------------
     frames_ok = _decoder_count("frames_ok")
@@ -269,12 +278,21 @@ class SurfaceLink:
         """COMMAND: CMD_REZERO, CMD_SET_RATE (arg: frames per second) or
         CMD_REQUEST_STATUS. Values are clamped to the field; never raises. A rate
         outside RATE_MIN_FPS..RATE_MAX_FPS (the Pi's bound) is not sent: it counts
-        in rates_refused and 0 is returned."""
+        in rates_refused and 0 is returned. A status request less than
+        status_min_ms after the last one sent (by this link's clock) is not sent
+        either: it counts in status_refused and 0 is returned."""
         c, _ = _clamp_int(command, 0, 255, 0)
         a, f = _clamp_int(arg, 0, 0xFFFF, 0)
         if c == CMD_SET_RATE and (f or a < RATE_MIN_FPS or a > RATE_MAX_FPS):
             self.rates_refused += 1
             return 0
+        if c == CMD_REQUEST_STATUS:
+            now = self.clock()
+            if self._status_sent and 0 <= ticks_diff(now, self._status_ms) < self.status_min_ms:
+                self.status_refused += 1
+                return 0
+            self._status_sent = True
+            self._status_ms = now
         b = self._tx_payload
         b[0] = c
         b[1] = a & 0xFF
@@ -291,11 +309,11 @@ def _quant(v, scale, lo, hi):
         x = v * scale                   # value that overflows is clamped, as on the Pi)
     except (TypeError, ValueError, OverflowError):
         return (0 if lo <= 0 <= hi else lo), GAIT_FLAG_NONFINITE
-    if x < lo:
+    if x < lo - 0.5:                    # within half a step of an end: that end, unflagged
         return lo, GAIT_FLAG_CLAMPED
-    if x > hi:
+    if x > hi + 0.5:
         return hi, GAIT_FLAG_CLAMPED
-    return int(round(x)), 0
+    return max(lo, min(hi, int(round(x)))), 0
 
 
 def _clamp_int(v, lo, hi, default):

@@ -256,7 +256,9 @@ class FrameDecoder:
 # -- quantisation helpers (never raise) ---------------------------------------------
 
 def _quant(value, scale: float, lo: int, hi: int) -> tuple[int, int]:
-    """round(value * scale) clamped to lo..hi, and the fault bits it earned."""
+    """round(value * scale) clamped to lo..hi, and the fault bits it earned. A value
+    within half a step of an end is that end, not clamped (a probability of
+    1.0000000000000002 is 255, as 1.0 is)."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -264,11 +266,11 @@ def _quant(value, scale: float, lo: int, hi: int) -> tuple[int, int]:
     if not math.isfinite(v):
         return max(lo, min(hi, 0)), FAULT_NONFINITE
     q = v * scale
-    if q < lo:
+    if q < lo - 0.5:
         return lo, FAULT_CLAMPED
-    if q > hi:
+    if q > hi + 0.5:
         return hi, FAULT_CLAMPED
-    return int(round(q)), 0
+    return max(lo, min(hi, int(round(q)))), 0
 
 
 def _int_field(value, lo: int, hi: int, default: int) -> tuple[int, int]:

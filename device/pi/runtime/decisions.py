@@ -202,6 +202,10 @@ def decide(models, windows: dict, *, contact_seen: bool, referenced: bool,
     if "pressure" in due:
         pressure = _result(ran, "pressure", m.pressure, due)
         model_fault |= pressure is not None and bool(m.pressure.fault)
+        if pressure is not None and pressure < 0.0:
+            # a normal load cannot pull: the regressor's error around no load (a few
+            # hundredths of a newton below 0) is no load, not a value beyond the field
+            pressure = 0.0
     class_id = int(np.argmax(surface))
     contact = bool(contact_seen) and class_id != NO_TOUCH
     slip = contact and slip_conf >= SLIP_THRESHOLD

@@ -34,7 +34,10 @@ most :data:`READ_BUDGET` bytes per pass, feeds the frame decoder and returns the
 decoded GAIT / COMMAND messages. It reads until the port has nothing more, rather
 than the count ``in_waiting`` reports: pyserial's ``socket://`` reports 1 whenever
 anything is waiting. Each message comes with the time it was sent, on the runtime's
-clock (:class:`SenderClock`), so a context read late counts as old.
+clock (:class:`SenderClock`), so a context read late counts as old. At most
+:data:`MAX_MESSAGES` messages are returned per pass, the newest: an MCU that floods
+the link (or a backlog read at once) costs the loop a bounded amount per pass, and
+the older messages beyond the bound are dropped and counted (``messages_dropped``).
 """
 from __future__ import annotations
 
@@ -55,6 +58,11 @@ KINDS = ("fault", "status", "surface", "imu", "heartbeat")
 READ_CHUNK = 512
 #: bytes read from the port per poll at most (a 100 Hz GAIT stream is ~2 kB/s)
 READ_BUDGET = 16384
+#: messages handed to the loop per poll at most, the newest: a 921600-baud UART at its
+#: fullest carries ~51 COMMANDs (15 bytes each) per pass at 120 passes a second, so a
+#: pass five times as long as its period still drops none; a backlog read at once
+#: (up to READ_BUDGET, ~1,100 COMMANDs) is cut to this
+MAX_MESSAGES = 256
 
 
 class LinkError(OSError):
@@ -246,15 +254,17 @@ class LinkReader:
     """Reads what is waiting on the port and decodes GAIT / COMMAND messages."""
 
     def __init__(self, port, max_frame: int = 64, clock=time.monotonic,
-                 budget: int = READ_BUDGET):
+                 budget: int = READ_BUDGET, max_messages: int = MAX_MESSAGES):
         self.port = port
         self.protocol = protocol
         self.decoder = protocol.FrameDecoder(max_frame=max_frame)
         self.clock = clock
         self.budget = int(budget)
+        self.max_messages = int(max_messages)
         self.sender_clock = SenderClock()
         self.read_errors = 0
         self.bytes_read = 0
+        self.messages_dropped = 0       # beyond max_messages in one poll, the oldest
 
     def _read_waiting(self) -> bytes:
         """Every byte waiting now, up to the budget. ``in_waiting`` is only asked
@@ -272,7 +282,9 @@ class LinkReader:
 
     def poll_timed(self) -> list:
         """[(message, t_sent)]: the decoded messages from the MCU (frames of other
-        kinds are skipped), each with the local clock time it was sent."""
+        kinds are skipped), each with the local clock time it was sent; at most
+        ``max_messages``, the newest (the older ones are counted in
+        ``messages_dropped``)."""
         try:
             data = self._read_waiting()
         except Exception:
@@ -287,4 +299,7 @@ class LinkReader:
             msg = self.protocol.decode_message(raw)
             if msg is not None:
                 out.append((msg, self.sender_clock.sent_at(raw.t_ms, now)))
+        if len(out) > self.max_messages:
+            self.messages_dropped += len(out) - self.max_messages
+            del out[:len(out) - self.max_messages]
         return out

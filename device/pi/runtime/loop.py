@@ -62,6 +62,10 @@ CROP_PX = 32
 EXIT_BAD_INPUT = 2
 #: fault-state changes the runtime remembers (the newest)
 FAULT_LOG = 256
+#: a COMMAND request-status rewrites the status file at most this often (and at most
+#: once a pass); the requests of one pass share one HEARTBEAT answer. A write costs
+#: 0.3-0.5 ms (more on an SD card); the MCU's surface_link asks at most this often too
+STATUS_ANSWER_GAP_S = 0.05
 
 
 class StartupError(Exception):
@@ -131,6 +135,12 @@ class LegRuntime:
         self.gait_packets = 0
         self.commands = 0
         self.rates_refused = 0          # rate COMMANDs outside --fps's bound, ignored
+        self.gait_refused = 0           # GAITs with a phase not 0/1 or flagged non-finite
+        self.gait_clamped = 0           # GAITs flagged clamped, used as sent
+        self.status_requests = 0        # COMMAND request-status received
+        self.status_requests_coalesced = 0   # answered with an earlier one of their pass
+        self._status_asked = False
+        self._status_t = -1e18          # when the status file was last written
         self.rezeros = {"command": 0, "auto": 0}
         self._last_rezero = -1e9
         self._still = 0
@@ -353,6 +363,11 @@ class LegRuntime:
         now = self.clock()
         for msg, t_sent in self.reader.poll_timed():
             self._handle(msg, t_sent)
+        if self._status_asked:            # this pass's requests: one answer, and the
+            self._status_asked = False    # file at most every STATUS_ANSWER_GAP_S
+            self._send("status", self._heartbeat())
+            self._next_status = min(self._next_status,
+                                    max(now, self._status_t + STATUS_ANSWER_GAP_S))
         if self._last_frame_t is None or \
                 now - self._last_frame_t > self.cfg.camera.stall_periods / self.fps:
             # no frames (camera stalled): keep the IMU read going at the summary rate;
@@ -381,6 +396,7 @@ class LegRuntime:
         self.writer.pump()
         if now >= self._next_status:
             self.write_status()
+            self._status_t = now
             self._next_status = now + self.cfg.status.interval_s
         if not self._ready:
             self._ready = True
@@ -408,6 +424,15 @@ class LegRuntime:
             self.mcap.packet("in", msg, self.clock())
         if isinstance(msg, P.Gait):
             self.gait_packets += 1
+            # a phase that is neither stance nor swing, or a value the MCU sent as 0
+            # for NaN/inf, is no context: refused (the last one ages out); clamped
+            # values are at their field's end, on the right side: used, counted
+            if msg.phase not in (P.PHASE_STANCE, P.PHASE_SWING) or \
+                    msg.flags & P.GAIT_FLAG_NONFINITE:
+                self.gait_refused += 1
+                return
+            if msg.flags & P.GAIT_FLAG_CLAMPED:
+                self.gait_clamped += 1
             self.gait = gait_from_message(msg, t_sent)
         elif isinstance(msg, P.Command):
             self.commands += 1
@@ -423,9 +448,10 @@ class LegRuntime:
                         self.feed.reopen()
                 else:
                     self.rates_refused += 1
-            elif op == "status":
-                self._send("status", self._heartbeat())
-                self.write_status(force=True)
+            elif op == "status":              # answered once per pass (_housekeeping)
+                self.status_requests += 1
+                self.status_requests_coalesced += self._status_asked
+                self._status_asked = True
 
     # -- status ----------------------------------------------------------------
     def status(self) -> dict:
@@ -436,8 +462,12 @@ class LegRuntime:
                 "fault_changes": self.fault_changes, "camera_opens": self.feed.opens,
                 "camera_errors": self.feed.errors, "frames_skipped": self.feed.skipped,
                 "frames_dropped_behind": self.feed.dropped,
-                "gait_packets": self.gait_packets,
+                "gait_packets": self.gait_packets, "gait_refused": self.gait_refused,
+                "gait_clamped": self.gait_clamped,
                 "commands": self.commands, "rates_refused": self.rates_refused,
+                "status_requests": self.status_requests,
+                "status_requests_coalesced": self.status_requests_coalesced,
+                "link_messages_dropped": self.reader.messages_dropped,
                 "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps,
                 "models_fused": self.models.fused is not None,

@@ -346,6 +346,9 @@ ANY = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10*
 # a finite load whose scaled value overflows: clamped on both sides, not "non-finite"
 @example(phase=0, load_n=1.797693134862316e+307, vel=(0.0, 0.0, 0.0), seq=0, t_ms=0)
 @example(phase=1, load_n=1.0, vel=(-1e308, 1e308, float("nan")), seq=1, t_ms=5)
+# within half a step of a field's end: that end, unflagged; beyond it: clamped
+@example(phase=0, load_n=6553.54, vel=(32767.4, -32768.4, 0.0), seq=2, t_ms=6)
+@example(phase=0, load_n=-0.04, vel=(32767.6, -32768.6, 0.0), seq=3, t_ms=7)
 def test_mcu_gait_encoder_equals_the_pi_encoder_for_any_values(phase, load_n, vel, seq, t_ms):
     cpython_path()
     import machine
@@ -503,3 +506,94 @@ def test_initial_values_and_counters_on_cpython_alone():
     the Pi; each unknown message type counts once; a HEARTBEAT stamps its arrival; a
     rate command goes out for 1..1000 fps and is refused and counted otherwise."""
     _check_counters(json.loads(run_cpython(COUNTERS)))
+
+
+# -- CMD_REQUEST_STATUS: rate-limited by the MCU's own clock (issue 29) ---------------
+
+STATUS_LIMIT = r"""
+import json, machine
+from binascii import hexlify
+import surface_link as SL
+
+now = [0]
+u = machine.UART(0, 921600)
+link = SL.SurfaceLink(u, clock=lambda: now[0])
+u.take()
+out = {"min_ms": SL.STATUS_MIN_MS, "default": link.status_min_ms, "steps": []}
+# (ticks_ms, command): requests around the 50 ms bound, a re-zero and a rate in
+# between (never limited), and the 2**30 wrap of ticks_ms
+WRAP = 0x3FFFFFFF
+for t, c in ((0, 3), (0, 3), (10, 3), (49, 3), (49, 1), (50, 3), (51, 3), (99, 3), (100, 3),
+             (100, 2), (1000, 3), (WRAP - 20, 3), ((WRAP - 20 + 40) & WRAP, 3),
+             ((WRAP - 20 + 70) & WRAP, 3)):
+    now[0] = t
+    n = link.send_command(c, 60 if c == 2 else 0)
+    out["steps"].append([t, c, n > 0, link.status_refused])
+out["wire"] = hexlify(u.take()).decode()
+quiet = SL.SurfaceLink(u, clock=lambda: now[0], status_min_ms=0)   # no limit
+now[0] = 5
+out["unlimited"] = [quiet.send_command(SL.CMD_REQUEST_STATUS) > 0 for _ in range(3)]
+print(json.dumps(out))
+"""
+
+
+def _check_status_limit(out: dict):
+    assert out["min_ms"] == out["default"] == 50
+    sent = [(t, c) for t, c, ok, _ in out["steps"] if ok]
+    refused = [(t, c) for t, c, ok, _ in out["steps"] if not ok]
+    wrap = 0x3FFFFFFF
+    assert refused == [(0, 3), (10, 3), (49, 3), (51, 3), (99, 3), ((wrap - 20 + 40) & wrap, 3)]
+    assert out["steps"][-1][3] == len(refused)
+    # what went out is what the Pi reads: the commands sent, in order, nothing else
+    dec = P.FrameDecoder()
+    got = [P.decode_message(r) for r in dec.feed(bytes.fromhex(out["wire"]))]
+    assert [(m.command, m.arg) for m in got] == [(c, 60 if c == 2 else 0) for _, c in sent]
+    assert dec.crc_errors == dec.malformed == 0
+    assert out["unlimited"] == [True] * 3
+
+
+@requires_mpy
+def test_mcu_sends_a_status_request_at_most_every_50_ms_on_micropython_and_cpython():
+    """send_command(CMD_REQUEST_STATUS) goes out at most once per status_min_ms (50)
+    by the link's own clock, across the ticks_ms wrap; the others return 0, write
+    nothing and count in status_refused; re-zero and rate commands are never held
+    back (before: every request was sent, 6,000 a second starved the leg)."""
+    mp, cp = run_both(STATUS_LIMIT)
+    assert json.loads(mp) == json.loads(cp)
+    _check_status_limit(json.loads(mp))
+
+
+def test_mcu_sends_a_status_request_at_most_every_50_ms_on_cpython_alone():
+    _check_status_limit(json.loads(run_cpython(STATUS_LIMIT)))
+
+
+GAIT_EDGES = r"""
+import json, machine
+from binascii import hexlify
+import surface_link as SL
+
+u = machine.UART(0, 921600)
+link = SL.SurfaceLink(u, clock=lambda: 9)
+out = []
+for load, vel in ((6553.54, (32767.4, -32768.4, 0.0)), (-0.04, (0.0, 0.0, 0.0)),
+                  (6553.56, (0.0, 0.0, 0.0)), (-0.06, (32767.6, -32768.6, 0.49))):
+    u.take()
+    link.send_gait(SL.PHASE_STANCE, load, vel)
+    out.append(hexlify(u.take()).decode())
+print(json.dumps(out))
+"""
+
+
+@requires_mpy
+def test_mcu_and_pi_agree_on_values_within_half_a_step_of_a_fields_end():
+    """A value that rounds to its field's end is that end with no clamped flag, one
+    beyond is clamped, on real MicroPython as on the Pi (issue 29, item 13)."""
+    mp, cp = run_both(GAIT_EDGES)
+    assert json.loads(mp) == json.loads(cp)
+    cases = [(6553.54, (32767.4, -32768.4, 0.0), 0), (-0.04, (0.0, 0.0, 0.0), 0),
+             (6553.56, (0.0, 0.0, 0.0), P.GAIT_FLAG_CLAMPED),
+             (-0.06, (32767.6, -32768.6, 0.49), P.GAIT_FLAG_CLAMPED)]
+    for i, (wire, (load, vel, flags)) in enumerate(zip(json.loads(mp), cases)):
+        assert wire == P.Gait(P.PHASE_STANCE, load, vel).encode(i, 9).hex()
+        (raw,) = P.FrameDecoder().feed(bytes.fromhex(wire))
+        assert P.decode_message(raw).flags == flags

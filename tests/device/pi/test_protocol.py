@@ -167,8 +167,9 @@ def test_surface_roundtrip_equals_the_clamped_value(class_id, probs, slip_conf, 
     err = abs(d.shear_dir_deg - shear_dir_deg % 360)
     assert min(err, 360 - err) <= 0.005 + 1e-6
     assert d.pins == min(pins, 65535)
-    out_of_range = shear_px < 0 or shear_px > 655.35 or load_n < 0 or load_n > 655.35 \
-        or pins > 65535
+    # beyond the field by more than half its step (0.01): what rounds to an end is that end
+    beyond = lambda x: x * 100.0 < -0.5 or x * 100.0 > 65535.5  # noqa: E731
+    out_of_range = beyond(shear_px) or beyond(load_n) or pins > 65535
     assert bool(d.faults & P.FAULT_CLAMPED) == out_of_range
     assert not d.faults & P.FAULT_NONFINITE
 
@@ -465,3 +466,28 @@ def test_non_numbers_in_id_fields_are_sent_as_unknown_and_an_array_is_a_sequence
     assert s.faults & P.FAULT_NONFINITE
     a = P.Surface.unpack(P.Surface(class_id=1, probs=np.array([0.0, 1.0, 0.0, 0.0])).pack())
     assert a.probs == (0.0, 1.0, 0.0, 0.0) and a.faults == 0
+
+
+@pytest.mark.parametrize("field, value, sent, clamped", [
+    ("probs", (1.0000000000000002, 0.0, 0.0, 0.0), 1.0, False),   # float rounding of 1.0
+    ("probs", (1.0019, 0.0, 0.0, 0.0), 1.0, False),                # 255.48: rounds to 255
+    ("probs", (1.0021, 0.0, 0.0, 0.0), 1.0, True),                 # 255.54: beyond
+    ("slip_conf", 1.0 + 1e-12, 1.0, False),
+    ("slip_conf", -0.0019, 0.0, False),                            # -0.48 of a step
+    ("slip_conf", -0.0021, 0.0, True),
+    ("load_n", 655.354, 655.35, False),
+    ("load_n", 655.356, 655.35, True),
+    ("load_n", -0.004, 0.0, False),
+    ("load_n", -0.006, 0.0, True),
+    ("shear_px", 655.3549, 655.35, False),
+])
+def test_a_value_within_half_a_step_of_a_fields_end_is_that_end_not_clamped(field, value,
+                                                                            sent, clamped):
+    """`clamped` means a value beyond what the field can carry, not one that rounds to
+    its end: a probability of 1.0000000000000002 (float rounding) is 255 unflagged
+    (before: flagged, because the test came before the rounding)."""
+    s = P.Surface.unpack(P.Surface(**{field: value}).pack())
+    got = getattr(s, field)
+    got = got[0] if field == "probs" else got
+    assert got == pytest.approx(sent, abs=1e-9)
+    assert bool(s.faults & P.FAULT_CLAMPED) is clamped
