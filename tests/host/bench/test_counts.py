@@ -3,7 +3,6 @@ not run here (a counted run takes minutes): the parser, the arithmetic, the fram
 and the commands are, and a stand-in ``valgrind`` on PATH checks the plumbing."""
 from __future__ import annotations
 
-import json
 import os
 import stat
 import sys
