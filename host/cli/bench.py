@@ -88,6 +88,8 @@ def cmd_bench(args):
         from host.bench import counts
         if args.data and not Path(args.data).is_dir():
             raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
+        if args.n2 <= args.n1:
+            raise UserError(f"--n1/--n2: need 1 <= n1 < n2, got n1={args.n1}, n2={args.n2}")
         if not counts.valgrind_found():
             raise UserError("counts: valgrind not found (Debian: apt-get install valgrind)")
         clips = [c for c in (args.clips or ",".join(counts.DEFAULT_CLIPS)).split(",") if c]
