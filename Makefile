@@ -51,11 +51,16 @@ test: $(VENV)/.installed-test node_modules/.installed native
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -n 2 --dist loadfile
 
-# the real-frame tables of docs/BENCHMARKS.md (marker pipeline and runtime on
+# first the instructions per frame (valgrind's callgrind: runtime, marker pipeline and
+# its stages, SimpleBlobDetector peer on roboskin/lego_train.avi as gray frames, about
+# 10 minutes; out/bench/counts.json; without valgrind one line says so and they are
+# skipped; Debian: apt-get install valgrind), then the real-frame tables of
+# docs/BENCHMARKS.md (marker pipeline and runtime on
 # roboskin/smooth.avi and concrete.avi: the authors' default spec out/specs/bench.csv,
 # written from REAL_DATA), then the simulator's own timing, then what the MCAP log
 # and a live Foxglove viewer cost the runtime on concrete.avi (out/bench/mcap_cost.md)
 bench: $(VENV)/.installed native
+	$(PY) -m host.bench.counts --real-data $(REAL_DATA) --out out/bench/counts.json --skip-without-valgrind
 	$(PY) -m host.bench.specs --real-data $(REAL_DATA) --out out/specs
 	$(VENV)/bin/host bench tables --data out/specs/bench.csv --doc docs/BENCHMARKS.md
 	$(VENV)/bin/host bench sim --json

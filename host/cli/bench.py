@@ -84,20 +84,38 @@ def cmd_bench(args):
         except DataError as exc:
             raise UserError(str(exc)) from None
         emit(args, res, format_robustness(res))
+    elif args.what == "counts":
+        from host.bench import counts
+        if args.data and not Path(args.data).is_dir():
+            raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
+        if args.n2 <= args.n1:
+            raise UserError(f"--n1/--n2: need 1 <= n1 < n2, got n1={args.n1}, n2={args.n2}")
+        if not counts.valgrind_found():
+            raise UserError("counts: valgrind not found (Debian: apt-get install valgrind)")
+        clips = [c for c in (args.clips or ",".join(counts.DEFAULT_CLIPS)).split(",") if c]
+        try:
+            res = counts.bench_counts(real_data_dir(args.data), clips, args.n1, args.n2,
+                                      args.jobs, progress=lambda m: print(
+                                          f"host bench: {m}", file=sys.stderr))
+        except (counts.CountError, ValueError) as exc:
+            raise UserError(str(exc)) from None
+        emit(args, res, counts.format_counts(res))
 
 
 def register(sub) -> None:
     """The sub-command bench."""
     s = sub.add_parser("bench", help="benchmarks (single thread, median and p99)")
     s.add_argument("what", choices=["sim", "pipeline", "runtime", "tables",
-                                    "texture-robustness", "scaling"],
+                                    "texture-robustness", "scaling", "counts"],
                    help="tables: measure on the real recordings and rewrite the "
                         "real-frame tables of --doc; texture-robustness: texture "
                         "accuracy on proxies for a new recording session; scaling: "
-                        "per-frame cost against the pin count")
+                        "per-frame cost against the pin count; counts: instructions "
+                        "per frame with valgrind's callgrind (docs/BENCHMARKS.md)")
     s.add_argument("--data", metavar="SPEC",
                    help="pipeline, tables: the recordings, a CSV manifest (path,label[,imu]) "
-                        "or a dataset folder (pipeline without it: simulated frames only)")
+                        "or a dataset folder (pipeline without it: simulated frames only); "
+                        "counts: the real recordings folder (default $TACFOOT_REAL_DATA)")
     s.add_argument("--profile",
                    help="pipeline, tables: sensor profile of the recordings (name or .toml; "
                         "default roboskin); runtime: default the models' own, another is "
@@ -115,5 +133,13 @@ def register(sub) -> None:
                    help="texture-robustness: cache of the clips' features")
     s.add_argument("--flat-profile", metavar="TOML",
                    help="scaling: calibrated profile of roboskin/flatSkin.avi (host calibrate)")
+    s.add_argument("--clips", help="counts: comma-separated clips in DATA/roboskin/ or "
+                                   "paths (default lego_train.avi)")
+    s.add_argument("--n1", type=whole(1, 100_000), default=20,
+                   help="counts: the short run's frames")
+    s.add_argument("--n2", type=whole(2, 100_000), default=220,
+                   help="counts: the long run's frames")
+    s.add_argument("--jobs", type=whole(1, 2), default=2,
+                   help="counts: valgrind processes at a time")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_bench)
