@@ -18,7 +18,8 @@ import threading
 import time
 
 
-from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError, build_runtime
+from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError
+from device.pi.runtime.start import build_runtime
 from device.pi.vision import native
 
 #: after a stop signal, the loop has this long to finish before the process ends anyway

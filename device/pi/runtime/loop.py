@@ -24,36 +24,27 @@ import os
 import sys
 import time
 from collections import deque
-from pathlib import Path
-from urllib.parse import parse_qsl, urlsplit
 
-import cv2
 import numpy as np
 
-from device.checks import FPS_MAX_HZ, FPS_MIN_HZ, frame_rate
-from device.config import ConfigError
+from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_CAMERA, FAULT_FRAME, FAULT_IMU, FAULT_LINK,
                               FAULT_MODEL, FAULT_PINS_LOST, PIPELINE_FAULTS, fault_names)
-from device.pi.models.artefact import ModelError
 from device.pi.models.window import RollingWindow, WindowTail
 from device.pi import protocol as P
 from device.pi.runtime import sdnotify
-from device.pi.runtime.config import LegConfig, load_leg_config
+from device.pi.runtime.config import LegConfig
 from device.pi.runtime.decisions import (GaitContext, decide, expected_context, finite_float,
                                          gait_from_message)
 from device.pi.runtime.feed import CameraFeed
-from device.pi.runtime.link import LinkError, LinkReader, LinkWriter, open_port
-from device.pi.runtime.load import Models, check_models_folder, load_models
+from device.pi.runtime.link import LinkReader, LinkWriter
+from device.pi.runtime.load import Models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
                                         imu_message, surface_message)
 from device.pi.runtime.stats import BoundedStats
 from device.pi.runtime.status import JsonLog, write_status_file
-from device.pi.sources.camera import CameraError, open_camera
-from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
-from device.pi.sources.options import opt_bool
 from device.pi.vision import native
 from device.pi.vision.encoder import FrameEncoder
-from device.profile import load_pipeline_profile
 
 #: a live camera that delivered nothing for this long is closed and reopened
 REOPEN_AFTER_S = 1.0
@@ -509,116 +500,3 @@ class LegRuntime:
     def _heartbeat(self) -> P.Heartbeat:
         return heartbeat_message(self.clock() - self._t0, self.fps,
                                  self.writer.packets_dropped, self.faults)
-
-
-# ---------------------------------------------------------------------------
-# Building from source strings
-# ---------------------------------------------------------------------------
-
-def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config=None,
-                  fps: float | None = None, json_log: str | None = None,
-                  status: str | None = None, frames: int | None = None,
-                  float_models: bool = False, port=None, notify=None) -> LegRuntime:
-    """A runtime from the command line's strings; StartupError (exit 2) for a bad
-    config, model, source or port."""
-    cv2.setNumThreads(1)              # one thread for the work (ONNX Runtime: intra_op 1)
-    sys.setswitchinterval(0.001)      # hand a grabbed frame to the loop without a 5 ms wait
-    try:
-        cfg = load_leg_config(config)
-    except ConfigError as exc:
-        raise StartupError(str(exc)) from None
-    if fps is not None:
-        # the bound every frame rate has, a source's own ?fps= too
-        cfg.camera.fps = frame_rate("--fps", fps, error=StartupError)
-    try:
-        load_pipeline_profile(cfg.models.profile)
-    except Exception as exc:
-        raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
-    live = camera.lower().startswith("v4l2://")
-    q = dict(parse_qsl(urlsplit(camera).query))
-    try:
-        # a file or sim:// source played at its frame rate delivers frames as a
-        # camera does, whether or not the loop keeps up: the newest frame wins
-        paced = opt_bool("realtime", q.get("realtime", False))
-    except ValueError as exc:
-        raise StartupError(f"--camera {camera!r}: {exc}") from None
-    # frames come gray, converted on the grab thread (a YUYV camera's luma plane):
-    # the loop reads the dome's box in place; ?gray=0 keeps the colour frames
-    opts = {} if "gray" in q else {"gray": True}
-    if live:
-        c = cfg.camera
-        for k, v in (("width", c.width), ("height", c.height), ("fps", c.fps),
-                     ("fourcc", c.fourcc), ("buffersize", c.buffersize)):
-            if k not in q:
-                opts[k] = v
-
-    def factory():
-        return open_camera(camera, **opts)
-
-    first = None
-    opened = []                            # closed again if start-up fails later
-
-    def fail(msg: str):
-        for r in opened:
-            try:
-                r.close()
-            except Exception:
-                pass
-        raise StartupError(msg)
-
-    try:
-        first = factory()
-        opened.append(first)
-    except CameraError as exc:
-        if not live:
-            raise StartupError(f"--camera {camera!r}: cannot open: {exc}") from None
-        first = None                     # a live camera not there yet: fault + retries
-    except ValueError as exc:
-        raise StartupError(f"--camera: {exc}") from None
-    if fps is None and first is not None and first.fps:
-        cfg.camera.fps = float(first.fps)      # the rate the source actually runs at
-    if status:
-        if os.path.isdir(status):
-            fail(f"--status {status!r} is a folder; give a file, e.g. "
-                 f"{os.path.join(status, 'status.json')}")
-        folder = os.path.dirname(os.path.abspath(status))
-        if not os.path.isdir(folder):
-            fail(f"--status {status!r}: the folder {folder} does not exist")
-        if not os.access(folder, os.W_OK):
-            fail(f"--status {status!r}: the folder {folder} is not writable")
-    if models_dir is not None:
-        check_models_folder(models_dir, fail)
-    try:
-        # the pins and the pipeline are the models' profile's (their model spec)
-        models = load_models(models_dir, "float" if float_models else cfg.models.variant,
-                             None, cfg)
-    except (ModelError, ValueError) as exc:
-        fail(str(exc))
-    try:
-        imu_src = open_imu(imu)
-        opened.append(imu_src)
-    except IMUUnavailable as exc:
-        # nothing answers yet: run with the IMU fault set and keep trying (a wrong
-        # device or a bad option below still refuses to start)
-        print(f"device.pi run: warning: --imu: {exc}; running with the IMU fault set, "
-              f"retrying", file=sys.stderr)
-        imu_src = RetryingImuSource(imu, exc)
-        opened.append(imu_src)
-    except (ValueError, IMUError) as exc:
-        fail(f"--imu: {exc}")
-    if port is None:
-        try:
-            port = open_port(serial, cfg.serial.baudrate)
-            opened.append(port)
-        except LinkError as exc:
-            fail(str(exc))
-    log = None
-    if json_log:
-        try:
-            log = open(json_log, "wb", buffering=0)    # line by line: greppable live
-        except OSError as exc:
-            fail(f"--json-log {json_log!r}: {exc}")
-    return LegRuntime(cfg, factory, imu_src, port, models, lossless=not (live or paced),
-                      fps=cfg.camera.fps,
-                      json_log=log, status_path=status, max_frames=frames, first_camera=first,
-                      notify=notify, camera_opts=opts if live else None)

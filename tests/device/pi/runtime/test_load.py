@@ -281,7 +281,7 @@ def test_a_config_without_a_profile_runs_the_models_profile(tactip331_models, tm
     """Issue #23: models written for tactip331 run under a config that names no
     profile: the models' profile is the runtime's, its pipeline maps onto the 331-pin
     layout, and the pressure model gets a window of its size."""
-    from device.pi.runtime.loop import build_runtime
+    from device.pi.runtime.start import build_runtime
     from device.pi.vision.layout import layout_for_profile
 
     cfg = parse_leg_config({})

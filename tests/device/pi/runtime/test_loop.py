@@ -394,7 +394,7 @@ def test_sd_notify_ready_then_watchdog_pings_from_the_loop(tmp_path):
 
 def test_runtime_takes_the_rate_the_source_runs_at(tmp_path):
     """A source paced at 15 fps is not a camera stalled at the configured 120 fps."""
-    from device.pi.runtime.loop import build_runtime
+    from device.pi.runtime.start import build_runtime
     port = RecordingPort()
     rt = build_runtime("sim://press-hard?realtime=1&fps=15", "none", "loop://", frames=10,
                        models_dir=str(tmp_path), port=port, notify=lambda s: None)
@@ -545,7 +545,8 @@ def test_a_source_read_as_fast_as_the_loop_goes_drops_nothing(tmp_path, capsys):
 def test_fps_and_a_sources_own_rate_have_one_bound():
     """Issue 21, item 5: --fps and a source's ?fps= are held to 1..1000 by one check,
     each error naming the option and the value."""
-    from device.pi.runtime.loop import StartupError, build_runtime
+    from device.pi.runtime.loop import StartupError
+    from device.pi.runtime.start import build_runtime
     with pytest.raises(StartupError, match=r"--fps must be a finite number in \[1\.0, 1000\.0\], "
                                            r"got --fps=5000"):
         build_runtime("sim://walk", "none", "loop://", fps=5000)
