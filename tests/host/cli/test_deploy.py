@@ -266,3 +266,20 @@ def test_a_signal_during_a_rollback_puts_the_links_and_the_process_back(
     from host.deploy.release import summary_text
     assert "rollback undone, back on releases/r1 (ok)" in summary_text(res)
 
+
+
+def test_a_release_name_already_on_the_leg_is_refused_and_that_release_kept(
+        robot, leg1_on_r1, capsys, monkeypatch):
+    """--release naming a release the leg already has (here previous, r0) fails at
+    prepare and leaves that release whole: the deploy removes only a folder it made
+    (before: the failed deploy's clean-up deleted previous)."""
+    p = leg1_on_r1
+    monkeypatch.delenv("TRIP_SIGNAL", raising=False)
+    before = sorted(x.name for x in (p / "releases" / "r0").iterdir())
+    rc, out, err = _main(capsys, _leg1_argv(robot, "--release", "r0"))
+    res = json.loads(out)
+    assert rc == 1 and "release r0 already exists" in res["error"], (out[-2000:], err)
+    assert "discard" not in [s["step"] for s in res["steps"]]
+    assert sorted(x.name for x in (p / "releases" / "r0").iterdir()) == before
+    assert os.readlink(p / "previous") == "releases/r0"
+    assert os.readlink(p / "current") == "releases/r1" and robot.running(p) == "r1"
