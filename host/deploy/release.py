@@ -71,6 +71,7 @@ class Deployer(SshSession):
         self.release = opts.release or ""
         self.key = key
         self.old: str | None = None          # the release current pointed at before
+        self.created = False     # the release's folder is this deploy's (prepare found it free)
         self.switched = False
 
     # -- scripts ---------------------------------------------------------------
@@ -250,6 +251,9 @@ class Deployer(SshSession):
                     "  [ -f \"$d/.complete\" ] || rm -rf \"$d\"; done\n"
                     f"[ ! -e {q(self.release)} ] || "
                     f"{{ echo 'release {self.release} already exists' >&2; exit 3; }}\n")
+        # from here the folder is ours to remove (a copy cut short, a failed install);
+        # a release of that name that was already there is never touched
+        self.created = True
         self.copy(staged, f"{o.prefix}/releases/{self.release}")
         self.remote("install", self._install_script(f"{o.prefix}/releases/{self.release}"),
                     interruptible=True)
@@ -300,9 +304,11 @@ class Deployer(SshSession):
         res["rollback"] = self._undo(self.old, f"releases/{self.release}")
 
     def discard(self) -> None:
-        """Remove the new release's folder when it never became current."""
+        """Remove the new release's folder when it never became current (and this
+        deploy made it: a release of the same name found on the Pi is kept). The copy
+        has ended by then, its writer on the Pi too (:meth:`SshSession.copy`)."""
         self.unwinding = True
-        if self.release and not self.switched:
+        if self.release and self.created and not self.switched:
             rel = f"releases/{self.release}"
             self.remote("discard", f"cd {q(self.o.prefix)}\n"
                         f"[ \"$(readlink current || true)\" = {q(rel)} ] || rm -rf {q(rel)}\n",

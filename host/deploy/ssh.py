@@ -4,14 +4,16 @@ connection (ControlMaster), logged with its command; a dry run only records them
 :meth:`SshSession.copy` streams a local folder as a tar over the same connection.
 
 A signal (SIGTERM, SIGHUP, SIGINT) during a deploy trips the shared :class:`Stop`:
-a step that only waits (copy, install, health) is cut short, any other step is let
-finish, and the next step raises :class:`DeployInterrupted`, so the deploy unwinds
+a step that only waits (install, health) is cut short, the copy's stream ends where
+it is (its ssh is then let finish: see :meth:`SshSession.copy`), any other step is
+let finish, and the next step raises :class:`DeployInterrupted`, so the deploy unwinds
 as after a failed step (the steps that put the old release back still run). Every
 ``ssh`` runs in its own session, so Ctrl-C in the terminal reaches only ``host``."""
 from __future__ import annotations
 
 import os
 import re
+import select
 import shutil
 import signal
 import subprocess
@@ -189,9 +191,20 @@ class SshSession:
         return step
 
 
+    #: how long a copy cut short by a signal waits for the Pi's tar to end (it ends
+    #: at once on the cut stream) before its ssh is killed
+    COPY_END_S = 15.0
+
     def copy(self, staged: Path, rel: str):
         """Stream the local folder ``staged`` as a tar over one ssh into the remote
-        folder ``rel`` (made if missing)."""
+        folder ``rel`` (made if missing).
+
+        A signal ends the stream where it is, and the ssh is then let finish: it exits
+        only once the Pi's tar has, so when the deploy removes the folder nothing is
+        still writing into it. (Killing the ssh would not stop that tar: OpenSSH leaves
+        a remote command running when its client dies, and it would go on extracting
+        what had reached it, beside or after the removal.) Only a Pi that does not
+        answer within ``COPY_END_S`` after the signal gets its ssh killed."""
         script = f"mkdir -p {q(rel)}\ntar -xzf - -C {q(rel)}\n"
         self.check_stop("copy")
         step = self.record("copy", "remote", f"tar -czf - -C {staged} . | ssh ... "
@@ -203,41 +216,65 @@ class SshSession:
             proc = subprocess.Popen(self.ssh_argv(script), stdin=subprocess.PIPE,
                                     stdout=subprocess.DEVNULL, stderr=err,
                                     start_new_session=True)
-            if self.stop is not None:
-                self.stop.track(proc, True)
+            fd = proc.stdin.fileno()
+            os.set_blocking(fd, False)      # a stalled link never keeps a signal waiting
             sent = 0
             hook = self.copy_hook
             try:
                 class _Counting:
                     def write(_self, b):
                         nonlocal sent
-                        self.check_stop("copy")
-                        proc.stdin.write(b)
-                        sent += len(b)
+                        view = memoryview(b)
+                        while view:
+                            self.check_stop("copy")
+                            select.select([], [fd], [], 0.2)
+                            try:
+                                n = os.write(fd, view)
+                            except BlockingIOError:
+                                continue
+                            view, sent = view[n:], sent + n
                         if hook is not None:
                             hook(proc, sent)
                         return len(b)
 
                     def flush(_self):
-                        proc.stdin.flush()
+                        pass
 
                 with tarfile.open(fileobj=_Counting(), mode="w|gz") as tar:
                     tar.add(staged, arcname=".")
-                proc.stdin.close()
-            except (BrokenPipeError, OSError, ValueError, DeployInterrupted):
-                proc.terminate()
+            except (OSError, ValueError, DeployInterrupted):
+                pass        # the stream ends here; how the ssh exits says the rest
             finally:
                 try:
-                    rc = proc.wait(timeout=600)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    rc = proc.wait()
-                if self.stop is not None:
-                    self.stop.track(proc, False)
+                    proc.stdin.close()      # the end of the stream: the Pi's tar ends
+                except OSError:
+                    pass
+                rc, note = self._wait_copy(proc)
             err.seek(0)
             msg = err.read().decode(errors="replace").strip()
-        step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3), stderr=msg[-2000:])
+        step.update(rc=rc, bytes=sent, seconds=round(time.monotonic() - t0, 3),
+                    stderr=(msg + note)[-2000:])
         self.check_stop("copy")
         if rc != 0:
             raise DeployError(f"step copy failed (exit {rc}) after {sent} bytes"
-                              + (f": {msg.splitlines()[-1]}" if msg else ""))
+                              + (f": {(msg + note).splitlines()[-1]}" if msg + note else ""))
+
+    def _wait_copy(self, proc) -> tuple[int, str]:
+        """The copy's exit status once its ssh ended (so the Pi's tar has), and a note
+        when it had to be killed: 600 s after the end of the stream, or ``COPY_END_S``
+        after a signal."""
+        t0, stopped_at = time.monotonic(), None
+        while True:
+            try:
+                return proc.wait(timeout=0.2), ""
+            except subprocess.TimeoutExpired:
+                pass
+            now = time.monotonic()
+            if stopped_at is None and self.stop is not None and self.stop.signal_name:
+                stopped_at = now
+            if now - t0 > 600 or (stopped_at is not None
+                                  and now - stopped_at > self.COPY_END_S):
+                proc.kill()
+                why = (f"{self.COPY_END_S:g} s after {self.stop.signal_name}"
+                       if stopped_at is not None else "600 s")
+                return proc.wait(), f"\nthe Pi's tar had not ended {why}; its ssh was killed"

@@ -117,6 +117,14 @@ def test_first_deploy_runs_on_both_legs_and_status_is_ok(robot, capsys):
 
 PHASES = {"copy": "tar -xzf", "switch": "is incomplete", "health": "packets_sent"}
 
+#: the copy's other landing points (each with a signal that trips as the copy starts):
+#: "copied": once the Pi's tar has extracted everything, before its ssh exits;
+#: "copy-outlived": the copy's ssh behaves as OpenSSH does when it is killed (its
+#: remote tar is not ended and runs on, here as late as it could: after the next
+#: command to that leg, the removal of the folder). Before the copy waited for its
+#: ssh, "copy-outlived" left the release folder behind every time.
+COPY_LANDINGS = {"copied": {"TRIP_AT": "end"}, "copy-outlived": {"TRIP_REMOTE": "stays"}}
+
 
 #: every signal in the copy phase (2 s each); after the switch each case restarts the
 #: runtime twice (about 15 s), so one case per signal there unless
@@ -124,6 +132,7 @@ PHASES = {"copy": "tar -xzf", "switch": "is incomplete", "health": "packets_sent
 CASES = [(ph, sg) for ph in PHASES for sg in ("SIGTERM", "SIGHUP", "SIGINT")
          if os.environ.get("TACFOOT_FULL_SIGNAL_MATRIX") or ph == "copy"
          or (ph, sg) in {("switch", "SIGHUP"), ("health", "SIGTERM"), ("health", "SIGINT")}]
+CASES[3:3] = [(ph, "SIGTERM") for ph in COPY_LANDINGS]
 
 
 @pytest.mark.parametrize("phase, sig", CASES)
@@ -132,12 +141,15 @@ def test_a_signal_during_a_deploy_takes_every_leg_back(robot, capsys, monkeypatc
     assert all(robot.running(p) == "r0" for p in robot.prefixes), "needs the r0 deploy"
     robot.ssh.reset_trip()
     monkeypatch.setenv("TRIP_SIGNAL", sig)
-    monkeypatch.setenv("TRIP_WHEN", PHASES[phase])
+    monkeypatch.setenv("TRIP_WHEN", PHASES.get(phase, PHASES["copy"]))
+    for k, v in COPY_LANDINGS.get(phase, {}).items():
+        monkeypatch.setenv(k, v)
     rel = f"r-{sig}-{phase}"
     t0 = time.monotonic()
     rc, out, err = _main(capsys, robot.argv("--release", rel))
     res = json.loads(out)
     assert (robot.ssh.folder / "tripped").exists(), "the signal was never sent"
+    robot.ssh.held_commands()       # what a killed copy left running on a leg has run
     assert rc == 128 + getattr(signal, sig), (rc, out[-2000:])
     assert res["interrupted"] == sig and not res["ok"]
     assert f"{sig}: stopping" in err and "Traceback" not in err
@@ -145,11 +157,11 @@ def test_a_signal_during_a_deploy_takes_every_leg_back(robot, capsys, monkeypatc
     for p, leg in zip(robot.prefixes, res["legs"]):
         assert os.readlink(p / "current") == "releases/r0", leg
         assert robot.running(p) == "r0", leg          # the old release's process runs
-        if phase == "copy":
+        if phase.startswith("cop"):
             assert not (p / "releases" / rel).exists() and not leg["rolled_back"]
         else:
             assert leg["rolled_back"] and leg["rollback"]["ok"], leg
-    assert res["rolled_back"] is (phase != "copy")
+    assert res["rolled_back"] is not phase.startswith("cop")
     # no ssh left: the masters were closed, no client runs on
     assert robot.ssh.masters() and robot.ssh.live() == []
     # the old handlers are back
@@ -253,3 +265,21 @@ def test_a_signal_during_a_rollback_puts_the_links_and_the_process_back(
     assert robot.ssh.live() == []
     from host.deploy.release import summary_text
     assert "rollback undone, back on releases/r1 (ok)" in summary_text(res)
+
+
+
+def test_a_release_name_already_on_the_leg_is_refused_and_that_release_kept(
+        robot, leg1_on_r1, capsys, monkeypatch):
+    """--release naming a release the leg already has (here previous, r0) fails at
+    prepare and leaves that release whole: the deploy removes only a folder it made
+    (before: the failed deploy's clean-up deleted previous)."""
+    p = leg1_on_r1
+    monkeypatch.delenv("TRIP_SIGNAL", raising=False)
+    before = sorted(x.name for x in (p / "releases" / "r0").iterdir())
+    rc, out, err = _main(capsys, _leg1_argv(robot, "--release", "r0"))
+    res = json.loads(out)
+    assert rc == 1 and "release r0 already exists" in res["error"], (out[-2000:], err)
+    assert "discard" not in [s["step"] for s in res["steps"]]
+    assert sorted(x.name for x in (p / "releases" / "r0").iterdir()) == before
+    assert os.readlink(p / "previous") == "releases/r0"
+    assert os.readlink(p / "current") == "releases/r1" and robot.running(p) == "r1"
