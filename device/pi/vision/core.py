@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 __all__ = ["S_SLOTS", "gaussian_taps", "box_divisor", "DetectCore"]
@@ -162,9 +163,10 @@ def self_check(det, c: DetectCore, seed: int = 0) -> str:
     bh, bw = det._smooth.shape
     rng = np.random.default_rng(seed)
     crop = rng.integers(40, 90, (bh, bw), dtype=np.uint8)
-    yy, xx = np.mgrid[0:bh, 0:bw]
-    for cx, cy in rng.uniform(0, [bw, bh], (max(8, bh * bw // 150), 2)):
-        crop[(xx - cx) ** 2 + (yy - cy) ** 2 < 9.0] = 200
+    n = max(8, bh * bw // 150)
+    for cx, cy, r, v in zip(rng.integers(0, bw, n).tolist(), rng.integers(0, bh, n).tolist(),
+                            rng.integers(1, 6, n).tolist(), rng.integers(120, 256, n).tolist()):
+        cv2.circle(crop, (cx, cy), r, v, -1)
     xy, areas = det.detect_numpy(crop)
     smooth, binary, n_blobs = det._smooth.copy(), det._binary_even.copy(), det.n_blobs
     n = c.detect(crop)
