@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from device.pi import protocol as P
 from device.pi.runtime.config import LegConfig
 from device.pi.runtime.link import open_port
-from device.pi.runtime.loop import FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime, load_models
+from device.pi.runtime.loop import FAULT_CAMERA, FAULT_IMU, FAULT_LINK, LegRuntime
+from device.pi.runtime.load import load_models
 from tests.device.pi.runtime.standins import (FPS, ListCamera, NullImu, RecordingPort, SimCamera,
                                               faults_written, make_runtime, run_for)
 
