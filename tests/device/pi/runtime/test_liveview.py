@@ -291,3 +291,24 @@ def test_the_relay_keeps_whole_frames_and_drops_only_data_messages(chunk):
         front._from_server(conn, stream[i:i + chunk])
     assert bytes(conn.to_client) == http + big + text + ping + other + ping
     assert front.dropped == 3 and not conn.inbuf and conn.left == 0
+
+
+def test_the_client_limit_is_an_option_checked_at_start(live, capsys):
+    """--foxglove-max-clients N: outside 1..1000 the runtime refuses to start with one
+    line naming the option and the value (exit 2); LiveView(max_clients=1) serves one
+    connection and refuses the next."""
+    from device.pi.__main__ import main
+    rc = main(["run", "--camera", "sim://press-hard", "--imu", "none", "--serial", "loop://",
+               "--frames", "2", "--foxglove", "127.0.0.1:0", "--foxglove-max-clients", "0"])
+    line, = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and "--foxglove-max-clients" in line and "got 0" in line
+    with pytest.raises(ValueError, match="--foxglove-max-clients.*got 0"):
+        LiveView("127.0.0.1", 0, max_clients=0)
+    view = live(max_clients=1)
+    first = _silent(view.port)
+    _until(lambda: view.status()["foxglove_clients"] == 1, "one client accepted")
+    second = _silent(view.port)
+    assert _read_to_eof(second).startswith(b"HTTP/1.1 503 ")
+    assert view.status()["foxglove_refused"] == 1
+    first.close()
+    second.close()
