@@ -602,6 +602,7 @@ class _LiveFront:
         self.sndbuf = min(self.client_bytes, 256 * 1024)
         self.refused = self.handshake_closed = self.dropped = self.slow_closed = 0
         self.accept_errors = self.clients = 0
+        self.cpu_s = 0.0                           # the front thread's CPU time, s
         self._conns: dict[socket.socket, _Conn] = {}
         self._sel = selectors.DefaultSelector()
         self._wake_r, self._wake_w = socket.socketpair()
@@ -618,7 +619,8 @@ class _LiveFront:
         return {"foxglove_clients": self.clients,
                 "foxglove_refused": self.refused,
                 "foxglove_handshake_closed": self.handshake_closed,
-                "foxglove_dropped": self.dropped, "foxglove_slow_closed": self.slow_closed}
+                "foxglove_dropped": self.dropped, "foxglove_slow_closed": self.slow_closed,
+                "foxglove_front_cpu_s": round(self.cpu_s, 4)}
 
     def close(self) -> None:
         self._stop = True
@@ -638,6 +640,7 @@ class _LiveFront:
     # -- the thread ---------------------------------------------------------------
     def _serve(self) -> None:
         while not self._stop:
+            self.cpu_s = time.thread_time()
             now = time.monotonic()
             waits = [c.deadline - now for c in self._conns.values() if c.u is None]
             if self._paused_until is not None:
