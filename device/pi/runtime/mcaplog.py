@@ -601,7 +601,7 @@ class _LiveFront:
         self.slow_bytes = 4 * self.client_bytes + (1 << 20)
         self.sndbuf = min(self.client_bytes, 256 * 1024)
         self.refused = self.handshake_closed = self.dropped = self.slow_closed = 0
-        self.accept_errors = self.clients = 0
+        self.accept_errors = self.clients = self.errors = 0
         self.cpu_s = 0.0                           # the front thread's CPU time, s
         self._conns: dict[socket.socket, _Conn] = {}
         self._sel = selectors.DefaultSelector()
@@ -620,6 +620,7 @@ class _LiveFront:
                 "foxglove_refused": self.refused,
                 "foxglove_handshake_closed": self.handshake_closed,
                 "foxglove_dropped": self.dropped, "foxglove_slow_closed": self.slow_closed,
+                "foxglove_front_errors": self.errors, "foxglove_accept_errors": self.accept_errors,
                 "foxglove_front_cpu_s": round(self.cpu_s, 4)}
 
     def close(self) -> None:
@@ -658,7 +659,11 @@ class _LiveFront:
                 else:
                     conn = self._conns.get(sock)
                     if conn is not None:
-                        self._event(conn, sock, events)
+                        try:
+                            self._event(conn, sock, events)
+                        except Exception:          # a bug must cost one viewer, not the port
+                            self.errors += 1
+                            self._drop(conn)
             self._expire(time.monotonic())
 
     def _accept(self) -> None:
@@ -717,7 +722,10 @@ class _LiveFront:
             if sock is None:
                 continue
             if conn.masks.get(sock):
-                self._sel.unregister(sock)
+                try:
+                    self._sel.unregister(sock)
+                except (KeyError, ValueError):
+                    pass
             self._conns.pop(sock, None)
             sock.close()
         conn.masks.clear()
