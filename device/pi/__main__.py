@@ -57,6 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="serve the same channels live to Foxglove over WebSocket "
                         "(default host 127.0.0.1; 0.0.0.0:8765 for the network; "
                         "needs pip install .[viz])")
+    r.add_argument("--foxglove-max-clients", type=int, metavar="N",
+                   help="live viewers served at once; more are refused (default 8)")
     r.add_argument("--frames", type=int, help="stop after N frames (tests, benchmarks)")
     r.add_argument("--json", action="store_true",
                    help="print a JSON summary on stdout when the runtime stops")
@@ -90,7 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.mcap or args.foxglove:
         from device.pi.runtime.mcaplog import LiveView, McapLog, McapLogError, parse_hostport
         try:
-            live = LiveView(*parse_hostport(args.foxglove)) if args.foxglove else None
+            live = (LiveView(*parse_hostport(args.foxglove),
+                             max_clients=args.foxglove_max_clients)
+                    if args.foxglove else None)
             rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
                               live=live, background=True, keep_existing=True)
         except (McapLogError, ValueError) as exc:
@@ -145,6 +149,9 @@ def _check_mcap(args) -> str | None:
     if not (math.isfinite(mb) and MAX_MB_MIN <= mb <= MAX_MB_MAX):
         return (f"--mcap-max-mb must be a number of MB from {MAX_MB_MIN:g} to "
                 f"{MAX_MB_MAX:.0f}, got {mb:g}")
+    n = args.foxglove_max_clients
+    if n is not None and not 1 <= n <= 1000:
+        return f"--foxglove-max-clients must be 1..1000, got {n}"
     if args.foxglove:
         try:
             parse_hostport(args.foxglove)

@@ -46,8 +46,9 @@ write (a full disk, a vanished mount, a bad frame) is counted in ``messages_lost
 is dropped and the next one is tried after :data:`RETRY_S`.
 
 ``--foxglove [HOST:]PORT`` serves the same channels live (:class:`LiveView`, over
-``foxglove-sdk``'s WebSocket server): the runtime's one hook, ``LegRuntime.mcap``,
-is an :class:`McapLog` with a file, a live view, or both.
+``foxglove-sdk``'s WebSocket server behind :class:`_LiveFront`, which bounds the
+viewers, their handshake time and what each may queue): the runtime's one hook,
+``LegRuntime.mcap``, is an :class:`McapLog` with a file, a live view, or both.
 
 The ``mcap`` and ``foxglove-sdk`` packages are the ``viz`` extra (``pip install
 .[viz]``): this module imports them only when a log or a view is opened, so the
@@ -77,10 +78,6 @@ from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module ha
 
 #: after a failed write, the next file is tried this much later (runtime clock, s)
 RETRY_S = 1.0
-#: messages the live server queues per viewer before it drops the oldest
-LIVE_BACKLOG = 256
-#: how often the loop asks the live server whether any viewer is subscribed, s
-LIVE_CHECK_S = 0.05
 #: frames and packets the writer thread holds before the oldest is dropped
 QUEUE_ITEMS = 128
 #: the writer thread looks for queued frames this often (s): it takes them in batches,
@@ -519,77 +516,5 @@ class McapLog:
         return st
 
 
-class LiveView:
-    """``--foxglove [HOST:]PORT``: the same channels served live over Foxglove's
-    WebSocket protocol (``foxglove-sdk``, its own context). A channel no viewer is
-    subscribed to costs one check per message (:meth:`wants`); with no viewer at
-    all, :meth:`McapLog.frame` builds nothing. A message is handed to the server's
-    queue and never waited for: for a viewer that falls behind, the server drops
-    messages beyond :data:`LIVE_BACKLOG` queued ones rather than slow the loop."""
-
-    def __init__(self, host: str, port: int, channels=None, backlog: int | None = None):
-        try:
-            import foxglove
-        except ImportError:
-            raise McapLogError(INSTALL_HINT.replace("MCAP logging", "--foxglove")) from None
-        self._ctx = foxglove.Context()
-        try:
-            self.server = foxglove.start_server(
-                name="tacfoot", host=host, port=int(port), context=self._ctx,
-                message_backlog_size=backlog or LIVE_BACKLOG)
-        except Exception as exc:
-            raise McapLogError(f"--foxglove {host}:{port}: cannot serve ({exc})") from None
-        self.host, self.port = host, int(self.server.port)
-        self._ch = {}
-        for topic, schema in (channels or CHANNELS).items():
-            sch = foxglove.Schema(name=schema["title"], encoding="jsonschema",
-                                  data=json.dumps(schema).encode())
-            self._ch[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json",
-                                               context=self._ctx)
-        self.messages_sent = 0
-        self.errors = 0
-        self._any, self._any_at = False, float("-inf")
-
-    def wants(self, topic: str) -> bool:
-        ch = self._ch.get(topic)
-        return ch is not None and ch.has_sinks()
-
-    def any(self) -> bool:
-        """Whether any viewer is subscribed to anything; asked of the server at most
-        every :data:`LIVE_CHECK_S` (the loop asks this per frame and per packet),
-        so a new viewer gets its first messages within that time."""
-        now = time.perf_counter()
-        if now - self._any_at >= LIVE_CHECK_S:
-            self._any = any(ch.has_sinks() for ch in self._ch.values())
-            self._any_at = now
-        return self._any
-
-    def publish(self, topic: str, t_ns: int, data: bytes) -> None:
-        try:
-            self._ch[topic].log(data, log_time=int(t_ns))
-            self.messages_sent += 1
-        except Exception:
-            self.errors += 1
-
-    def close(self) -> None:
-        try:
-            self.server.stop()
-        except Exception:
-            pass
-
-    def status(self) -> dict:
-        return {"foxglove_port": self.port, "foxglove_messages_sent": self.messages_sent,
-                "foxglove_errors": self.errors}
-
-
-def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:
-    """``[HOST:]PORT`` -> (host, port); ValueError naming the text."""
-    host, _, port = str(text).rpartition(":")
-    try:
-        p = int(port)
-    except ValueError:
-        p = -1
-    if not 0 <= p <= 65535:
-        raise ValueError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
-                         f"(e.g. 8765 or 0.0.0.0:8765)")
-    return (host or default_host), p
+# the live view moved to device/pi/runtime/liveview.py; its names stay importable here
+from device.pi.runtime.liveview import LiveView, parse_hostport  # noqa: E402,F401
