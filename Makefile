@@ -9,7 +9,7 @@ DEMO_OUT ?= out/demo
 
 REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
 
-.PHONY: native demo test install install-test install-cnn install-node clean bench models mutate
+.PHONY: native demo test install install-test install-cnn install-node clean bench models mutate memcheck
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -65,6 +65,13 @@ bench: $(VENV)/.installed native
 	$(VENV)/bin/host bench tables --data out/specs/bench.csv --doc docs/BENCHMARKS.md
 	$(VENV)/bin/host bench sim --json
 	$(PY) -m host.bench.mcap_cost --real-data $(REAL_DATA) --out out/bench/mcap_cost.md
+
+# valgrind's memcheck over the runtime on 100 frames of a real clip, with the C core
+# built with -g: fails if an error is in match.c or detect.c, or the core did not run
+# compiled (docs/BENCHMARKS.md, "Memory safety of the C core"; about 4 minutes; not
+# part of make test; Debian: apt-get install valgrind)
+memcheck: $(VENV)/.installed
+	$(PY) -m host.bench.memcheck --clip $(REAL_DATA)/roboskin/concrete.avi --imu $(REAL_DATA)/roboskin/concrete_gyro.npy --frames 100
 
 # Rebuild the shipped default models in models/: the localiser (needs the real
 # recordings for its real labels: REAL_DATA=path/to/data), texture from the real

@@ -37,6 +37,7 @@ from device.pi.runtime.config import LegConfig
 from device.pi.runtime.decisions import (GaitContext, decide, expected_context, finite_float,
                                          gait_from_message)
 from device.pi.runtime.feed import CameraFeed
+from device.pi.runtime.gcpolicy import WARMUP_FRAMES, GcPolicy
 from device.pi.runtime.link import LinkReader, LinkWriter
 from device.pi.runtime.load import Models
 from device.pi.runtime.messages import (command_op, fault_message, heartbeat_message,
@@ -75,7 +76,8 @@ class LegRuntime:
     def __init__(self, cfg: LegConfig, camera_factory, imu, port, models: Models, *,
                  lossless: bool = True, fps: float | None = None, json_log=None,
                  status_path: str | None = None, max_frames: int | None = None,
-                 first_camera=None, clock=time.monotonic, notify=None, camera_opts=None):
+                 first_camera=None, clock=time.monotonic, notify=None, camera_opts=None,
+                 gc_warmup_frames: int | None = WARMUP_FRAMES):
         self.cfg = cfg
         self.camera_opts = camera_opts        # the live camera's open options (set rate)
         self.clock = clock
@@ -156,6 +158,8 @@ class LegRuntime:
         self._status_warned = False
         self._reopen_asked = False
         self.watchdog = sdnotify.Watchdog()
+        # a full collection before the loop, the survivors frozen after the warm-up
+        self.gc = GcPolicy(gc_warmup_frames)
 
     # -- packets ---------------------------------------------------------------
     def _t_ms(self) -> int:
@@ -174,6 +178,7 @@ class LegRuntime:
 
     # -- the loop --------------------------------------------------------------
     def start(self) -> None:
+        self.gc.start()
         self.feed.start()
 
     def run(self) -> int:
@@ -204,6 +209,7 @@ class LegRuntime:
             self._frame(frame, t_avail)
             self._wait_since = self.clock()
         self._housekeeping()
+        self.gc.frame_done(self.frames)
         if self.max_frames is not None and self.frames >= self.max_frames:
             self.stopped = True
 
@@ -463,7 +469,7 @@ class LegRuntime:
                 "models": list(self.models.loaded), "fps": self.fps,
                 "models_fused": self.models.fused is not None,
                 "tracker": self._tracker_status(),
-                "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
+                "gc": self.gc.status(), "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
                 "link_write_errors": w.write_errors, "json_log_lines_lost":
                     0 if self.json_log is None else self.json_log.lines_lost,
                 **({} if self.mcap is None else self.mcap.status())}
@@ -496,6 +502,7 @@ class LegRuntime:
         self._notify("STOPPING=1")
         if self.json_log is not None:
             self.json_log.flush()
+        self.gc.close()
 
     def _heartbeat(self) -> P.Heartbeat:
         return heartbeat_message(self.clock() - self._t0, self.fps,
