@@ -245,8 +245,7 @@ class WindowFeatures:
         """Write the features of the models ``which`` (indices, default all) from
         ``windows`` (one per model, in the same order as ``which``)."""
         idx = range(len(self.specs)) if which is None else which
-        from device.pi.vision import native
-        fn = native.winfeat_fn()
+        fn = _native().winfeat_fn()
         if fn is not None:
             srcs = [_source(w) for w in windows]
             key = (tuple(idx), tuple((s[0].ctypes.data, s[1].ctypes.data if s[1] is not None
@@ -277,6 +276,19 @@ class WindowFeatures:
                 0 if s.use is None else s.use.ctypes.data,
                 self.outs[i].ctypes.data, self._scratch[i].ctypes.data, int(floor)]
         return c
+
+
+def _native():
+    """device.pi.vision.native, imported on first use (it imports this module's
+    CTX_SLOTS when it loads the library)."""
+    global _NATIVE
+    if _NATIVE is None:
+        from device.pi.vision import native
+        _NATIVE = native
+    return _NATIVE
+
+
+_NATIVE = None
 
 
 def _source(w):
