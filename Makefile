@@ -80,6 +80,7 @@ memcheck: $(VENV)/.installed
 models: $(VENV)/.installed
 	$(PY) -m host.localiser --out models/localiser-roboskin --real-data $(REAL_DATA) --quiet
 	$(PY) -m host.bench.shipped --out models --work out/sim-data --real-data $(REAL_DATA) --quiet
+	$(PY) -m host.learn.cut models
 	$(PY) -m host.learn.fuse models
 
 # Mutation testing (docs/testing.md): mutmut on a private copy of the tree (it writes

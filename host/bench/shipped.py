@@ -205,6 +205,9 @@ def regraph(folder, seed: int = 0) -> dict:
     params = (doc.get("training") or {}).get("temporal")
     if not params:
         raise TrainError(f"{folder}: the manifest records no temporal layer to rewrite")
+    if doc.get("features") is not None:
+        raise TrainError(f"{folder}: its window features run outside the graph (features "
+                         f"version {doc['features'].get('version')!r}): no layer to rewrite")
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
     X = np.random.default_rng(seed).normal(0, 3, (256, doc["input"]["shape"][1]))
     X = X.astype(np.float32)

@@ -231,6 +231,7 @@ def model_trainer(folder):
     ``models/texture``, its default variant) classifies the windows. Returns
     (trainer, T of the model)."""
     from device.pi.models.artefact import read_manifest
+    from host.learn.cut import graph_inputs
     from host.learn.inputs import model_inputs
     from host.learn.onnx_io import run_onnx, session
 
@@ -248,7 +249,8 @@ def model_trainer(folder):
 
     def trainer(ws_train, ws_test, seed):
         def predict(ws):
-            return run_onnx(sess, model_inputs(ws, "vectors", False)).argmax(axis=1)
+            return run_onnx(sess, graph_inputs(doc, model_inputs(ws, "vectors", False),
+                                               folder)).argmax(axis=1)
         return predict, classes
     return trainer, int(doc.get("T") or doc.get("window"))
 

@@ -120,6 +120,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
                              f"mean nothing: fix the labels or evaluate a model trained on them")
     X = model_inputs(ws, layout, uses_imu)
     shape = [int(d) for d in doc["input"]["shape"][1:]]
+    if isinstance(doc.get("features"), dict):   # the graph reads features of the window
+        shape = [int(getattr(pred_obj, "n_features", doc["features"].get("n_inputs")))]
     if int(np.prod(X.shape[1:])) != int(np.prod(shape)):
         prof = doc.get("profile") if isinstance(doc.get("profile"), dict) else {}
         pins = (f"; the windows have {ws.n_pins} pins, the model's sensor profile "

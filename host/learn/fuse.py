@@ -153,15 +153,17 @@ def fused_graph(members: list[dict]):
 
 
 def _encoding(member: dict) -> tuple | None:
-    """What a classifier member reads (T, input layout, IMU or not, input shape):
-    members that read the same share one input of the fused graph, as the leg
-    gives them the same window encoding. None for the regressor (its input is
-    clipped to its own training range)."""
+    """What a classifier member reads (T, input layout, IMU or not, input shape, and
+    the window features the leg computes for it, when its graph reads them): members
+    that read the same share one input of the fused graph, as the leg gives them the
+    same window encoding (or the same features, computed once). None for the
+    regressor (its input is clipped to its own training range)."""
     doc = member["doc"]
     if member["task"] == "pressure":
         return None
     return (doc.get("T"), doc.get("input_layout"), bool(doc.get("uses_imu", False)),
-            json.dumps(doc.get("input", {}).get("shape")))
+            json.dumps(doc.get("input", {}).get("shape")),
+            json.dumps(doc.get("features"), sort_keys=True))
 
 
 def _shared_nodes(nodes, inits, outputs: set) -> list:

@@ -34,6 +34,7 @@ import numpy as np
 from device.pi.models.artefact import (BoundRun, ModelError, load_model, model_file,
                                        read_manifest)
 from device.pi.models.rules import RuleClassifier
+from device.pi.models.winfeat import WindowFeatures, feature_spec, window_stats
 from device.pi.numerics import finite, sigmoid, softmax
 
 #: tasks a classifier serves
@@ -137,13 +138,29 @@ class Classifier:
             dims = [int(d) for d in mshape[1:]] if len(mshape) > 1 else dims
         if not dims or any(d is None or d < 1 for d in dims):
             raise ModelError(f"{self.onnx_path}: cannot tell the input shape ({shape})")
-        self.input_shape = tuple(int(d) for d in dims)
+        #: what the runtime computes from the window for a graph that reads window
+        #: features (features version 2), else None (the graph reads the window)
+        self.features = feature_spec(m.get("features"), where)
+        graph_shape = tuple(int(d) for d in dims)
+        if self.features is not None:
+            if self.input_layout != "vectors" or self.features.T != self.T or \
+                    self.features.uses_imu != self.uses_imu or \
+                    graph_shape != (self.features.n_features,):
+                raise ModelError(f"{where}: features (T={self.features.T}, imu="
+                                 f"{self.features.uses_imu}, {self.features.n_features} values) "
+                                 f"do not match the model's T={self.T}, uses_imu={self.uses_imu}, "
+                                 f"layout {self.input_layout!r} and graph input {graph_shape}")
+            #: the window encoding the model reads (its features are computed from it)
+            self.input_shape = (self.features.n_inputs,)
+        else:
+            self.input_shape = graph_shape
         self.n_features = int(np.prod(self.input_shape))
         names = [o.name for o in sess.get_outputs()]
         want = m.get("output", "probabilities")
         self._out_index = names.index(want) if want in names else len(names) - 1
         self._out_name = names[self._out_index]
-        self._x = np.zeros((1,) + self.input_shape, np.float32)
+        self._x = np.zeros((1,) + graph_shape, np.float32)
+        self._feats: dict = {}
         self._runner = BoundRun(sess, model.input_name, self._x, self._out_name)
         self.fault = False
         self._check_output_size(where)
@@ -191,6 +208,9 @@ class Classifier:
         or the layout's (1, T, S, S). Finite for any values; a wrong size raises
         :class:`ModelError` naming the model file."""
         a = self._sized(window_input)
+        if self.features is not None:
+            window_stats(self.features, a.reshape(1, -1), self._x)
+            return self._run()
         np.clip(finite(a.reshape(-1), 0.0, INPUT_CLIP, -INPUT_CLIP), -INPUT_CLIP, INPUT_CLIP,
                 out=self._x.reshape(-1))
         return self._run()
@@ -258,5 +278,15 @@ class Classifier:
         if window.T != self.T:
             raise ModelError(f"{self.onnx_path}: the model sees T={self.T} frames, the "
                              f"window holds {window.T}")
+        if self.features is not None:
+            self.features_into(x).compute([window])
+            return
         a = self._sized(window.encode(self.input_layout, with_imu=self.uses_imu))
         x.reshape(-1)[:] = a.reshape(-1)
+
+    def features_into(self, x: np.ndarray) -> WindowFeatures:
+        """The :class:`WindowFeatures` that writes this model's features into ``x``."""
+        wf = self._feats.get(x.ctypes.data)
+        if wf is None:
+            wf = self._feats[x.ctypes.data] = WindowFeatures([self.features], [x])
+        return wf

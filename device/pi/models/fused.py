@@ -11,7 +11,9 @@ leaves the individual sessions in charge, with one line saying why.
 
 :meth:`FusedModels.run` is then the frame's one model call: each member that is to
 decide this frame gets its input written the way its own ``predict_window`` writes
-it (a classifier's window encoding as it is; the regressor's cleaned and clipped),
+it (a classifier's window encoding as it is, or the window features its graph reads,
+computed for every such member in one call, :mod:`device.pi.models.winfeat`; the
+regressor's input cleaned and clipped),
 the graph runs once over I/O-bound buffers, and each member's output goes through
 its own post-processing (probabilities cleaned, the regressor's fallback and fault
 flag). The results are those of the members' ``predict_window``, value for value.
@@ -29,6 +31,7 @@ import numpy as np
 from device.pi.models.artefact import (ModelError, checked_model_file, load_model,
                                        manifest_for, model_file, ort_session)
 from device.pi.models.signature import SignatureError
+from device.pi.models.winfeat import WindowFeatures
 
 #: the fused graph's folder inside the models folder, and its manifest's kind
 FUSED_DIR = "fused"
@@ -99,6 +102,17 @@ class FusedModels:
             self._in[r["task"]] = bufs[r["input"]][1]
             self._out_name[r["task"]] = r["output"]
         by_task = {r["task"]: r for r in rows}
+        # the members whose graph reads window features (features version 2): one
+        # call computes them all for a frame, each into its input buffer
+        specs, outs = [], []
+        self._feat_index = {}
+        for t in self.tasks:
+            spec = getattr(members[t], "features", None)
+            if spec is not None and t not in self._reads:
+                self._feat_index[t] = len(specs)
+                specs.append(spec)
+                outs.append(self._in[t])
+        self._features = WindowFeatures(specs, outs) if specs else None
 
         def runner(session, tasks):
             names = {i.name for i in session.get_inputs()}
@@ -135,6 +149,7 @@ class FusedModels:
         in ``windows`` ({task: full window of the member's T}), from one run of the
         graph (the smallest of its subsets that holds them). Members not asked for
         keep their last input; their outputs are not read."""
+        which, feat_windows = [], []
         for task, w in windows.items():
             mod = self.members[task]
             first = self._reads.get(task)
@@ -145,8 +160,16 @@ class FusedModels:
                 continue                   # its input is written: the same window
             if task == "pressure":
                 self._bad_input[task] = mod.prepare_window(w, self._in[task])
+            elif task in self._feat_index:
+                if w.T != mod.T:
+                    raise ModelError(f"{mod.onnx_path}: the model sees T={mod.T} frames, the "
+                                     f"window holds {w.T}")
+                which.append(self._feat_index[task])
+                feat_windows.append(w)
             else:
                 mod.fill_window(w, self._in[task])
+        if which:
+            self._features.compute(feat_windows, which)
         try:
             outs = self._runner_for(windows)()
         except Exception as exc:      # onnxruntime's own exception types
@@ -168,8 +191,11 @@ def _reads_same(a, b) -> bool:
     layout, IMU or not and input size), so one input of the fused graph serves both
     (never a regressor: its input is clipped to its own range)."""
     key = ("T", "input_layout", "uses_imu", "n_features")
+    def feats(m):
+        f = getattr(m, "features", None)
+        return None if f is None else f.key()
     return all(hasattr(m, "fill_window") and all(hasattr(m, k) for k in key) for m in (a, b)) \
-        and all(getattr(a, k) == getattr(b, k) for k in key)
+        and all(getattr(a, k) == getattr(b, k) for k in key) and feats(a) == feats(b)
 
 
 def _onnx_sha(mod) -> str | None:

@@ -27,7 +27,12 @@ A spec holds:
   ``train.toml`` beside the manifest by the host), and ``training``: the run's
   record (data summary, hyperparameters, fit times);
 * the artefact: ``onnx``, ``sha256``, ``size_bytes``, ``files``, ``variants``,
-  ``variant``, ``int8`` (the int8 check) and ``feature_spec``;
+  ``variant``, ``int8`` (the int8 check) and ``feature_spec`` (the version of the
+  window encoding);
+* ``features``: for a model whose graph reads window features rather than the
+  window, the record of what the runtime computes (``version``, ``kind`` and the
+  kind's parameters, :mod:`device.pi.models.winfeat`); absent (None) for a model
+  that reads the encoded window itself;
 * ``params``: kind-specific parameters the loaders read (``ignored_pins``,
   ``roughness``, ``input_clip``, ``target_mean``, ``rule``, the localiser's
   layout ...), written as top-level keys of the manifest.
@@ -67,7 +72,7 @@ LEGACY_KEYS = {"window": "T", "heldout": "metrics.test", "held_out": "metrics.te
 _CORE = ("format", "version", "feature_spec", "kind", "task", "model", "classes", "T",
          "input_layout", "input", "output", "output_kind", "uses_imu", "crop_size", "onnx",
          "sha256", "size_bytes", "files", "variants", "variant", "metrics", "int8", "profile",
-         "trained_on", "config", "training")
+         "trained_on", "config", "training", "features")
 
 
 class SpecError(ValueError):
@@ -200,6 +205,7 @@ class ModelSpec:
     variants: dict | None = None
     variant: str = "float"
     feature_spec: int = 1
+    features: dict | None = None
 
     def __post_init__(self) -> None:
         self.check("ModelSpec")
@@ -282,6 +288,12 @@ class ModelSpec:
         for k in self.params:
             if k in _CORE or k in LEGACY_KEYS:
                 bad(f"params.{k}", "is a spec field or an old key variant, not a parameter", k)
+        f = self.features
+        if f is not None and (not isinstance(f, dict) or isinstance(f.get("version"), bool)
+                              or not isinstance(f.get("version"), int)
+                              or not isinstance(f.get("kind"), str)):
+            bad("features", "must be a table with a whole-number version and a kind, or absent",
+                f)
         if self.onnx is None and self.model != "rule":
             bad("onnx", "must be the model file's name (null only for a rule model)", None)
 
@@ -302,7 +314,9 @@ class ModelSpec:
                 "metrics": {k: self.metrics[k] for k in METRIC_KEYS}, "int8": self.int8,
                 "profile": {k: self.profile[k] for k in ("name", "n_pins", "sha256", "toml")},
                 "trained_on": self.trained_on, "config": self.config,
-                "training": self.training, **self.params}
+                "training": self.training,
+                **({"features": self.features} if self.features is not None else {}),
+                **self.params}
 
     @classmethod
     def from_manifest(cls, doc: dict, where) -> "ModelSpec":
@@ -331,7 +345,8 @@ class ModelSpec:
         kw.update({k: doc[k] for k in ("task", "model", "classes", "input_layout", "output",
                                        "output_kind", "uses_imu", "crop_size", "int8",
                                        "trained_on", "config", "training", "size_bytes",
-                                       "files", "variants", "variant") if k in doc})
+                                       "files", "variants", "variant", "features")
+                   if k in doc})
         kw.setdefault("task", doc["kind"])
         kw.setdefault("model", "")
         kw.setdefault("classes", [])

@@ -51,14 +51,14 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "SOURCES"]
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "winfeat_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
 #: (``detect.c``, :mod:`device.pi.vision.core`)
-SOURCES = (SOURCE, SOURCE.with_name("detect.c"))
+SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 3
+ABI_VERSION = 4
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
 #: -O3 vectorises detect.c's integer loops (the same integers in every lane)
 CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
@@ -300,6 +300,7 @@ def kernel(path: Path):
     grow.restype = ctypes.c_int
     fn.grow = grow
     fn.detect = _detect_fn(lib)
+    fn.winfeat = _winfeat_fn(lib)
     return fn
 
 
@@ -312,6 +313,23 @@ def _detect_fn(lib):
         raise NativeBuildError(f"tf_detect has {lib.tf_detect_slots()} context slots, "
                                f"expected {S_SLOTS}")
     return det
+
+
+def _winfeat_fn(lib):
+    wf = lib.tf_winfeat
+    wf.argtypes = [ctypes.c_void_p]
+    wf.restype = ctypes.c_int
+    from device.pi.models.winfeat import CTX_SLOTS
+    if lib.tf_winfeat_slots() != CTX_SLOTS:
+        raise NativeBuildError(f"tf_winfeat has {lib.tf_winfeat_slots()} context slots, "
+                               f"expected {CTX_SLOTS}")
+    return wf
+
+
+def winfeat_fn():
+    """``tf_winfeat`` of the loaded library (:mod:`device.pi.models.winfeat`), or None."""
+    fn = _FN
+    return None if fn is None else fn.winfeat
 
 
 def detect_fn():

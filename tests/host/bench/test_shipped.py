@@ -129,43 +129,31 @@ def test_the_runtime_names_the_texture_on_held_out_real_frames(tmp_path, clip, l
     assert right >= floor, right
 
 
-def test_the_texture_graph_gathers_whole_pin_rows():
-    """The shipped texture fnn's roughness gathers neighbour rows along the pin axis
-    put first (a gather along the last axis copied one value at a time)."""
+def test_the_texture_graph_holds_no_feature_node_and_its_manifest_the_roughness():
+    """The shipped texture fnn reads its window features (features version 2): the
+    roughness' neighbours are in its manifest, not a Gather of its graph."""
     import onnx
 
-    for name in manifest("texture")["variants"].values():
-        g = onnx.load(str(MODELS / "texture" / name)).graph
-        gathers = [n for n in g.node if n.op_type == "Gather"]
-        assert gathers and all(a.i == 0 for n in gathers for a in n.attribute
-                               if a.name == "axis"), name
+    doc = manifest("texture")
+    assert doc["features"]["neighbours"] == doc["training"]["temporal"]["neighbours"]
+    for name in doc["variants"].values():
+        ops = {n.op_type for n in onnx.load(str(MODELS / "texture" / name)).graph.node}
+        assert not ops & {"Gather", "Transpose", "ReduceMean", "Slice"}, name
 
 
-def test_regraph_keeps_the_texture_models_outputs_and_records_its_files(tmp_path):
-    """host.bench.shipped --regraph on a copy of the shipped texture model: the Pi's
-    loader accepts both files (their sha256 are recorded), each gives the same
-    outputs as before, and the manifest's figures are kept."""
+def test_regraph_of_a_model_whose_features_run_outside_its_graph_is_refused(tmp_path, capsys):
+    """host.bench.shipped --regraph on a copy of the shipped texture model (features
+    version 2): nothing to rewrite, one line, exit 2, no file changed."""
     import shutil
 
-    from device.pi.models.artefact import sha256_file
     from host.bench.shipped import main
-    from host.learn.onnx_io import session
 
     shutil.copytree(MODELS / "texture", tmp_path / "texture")
-    X = np.random.default_rng(0).normal(0, 3, (64, manifest("texture")["input"]["shape"][1]))
-    X = X.astype(np.float32)
-    before = {n: session(str(tmp_path / "texture" / n)).run(None, {"x": X})
-              for n in manifest("texture")["variants"].values()}
-    assert main(["--out", str(tmp_path), "--regraph", "texture"]) == 0
-    doc = json.loads((tmp_path / "texture" / MANIFEST).read_text())
-    assert doc["metrics"] == manifest("texture")["metrics"]
-    for n, (k, p) in before.items():
-        assert doc["sha256"][n] == sha256_file(tmp_path / "texture" / n)
-        k2, p2 = session(str(tmp_path / "texture" / n)).run(None, {"x": X})
-        assert np.array_equal(k, k2) and np.allclose(p, p2, atol=1e-5)
-    for doc_name in (MANIFEST, "manifest.float.json"):
-        clf = Classifier.load(tmp_path / "texture" / doc_name, expect_kind="texture")
-        assert clf.classes == CLASSES["texture"]
+    before = {p.name: p.read_bytes() for p in (tmp_path / "texture").iterdir()}
+    assert main(["--out", str(tmp_path), "--regraph", "texture"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "outside the graph" in err[0]
+    assert {p.name: p.read_bytes() for p in (tmp_path / "texture").iterdir()} == before
 
 
 def test_regraph_of_a_folder_without_a_temporal_layer_is_one_line_and_exit_2(tmp_path, capsys):

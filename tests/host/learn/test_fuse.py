@@ -41,15 +41,15 @@ def test_the_fused_graph_gives_each_members_output_bit_for_bit(shipped):
         fused = ort_session(str(manifest.parent / spec.onnx))
         assert sha256_file(manifest.parent / spec.onnx) == spec.sha256[spec.onnx]
         assert [o.name for o in fused.get_outputs()] == [r["output"] for r in rows]
-        # surface and slip read the same window encoding: one input, their common
-        # features computed once
+        # surface and slip read the same window features: one input, computed once
+        # by the leg (features version 2: no feature node is left to share)
         assert [r["input"] for r in rows] == ["surface/x", "texture/x", "surface/x",
                                               "pressure/x"]
         assert [i.name for i in fused.get_inputs()] == ["surface/x", "texture/x", "pressure/x"]
         nodes = [n.op_type for n in onnx.load(str(manifest.parent / spec.onnx)).graph.node]
         per_member = sum(len(onnx.load(str(shipped / r["task"] / r["onnx"])).graph.node)
                          for r in rows)
-        assert len(nodes) < per_member - 12 - 20     # no label branch (4 nodes x 3), ~20 shared
+        assert len(nodes) <= per_member - 12         # no label branch (4 nodes x 3)
         for trial in range(3):
             feeds, want = {}, {}
             for r in rows:

@@ -162,7 +162,8 @@ def test_real_clips_are_identical_with_the_compiled_detection(fn, monkeypatch, c
     assert _pipeline_digest(path, True) == _pipeline_digest(path, False)
 
 
-# Every C entry point (detect.c's tf_detect, match.c's tf_match and tf_grow) under
+# Every C entry point (detect.c's tf_detect, match.c's tf_match and tf_grow, winfeat.c's
+# tf_winfeat) under
 # AddressSanitizer and UndefinedBehaviorSanitizer: the library is built with both, and
 # the hypothesis equivalence tests of this file and test_native.py run against it in a
 # child Python (the sanitizer runtime preloaded). Any error report fails the child.
@@ -195,7 +196,9 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
              "tests/device/pi/vision/test_core.py::test_a_negative_offset_goes_back_to_opencv",
              "tests/device/pi/vision/test_native.py::test_the_kernel_gives_the_numpy_assignment",
              "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
-             "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors"]
+             "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors",
+             "tests/device/pi/models/test_winfeat.py::test_the_compiled_features_are_numpys_to_the_bit_and_finite",
+             "tests/device/pi/models/test_winfeat.py::test_the_kernel_refuses_a_bad_context_and_writes_nothing"]
     run = subprocess.run([sys.executable, "-m", "pytest", "-x", "-p", "no:cacheprovider",
                           "-p", "no:xdist", *tests], env=env, capture_output=True, text=True,
                          cwd=REPO_ROOT, timeout=900)
