@@ -24,6 +24,7 @@
  * with one argument. tf_detect returns the number of pins kept (>= 0), or -1 for a
  * context it refuses (sizes that do not fit the buffers it declares).
  */
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -354,4 +355,106 @@ int64_t tf_detect(int64_t *ctx) {
         k++;
     }
     return k;
+}
+
+/* ---------------------------------------------------------------------------
+ * The contact grid's update: the compiled twin of
+ * device/pi/vision/features.py's ContactGrid.update with a reference set. The cell
+ * sums of |binary - reference| are whole numbers; the float steps are numpy's, in
+ * float32 and in numpy's order (the mean is numpy's pairwise sum), so the grid and
+ * the contact flag are the same bits. Context slots TF_G_*; returns the contact flag
+ * (0 or 1), or -1 for a context it refuses.
+ */
+enum {
+    TF_G_BINARY = 0,    /* const uint8 *: h x w, row stride BIN_STRIDE */
+    TF_G_BIN_STRIDE,
+    TF_G_H, TF_G_W,
+    TF_G_REF,           /* const uint8 *: h x w, contiguous */
+    TF_G_N,             /* cells a side */
+    TF_G_YS, TF_G_XS,   /* const int64 *: n + 1 cell edges each */
+    TF_G_INV_AREA,      /* const float *: n x n, 1 / (255 * area) (0 for an empty cell) */
+    TF_G_GRID,          /* float *: n x n, the grid (updated) */
+    TF_G_CELLS,         /* float *: n x n scratch */
+    TF_G_SUMS,          /* int64 *: n x n scratch */
+    TF_G_GAMMA,         /* float32 bits of gamma */
+    TF_G_THRESHOLD,     /* float32 bits of the contact threshold */
+    TF_G_N_SLOTS
+};
+
+int tf_grid_slots(void) { return TF_G_N_SLOTS; }
+
+static float f32_of(int64_t bits) {
+    uint32_t u = (uint32_t)bits;
+    float f;
+    memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+/* numpy's pairwise sum of float32 values (umath's FLOAT_pairwise_sum) */
+static float pairwise_sum(const float *a, int64_t n) {
+    if (n < 8) {
+        float res = 0.f;
+        for (int64_t i = 0; i < n; i++) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        float r[8];
+        int64_t i;
+        for (int j = 0; j < 8; j++) r[j] = a[j];
+        for (i = 8; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++) r[j] += a[i + j];
+        float res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) res += a[i];
+        return res;
+    }
+    int64_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
+}
+
+/* one row's |b - r| summed over [x0, x1) */
+TF_VECTOR static uint32_t absdiff_sum(const uint8_t *b, const uint8_t *r, int64_t x0, int64_t x1) {
+    uint32_t s = 0;
+    for (int64_t x = x0; x < x1; x++) s += (uint32_t)(b[x] > r[x] ? b[x] - r[x] : r[x] - b[x]);
+    return s;
+}
+
+int64_t tf_grid(int64_t *ctx) {
+    const int64_t h = ctx[TF_G_H], w = ctx[TF_G_W], n = ctx[TF_G_N], bst = ctx[TF_G_BIN_STRIDE];
+    const int64_t *ys = (const int64_t *)(intptr_t)ctx[TF_G_YS];
+    const int64_t *xs = (const int64_t *)(intptr_t)ctx[TF_G_XS];
+    if (h < 0 || w < 0 || n < 1 || bst < w || ys[0] != 0 || xs[0] != 0 || ys[n] != h || xs[n] != w)
+        return -1;
+    for (int64_t i = 0; i < n; i++)
+        if (ys[i + 1] < ys[i] || xs[i + 1] < xs[i]) return -1;
+    const uint8_t *bin = (const uint8_t *)(intptr_t)ctx[TF_G_BINARY];
+    const uint8_t *ref = (const uint8_t *)(intptr_t)ctx[TF_G_REF];
+    const float *inv = (const float *)(intptr_t)ctx[TF_G_INV_AREA];
+    float *grid = (float *)(intptr_t)ctx[TF_G_GRID];
+    float *cells = (float *)(intptr_t)ctx[TF_G_CELLS];
+    int64_t *sums = (int64_t *)(intptr_t)ctx[TF_G_SUMS];
+    const float gamma = f32_of(ctx[TF_G_GAMMA]), thr = f32_of(ctx[TF_G_THRESHOLD]);
+    const int64_t nn = n * n;
+    for (int64_t k = 0; k < nn; k++) sums[k] = 0;
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t y = ys[i]; y < ys[i + 1]; y++) {
+            const uint8_t *b = bin + y * bst, *r = ref + y * w;
+            for (int64_t j = 0; j < n; j++) sums[i * n + j] += absdiff_sum(b, r, xs[j], xs[j + 1]);
+        }
+    /* cells: the sum (a float64) times 1 / (255 area) (float32 widened), to float32 */
+    for (int64_t k = 0; k < nn; k++) cells[k] = (float)((double)sums[k] * (double)inv[k]);
+    const float glob = pairwise_sum(cells, nn) / (float)nn;
+    float mx = -INFINITY;
+    for (int64_t k = 0; k < nn; k++) {
+        cells[k] -= glob;
+        if (cells[k] > mx) mx = cells[k];
+    }
+    const int contact = (float)(mx - gamma) > thr;
+    for (int64_t k = 0; k < nn; k++) {
+        /* np.maximum's choice (the first when >=), so a -0.0 stays what numpy keeps */
+        float g = cells[k] >= grid[k] ? cells[k] : grid[k];
+        g -= gamma;
+        grid[k] = g >= 0.f ? g : 0.f;
+    }
+    return contact;
 }

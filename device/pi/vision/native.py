@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "SOURCES"]
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "grid_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
@@ -300,7 +300,29 @@ def kernel(path: Path):
     grow.restype = ctypes.c_int
     fn.grow = grow
     fn.detect = _detect_fn(lib)
+    fn.grid = _grid_fn(lib)
     return fn
+
+
+#: the contact grid's context slots (detect.c's TF_G_*)
+GRID_SLOTS = 14
+
+
+def _grid_fn(lib):
+    grid = lib.tf_grid
+    grid.argtypes = [ctypes.c_void_p]
+    grid.restype = ctypes.c_int64
+    if lib.tf_grid_slots() != GRID_SLOTS:
+        raise NativeBuildError(f"tf_grid has {lib.tf_grid_slots()} context slots, "
+                               f"expected {GRID_SLOTS}")
+    return grid
+
+
+def grid_fn():
+    """``tf_grid`` of the loaded library (:class:`~device.pi.vision.features.ContactGrid`),
+    or None."""
+    fn = _FN
+    return None if fn is None else fn.grid
 
 
 def _detect_fn(lib):
