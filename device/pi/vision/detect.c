@@ -65,6 +65,13 @@ enum {
     TF_D_AREAS,         /* int32 *: OUT_CAP, their areas */
     TF_D_OUT_CAP,
     TF_D_N_BLOBS,       /* written: blobs of any size */
+    TF_D_STAT_STEP,     /* the plausibility statistics read every STAT_STEP-th row */
+    TF_D_STAT_SUM,      /* written: the sum of those rows' smoothed pixels */
+    TF_D_STAT_SQSUM,    /* written: the sum of their squares */
+    TF_D_STAT_N,        /* written: how many pixels */
+    TF_D_CORNERS,       /* const int64 *: N_CORNERS (row, column) pairs in the box */
+    TF_D_N_CORNERS,
+    TF_D_CORNER_SUM,    /* written: the sum of the smoothed box at those pixels */
     TF_D_N_SLOTS
 };
 
@@ -320,6 +327,36 @@ static int64_t label(int64_t *ctx) {
     return n;
 }
 
+/* what device/pi/vision/plausibility.py reads from the smoothed box: the integer sums
+   cv2.meanStdDev takes over every STAT_STEP-th row, and the corner pixels' sum */
+static void frame_sums(int64_t *ctx) {
+    const uint8_t *smooth = (const uint8_t *)(intptr_t)ctx[TF_D_SMOOTH];
+    const int64_t bh = ctx[TF_D_BH], bw = ctx[TF_D_BW], step = ctx[TF_D_STAT_STEP];
+    uint64_t s = 0, sq = 0;
+    int64_t n = 0;
+    for (int64_t y = 0; step > 0 && y < bh; y += step) {
+        const uint8_t *row = smooth + y * bw;
+        uint32_t rs = 0, rq = 0;          /* a row: at most 65535 * 255^2 < 2^32 */
+        for (int64_t x = 0; x < bw; x++) {
+            rs += row[x];
+            rq += (uint32_t)row[x] * row[x];
+        }
+        s += rs;
+        sq += rq;
+        n += bw;
+    }
+    ctx[TF_D_STAT_SUM] = (int64_t)s;
+    ctx[TF_D_STAT_SQSUM] = (int64_t)sq;
+    ctx[TF_D_STAT_N] = n;
+    const int64_t *cr = (const int64_t *)(intptr_t)ctx[TF_D_CORNERS];
+    int64_t cs = 0;
+    for (int64_t i = 0; i < ctx[TF_D_N_CORNERS]; i++) {
+        int64_t r = cr[2 * i], c = cr[2 * i + 1];
+        if (r >= 0 && r < bh && c >= 0 && c < bw) cs += smooth[r * bw + c];
+    }
+    ctx[TF_D_CORNER_SUM] = cs;
+}
+
 int64_t tf_detect(int64_t *ctx) {
     const int64_t bh = ctx[TF_D_BH], bw = ctx[TF_D_BW], kn = ctx[TF_D_KN];
     const int64_t block = ctx[TF_D_BLOCK];
@@ -332,7 +369,9 @@ int64_t tf_detect(int64_t *ctx) {
         || !(0 <= gx0 && gx0 <= cx0 && cx0 < cx1 && cx1 <= gx1 && gx1 <= bw)
         || ctx[TF_D_CAP] < 2 || ctx[TF_D_OUT_CAP] < 0)
         return -1;
+    if (bw > 65535) return -1;
     blur(ctx);
+    frame_sums(ctx);
     threshold(ctx);
     int64_t n = label(ctx);
     if (n < 0) return -1;
