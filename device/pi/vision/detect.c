@@ -451,6 +451,28 @@ static float pairwise_sum(const float *a, int64_t n) {
     return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
 }
 
+/* numpy's pairwise sum of doubles (umath's DOUBLE_pairwise_sum) */
+static double pairwise_sum_d(const double *a, int64_t n) {
+    if (n < 8) {
+        double res = 0.;
+        for (int64_t i = 0; i < n; i++) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        double r[8];
+        int64_t i;
+        for (int j = 0; j < 8; j++) r[j] = a[j];
+        for (i = 8; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++) r[j] += a[i + j];
+        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) res += a[i];
+        return res;
+    }
+    int64_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return pairwise_sum_d(a, n2) + pairwise_sum_d(a + n2, n - n2);
+}
+
 /* one row's |b - r| summed over [x0, x1) */
 TF_VECTOR static uint32_t absdiff_sum(const uint8_t *b, const uint8_t *r, int64_t x0, int64_t x1) {
     uint32_t s = 0;
@@ -496,4 +518,33 @@ int64_t tf_grid(int64_t *ctx) {
         grid[k] = g >= 0.f ? g : 0.f;
     }
     return contact;
+}
+
+/* The mean pin vector and the sum of magnitudes (features.py's shear_and_sum) over
+ * the rows of vectors (m, 2 float32, taken as doubles) not lost and finite, each clipped to
+ * +-clip: out[0..1] the mean (numpy's order: summed row by row, then divided),
+ * out[2] the sum of hypot(x, y) (numpy's pairwise sum); mags (m,) double scratch.
+ * Returns how many rows counted. */
+int64_t tf_shear(const float *vec, const uint8_t *lost, int64_t m, double clip,
+                 double *mags, double *out) {
+    double sx = 0.0, sy = 0.0;
+    int64_t k = 0;
+    for (int64_t i = 0; i < m; i++) {
+        double x = vec[2 * i], y = vec[2 * i + 1];
+        if (lost[i]) continue;
+        if (!isfinite(x) || !isfinite(y)) continue;
+        x = x < -clip ? -clip : (x > clip ? clip : x);
+        y = y < -clip ? -clip : (y > clip ? clip : y);
+        sx += x;
+        sy += y;
+        mags[k++] = hypot(x, y);
+    }
+    if (k == 0) {
+        out[0] = out[1] = out[2] = 0.0;
+        return 0;
+    }
+    out[0] = sx / (double)k;
+    out[1] = sy / (double)k;
+    out[2] = pairwise_sum_d(mags, k);
+    return k;
 }

@@ -212,6 +212,23 @@ def shear_and_sum(vectors: np.ndarray, valid: np.ndarray | None = None
     return float(m[0]), float(m[1]), float(np.hypot(v[:, 0], v[:, 1]).sum())
 
 
+def shear_and_sum_lost(vectors: np.ndarray, lost: np.ndarray) -> tuple[float, float, float]:
+    """:func:`shear_and_sum` over the rows not ``lost``: compiled (detect.c's tf_shear,
+    the same doubles) for the tracker's float32 (m, 2) vectors and bool (m,) flags,
+    numpy otherwise."""
+    from device.pi.vision import native
+    fn = native.shear_fn()
+    m = vectors.shape[0] if vectors.ndim == 2 else -1
+    if (fn is None or vectors.dtype != np.float32 or lost.dtype != np.bool_ or m < 0
+            or vectors.shape[1] != 2 or lost.shape != (m,) or not vectors.flags.c_contiguous
+            or not lost.flags.c_contiguous):
+        return shear_and_sum(vectors, ~np.asarray(lost, bool))
+    mags = np.empty(m, np.float64)
+    out = np.empty(3, np.float64)
+    fn(vectors.ctypes.data, lost.ctypes.data, m, MAX_VECTOR_PX, mags.ctypes.data, out.ctypes.data)
+    return float(out[0]), float(out[1]), float(out[2])
+
+
 def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
     """Mean (dx, dy) over the valid, finite pin vectors; (0, 0) when none."""
     return shear_and_sum(vectors, valid)[:2]

@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "grid_fn", "SOURCES"]
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "grid_fn", "advance_fn", "shear_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
@@ -301,6 +301,17 @@ def kernel(path: Path):
     fn.grow = grow
     fn.detect = _detect_fn(lib)
     fn.grid = _grid_fn(lib)
+    adv = lib.tf_advance
+    adv.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                    ctypes.c_int64, ctypes.c_double, ctypes.c_double, ctypes.c_int64,
+                    ctypes.c_double]
+    adv.restype = None
+    fn.advance = adv
+    shear = lib.tf_shear
+    shear.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_double,
+                      ctypes.c_void_p, ctypes.c_void_p]
+    shear.restype = ctypes.c_int64
+    fn.shear = shear
     return fn
 
 
@@ -316,6 +327,18 @@ def _grid_fn(lib):
         raise NativeBuildError(f"tf_grid has {lib.tf_grid_slots()} context slots, "
                                f"expected {GRID_SLOTS}")
     return grid
+
+
+def advance_fn():
+    """``tf_advance`` (the tracker's prediction state, Tracker._advance), or None."""
+    fn = _FN
+    return None if fn is None else fn.advance
+
+
+def shear_fn():
+    """``tf_shear`` (features.shear_and_sum over the rows not lost), or None."""
+    fn = _FN
+    return None if fn is None else fn.shear
 
 
 def grid_fn():

@@ -204,6 +204,8 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
     tests = ["tests/device/pi/vision/test_core.py::test_the_core_gives_opencvs_bytes",
              "tests/device/pi/vision/test_core.py::test_a_negative_offset_goes_back_to_opencv",
              "tests/device/pi/vision/test_core.py::test_the_compiled_grid_gives_numpys_grid_and_contact_to_the_bit",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_advance_is_numpys_to_the_bit",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_shear_is_numpys_to_the_bit",
              "tests/device/pi/vision/test_native.py::test_the_kernel_gives_the_numpy_assignment",
              "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
              "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors"]
@@ -240,3 +242,50 @@ def test_the_compiled_grid_gives_numpys_grid_and_contact_to_the_bit(lib, monkeyp
         ga, ca = a.update(img)
         gb, cb = b.update(img)
         assert ca == cb and ga.tobytes() == gb.tobytes()
+
+
+# -- the tracker's prediction state and the shear features (tf_advance, tf_shear) --
+
+finite_or_not = st.one_of(st.floats(-1e9, 1e9), st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -0.0]))
+
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(m=st.integers(0, 60), seed=st.integers(0, 2**31), steps=st.integers(1, 5),
+       frac=st.floats(0, 1), pitch=st.floats(0.5, 30), odd=st.lists(finite_or_not, max_size=6))
+def test_the_compiled_advance_is_numpys_to_the_bit(lib, monkeypatch, m, seed, steps, frac, pitch, odd):
+    from device.pi.vision.tracking import Tracker
+    rng = np.random.default_rng(seed)
+    layout = rng.uniform(0, 200, (max(m, 3), 2))
+    out = []
+    for compiled in (True, False):
+        monkeypatch.setattr(native, "advance_fn", (lambda: lib.advance) if compiled else (lambda: None))
+        t = Tracker(max_dist_px=5.0, pitch_px=pitch)
+        t.set_reference(layout)
+        r2 = np.random.default_rng(seed + 1)
+        t._disp[:] = r2.normal(0, 3, t._disp.shape)
+        t._vel[:] = r2.normal(0, 3, t._vel.shape)
+        work = r2.normal(0, 5, t._disp.shape)
+        work.flat[:len(odd)] = odd[:work.size]
+        lost = r2.random(len(work)) < 0.3
+        n_ok = int(frac * len(work))
+        t._advance(work, lost, n_ok, steps)
+        out.append((t._disp.tobytes(), t._vel.tobytes()))
+    assert out[0] == out[1]
+
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(m=st.integers(0, 300), seed=st.integers(0, 2**31), scale=st.sampled_from([0.01, 3.0, 1e5, 1e9]),
+       odd=st.lists(finite_or_not, max_size=8), p_lost=st.floats(0, 1))
+def test_the_compiled_shear_is_numpys_to_the_bit(lib, monkeypatch, m, seed, scale, odd, p_lost):
+    from device.pi.vision import features
+    rng = np.random.default_rng(seed)
+    v = rng.normal(0, scale, (m, 2)).astype(np.float32)
+    v.flat[:len(odd)] = np.array(odd[:v.size], np.float64).astype(np.float32)
+    lost = rng.random(m) < p_lost
+    monkeypatch.setattr(native, "shear_fn", lambda: lib.shear)
+    got = features.shear_and_sum_lost(v, lost)
+    want = features.shear_and_sum(v, ~lost)
+    assert np.array(got).tobytes() == np.array(want).tobytes()
+    assert all(np.isfinite(got))
