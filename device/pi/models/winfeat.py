@@ -66,7 +66,7 @@ VALUE_BOUND = float(ENCODED_BOUND)
 #: the IMU columns per frame of a ``vectors`` encoding
 IMU_COLS = 6
 #: int64 slots per model in the compiled kernel's context (see winfeat.c)
-CTX_SLOTS = 12
+CTX_SLOTS = 12          # native.WINFEAT_SLOTS (checked against the library there)
 
 
 class FeatureError(ModelError):

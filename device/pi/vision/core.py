@@ -26,7 +26,8 @@ __all__ = ["S_SLOTS", "gaussian_taps", "box_divisor", "DetectCore"]
  S_FLOOR_OFFSET, S_DIV_SCALE, S_DIV_DELTA, S_GY0, S_GX0, S_GY1, S_GX1, S_CY0, S_CX0,
  S_CY1, S_CX1, S_MASK, S_COLSUM, S_BINARY, S_BIN_STRIDE, S_LABELS, S_CAP, S_PARENT,
  S_ACC, S_ORDER, S_MIN_AREA, S_MAX_AREA, S_OX, S_OY, S_XY, S_AREAS, S_OUT_CAP,
- S_N_BLOBS, S_SLOTS) = range(38)
+ S_N_BLOBS, S_STAT_STEP, S_STAT_SUM, S_STAT_SQSUM, S_STAT_N, S_CORNERS, S_N_CORNERS,
+ S_CORNER_SUM, S_SLOTS) = range(45)
 
 #: the largest blur kernel and mean block the compiled path takes (OpenCV sums a box
 #: of at most 256 pixels in 16 bits and divides it in fixed point; larger blocks
@@ -134,6 +135,10 @@ class DetectCore:
         x0, y0 = det.box[0], det.box[1]
         c[S_OX], c[S_OY] = x0, y0
         c[S_XY], c[S_AREAS], c[S_OUT_CAP] = _addr(self.xy), _addr(self.areas), cap
+        from device.pi.vision.plausibility import ROW_STEP, _corner_index
+        self._corners = np.array(_corner_index((bh, bw)), np.int64).reshape(-1, 2)
+        c[S_STAT_STEP] = ROW_STEP
+        c[S_CORNERS], c[S_N_CORNERS] = _addr(self._corners), len(self._corners)
         self.ctx = c
         self._ptr = c.ctypes.data
         self.set_offset(det.offset)
@@ -154,6 +159,13 @@ class DetectCore:
     @property
     def n_blobs(self) -> int:
         return int(self.ctx[S_N_BLOBS])
+
+    def sums(self) -> tuple[int, int, int, int, int]:
+        """The last frame's plausibility sums: (pixel sum, sum of squares, pixels) over
+        every ``ROW_STEP``-th row of the smoothed box, (corner sum, corners)."""
+        c = self.ctx
+        return (int(c[S_STAT_SUM]), int(c[S_STAT_SQSUM]), int(c[S_STAT_N]),
+                int(c[S_CORNER_SUM]), int(c[S_N_CORNERS]))
 
 
 def self_check(det, c: DetectCore, seed: int = 0) -> str:

@@ -24,6 +24,7 @@
  * with one argument. tf_detect returns the number of pins kept (>= 0), or -1 for a
  * context it refuses (sizes that do not fit the buffers it declares).
  */
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -64,6 +65,13 @@ enum {
     TF_D_AREAS,         /* int32 *: OUT_CAP, their areas */
     TF_D_OUT_CAP,
     TF_D_N_BLOBS,       /* written: blobs of any size */
+    TF_D_STAT_STEP,     /* the plausibility statistics read every STAT_STEP-th row */
+    TF_D_STAT_SUM,      /* written: the sum of those rows' smoothed pixels */
+    TF_D_STAT_SQSUM,    /* written: the sum of their squares */
+    TF_D_STAT_N,        /* written: how many pixels */
+    TF_D_CORNERS,       /* const int64 *: N_CORNERS (row, column) pairs in the box */
+    TF_D_N_CORNERS,
+    TF_D_CORNER_SUM,    /* written: the sum of the smoothed box at those pixels */
     TF_D_N_SLOTS
 };
 
@@ -319,6 +327,36 @@ static int64_t label(int64_t *ctx) {
     return n;
 }
 
+/* what device/pi/vision/plausibility.py reads from the smoothed box: the integer sums
+   cv2.meanStdDev takes over every STAT_STEP-th row, and the corner pixels' sum */
+static void frame_sums(int64_t *ctx) {
+    const uint8_t *smooth = (const uint8_t *)(intptr_t)ctx[TF_D_SMOOTH];
+    const int64_t bh = ctx[TF_D_BH], bw = ctx[TF_D_BW], step = ctx[TF_D_STAT_STEP];
+    uint64_t s = 0, sq = 0;
+    int64_t n = 0;
+    for (int64_t y = 0; step > 0 && y < bh; y += step) {
+        const uint8_t *row = smooth + y * bw;
+        uint32_t rs = 0, rq = 0;          /* a row: at most 65535 * 255^2 < 2^32 */
+        for (int64_t x = 0; x < bw; x++) {
+            rs += row[x];
+            rq += (uint32_t)row[x] * row[x];
+        }
+        s += rs;
+        sq += rq;
+        n += bw;
+    }
+    ctx[TF_D_STAT_SUM] = (int64_t)s;
+    ctx[TF_D_STAT_SQSUM] = (int64_t)sq;
+    ctx[TF_D_STAT_N] = n;
+    const int64_t *cr = (const int64_t *)(intptr_t)ctx[TF_D_CORNERS];
+    int64_t cs = 0;
+    for (int64_t i = 0; i < ctx[TF_D_N_CORNERS]; i++) {
+        int64_t r = cr[2 * i], c = cr[2 * i + 1];
+        if (r >= 0 && r < bh && c >= 0 && c < bw) cs += smooth[r * bw + c];
+    }
+    ctx[TF_D_CORNER_SUM] = cs;
+}
+
 int64_t tf_detect(int64_t *ctx) {
     const int64_t bh = ctx[TF_D_BH], bw = ctx[TF_D_BW], kn = ctx[TF_D_KN];
     const int64_t block = ctx[TF_D_BLOCK];
@@ -331,7 +369,9 @@ int64_t tf_detect(int64_t *ctx) {
         || !(0 <= gx0 && gx0 <= cx0 && cx0 < cx1 && cx1 <= gx1 && gx1 <= bw)
         || ctx[TF_D_CAP] < 2 || ctx[TF_D_OUT_CAP] < 0)
         return -1;
+    if (bw > 65535) return -1;
     blur(ctx);
+    frame_sums(ctx);
     threshold(ctx);
     int64_t n = label(ctx);
     if (n < 0) return -1;
@@ -353,5 +393,158 @@ int64_t tf_detect(int64_t *ctx) {
         areas[k] = (int32_t)a[0];
         k++;
     }
+    return k;
+}
+
+/* ---------------------------------------------------------------------------
+ * The contact grid's update: the compiled twin of
+ * device/pi/vision/features.py's ContactGrid.update with a reference set. The cell
+ * sums of |binary - reference| are whole numbers; the float steps are numpy's, in
+ * float32 and in numpy's order (the mean is numpy's pairwise sum), so the grid and
+ * the contact flag are the same bits. Context slots TF_G_*; returns the contact flag
+ * (0 or 1), or -1 for a context it refuses.
+ */
+enum {
+    TF_G_BINARY = 0,    /* const uint8 *: h x w, row stride BIN_STRIDE */
+    TF_G_BIN_STRIDE,
+    TF_G_H, TF_G_W,
+    TF_G_REF,           /* const uint8 *: h x w, contiguous */
+    TF_G_N,             /* cells a side */
+    TF_G_YS, TF_G_XS,   /* const int64 *: n + 1 cell edges each */
+    TF_G_INV_AREA,      /* const float *: n x n, 1 / (255 * area) (0 for an empty cell) */
+    TF_G_GRID,          /* float *: n x n, the grid (updated) */
+    TF_G_CELLS,         /* float *: n x n scratch */
+    TF_G_SUMS,          /* int64 *: n x n scratch */
+    TF_G_GAMMA,         /* float32 bits of gamma */
+    TF_G_THRESHOLD,     /* float32 bits of the contact threshold */
+    TF_G_N_SLOTS
+};
+
+int tf_grid_slots(void) { return TF_G_N_SLOTS; }
+
+static float f32_of(int64_t bits) {
+    uint32_t u = (uint32_t)bits;
+    float f;
+    memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+/* numpy's pairwise sum of float32 values (umath's FLOAT_pairwise_sum) */
+static float pairwise_sum(const float *a, int64_t n) {
+    if (n < 8) {
+        float res = 0.f;
+        for (int64_t i = 0; i < n; i++) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        float r[8];
+        int64_t i;
+        for (int j = 0; j < 8; j++) r[j] = a[j];
+        for (i = 8; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++) r[j] += a[i + j];
+        float res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) res += a[i];
+        return res;
+    }
+    int64_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
+}
+
+/* numpy's pairwise sum of doubles (umath's DOUBLE_pairwise_sum) */
+static double pairwise_sum_d(const double *a, int64_t n) {
+    if (n < 8) {
+        double res = 0.;
+        for (int64_t i = 0; i < n; i++) res += a[i];
+        return res;
+    }
+    if (n <= 128) {
+        double r[8];
+        int64_t i;
+        for (int j = 0; j < 8; j++) r[j] = a[j];
+        for (i = 8; i < n - (n % 8); i += 8)
+            for (int j = 0; j < 8; j++) r[j] += a[i + j];
+        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
+        for (; i < n; i++) res += a[i];
+        return res;
+    }
+    int64_t n2 = n / 2;
+    n2 -= n2 % 8;
+    return pairwise_sum_d(a, n2) + pairwise_sum_d(a + n2, n - n2);
+}
+
+/* one row's |b - r| summed over [x0, x1) */
+TF_VECTOR static uint32_t absdiff_sum(const uint8_t *b, const uint8_t *r, int64_t x0, int64_t x1) {
+    uint32_t s = 0;
+    for (int64_t x = x0; x < x1; x++) s += (uint32_t)(b[x] > r[x] ? b[x] - r[x] : r[x] - b[x]);
+    return s;
+}
+
+int64_t tf_grid(int64_t *ctx) {
+    const int64_t h = ctx[TF_G_H], w = ctx[TF_G_W], n = ctx[TF_G_N], bst = ctx[TF_G_BIN_STRIDE];
+    const int64_t *ys = (const int64_t *)(intptr_t)ctx[TF_G_YS];
+    const int64_t *xs = (const int64_t *)(intptr_t)ctx[TF_G_XS];
+    if (h < 0 || w < 0 || n < 1 || bst < w || ys[0] != 0 || xs[0] != 0 || ys[n] != h || xs[n] != w)
+        return -1;
+    for (int64_t i = 0; i < n; i++)
+        if (ys[i + 1] < ys[i] || xs[i + 1] < xs[i]) return -1;
+    const uint8_t *bin = (const uint8_t *)(intptr_t)ctx[TF_G_BINARY];
+    const uint8_t *ref = (const uint8_t *)(intptr_t)ctx[TF_G_REF];
+    const float *inv = (const float *)(intptr_t)ctx[TF_G_INV_AREA];
+    float *grid = (float *)(intptr_t)ctx[TF_G_GRID];
+    float *cells = (float *)(intptr_t)ctx[TF_G_CELLS];
+    int64_t *sums = (int64_t *)(intptr_t)ctx[TF_G_SUMS];
+    const float gamma = f32_of(ctx[TF_G_GAMMA]), thr = f32_of(ctx[TF_G_THRESHOLD]);
+    const int64_t nn = n * n;
+    for (int64_t k = 0; k < nn; k++) sums[k] = 0;
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t y = ys[i]; y < ys[i + 1]; y++) {
+            const uint8_t *b = bin + y * bst, *r = ref + y * w;
+            for (int64_t j = 0; j < n; j++) sums[i * n + j] += absdiff_sum(b, r, xs[j], xs[j + 1]);
+        }
+    /* cells: the sum (a float64) times 1 / (255 area) (float32 widened), to float32 */
+    for (int64_t k = 0; k < nn; k++) cells[k] = (float)((double)sums[k] * (double)inv[k]);
+    const float glob = pairwise_sum(cells, nn) / (float)nn;
+    float mx = -INFINITY;
+    for (int64_t k = 0; k < nn; k++) {
+        cells[k] -= glob;
+        if (cells[k] > mx) mx = cells[k];
+    }
+    const int contact = (float)(mx - gamma) > thr;
+    for (int64_t k = 0; k < nn; k++) {
+        /* np.maximum's choice (the first when >=), so a -0.0 stays what numpy keeps */
+        float g = cells[k] >= grid[k] ? cells[k] : grid[k];
+        g -= gamma;
+        grid[k] = g >= 0.f ? g : 0.f;
+    }
+    return contact;
+}
+
+/* The mean pin vector and the sum of magnitudes (features.py's shear_and_sum) over
+ * the rows of vectors (m, 2 float32, taken as doubles) not lost and finite, each clipped to
+ * +-clip: out[0..1] the mean (numpy's order: summed row by row, then divided),
+ * out[2] the sum of hypot(x, y) (numpy's pairwise sum); mags (m,) double scratch.
+ * Returns how many rows counted. */
+int64_t tf_shear(const float *vec, const uint8_t *lost, int64_t m, double clip,
+                 double *mags, double *out) {
+    double sx = 0.0, sy = 0.0;
+    int64_t k = 0;
+    for (int64_t i = 0; i < m; i++) {
+        double x = vec[2 * i], y = vec[2 * i + 1];
+        if (lost[i]) continue;
+        if (!isfinite(x) || !isfinite(y)) continue;
+        x = x < -clip ? -clip : (x > clip ? clip : x);
+        y = y < -clip ? -clip : (y > clip ? clip : y);
+        sx += x;
+        sy += y;
+        mags[k++] = hypot(x, y);
+    }
+    if (k == 0) {
+        out[0] = out[1] = out[2] = 0.0;
+        return 0;
+    }
+    out[0] = sx / (double)k;
+    out[1] = sy / (double)k;
+    out[2] = pairwise_sum_d(mags, k);
     return k;
 }

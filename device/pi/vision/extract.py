@@ -289,6 +289,9 @@ class PinDetector:
         self._core_mask = np.ascontiguousarray(self._mask[cy0:ty1, cx0:tx1])
         self._core_out = self._binary_even[cy0:ty1, cx0:tx1]
         self._compiled = None
+        #: after a compiled detection, the smoothed box's plausibility sums
+        #: (:meth:`device.pi.vision.core.DetectCore.sums`, a bound method); None after numpy
+        self.sums = None
         #: why detection runs on numpy (OpenCV) rather than compiled ('' when compiled)
         self.compiled_why = "not tried"
         self.set_offset(p.offset)
@@ -297,7 +300,7 @@ class PinDetector:
     def __getstate__(self) -> dict:
         # the compiled core points at this object's own buffers: a copy makes its own
         state = dict(self.__dict__)
-        state["_compiled"] = None
+        state["_compiled"] = state["sums"] = None
         return state
 
     def __setstate__(self, state: dict) -> None:
@@ -428,12 +431,14 @@ class PinDetector:
             n = c.detect(crop)
             if n >= 0:
                 self.n_blobs = c.n_blobs
+                self.sums = c.sums
                 return c.xy[:n].copy(), c.areas[:n].copy()
         return self.detect_numpy(crop)
 
     def detect_numpy(self, crop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The specification of :meth:`detect_gray`: OpenCV's blur, threshold and
         connected components."""
+        self.sums = None
         self.threshold_gray(crop)
         cents, areas = self._blobs()
         self.n_blobs = len(areas)

@@ -55,6 +55,11 @@ class ContactGrid:
         self._cells = np.zeros((self.n, self.n), np.float32)
         self.converted = 0
         self.bad_input = False
+        #: the compiled update's context (detect.c's tf_grid), set with a reference
+        #: when the library is loaded and its self-check passes; else numpy
+        self._compiled = None
+        #: why the update runs on numpy ('' when compiled)
+        self.compiled_why = "no reference"
 
     @property
     def has_reference(self) -> bool:
@@ -81,15 +86,85 @@ class ContactGrid:
         self._integral = np.empty((h + 1, w + 1), np.int32)
         self._grid_ix = np.ix_(self._ys, self._xs)
         self.grid[:] = 0.0
+        self._set_compiled()
+
+    def __getstate__(self) -> dict:
+        # the compiled context points at this object's own buffers: a copy makes its own
+        state = dict(self.__dict__)
+        for k in ("_compiled", "_ctx", "_fn"):
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._compiled = None
+        if self._ref is not None:
+            self._set_compiled()
+
+    # -- the compiled update (detect.c's tf_grid) ---------------------------------
+    def _context(self, fn, grid: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        h, w = self._ref.shape
+        self._sums = np.empty(self.n * self.n, np.int64)
+        self._edges = (self._ys.astype(np.int64), self._xs.astype(np.int64))
+        c = np.zeros(14, np.int64)
+        c[2], c[3], c[4], c[5] = h, w, self._ref.ctypes.data, self.n
+        c[6], c[7] = self._edges[0].ctypes.data, self._edges[1].ctypes.data
+        c[8], c[9], c[10] = self._inv_area.ctypes.data, grid.ctypes.data, cells.ctypes.data
+        c[11] = self._sums.ctypes.data
+        c[12] = int(np.float32(self.gamma).view(np.uint32))
+        c[13] = int(np.float32(self.contact_threshold).view(np.uint32))
+        return c
+
+    def _set_compiled(self) -> None:
+        """Use tf_grid from now on when the library is loaded and it gives this grid's
+        numpy update to the bit on test images of the reference's size."""
+        from device.pi.vision import native
+        self._compiled = None
+        fn = native.grid_fn()
+        if fn is None or self._ref.size == 0:
+            self.compiled_why = "no compiled library" if fn is None else "an empty image"
+            return
+        self._fn = fn
+        # the self-check: numpy's update and the compiled one from the same state
+        rng = np.random.default_rng(0)
+        state = rng.random(self.grid.shape).astype(np.float32) * 0.2
+        spare = ContactGrid.__new__(ContactGrid)
+        spare.__dict__.update(self.__dict__)
+        spare.grid, spare._cells, spare._compiled = state.copy(), np.empty_like(state), None
+        mine, cells = state.copy(), np.empty_like(state)
+        ctx = self._context(fn, mine, cells)
+        for p in (0.0, 0.02, 0.3):
+            b = np.where(rng.random(self._ref.shape) < p, 255, self._ref).astype(np.uint8)
+            want, want_contact = spare.update(b)
+            ctx[0], ctx[1] = b.ctypes.data, b.strides[0]
+            got = fn(ctx.ctypes.data)
+            if got != int(want_contact) or mine.tobytes() != want.tobytes():
+                self.compiled_why = "the compiled grid differs from numpy's on a test image"
+                return
+        self._ctx = self._context(fn, self.grid, self._cells)
+        self._compiled = self._ctx.ctypes.data
+        self.compiled_why = ""
 
     def clear_reference(self) -> None:
         self._ref = None
+        self._compiled = None
+        self.compiled_why = "no reference"
         self.grid[:] = 0.0
 
     def update(self, binary: np.ndarray) -> tuple[np.ndarray, bool]:
         """(grid (n, n) float32 in 0..1, contact flag). Without a reference, or
         for an image of another size, the grid decays and reports no contact."""
         ref = self._ref
+        ptr = self._compiled
+        if ptr is not None and isinstance(binary, np.ndarray) and binary.dtype == np.uint8 \
+                and binary.shape == ref.shape and binary.strides[1] == 1:
+            self.bad_input = False
+            c = self._ctx
+            c[0], c[1] = binary.ctypes.data, binary.strides[0]
+            hit = self._fn(ptr)
+            c[0] = 0
+            if hit >= 0:
+                return self.grid, bool(hit)
         if binary is not None and ref is not None:
             binary = self._as_binary(binary)
         self.bad_input = binary is not None and ref is not None and (
@@ -135,6 +210,23 @@ def shear_and_sum(vectors: np.ndarray, valid: np.ndarray | None = None
         return 0.0, 0.0, 0.0
     m = v.mean(axis=0)
     return float(m[0]), float(m[1]), float(np.hypot(v[:, 0], v[:, 1]).sum())
+
+
+def shear_and_sum_lost(vectors: np.ndarray, lost: np.ndarray) -> tuple[float, float, float]:
+    """:func:`shear_and_sum` over the rows not ``lost``: compiled (detect.c's tf_shear,
+    the same doubles) for the tracker's float32 (m, 2) vectors and bool (m,) flags,
+    numpy otherwise."""
+    from device.pi.vision import native
+    fn = native.shear_fn()
+    m = vectors.shape[0] if vectors.ndim == 2 else -1
+    if (fn is None or vectors.dtype != np.float32 or lost.dtype != np.bool_ or m < 0
+            or vectors.shape[1] != 2 or lost.shape != (m,) or not vectors.flags.c_contiguous
+            or not lost.flags.c_contiguous):
+        return shear_and_sum(vectors, ~np.asarray(lost, bool))
+    mags = np.empty(m, np.float64)
+    out = np.empty(3, np.float64)
+    fn(vectors.ctypes.data, lost.ctypes.data, m, MAX_VECTOR_PX, mags.ctypes.data, out.ctypes.data)
+    return float(out[0]), float(out[1]), float(out[2])
 
 
 def average_vector(vectors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:

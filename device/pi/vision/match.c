@@ -37,7 +37,7 @@ static int tf_cmp_pair(const void *pa, const void *pb) {
 /* at most this many cells along a side of the grid */
 #define TF_MAX_SIDE 2048.0
 
-int tf_abi_version(void) { return 4; }
+int tf_abi_version(void) { return 5; }
 
 int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_d2,
              int64_t *idx) {
@@ -451,4 +451,26 @@ done:
     free(S.idx); free(S.pa); free(S.pb); free(S.vals); free(S.rows); free(S.rows2); free(S.fc);
     free(S.sub); free(sup); free(wide); free(got);
     return rc;
+}
+
+/* The tracker's prediction state moved to this frame (Tracker._advance, numpy's
+ * elementwise float64 steps in the same order): vel = vel * (1 - alpha) + (work -
+ * disp) * (alpha / steps); a lost pin's vel times 0.8 (when not every pin was
+ * tracked); clipped to +-cap with np.minimum/np.maximum's NaN rule; disp = work.
+ * work, disp, vel (m, 2) doubles; lost (m,) bytes. */
+void tf_advance(const double *work, double *disp, double *vel, const uint8_t *lost,
+                int64_t m, double keep, double gain, int64_t damp_lost, double cap) {
+    for (int64_t i = 0; i < m; i++) {
+        for (int64_t j = 0; j < 2; j++) {
+            int64_t e = 2 * i + j;
+            double v = vel[e] * keep;
+            double d = (work[e] - disp[e]) * gain;
+            v += d;
+            if (damp_lost && lost[i]) v *= 0.8;
+            v = (v <= cap || v != v) ? v : cap;
+            v = (v >= -cap || v != v) ? v : -cap;
+            vel[e] = v;
+            disp[e] = work[e];
+        }
+    }
 }

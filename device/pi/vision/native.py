@@ -51,14 +51,15 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused", "detect_fn", "winfeat_fn", "SOURCES"]
+           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused",
+           "detect_fn", "winfeat_fn", "grid_fn", "advance_fn", "shear_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
 #: (``detect.c``, :mod:`device.pi.vision.core`)
 SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 4
+ABI_VERSION = 5
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
 #: -O3 vectorises detect.c's integer loops (the same integers in every lane)
 CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
@@ -301,7 +302,52 @@ def kernel(path: Path):
     fn.grow = grow
     fn.detect = _detect_fn(lib)
     fn.winfeat = _winfeat_fn(lib)
+    fn.grid = _grid_fn(lib)
+    adv = lib.tf_advance
+    adv.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                    ctypes.c_int64, ctypes.c_double, ctypes.c_double, ctypes.c_int64,
+                    ctypes.c_double]
+    adv.restype = None
+    fn.advance = adv
+    shear = lib.tf_shear
+    shear.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_double,
+                      ctypes.c_void_p, ctypes.c_void_p]
+    shear.restype = ctypes.c_int64
+    fn.shear = shear
     return fn
+
+
+#: the contact grid's context slots (detect.c's TF_G_*)
+GRID_SLOTS = 14
+
+
+def _grid_fn(lib):
+    grid = lib.tf_grid
+    grid.argtypes = [ctypes.c_void_p]
+    grid.restype = ctypes.c_int64
+    if lib.tf_grid_slots() != GRID_SLOTS:
+        raise NativeBuildError(f"tf_grid has {lib.tf_grid_slots()} context slots, "
+                               f"expected {GRID_SLOTS}")
+    return grid
+
+
+def advance_fn():
+    """``tf_advance`` (the tracker's prediction state, Tracker._advance), or None."""
+    fn = _FN
+    return None if fn is None else fn.advance
+
+
+def shear_fn():
+    """``tf_shear`` (features.shear_and_sum over the rows not lost), or None."""
+    fn = _FN
+    return None if fn is None else fn.shear
+
+
+def grid_fn():
+    """``tf_grid`` of the loaded library (:class:`~device.pi.vision.features.ContactGrid`),
+    or None."""
+    fn = _FN
+    return None if fn is None else fn.grid
 
 
 def _detect_fn(lib):
@@ -315,14 +361,17 @@ def _detect_fn(lib):
     return det
 
 
+#: the window features' context slots per model (winfeat.c; device.pi.models.winfeat)
+WINFEAT_SLOTS = 12
+
+
 def _winfeat_fn(lib):
     wf = lib.tf_winfeat
     wf.argtypes = [ctypes.c_void_p]
     wf.restype = ctypes.c_int
-    from device.pi.models.winfeat import CTX_SLOTS
-    if lib.tf_winfeat_slots() != CTX_SLOTS:
+    if lib.tf_winfeat_slots() != WINFEAT_SLOTS:
         raise NativeBuildError(f"tf_winfeat has {lib.tf_winfeat_slots()} context slots, "
-                               f"expected {CTX_SLOTS}")
+                               f"expected {WINFEAT_SLOTS}")
     return wf
 
 

@@ -42,8 +42,8 @@ import numpy.ma  # noqa: F401
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME, FAULT_FRAME_SIZE_CHANGED,
                               FAULT_LOCALISER, FAULT_NO_DOME, FAULT_NO_REFERENCE,
                               FAULT_TOO_FEW_PINS, fault_names)
-from device.pi.vision.features import ContactGrid, shear_and_sum
-from device.pi.vision.plausibility import FramePlausibility
+from device.pi.vision.features import ContactGrid, shear_and_sum_lost
+from device.pi.vision.plausibility import FramePlausibility, stats_from_sums
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
 from device.pi.vision.tracking import Tracker
@@ -260,7 +260,11 @@ class MarkerStream:
         timings["detect"] = (t2 - t1b) * 1e3
         if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
             faults |= FAULT_TOO_FEW_PINS
-        stats = self.plausibility.stats(self.detector.smooth, self.detector.n_blobs)
+        det = self.detector
+        sums = det.sums
+        # the compiled detection took the statistics' sums with the blur; numpy reads them
+        stats = (stats_from_sums(*sums(), det.n_blobs) if sums is not None
+                 else self.plausibility.stats(det.smooth, det.n_blobs))
         self.implausible = self.plausibility.check(stats)
         if self.implausible:
             self._candidates.clear()
@@ -289,9 +293,8 @@ class MarkerStream:
         grid = grid.copy()          # the grid object keeps updating its own buffer
         t5 = clock()
         timings["grid"] = (t5 - t4) * 1e3
-        valid = ~lost
-        sx, sy, msum = shear_and_sum(vectors, valid)
-        n_valid = int(valid.sum())
+        sx, sy, msum = shear_and_sum_lost(vectors, lost)
+        n_valid = len(lost) - int(np.count_nonzero(lost))
         mean_mag = msum / n_valid if n_valid else 0.0
         contact = bool(self.reference is not None
                        and (grid_contact or mean_mag > self.profile.contact_px))

@@ -23,6 +23,7 @@ flatten the image. Costs a few µs per frame (one ``cv2.meanStdDev`` and 16 pixe
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -74,6 +75,20 @@ def frame_stats(smooth: np.ndarray, blobs: int, index=None) -> FrameStats:
     item = smooth.item
     corners = sum([item(r, c) for r, c in idx]) / len(idx)
     return FrameStats(int(blobs), mean, float(s[0, 0]), corners - mean)
+
+
+def stats_from_sums(total: int, squares: int, n: int, corner_sum: int, n_corners: int,
+                    blobs: int) -> FrameStats:
+    """:func:`frame_stats` from the integer sums the compiled detection takes
+    (:meth:`device.pi.vision.core.DetectCore.sums`): the mean and standard deviation
+    as ``cv2.meanStdDev`` forms them from its sums (the mean is the sum times 1/n; the
+    deviation the root of the mean square less the squared mean), the same doubles."""
+    if n <= 0 or n_corners <= 0:
+        return FrameStats(int(blobs), 0.0, 0.0, 0.0)
+    scale = 1.0 / n
+    mean = total * scale
+    std = math.sqrt(max(squares * scale - mean * mean, 0.0))
+    return FrameStats(int(blobs), mean, std, corner_sum / n_corners - mean)
 
 
 class FramePlausibility:

@@ -27,6 +27,7 @@ from device.checks import finite_number, positive_number, whole_number
 # array, or rows with NaN/inf/huge dropped), FAULT_TOO_FEW_PINS (fewer than
 # min_tracked_frac of the reference pins tracked)
 from device.pi.faults import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS
+from device.pi.vision import native
 from device.pi.vision.matching import all_rows_usable, as_points, usable_rows
 from device.pi.vision.neighbours import (layout_neighbours, layout_pitch_px, match_and_grow,
                                          neighbour_consistency, track_with_neighbours)
@@ -249,6 +250,14 @@ class Tracker:
         A frame with too few pins tracked (garbage, a gap) does not move it."""
         m = work.shape[0]
         if n_ok >= self.min_tracked_frac * m:
+            adv = native.advance_fn()
+            if adv is not None and work.dtype == np.float64 and work.flags.c_contiguous \
+                    and lost.dtype == np.bool_ and lost.flags.c_contiguous:
+                # the same steps, compiled (match.c's tf_advance)
+                adv(work.ctypes.data, self._disp.ctypes.data, self._vel.ctypes.data,
+                    lost.ctypes.data, m, 1.0 - _VEL_ALPHA, _VEL_ALPHA / steps, n_ok < m,
+                    0.5 * self._pitch)
+                return
             # exponential average of the change, so centroid noise is not
             # doubled into the prediction
             vel = self._vel

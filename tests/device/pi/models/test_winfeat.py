@@ -351,3 +351,8 @@ def test_real_clip_decisions_are_the_old_graphs(variant, real_windows):
             assert got[t][0] == int(p.argmax()), (t, variant)
             np.testing.assert_allclose(got[t][1], p, rtol=0, atol=PROB_ATOL)
     assert n_contact > 50
+
+
+def test_the_context_slots_are_the_libraries():
+    from device.pi.models import winfeat
+    assert winfeat.CTX_SLOTS == native.WINFEAT_SLOTS

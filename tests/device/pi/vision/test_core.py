@@ -23,14 +23,20 @@ from tests.realdata import real_data_dir
 
 
 @pytest.fixture(scope="module")
-def fn(tmp_path_factory):
-    """tf_detect from a library built into a private folder (or the one
-    TACFOOT_NATIVE_DIR names: the sanitizer run's)."""
-    if native.detect_fn() is not None and os.environ.get("TACFOOT_NATIVE_DIR"):
-        return native.detect_fn()
+def lib(tmp_path_factory):
+    """The loaded library's functions (``.detect``, ``.grid``): built into a private
+    folder, or the one TACFOOT_NATIVE_DIR names (the sanitizer run's)."""
+    if native.active() and os.environ.get("TACFOOT_NATIVE_DIR"):
+        return native._FN
     if shutil.which(os.environ.get("CC", "cc")) is None:
         pytest.skip("no C compiler here: detection runs on OpenCV")
-    return native.kernel(native.build(folder=tmp_path_factory.mktemp("native"))).detect
+    return native.kernel(native.build(folder=tmp_path_factory.mktemp("native")))
+
+
+@pytest.fixture(scope="module")
+def fn(lib):
+    """tf_detect."""
+    return lib.detect
 
 
 def image(kind: str, h: int, w: int, seed: int) -> np.ndarray:
@@ -145,20 +151,24 @@ def _pipeline_digest(clip, compiled: bool) -> str:
             break
         if not compiled and ms.detector is not None:
             ms.detector._compiled = None
+        if not compiled:
+            ms.grid._compiled = None
         ff = ms.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
         for a in (ff.pins, ff.vectors, ff.lost, ff.grid):
             h.update(np.ascontiguousarray(a).tobytes())
         h.update(repr((ff.contact, ff.shear_x, ff.shear_y, ff.magnitude_sum, ff.faults)).encode())
         n += 1
     assert n > 100 and ms.detector.compiled == compiled
+    assert (ms.grid._compiled is not None) == compiled
     return h.hexdigest()
 
 
 @pytest.mark.real
 @pytest.mark.parametrize("clip", ["lego_train.avi", "smooth.avi"])
-def test_real_clips_are_identical_with_the_compiled_detection(fn, monkeypatch, clip):
+def test_real_clips_are_identical_with_the_compiled_detection_and_grid(lib, monkeypatch, clip):
     path = real_data_dir(f"roboskin/{clip}") / "roboskin" / clip
-    monkeypatch.setattr(native, "detect_fn", lambda: fn)
+    monkeypatch.setattr(native, "detect_fn", lambda: lib.detect)
+    monkeypatch.setattr(native, "grid_fn", lambda: lib.grid)
     assert _pipeline_digest(path, True) == _pipeline_digest(path, False)
 
 
@@ -194,6 +204,9 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
     assert build.returncode == 0, build.stderr
     tests = ["tests/device/pi/vision/test_core.py::test_the_core_gives_opencvs_bytes",
              "tests/device/pi/vision/test_core.py::test_a_negative_offset_goes_back_to_opencv",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_grid_gives_numpys_grid_and_contact_to_the_bit",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_advance_is_numpys_to_the_bit",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_shear_is_numpys_to_the_bit",
              "tests/device/pi/vision/test_native.py::test_the_kernel_gives_the_numpy_assignment",
              "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
              "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors",
@@ -206,3 +219,76 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
     assert run.returncode == 0, out[-3000:]
     assert "ERROR: AddressSanitizer" not in out and "runtime error:" not in out
     assert " passed" in out
+
+
+# -- the contact grid (detect.c's tf_grid, ContactGrid's compiled update) ----------
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(h=st.integers(1, 90), w=st.integers(1, 90), n=st.integers(1, 20), seed=st.integers(0, 2**31),
+       gamma=st.floats(0, 0.2), thr=st.floats(0, 0.5), p=st.floats(0, 1), frames=st.integers(1, 6),
+       stride_pad=st.integers(0, 3))
+def test_the_compiled_grid_gives_numpys_grid_and_contact_to_the_bit(lib, monkeypatch, h, w, n, seed,
+                                                                   gamma, thr, p, frames, stride_pad):
+    from device.pi.vision.features import ContactGrid
+    rng = np.random.default_rng(seed)
+    ref = np.where(rng.random((h, w)) < 0.3, 255, 0).astype(np.uint8)
+    monkeypatch.setattr(native, "grid_fn", lambda: lib.grid)
+    a, b = ContactGrid(n, gamma, thr), ContactGrid(n, gamma, thr)
+    a.set_reference(ref)
+    monkeypatch.setattr(native, "grid_fn", lambda: None)
+    b.set_reference(ref)
+    assert a._compiled is not None and b._compiled is None
+    for _ in range(frames):
+        big = np.where(rng.random((h, w + stride_pad)) < p, 255, 0).astype(np.uint8)
+        img = big[:, :w]                       # rows of any stride, as the detector's
+        ga, ca = a.update(img)
+        gb, cb = b.update(img)
+        assert ca == cb and ga.tobytes() == gb.tobytes()
+
+
+# -- the tracker's prediction state and the shear features (tf_advance, tf_shear) --
+
+finite_or_not = st.one_of(st.floats(-1e9, 1e9), st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -0.0]))
+
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(m=st.integers(0, 60), seed=st.integers(0, 2**31), steps=st.integers(1, 5),
+       frac=st.floats(0, 1), pitch=st.floats(0.5, 30), odd=st.lists(finite_or_not, max_size=6))
+def test_the_compiled_advance_is_numpys_to_the_bit(lib, monkeypatch, m, seed, steps, frac, pitch, odd):
+    from device.pi.vision.tracking import Tracker
+    rng = np.random.default_rng(seed)
+    layout = rng.uniform(0, 200, (max(m, 3), 2))
+    out = []
+    for compiled in (True, False):
+        monkeypatch.setattr(native, "advance_fn", (lambda: lib.advance) if compiled else (lambda: None))
+        t = Tracker(max_dist_px=5.0, pitch_px=pitch)
+        t.set_reference(layout)
+        r2 = np.random.default_rng(seed + 1)
+        t._disp[:] = r2.normal(0, 3, t._disp.shape)
+        t._vel[:] = r2.normal(0, 3, t._vel.shape)
+        work = r2.normal(0, 5, t._disp.shape)
+        work.flat[:len(odd)] = odd[:work.size]
+        lost = r2.random(len(work)) < 0.3
+        n_ok = int(frac * len(work))
+        t._advance(work, lost, n_ok, steps)
+        out.append((t._disp.tobytes(), t._vel.tobytes()))
+    assert out[0] == out[1]
+
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "150")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(m=st.integers(0, 300), seed=st.integers(0, 2**31), scale=st.sampled_from([0.01, 3.0, 1e5, 1e9]),
+       odd=st.lists(finite_or_not, max_size=8), p_lost=st.floats(0, 1))
+def test_the_compiled_shear_is_numpys_to_the_bit(lib, monkeypatch, m, seed, scale, odd, p_lost):
+    from device.pi.vision import features
+    rng = np.random.default_rng(seed)
+    v = rng.normal(0, scale, (m, 2)).astype(np.float32)
+    v.flat[:len(odd)] = np.array(odd[:v.size], np.float64).astype(np.float32)
+    lost = rng.random(m) < p_lost
+    monkeypatch.setattr(native, "shear_fn", lambda: lib.shear)
+    got = features.shear_and_sum_lost(v, lost)
+    want = features.shear_and_sum(v, ~lost)
+    assert np.array(got).tobytes() == np.array(want).tobytes()
+    assert all(np.isfinite(got))
