@@ -32,6 +32,19 @@ def built(tmp_path_factory):
     return native.build(folder=tmp_path_factory.mktemp("native"))
 
 
+@pytest.fixture
+def loaded(built, monkeypatch):
+    """The tracker runs compiled: the package's library when pip built it, else the
+    private build (through TACFOOT_NATIVE_DIR, as the developer's build is found)."""
+    if not native.active():
+        monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(built.parent))
+        assert native.load() is not None, native.status()
+    yield
+    if os.environ.get("TACFOOT_NATIVE_DIR") == str(built.parent):
+        monkeypatch.delenv("TACFOOT_NATIVE_DIR")
+        native.load()
+
+
 @pytest.fixture(scope="module")
 def compiled(built):
     """The kernel's function, from the library built into a private folder."""
@@ -177,16 +190,12 @@ def test_build_names_the_library_by_source_and_machine_and_reuses_it(tmp_path):
     assert native.build(folder=tmp_path, force=True) == path
 
 
-@needs_cc
-def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(monkeypatch):
+def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(loaded, monkeypatch):
     """A real clip, 150 frames: the same pins, vectors and lost flags to the bit."""
     data = real_data_dir("roboskin/smooth.avi")
     import cv2
 
     from device.pi.vision.pipeline import MarkerStream
-    if not native.active():
-        native.build()
-        native.load()
     cap = cv2.VideoCapture(str(Path(data) / "roboskin" / "smooth.avi"))
     frames = []
     while len(frames) < 150:
@@ -234,7 +243,7 @@ def _grow_both(monkeypatch, r, c, pred, gate, grow_rounds=4, min_support=2, matc
        extra=st.integers(0, 30), jump=st.floats(0, 25), noise=st.floats(0, 4),
        pred_kind=st.sampled_from(["zero", "true", "half", "wrong"]), grow_rounds=st.integers(0, 5),
        min_support=st.integers(1, 4), rounded=st.booleans())
-def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n, drop, extra, jump,
+def test_the_compiled_growth_gives_numpys_pins_and_vectors(loaded, monkeypatch, seed, n, drop, extra, jump,
                                                            noise, pred_kind, grow_rounds,
                                                            min_support, rounded):
     """match_and_grow compiled (tf_grow) against numpy on random layouts: pins dropped,
@@ -243,8 +252,6 @@ def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n,
     Points rounded to whole pixels tie exactly, and the numpy matcher may take such
     ties in another order (the matching's contract leaves it open), so those are
     compared with the compiled matcher on both sides."""
-    if not native.active():
-        pytest.skip("the kernel is not built here (make native)")
     rng = np.random.default_rng(seed)
     side = int(np.ceil(np.sqrt(n)))
     g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
@@ -268,10 +275,8 @@ def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n,
     np.testing.assert_array_equal(d1, d2)
 
 
-def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(monkeypatch):
+def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(loaded, monkeypatch):
     """A prediction that puts a pin beyond 1e6 px: the kernel declines and numpy answers."""
-    if not native.active():
-        pytest.skip("the kernel is not built here (make native)")
     r = np.array([[0.0, 0.0], [12.0, 0.0], [6.0, 10.0], [18.0, 10.0]])
     pred = np.zeros_like(r)
     pred[0] = 2e6
