@@ -375,7 +375,7 @@ def load():
                         f"(these need {path.name})")
             _WHY = f"does not load: {_REFUSED} ({rebuild_hint()})"
         else:
-            _WHY = f"not built ({path.name} missing: {rebuild_hint()})"
+            _WHY = f"not built ({path.name} missing; {rebuild_hint()})"
         return None
     try:
         _FN, _WHY = kernel(path), f"compiled ({path})"
