@@ -34,19 +34,21 @@ LIBRARY = "device.pi.vision._tacfoot_core"
 def native_settings(native_py: Path = NATIVE_PY) -> dict:
     """``SOURCE``, ``SOURCES`` and ``CFLAGS`` as native.py defines them, read from its
     module-level assignments without importing it (the build has no numpy). Those
-    assignments may use ``Path``, ``__file__`` and each other only."""
+    assignments may use ``Path``, ``__file__``, each other, ``tuple``, ``list`` and
+    ``sorted`` only."""
     names = ("SOURCE", "SOURCES", "CFLAGS")
-    scope = {"Path": Path, "__file__": str(native_py)}
+    scope = {"__builtins__": {"tuple": tuple, "list": list, "sorted": sorted},
+             "Path": Path, "__file__": str(native_py)}
     for node in ast.parse(native_py.read_text(), str(native_py)).body:
         target = node.targets[0] if isinstance(node, ast.Assign) and len(node.targets) == 1 else (
             node.target if isinstance(node, ast.AnnAssign) and node.value is not None else None)
         if isinstance(target, ast.Name) and target.id in names:
             try:
                 scope[target.id] = eval(compile(ast.Expression(node.value), str(native_py), "eval"),
-                                        {"__builtins__": {}}, scope)
+                                        scope)
             except Exception as exc:
                 raise SystemExit(f"setup.py: cannot read {target.id} from {native_py} (line "
-                                 f"{node.lineno}): {exc}; it may use Path, __file__, SOURCE only")
+                                 f"{node.lineno}): {exc}; it may use Path, __file__, SOURCE, tuple, list and sorted only")
     missing = [n for n in names if n not in scope]
     if missing:
         raise SystemExit(f"setup.py: {native_py} defines no {', '.join(missing)}")
@@ -81,6 +83,12 @@ class BuildCore(build_ext):
         return []                       # no PyInit_: it is never imported as a module
 
     def build_extension(self, ext) -> None:
+        # a library of older C files left in build/ would go into the wheel too
+        # (install_lib copies the whole folder)
+        out = Path(self.get_ext_fullpath(ext.name))
+        for old in out.parent.glob("_tacfoot_core-*.so"):
+            if old.name != out.name:
+                old.unlink()
         try:
             super().build_extension(ext)
         except (BaseError, CCompilerError, OSError) as exc:   # no compiler, or it failed

@@ -65,10 +65,10 @@ SOURCE = Path(__file__).with_name("match.c")
 SOURCES = (SOURCE, SOURCE.with_name("detect.c"))
 #: the kernel's ABI; tf_abi_version() must return it
 ABI_VERSION = 3
-#: the compiler's flags (setup.py reads SOURCE, SOURCES and CFLAGS from this file
-#: without importing it: they may use Path, __file__ and SOURCE only): no fused
-#: multiply-add, so distances are numpy's to the bit; -O3 vectorises detect.c's
-#: integer loops (the same integers in every lane)
+#: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
+#: -O3 vectorises detect.c's integer loops (the same integers in every lane).
+#: setup.py reads SOURCE, SOURCES and CFLAGS from this file without importing it:
+#: their values may use Path, __file__, SOURCE, tuple, list and sorted only
 CFLAGS = ("-O3", "-ffp-contract=off", "-std=c99")
 #: what ``native build`` adds (setuptools adds its own for the packaged library)
 _SHARED = ("-fPIC", "-shared")

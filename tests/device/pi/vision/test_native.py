@@ -510,3 +510,71 @@ def test_a_build_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path):
         assert list(folder.iterdir()) == []
     finally:
         folder.chmod(0o755)
+
+
+# --- the package's own library (issue 30, item 5: pip compiles it, setup.py) ---
+
+@pytest.fixture
+def package(tmp_path, monkeypatch):
+    """A package folder of its own: the C files copied there, SOURCE and SOURCES
+    naming them, no TACFOOT_NATIVE_DIR; load() again afterwards."""
+    folder = tmp_path / "vision"
+    folder.mkdir()
+    for src in native.SOURCES:
+        shutil.copy2(src, folder / src.name)
+    monkeypatch.delenv("TACFOOT_NATIVE_DIR", raising=False)
+    monkeypatch.delenv("TACFOOT_NATIVE", raising=False)
+    monkeypatch.setattr(native, "SOURCE", folder / native.SOURCE.name)
+    monkeypatch.setattr(native, "SOURCES", tuple(folder / s.name for s in native.SOURCES))
+    yield folder
+    monkeypatch.undo()
+    native.load()
+
+
+def test_the_packaged_library_is_found_next_to_the_c_files(built, package, monkeypatch):
+    """Without TACFOOT_NATIVE_DIR the loader takes _tacfoot_core-<tag>.so next to the
+    C files (where pip put it); with it, that folder's library only."""
+    lib = native.packaged_path()
+    assert lib.parent == package and lib.name.startswith("_tacfoot_core-")
+    assert native.library_path() == lib
+    shutil.copy2(built, lib)
+    assert native.load() is not None and native.status() == f"compiled ({lib})"
+    monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(package / "elsewhere"))
+    assert native.load() is None and native.refused() is None
+    assert native.status().startswith("not built (_match-")
+    assert native.status().endswith("; rebuild: python -m device.pi.vision.native build)")
+
+
+def test_a_library_of_older_c_files_is_not_loaded_and_says_so(built, package, tmp_path):
+    """An editable checkout whose C files changed since its install: the library pip
+    built then has another tag; it is not loaded, and refused() names it and the file
+    these C files need, so the runtime's start line says to reinstall."""
+    shutil.copy2(built, native.packaged_path())
+    assert native.load() is not None
+    old = native.packaged_path()
+    with open(native.SOURCE, "a") as f:
+        f.write("/* edited since the install */\n")
+    new = native.packaged_path()
+    assert new != old and native.load() is None
+    assert native.refused() == (f"{old} was built from other C files or for another machine "
+                                f"(these need {new.name})")
+    assert native.status().endswith("(rebuild: reinstall tacfoot where a C compiler is, e.g. "
+                                    "pip install . or make install)")
+    old.unlink()
+    assert native.load() is None and native.refused() is None
+    assert native.status() == (f"not built ({new.name} missing; rebuild: reinstall tacfoot where "
+                               "a C compiler is, e.g. pip install . or make install)")
+
+
+def test_native_build_never_writes_into_the_package(tmp_path):
+    """Without TACFOOT_NATIVE_DIR, ``native build`` says that pip builds the package's
+    library, in one line, exit 2, and writes nothing next to the C files."""
+    before = sorted(p.name for p in native.SOURCE.parent.iterdir())
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TACFOOT_NATIVE")}
+    run = subprocess.run([sys.executable, "-m", "device.pi.vision.native", "build"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [
+        "native build: error: native build writes only into TACFOOT_NATIVE_DIR, which is not "
+        "set; the package's own library is compiled by pip install (pip install . or make install)"]
+    assert sorted(p.name for p in native.SOURCE.parent.iterdir()) == before
