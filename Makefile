@@ -15,20 +15,23 @@ $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
 	$(PIP) install --upgrade pip
 
-$(VENV)/.installed: $(PY) pyproject.toml
+# the frame core's C library (setup.py) is compiled by the install itself, next to
+# its C files (an editable install); a change to them reinstalls, which recompiles
+CORE_C := setup.py $(wildcard device/pi/vision/*.c)
+
+$(VENV)/.installed: $(PY) pyproject.toml $(CORE_C)
 	$(PIP) install -e '.[host,viz]'
 	touch $@
 
-# the tracker's compiled matching kernel (device/pi/vision/native.py), built for this
-# machine; without a C compiler the tracker runs on numpy (same numbers, slower)
+# one line: which tracker runs (compiled, or numpy and why: no C compiler at install)
 native: $(VENV)/.installed
-	@$(PY) -m device.pi.vision.native build --quiet || echo "make: the tracker runs on numpy"
+	@$(PY) -m device.pi.vision.native status || true
 
-$(VENV)/.installed-test: $(VENV)/.installed pyproject.toml
+$(VENV)/.installed-test: $(VENV)/.installed pyproject.toml $(CORE_C)
 	$(PIP) install -e '.[host,test]'
 	touch $@
 
-$(VENV)/.installed-cnn: $(VENV)/.installed-test pyproject.toml
+$(VENV)/.installed-cnn: $(VENV)/.installed-test pyproject.toml $(CORE_C)
 	$(PIP) install -e '.[host,test,cnn]'
 	touch $@
 

@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     refused = native.refused()          # a library is there but was not loaded: say why
     if refused:
         print(f"device.pi run: warning: the tracker's compiled kernel is not loaded: {refused}; "
-              "the tracker runs on numpy (rebuild: python -m device.pi.vision.native build)",
+              f"the tracker runs on numpy ({native.rebuild_hint()})",
               file=sys.stderr)
     try:
         rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,

@@ -190,7 +190,7 @@ class DeployOptions:
 
 
 def project_version() -> str:
-    """The version in pyproject.toml (the wheel being built)."""
+    """The version in pyproject.toml (the package being built)."""
     try:
         with open(REPO / "pyproject.toml", "rb") as fh:
             return str(tomllib.load(fh)["project"]["version"])
@@ -227,7 +227,7 @@ def add_arguments(s):
     s.add_argument("--system-site-packages", action="store_true",
                    help="the venv sees the packages --python sees (e.g. apt's numpy/opencv)")
     s.add_argument("--no-deps", action="store_true",
-                   help="pip install the wheel alone, offline (deps already on the Pi)")
+                   help="pip install the package alone, offline (its deps and setuptools already on the Pi)")
     s.add_argument("--camera", default="v4l2:///dev/video0", help="runtime --camera source")
     s.add_argument("--imu", default="i2c://1/0x68", help="runtime --imu source")
     s.add_argument("--serial", default="/dev/serial0", help="runtime --serial port or URL")

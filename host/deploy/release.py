@@ -9,8 +9,8 @@ none of it. The staged models and ``release.json`` are signed with the host's ke
 Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
 
     PREFIX/releases/<release>/        one folder per deploy, never changed after
-        tacfoot-<ver>-py3-none-any.whl
-        venv/                         the runtime's virtualenv, wheel installed
+        tacfoot-<ver>.tar.gz          the source distribution (pip compiles its C on the Pi)
+        venv/                         the runtime's virtualenv, the package installed
         models/  config/              the models (manifests signed) and the config it
                                       runs with (holding the public key)
         tacfoot.service  tacfootctl   the systemd unit and the no-systemd starter
@@ -21,7 +21,8 @@ Layout on the Pi (``PREFIX`` defaults to /opt/tacfoot)::
     PREFIX/previous -> releases/<r>   what ``--rollback`` goes back to
     PREFIX/run/status.json            the runtime's status file (health check)
 
-Order: probe, build, stage, prepare, copy, install (venv + wheel, then
+Order: probe, build (the sdist), stage, prepare, copy, install (venv + pip install of
+the sdist, which compiles the frame core's C library for the Pi's CPU, then
 ``.complete``), switch (``current``), service (unit + restart), health (the
 service is active and ``packets_sent`` in the status file grows, from the
 service's own pid; a pass writes ``.healthy`` in the release folder). The service
@@ -122,31 +123,35 @@ class Deployer(SshSession):
                 f"{o.health_timeout_s:g} {dead_s}" + (f" {q(marker)}" if marker else "") + "\n")
 
     # -- local steps -------------------------------------------------------------
-    def build_wheel(self, out_dir: Path) -> Path:
-        """Build the tacfoot wheel from a clean copy of the source tree."""
-        cmd = [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
-               "-q", "-w", str(out_dir / "dist"), str(out_dir / "src")]
-        step = self.record("build", "local", shlex.join(cmd))
+    def build_sdist(self, out_dir: Path) -> Path:
+        """Build the tacfoot source distribution from a clean copy of the source tree
+        (setuptools' PEP 517 hook, no build isolation, as ``pip wheel`` was): a wheel
+        built here would carry a library for this machine's CPU, so the Pi's pip
+        builds the wheel, and compiles the C, from this."""
+        cmd = [sys.executable, "-c", "import sys, setuptools.build_meta as b; "
+               "b.build_sdist(sys.argv[1])", str(out_dir / "dist")]
+        step = self.record("build", "local", f"cd {shlex.quote(str(out_dir / 'src'))} && "
+                           + shlex.join(cmd))
         if self.dry_run:
-            return out_dir / "dist" / "tacfoot.whl"
+            return out_dir / "dist" / "tacfoot.tar.gz"
         t0 = time.monotonic()
         src = out_dir / "src"
         src.mkdir(parents=True)
-        ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build")
-        for name in ("pyproject.toml", "README.md"):
+        ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build", "*.so")
+        for name in ("pyproject.toml", "setup.py", "README.md"):
             shutil.copy2(REPO / name, src / name)
         for pkg in ("device", "host"):
             shutil.copytree(REPO / pkg, src / pkg, ignore=ignore)
-        r = subprocess.run(cmd, capture_output=True, text=True, start_new_session=True)
+        r = subprocess.run(cmd, capture_output=True, text=True, start_new_session=True, cwd=src)
         step.update(rc=r.returncode, seconds=round(time.monotonic() - t0, 3))
         self.check_stop("build")
-        wheels = sorted((out_dir / "dist").glob("tacfoot-*.whl"))
-        if r.returncode != 0 or not wheels:
+        sdists = sorted((out_dir / "dist").glob("tacfoot-*.tar.gz"))
+        if r.returncode != 0 or not sdists:
             raise DeployError(f"step build failed: {r.stderr.strip()[-500:]}")
-        return wheels[0]
+        return sdists[0]
 
-    def stage(self, wheel: Path, out_dir: Path) -> Path:
-        """The release folder, built locally: the wheel, the models (the per-frame
+    def stage(self, sdist: Path, out_dir: Path) -> Path:
+        """The release folder, built locally: the sdist, the models (the per-frame
         models fused into one graph, ``models/fused``; each manifest signed), the config (with the public key), the unit, tacfootctl and
         release.json (the SHA-256 of every file; signed)."""
         o = self.o
@@ -154,7 +159,7 @@ class Deployer(SshSession):
         models, cfg = o.models_dir(), o.config_file()
         prof = config_profile_file(cfg) if cfg is not None else None
         check_models_profile(models, cfg)
-        self.record("stage", "local", f"stage {wheel.name}"
+        self.record("stage", "local", f"stage {sdist.name}"
                     + (f", models {models}" if models else "")
                     + (f", config {cfg}" if cfg else "")
                     + (f", profile {prof.name}" if prof else "") + ", tacfoot.service, tacfootctl"
@@ -163,7 +168,7 @@ class Deployer(SshSession):
         if self.dry_run:
             return st
         st.mkdir()
-        shutil.copy2(wheel, st / wheel.name)
+        shutil.copy2(sdist, st / sdist.name)
         if models is not None:
             shutil.copytree(models, st / "models",
                             ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "*.sig"))
@@ -185,8 +190,8 @@ class Deployer(SshSession):
         files = {p.relative_to(st).as_posix(): sha256_file(p)
                  for p in sorted(st.rglob("*")) if p.is_file()}
         (st / "release.json").write_text(json.dumps({
-            "release": self.release, "wheel": wheel.name,
-            "wheel_sha256": files[wheel.name],
+            "release": self.release, "sdist": sdist.name,
+            "sdist_sha256": files[sdist.name],
             "built_unix": round(time.time(), 3), "runtime_argv": runtime_argv(o),
             "service_manager": self.manager, "files": files,
             "signed_by": self.key.key_id if self.key else None}, indent=1) + "\n")
@@ -235,11 +240,11 @@ class Deployer(SshSession):
             self.release = new_release_name()
         res["release"] = self.release
 
-    def install(self, wheel: Path, tmp: Path) -> None:
+    def install(self, sdist: Path, tmp: Path) -> None:
         """Stage, prepare, copy and install the new release: everything here writes
         only inside its own folder, so the running release is untouched."""
         o = self.o
-        staged = self.stage(wheel, tmp)
+        staged = self.stage(sdist, tmp)
         p = q(o.prefix)
         self.remote("prepare", SUDO +
                     f"if [ ! -d {p} ]; then $SUDO mkdir -p {p}; "
@@ -320,10 +325,10 @@ class Deployer(SshSession):
                "ok": False, "rolled_back": False}
         self.begin(res)
         with tempfile.TemporaryDirectory(prefix="tacfoot-deploy-") as tmp:
-            wheel = self.build_wheel(Path(tmp))
-            res["wheel"] = wheel.name
+            sdist = self.build_sdist(Path(tmp))
+            res["sdist"] = sdist.name
             try:
-                self.install(wheel, Path(tmp))
+                self.install(sdist, Path(tmp))
             except DeployError:
                 self.discard()
                 raise
@@ -343,7 +348,9 @@ class Deployer(SshSession):
         o = self.o
         r = q(rel)
         venv_flags = " --system-site-packages --without-pip" if o.system_site_packages else ""
-        pip_flags = " --no-deps --no-index" if o.no_deps else ""
+        # offline, pip cannot fetch the build backend either: it builds with the
+        # setuptools the venv sees (--system-site-packages)
+        pip_flags = " --no-deps --no-index --no-build-isolation" if o.no_deps else ""
         s = f"cd {r}\n[ ! -e .complete ]\n{q(o.python)} -m venv{venv_flags} venv\n"
         if o.system_site_packages:
             # the venv sees every site-packages folder --python sees (its system
@@ -356,17 +363,17 @@ class Deployer(SshSession):
                   "venv/bin/python -m pip --version >/dev/null 2>&1 || "
                   "venv/bin/python -m ensurepip --default-pip >/dev/null\n")
         s += (f"venv/bin/python -m pip install -q --disable-pip-version-check{pip_flags} "
-              "./tacfoot-*.whl\n"
+              "./tacfoot-*.tar.gz\n"
               # the installed code must import before this release may become current
               "venv/bin/python -c 'import device.pi, device.pi.runtime.sdnotify'\n"
               # every file as release.json lists it, and release.json signed with the
               # key the release's config trusts
               f"venv/bin/python -c {q(VERIFY_RELEASE_PY)}\n"
-              # the tracker's matching kernel, compiled for this leg from the verified
-              # source; without a compiler the tracker runs on numpy (same numbers)
-              "venv/bin/python -m device.pi.vision.native build --quiet || "
-              "echo 'tacfoot: no compiled matcher on this leg (apt install gcc); "
-              "the tracker runs on numpy' >&2\n"
+              # pip compiled the frame core for this leg; without a compiler it
+              # installed without it and the tracker runs on numpy (same numbers)
+              "venv/bin/python -m device.pi.vision.native status >/dev/null || "
+              "echo 'tacfoot: no compiled core on this leg (apt install gcc, then deploy "
+              "again); the tracker runs on numpy' >&2\n"
               "date -u +%Y-%m-%dT%H:%M:%SZ > .complete\n")
         return s
 

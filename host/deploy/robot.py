@@ -11,7 +11,7 @@ a robot file (``host deploy --robot robot.toml``)::
 
 Options given on the command line apply to every leg; a leg's own keys win.
 
-The order, across legs: probe every leg; build the wheel once; stage, copy and
+The order, across legs: probe every leg; build the sdist once; stage, copy and
 install the release on every leg at once (each in its own folder: nothing running
 changes); only when every leg has it installed, switch every leg and check each
 one's health at once. If any leg fails before the switch, no leg switches (and the
@@ -153,14 +153,14 @@ def deploy_robot(legs: list[DeployOptions], dry_run: bool = False, log=None,
         errs = _each(lambda l: _attempt(lambda: l.d.begin(l.res)), state)
         if not _failed(res, state, errs, "probe"):
             with tempfile.TemporaryDirectory(prefix="tacfoot-robot-") as tmp:
-                wheel = state[0].d.build_wheel(Path(tmp) / "build")
-                res["wheel"] = wheel.name
+                sdist = state[0].d.build_sdist(Path(tmp) / "build")
+                res["sdist"] = sdist.name
 
                 def install(pair):
                     i, l = pair
                     d = Path(tmp) / f"leg{i}"
                     d.mkdir()
-                    return _attempt(lambda: l.d.install(wheel, d))
+                    return _attempt(lambda: l.d.install(sdist, d))
 
                 errs = _each(install, list(enumerate(state)))
             if _failed(res, state, errs, "install"):

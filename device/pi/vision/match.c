@@ -1,8 +1,8 @@
 /* One-to-one greedy matching of points within a gate: the tracker's inner kernel.
  *
  * The compiled twin of device/pi/vision/matching.py's _match_finite (the numpy
- * version is the specification and the fallback). Built on the leg by
- * `python -m device.pi.vision.native build` (host deploy runs it) with
+ * version is the specification and the fallback). Compiled by the package's own
+ * build (setup.py: pip install, on the leg too: host deploy ships the sdist) with
  * -ffp-contract=off, so every squared distance is the same double as numpy's
  * (rx - cx)^2 + (ry - cy)^2, summed x first.
  *

@@ -12,25 +12,31 @@ fallback:
   per-frame matching and growth into lost pins, step for step (the same
   neighbour medians, predictions and matches, the same doubles).
 
-A wheel built on the host cannot carry a library for the Pi, so the library is
-compiled where it runs:
+The package's own build compiles the library (``setup.py``: a setuptools extension
+with no Python API, opened here with ctypes): ``pip install .`` and ``pip install -e
+.`` (``make install``) put ``_tacfoot_core-<tag>.so`` into the package, and ``host
+deploy`` installs the source distribution on each leg, so pip compiles it there.
+``pip uninstall tacfoot`` removes it with the rest. Without a C compiler, or with
+``TACFOOT_NATIVE=0`` in the environment, the tracker uses numpy: the same numbers,
+slower. The library's name carries a hash of the C files (:data:`SOURCES`), the
+flags and the machine, computed again here from the files at import, so a library
+from older C files (an editable checkout edited since its install) or another
+machine is never loaded::
 
-    python -m device.pi.vision.native build     # cc, about a second
     python -m device.pi.vision.native status    # which matcher the tracker uses
 
-``make install`` builds it on a development machine, and ``host deploy`` on each
-leg, after the release is installed. Without a C compiler, or with
-``TACFOOT_NATIVE=0`` in the environment, the tracker uses numpy: the same
-numbers, slower. The library's file name carries a hash of ``match.c`` and the
-machine, so a library from an older source or another machine is never loaded.
+``TACFOOT_NATIVE_DIR`` names another folder, whose library (``_match-<tag>.so``) is
+then the only one looked at: ``python -m device.pi.vision.native build`` compiles
+into it, with ``TACFOOT_NATIVE_CFLAGS`` added (a developer's tool, used by the tests
+for a sanitizer build; it never writes into the package).
 
 Before the library is opened, :func:`check_library` reads its ELF headers without
 loading it: a file cut short (``dlopen`` maps past its end, and the first touch of
 a missing page kills the process with SIGBUS), a file built for another CPU, or
 anything that is not a shared library is refused with a one-line reason
-(:func:`refused`), and the tracker runs on numpy. The build syncs the library to
-disk before renaming it into place, and the folder after, so a power cut leaves
-the old state or the whole new file.
+(:func:`refused`), and the tracker runs on numpy. ``native build`` syncs the library
+to disk before renaming it into place, and the folder after, so a power cut leaves
+the old state or the whole new file (pip writes the packaged one).
 """
 
 from __future__ import annotations
@@ -50,9 +56,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SOURCE", "NativeBuildError", "NativeFolderError", "library_path", "check_library",
-           "build", "kernel", "load", "match_into", "grow_into", "active", "status", "refused",
-           "detect_fn", "winfeat_fn", "grid_fn", "advance_fn", "shear_fn", "SOURCES"]
+__all__ = ["SOURCE", "CFLAGS", "packaged_path", "rebuild_hint", "NativeBuildError",
+           "NativeFolderError", "library_path", "check_library", "build", "kernel", "load",
+           "match_into", "grow_into", "active", "status", "refused", "detect_fn", "winfeat_fn",
+           "grid_fn", "advance_fn", "shear_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
@@ -61,13 +68,19 @@ SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
 #: the kernel's ABI; tf_abi_version() must return it
 ABI_VERSION = 5
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
-#: -O3 vectorises detect.c's integer loops (the same integers in every lane)
-CFLAGS = ("-O3", "-ffp-contract=off", "-fPIC", "-shared", "-std=c99")
+#: -O3 vectorises detect.c's integer loops (the same integers in every lane).
+#: setup.py reads SOURCE, SOURCES and CFLAGS from this file without importing it:
+#: their values may use Path, __file__, SOURCE, tuple, list and sorted only
+CFLAGS = ("-O3", "-ffp-contract=off", "-std=c99")
+#: what ``native build`` adds (setuptools adds its own for the packaged library)
+_SHARED = ("-fPIC", "-shared")
+#: the packaged library's name before its tag (setup.py's ``LIBRARY``)
+PACKAGED_PREFIX = "_tacfoot_core-"
 
 
 def _cflags() -> tuple[str, ...]:
-    """CFLAGS plus ``TACFOOT_NATIVE_CFLAGS`` (the tests' sanitizer build: its library
-    gets its own name)."""
+    """``native build``'s flags: CFLAGS plus ``TACFOOT_NATIVE_CFLAGS`` (the tests'
+    sanitizer build: its library gets its own name)."""
     return CFLAGS + tuple(os.environ.get("TACFOOT_NATIVE_CFLAGS", "").split())
 
 
@@ -205,31 +218,52 @@ def _check_elf(f, size: int) -> str | None:
     return None
 
 
-def _tag() -> str:
+def _tag(flags: tuple[str, ...] | None = None) -> str:
+    """The hash of the C files, ``flags`` (``native build``'s by default) and the
+    machine; setup.py's ``library_tag`` computes the same for the packaged library."""
     h = hashlib.sha256()
     for src in SOURCES:
         try:
             h.update(src.read_bytes())
         except OSError:                 # an install without its C files: nothing loads
             h.update(b"missing " + src.name.encode())
-    h.update(" ".join(_cflags()).encode())
+    h.update(" ".join(_cflags() if flags is None else flags).encode())
     h.update(platform.machine().encode())
     return h.hexdigest()[:12]
 
 
+def packaged_path() -> Path:
+    """Where the package's own library is for these C files and this machine: next
+    to ``match.c``, written there by pip (site-packages, or the checkout of an
+    editable install)."""
+    return SOURCE.parent / f"{PACKAGED_PREFIX}{_tag(CFLAGS)}.so"
+
+
 def library_path(folder: Path | None = None) -> Path:
-    """Where the library for this source and machine lives (next to ``match.c``
-    unless ``TACFOOT_NATIVE_DIR`` or ``folder`` names another folder)."""
-    base = folder or os.environ.get("TACFOOT_NATIVE_DIR") or SOURCE.parent
-    return Path(base) / f"_match-{_tag()}.so"
+    """The library the tracker loads: ``_match-<tag>.so`` in ``folder`` or in
+    ``TACFOOT_NATIVE_DIR`` when either is given, else :func:`packaged_path`."""
+    base = folder or os.environ.get("TACFOOT_NATIVE_DIR")
+    return Path(base) / f"_match-{_tag()}.so" if base else packaged_path()
+
+
+def rebuild_hint() -> str:
+    """How to rebuild the library the tracker looks for, for one-line messages."""
+    if os.environ.get("TACFOOT_NATIVE_DIR"):
+        return "rebuild: python -m device.pi.vision.native build"
+    return "rebuild: reinstall tacfoot where a C compiler is, e.g. pip install . or make install"
 
 
 def build(folder: Path | None = None, cc: str | None = None, force: bool = False) -> Path:
-    """Compile ``match.c`` into :func:`library_path` (unless it is there already and
-    loads, or ``force``); returns the path. The file appears whole or not at all,
-    power cuts included: compiled to a temporary name, checked, synced to disk,
-    renamed, then the folder synced. A folder that cannot be made or written raises
-    :class:`NativeFolderError`."""
+    """Compile :data:`SOURCES` into :func:`library_path` in ``folder`` or
+    ``TACFOOT_NATIVE_DIR`` (unless it is there already and loads, or ``force``);
+    returns the path. Never into the package: pip builds that one. The file appears
+    whole or not at all, power cuts included: compiled to a temporary name, checked,
+    synced to disk, renamed, then the folder synced. No folder named, or one that
+    cannot be made or written, raises :class:`NativeFolderError`."""
+    if not (folder or os.environ.get("TACFOOT_NATIVE_DIR")):
+        raise NativeFolderError("native build writes only into TACFOOT_NATIVE_DIR, which is not "
+                                "set; the package's own library is compiled by pip install "
+                                "(pip install . or make install)")
     out = library_path(folder)
     if out.exists() and not force:
         try:
@@ -250,7 +284,7 @@ def build(folder: Path | None = None, cc: str | None = None, force: bool = False
         raise NativeFolderError(f"cannot write the library into {out.parent}: "
                                 f"{exc.strerror or exc}; the tracker runs on numpy") from None
     try:
-        run = subprocess.run([exe, *_cflags(), "-o", tmp, *map(str, SOURCES), "-lm"],
+        run = subprocess.run([exe, *_cflags(), *_SHARED, "-o", tmp, *map(str, SOURCES), "-lm"],
                              capture_output=True, text=True, timeout=120)
         if run.returncode != 0:
             raise NativeBuildError(f"{compiler} failed on {SOURCE.name}: {run.stderr.strip()[-400:]}")
@@ -402,13 +436,20 @@ def load():
         return None
     path = library_path()
     if not path.exists():
-        _WHY = f"not built ({path.name} missing: python -m device.pi.vision.native build)"
+        others = [] if os.environ.get("TACFOOT_NATIVE_DIR") else sorted(
+            path.parent.glob(PACKAGED_PREFIX + "*.so"))
+        if others:                      # an editable checkout whose C files changed since
+            _REFUSED = (f"{others[0]} was built from other C files or for another machine "
+                        f"(these need {path.name})")
+            _WHY = f"does not load: {_REFUSED} ({rebuild_hint()})"
+        else:
+            _WHY = f"not built ({path.name} missing; {rebuild_hint()})"
         return None
     try:
         _FN, _WHY = kernel(path), f"compiled ({path})"
     except (OSError, AttributeError, NativeBuildError) as exc:
         _REFUSED = " ".join(str(exc).split()) or f"{path}: {type(exc).__name__}"  # one line
-        _WHY = f"does not load: {_REFUSED} (rebuild: python -m device.pi.vision.native build)"
+        _WHY = f"does not load: {_REFUSED} ({rebuild_hint()})"
     return _FN
 
 

@@ -6,7 +6,7 @@ process is the release current names and that it passed its health check.
 The legs are two PREFIXes on this machine reached through the stand-in ssh of
 tests/host/deploy/local_ssh.py (no OpenSSH server needed), running the real runtime
 on simulated hardware. The module's ``robot`` fixture deploys release r0 once and
-builds the wheel once; each signal case deploys another release on top of it."""
+builds the sdist once; each signal case deploys another release on top of it."""
 from __future__ import annotations
 
 import json
@@ -85,15 +85,15 @@ def robot(tmp_path_factory):
     ssh = LocalSsh(root / "ssh")
     mp = pytest.MonkeyPatch()
     mp.setenv("PATH", ssh.env()["PATH"])
-    wheel = Deployer(DeployOptions(target="pi@a"), log=lambda m: None).build_wheel(
-        root / "wheel")
+    sdist = Deployer(DeployOptions(target="pi@a"), log=lambda m: None).build_sdist(
+        root / "sdist")
 
     def prebuilt(self, out_dir):
-        self.record("build", "local", "prebuilt wheel (test)")
+        self.record("build", "local", "prebuilt sdist (test)")
         (out_dir / "dist").mkdir(parents=True, exist_ok=True)
-        return Path(shutil.copy2(wheel, out_dir / "dist" / wheel.name))
+        return Path(shutil.copy2(sdist, out_dir / "dist" / sdist.name))
 
-    mp.setattr(Deployer, "build_wheel", prebuilt)
+    mp.setattr(Deployer, "build_sdist", prebuilt)
     (root / "r").mkdir()
     r = Robot(root / "r", ssh)
     try:

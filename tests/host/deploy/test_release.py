@@ -24,7 +24,7 @@ import pytest
 
 from tests.host.deploy.sshd_fixture import Pi, SshServer, missing_reason  # noqa: E402
 
-from host.deploy.options import DeployError  # noqa: E402
+from host.deploy.options import DeployError, project_version  # noqa: E402
 from host.deploy.release import Deployer, run  # noqa: E402
 
 REPO = REPO_ROOT
@@ -97,13 +97,13 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
     assert pi.packets_flow(pid)
     # every remote step was logged with its command
     assert "[deploy] install (remote)" in out.err and "[deploy] switch (remote)" in out.err
-    # the venv runs the wheel's copy of the code, not this checkout
+    # the venv runs the installed copy of the code, not this checkout
     r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-c",
                         "import device.pi.runtime.sdnotify as m; print(m.__file__)"],
                        capture_output=True, text=True, cwd=pi.root)
     assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
     assert str(REPO) not in r.stdout
-    # the tracker's matching kernel was compiled on the leg, into the release's venv
+    # pip compiled the frame core on the leg, into the release's venv (listed in its RECORD)
     if shutil.which("cc"):
         r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-m",
                             "device.pi.vision.native", "status"],
@@ -112,6 +112,16 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
         assert r.returncode == 0, r.stdout + r.stderr
         lib = Path(r.stdout.split("compiled (", 1)[1].rsplit(")", 1)[0]).resolve()
         assert lib.is_relative_to((pi.prefix / "releases" / "r1" / "venv").resolve()), r.stdout
+        record, = (pi.prefix / "releases" / "r1" / "venv").glob(
+            "lib/python*/site-packages/tacfoot-*.dist-info/RECORD")
+        assert f"device/pi/vision/{lib.name}," in record.read_text()
+    # the release ships the source distribution (a wheel built here would carry this
+    # machine's library), and the install step no longer runs a separate build
+    assert sorted(p.name for p in (pi.prefix / "releases" / "r1").glob("tacfoot-*")) == [
+        f"tacfoot-{project_version()}.tar.gz"]
+    install = next(s for s in res["steps"] if s["step"] == "install")
+    assert "./tacfoot-*.tar.gz" in install["command"]
+    assert "native build" not in install["command"]
 
 
 @needs_sshd

@@ -73,7 +73,7 @@ def test_robot_file_deploys_one_release_to_every_leg(legs, capsys, tmp_path):
     rc, res, err = _run(capsys, _argv(legs, robot, "--release", "r1", "--env", "TAG=r1",
                                       "--health-timeout-s", "30"))
     assert rc == 0 and res["ok"], (json.dumps(res)[-3000:], err[-3000:])
-    # the wheel was built once, for every leg
+    # the sdist was built once, for every leg
     assert sum(1 for l in res["legs"] for s in l["steps"] if s["step"] == "build") == 1
     for p, leg in zip(legs, res["legs"]):
         assert leg["ok"] and leg["health"]["ok"], leg.get("error")

@@ -32,6 +32,19 @@ def built(tmp_path_factory):
     return native.build(folder=tmp_path_factory.mktemp("native"))
 
 
+@pytest.fixture
+def loaded(built, monkeypatch):
+    """The tracker runs compiled: the package's library when pip built it, else the
+    private build (through TACFOOT_NATIVE_DIR, as the developer's build is found)."""
+    if not native.active():
+        monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(built.parent))
+        assert native.load() is not None, native.status()
+    yield
+    if os.environ.get("TACFOOT_NATIVE_DIR") == str(built.parent):
+        monkeypatch.delenv("TACFOOT_NATIVE_DIR")
+        native.load()
+
+
 @pytest.fixture(scope="module")
 def compiled(built):
     """The kernel's function, from the library built into a private folder."""
@@ -177,16 +190,12 @@ def test_build_names_the_library_by_source_and_machine_and_reuses_it(tmp_path):
     assert native.build(folder=tmp_path, force=True) == path
 
 
-@needs_cc
-def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(monkeypatch):
+def test_the_marker_pipeline_is_identical_with_and_without_the_kernel(loaded, monkeypatch):
     """A real clip, 150 frames: the same pins, vectors and lost flags to the bit."""
     data = real_data_dir("roboskin/smooth.avi")
     import cv2
 
     from device.pi.vision.pipeline import MarkerStream
-    if not native.active():
-        native.build()
-        native.load()
     cap = cv2.VideoCapture(str(Path(data) / "roboskin" / "smooth.avi"))
     frames = []
     while len(frames) < 150:
@@ -234,7 +243,7 @@ def _grow_both(monkeypatch, r, c, pred, gate, grow_rounds=4, min_support=2, matc
        extra=st.integers(0, 30), jump=st.floats(0, 25), noise=st.floats(0, 4),
        pred_kind=st.sampled_from(["zero", "true", "half", "wrong"]), grow_rounds=st.integers(0, 5),
        min_support=st.integers(1, 4), rounded=st.booleans())
-def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n, drop, extra, jump,
+def test_the_compiled_growth_gives_numpys_pins_and_vectors(loaded, monkeypatch, seed, n, drop, extra, jump,
                                                            noise, pred_kind, grow_rounds,
                                                            min_support, rounded):
     """match_and_grow compiled (tf_grow) against numpy on random layouts: pins dropped,
@@ -243,8 +252,6 @@ def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n,
     Points rounded to whole pixels tie exactly, and the numpy matcher may take such
     ties in another order (the matching's contract leaves it open), so those are
     compared with the compiled matcher on both sides."""
-    if not native.active():
-        pytest.skip("the kernel is not built here (make native)")
     rng = np.random.default_rng(seed)
     side = int(np.ceil(np.sqrt(n)))
     g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
@@ -268,10 +275,8 @@ def test_the_compiled_growth_gives_numpys_pins_and_vectors(monkeypatch, seed, n,
     np.testing.assert_array_equal(d1, d2)
 
 
-def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(monkeypatch):
+def test_the_compiled_growth_falls_back_for_positions_beyond_the_bound(loaded, monkeypatch):
     """A prediction that puts a pin beyond 1e6 px: the kernel declines and numpy answers."""
-    if not native.active():
-        pytest.skip("the kernel is not built here (make native)")
     r = np.array([[0.0, 0.0], [12.0, 0.0], [6.0, 10.0], [18.0, 10.0]])
     pred = np.zeros_like(r)
     pred[0] = 2e6
@@ -505,3 +510,71 @@ def test_a_build_into_a_read_only_folder_is_one_line_and_exit_2(tmp_path):
         assert list(folder.iterdir()) == []
     finally:
         folder.chmod(0o755)
+
+
+# --- the package's own library (issue 30, item 5: pip compiles it, setup.py) ---
+
+@pytest.fixture
+def package(tmp_path, monkeypatch):
+    """A package folder of its own: the C files copied there, SOURCE and SOURCES
+    naming them, no TACFOOT_NATIVE_DIR; load() again afterwards."""
+    folder = tmp_path / "vision"
+    folder.mkdir()
+    for src in native.SOURCES:
+        shutil.copy2(src, folder / src.name)
+    monkeypatch.delenv("TACFOOT_NATIVE_DIR", raising=False)
+    monkeypatch.delenv("TACFOOT_NATIVE", raising=False)
+    monkeypatch.setattr(native, "SOURCE", folder / native.SOURCE.name)
+    monkeypatch.setattr(native, "SOURCES", tuple(folder / s.name for s in native.SOURCES))
+    yield folder
+    monkeypatch.undo()
+    native.load()
+
+
+def test_the_packaged_library_is_found_next_to_the_c_files(built, package, monkeypatch):
+    """Without TACFOOT_NATIVE_DIR the loader takes _tacfoot_core-<tag>.so next to the
+    C files (where pip put it); with it, that folder's library only."""
+    lib = native.packaged_path()
+    assert lib.parent == package and lib.name.startswith("_tacfoot_core-")
+    assert native.library_path() == lib
+    shutil.copy2(built, lib)
+    assert native.load() is not None and native.status() == f"compiled ({lib})"
+    monkeypatch.setenv("TACFOOT_NATIVE_DIR", str(package / "elsewhere"))
+    assert native.load() is None and native.refused() is None
+    assert native.status().startswith("not built (_match-")
+    assert native.status().endswith("; rebuild: python -m device.pi.vision.native build)")
+
+
+def test_a_library_of_older_c_files_is_not_loaded_and_says_so(built, package, tmp_path):
+    """An editable checkout whose C files changed since its install: the library pip
+    built then has another tag; it is not loaded, and refused() names it and the file
+    these C files need, so the runtime's start line says to reinstall."""
+    shutil.copy2(built, native.packaged_path())
+    assert native.load() is not None
+    old = native.packaged_path()
+    with open(native.SOURCE, "a") as f:
+        f.write("/* edited since the install */\n")
+    new = native.packaged_path()
+    assert new != old and native.load() is None
+    assert native.refused() == (f"{old} was built from other C files or for another machine "
+                                f"(these need {new.name})")
+    assert native.status().endswith("(rebuild: reinstall tacfoot where a C compiler is, e.g. "
+                                    "pip install . or make install)")
+    old.unlink()
+    assert native.load() is None and native.refused() is None
+    assert native.status() == (f"not built ({new.name} missing; rebuild: reinstall tacfoot where "
+                               "a C compiler is, e.g. pip install . or make install)")
+
+
+def test_native_build_never_writes_into_the_package(tmp_path):
+    """Without TACFOOT_NATIVE_DIR, ``native build`` says that pip builds the package's
+    library, in one line, exit 2, and writes nothing next to the C files."""
+    before = sorted(p.name for p in native.SOURCE.parent.iterdir())
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TACFOOT_NATIVE")}
+    run = subprocess.run([sys.executable, "-m", "device.pi.vision.native", "build"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert run.returncode == 2
+    assert run.stderr.splitlines() == [
+        "native build: error: native build writes only into TACFOOT_NATIVE_DIR, which is not "
+        "set; the package's own library is compiled by pip install (pip install . or make install)"]
+    assert sorted(p.name for p in native.SOURCE.parent.iterdir()) == before
