@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -48,15 +49,15 @@ def test_a_c_file_added_to_sources_is_compiled_and_a_bad_sources_is_one_line(tmp
     expression setup.py cannot evaluate stops the build with one line naming it."""
     s = _setup_module()
     text = (REPO_ROOT / "device/pi/vision/native.py").read_text()
-    old = 'SOURCES = (SOURCE, SOURCE.with_name("detect.c"))'
-    assert old in text
+    old = re.search(r"^SOURCES = .*$", text, re.M).group(0)
+    names = [p.name for p in native.SOURCES]
     fake = tmp_path / "native.py"
-    fake.write_text(text.replace(old, 'SOURCES = (SOURCE, SOURCE.with_name("detect.c"), '
-                                      'SOURCE.with_name("core.c"))'))
-    assert [p.name for p in s.native_settings(fake)["SOURCES"]] == ["match.c", "detect.c", "core.c"]
+    listed = ", ".join(f'SOURCE.with_name("{n}")' for n in names)
+    fake.write_text(text.replace(old, f'SOURCES = ({listed}, SOURCE.with_name("extra.c"))'))
+    assert [p.name for p in s.native_settings(fake)["SOURCES"]] == names + ["extra.c"]
     fake.write_text(text.replace(old, "SOURCES = tuple(SOURCE.with_name(n) for n in "
-                                      "('match.c', 'detect.c', 'core.c'))"))
-    assert [p.name for p in s.native_settings(fake)["SOURCES"]] == ["match.c", "detect.c", "core.c"]
+                                      f"{tuple(names + ['extra.c'])!r})"))
+    assert [p.name for p in s.native_settings(fake)["SOURCES"]] == names + ["extra.c"]
     fake.write_text(text.replace(old, "SOURCES = tuple(sorted(HERE.glob('*.c')))"))
     with pytest.raises(SystemExit) as exc:
         s.native_settings(fake)
