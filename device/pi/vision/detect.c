@@ -429,6 +429,7 @@ enum {
     TF_G_SUMS,          /* int64 *: n x n scratch */
     TF_G_GAMMA,         /* float32 bits of gamma */
     TF_G_THRESHOLD,     /* float32 bits of the contact threshold */
+    TF_G_ACC,           /* uint16 *: w scratch */
     TF_G_N_SLOTS
 };
 
@@ -485,11 +486,20 @@ static double pairwise_sum_d(const double *a, int64_t n) {
     return pairwise_sum_d(a, n2) + pairwise_sum_d(a + n2, n - n2);
 }
 
-/* one row's |b - r| summed over [x0, x1) */
-TF_VECTOR static uint32_t absdiff_sum(const uint8_t *b, const uint8_t *r, int64_t x0, int64_t x1) {
-    uint32_t s = 0;
-    for (int64_t x = x0; x < x1; x++) s += (uint32_t)(b[x] > r[x] ? b[x] - r[x] : r[x] - b[x]);
-    return s;
+/* one row's |b - r| added to the 16-bit column sums acc (w columns) */
+TF_VECTOR static void absdiff_add(const uint8_t *b, const uint8_t *r, uint16_t *acc, int64_t w) {
+    for (int64_t x = 0; x < w; x++)
+        acc[x] = (uint16_t)(acc[x] + (b[x] > r[x] ? b[x] - r[x] : r[x] - b[x]));
+}
+
+/* the column sums into the cells of cell row i, then cleared */
+static void flush_cells(uint16_t *acc, const int64_t *xs, int64_t n, int64_t *sums, int64_t w) {
+    for (int64_t j = 0; j < n; j++) {
+        int64_t s = 0;
+        for (int64_t x = xs[j]; x < xs[j + 1]; x++) s += acc[x];
+        sums[j] += s;
+    }
+    memset(acc, 0, (size_t)w * sizeof *acc);
 }
 
 int64_t tf_grid(int64_t *ctx) {
@@ -508,12 +518,22 @@ int64_t tf_grid(int64_t *ctx) {
     int64_t *sums = (int64_t *)(intptr_t)ctx[TF_G_SUMS];
     const float gamma = f32_of(ctx[TF_G_GAMMA]), thr = f32_of(ctx[TF_G_THRESHOLD]);
     const int64_t nn = n * n;
+    uint16_t *acc = (uint16_t *)(intptr_t)ctx[TF_G_ACC];
     for (int64_t k = 0; k < nn; k++) sums[k] = 0;
-    for (int64_t i = 0; i < n; i++)
+    memset(acc, 0, (size_t)w * sizeof *acc);
+    for (int64_t i = 0; i < n; i++) {
+        /* a row's |b - r| summed down the cell row's columns (16 bits hold 257 rows
+           of 255), then into its cells */
+        int64_t rows = 0;
         for (int64_t y = ys[i]; y < ys[i + 1]; y++) {
-            const uint8_t *b = bin + y * bst, *r = ref + y * w;
-            for (int64_t j = 0; j < n; j++) sums[i * n + j] += absdiff_sum(b, r, xs[j], xs[j + 1]);
+            absdiff_add(bin + y * bst, ref + y * w, acc, w);
+            if (++rows == 257) {
+                flush_cells(acc, xs, n, sums + i * n, w);
+                rows = 0;
+            }
         }
+        flush_cells(acc, xs, n, sums + i * n, w);
+    }
     /* cells: the sum (a float64) times 1 / (255 area) (float32 widened), to float32 */
     for (int64_t k = 0; k < nn; k++) cells[k] = (float)((double)sums[k] * (double)inv[k]);
     const float glob = pairwise_sum(cells, nn) / (float)nn;

@@ -105,14 +105,16 @@ class ContactGrid:
     def _context(self, fn, grid: np.ndarray, cells: np.ndarray) -> np.ndarray:
         h, w = self._ref.shape
         self._sums = np.empty(self.n * self.n, np.int64)
+        self._acc = np.empty(max(w, 1), np.uint16)
         self._edges = (self._ys.astype(np.int64), self._xs.astype(np.int64))
-        c = np.zeros(14, np.int64)
+        c = np.zeros(15, np.int64)
         c[2], c[3], c[4], c[5] = h, w, self._ref.ctypes.data, self.n
         c[6], c[7] = self._edges[0].ctypes.data, self._edges[1].ctypes.data
         c[8], c[9], c[10] = self._inv_area.ctypes.data, grid.ctypes.data, cells.ctypes.data
         c[11] = self._sums.ctypes.data
         c[12] = int(np.float32(self.gamma).view(np.uint32))
         c[13] = int(np.float32(self.contact_threshold).view(np.uint32))
+        c[14] = self._acc.ctypes.data
         return c
 
     def _set_compiled(self) -> None:

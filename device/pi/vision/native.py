@@ -352,7 +352,7 @@ def kernel(path: Path):
 
 
 #: the contact grid's context slots (detect.c's TF_G_*)
-GRID_SLOTS = 14
+GRID_SLOTS = 15
 
 
 def _grid_fn(lib):
