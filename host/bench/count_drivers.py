@@ -1,10 +1,10 @@
 """The small programs :mod:`host.bench.counts` runs under callgrind, one per thing
 counted: ``python -m host.bench.count_drivers KIND FRAMES_DIR N [--timings FILE]``.
 
-Every driver reads the first ``N`` frames of the folder of gray PGM files into
-memory first, then runs its loop over them, and nothing else: the process is
-counted whole, and the difference between two lengths removes the start-up, the
-imports and the frame loading (:mod:`host.bench.counts`).
+Every driver reads every frame of the folder of gray PGM files into memory first
+(the same work whatever ``N``), then runs its loop over the first ``N``, and nothing
+else: the process is counted whole, and the difference between two lengths removes
+the start-up, the imports and the frame loading (:mod:`host.bench.counts`).
 
 KIND is one of
 
@@ -98,7 +98,10 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     import cv2
     cv2.setNumThreads(1)                    # as the runtime and the other benchmarks
-    frames = load_gray(a.frames_dir, a.n)
+    # every frame is read in both runs of a pair, so the loading cancels in the
+    # difference; only the first n are processed
+    everything = sorted(p for p in Path(a.frames_dir).iterdir() if p.suffix.lower() == ".pgm")
+    frames = load_gray(a.frames_dir, max(a.n, len(everything)))[:a.n]
     if a.kind == "pipeline":
         run_pipeline(frames, a.timings)
     elif a.kind == "peer":

@@ -106,8 +106,9 @@ class DetectCore:
         ch, cw = ty1 - cy0, tx1 - cx0
         self._rows = np.empty((bh, bw), np.uint16)
         self._colsum = np.empty(bw + bw + 16, np.uint16)
-        self._labels = np.empty((ch, cw), np.int32)
-        cap = (ch + 1) * (cw + 1) // 2 + 2
+        # two rows of runs (start, end, label), at most cw / 2 + 1 runs a row
+        self._labels = np.empty(6 * (cw // 2 + 2), np.int32)
+        cap = ch * (cw // 2 + 1) + 2        # a run a provisional label
         self._parent = np.empty(cap, np.int32)
         self._acc = np.empty((cap, 4), np.int64)
         self._order = np.empty(cap, np.int32)

@@ -54,7 +54,7 @@ enum {
     TF_D_COLSUM,        /* uint16 *: (gx1 - gx0) + (cx1 - cx0) + 15 scratch */
     TF_D_BINARY,        /* uint8 *: the binary buffer (0 outside the core) */
     TF_D_BIN_STRIDE,    /* its row stride (>= cx1) */
-    TF_D_LABELS,        /* int32 *: (cy1-cy0) x (cx1-cx0) scratch */
+    TF_D_LABELS,        /* int32 *: scratch of 6 * ((cx1-cx0) / 2 + 2) */
     TF_D_CAP,           /* provisional labels the next buffers hold (>= 1 + core pixels / 2) */
     TF_D_PARENT,        /* int32 *: CAP */
     TF_D_ACC,           /* int64 *: CAP x 4: area, sum x, sum y, first block */
@@ -253,48 +253,52 @@ static void sort_by_block(int32_t *order, int64_t n, const int64_t *acc) {
     }
 }
 
+/* a run of set pixels in a row: [x0, x1), its provisional label */
+typedef struct { int32_t x0, x1, lab; } tf_run;
+
+static inline int64_t load8(const uint8_t *p) {
+    uint64_t w;
+    memcpy(&w, p, 8);
+    return (int64_t)w;
+}
+
+/* Runs of set pixels, row by row: a run takes the label of the runs of the row
+ * above that touch it (8-connected: they overlap or meet at a corner), uniting them;
+ * a run that touches none starts a label. Each label keeps its area, sums of x and
+ * y, and its first 2x2 block (the run's first pixel is its leftmost); the labels of
+ * one blob are then folded into its root, the smallest. */
 static int64_t label(int64_t *ctx) {
     const int64_t cy0 = ctx[TF_D_CY0], cx0 = ctx[TF_D_CX0], cy1 = ctx[TF_D_CY1], cx1 = ctx[TF_D_CX1];
     const uint8_t *bin = (const uint8_t *)(intptr_t)ctx[TF_D_BINARY];
     const int64_t bst = ctx[TF_D_BIN_STRIDE];
-    int32_t *lab = (int32_t *)(intptr_t)ctx[TF_D_LABELS];
     int32_t *parent = (int32_t *)(intptr_t)ctx[TF_D_PARENT];
     int64_t *acc = (int64_t *)(intptr_t)ctx[TF_D_ACC];
     int32_t *order = (int32_t *)(intptr_t)ctx[TF_D_ORDER];
     const int64_t cap = ctx[TF_D_CAP], cw = cx1 - cx0, bwb = (ctx[TF_D_BW] + 1) / 2 + 1;
+    /* two rows of runs in the labels scratch: at most cw / 2 + 1 runs a row */
+    tf_run *prev = (tf_run *)(intptr_t)ctx[TF_D_LABELS];
+    tf_run *cur = prev + (cw / 2 + 2);
+    int64_t n_prev = 0;
     int32_t next = 1;
     for (int64_t y = cy0; y < cy1; y++) {
-        const uint8_t *b = bin + y * bst, *bu = y > cy0 ? b - bst : NULL;
-        int32_t *l = lab + (y - cy0) * cw, *lu = y > cy0 ? l - cw : NULL;
+        const uint8_t *b = bin + y * bst;
         const int64_t yb = (y >> 1) * bwb;
-        for (int64_t x = cx0; x < cx1; x++) {
-            if (!b[x]) {
-                /* skip runs of background eight bytes at a time */
-                while (x + 8 < cx1) {
-                    uint64_t w;
-                    memcpy(&w, b + x + 1, 8);
-                    if (w) break;
-                    x += 8;
-                }
-                continue;
-            }
-            /* the neighbours already seen: left, and the three above. When the
-               left pixel is set, the two above it joined its blob already; when
-               the one above is set, so did its right neighbour */
+        int64_t n_cur = 0, j = 0;
+        int64_t x = cx0;
+        for (;;) {
+            while (x + 8 <= cx1 && load8(b + x) == 0) x += 8;
+            while (x < cx1 && !b[x]) x++;
+            if (x >= cx1) break;
+            const int64_t x0 = x;
+            while (x + 8 <= cx1 && load8(b + x) == -1) x += 8;
+            while (x < cx1 && b[x]) x++;
+            const int64_t x1 = x;                  /* the run is [x0, x1) */
+            /* the runs above that touch it: they end at or after x0 - 1 and start at
+               or before x1 (runs are in order, so j only moves right) */
+            while (j < n_prev && prev[j].x1 < x0) j++;
             int32_t lb = 0;
-            const int up_l = bu && x > cx0 && bu[x - 1], up = bu && bu[x];
-            const int up_r = bu && x + 1 < cx1 && bu[x + 1];
-            if (x > cx0 && b[x - 1]) {
-                lb = l[x - cx0 - 1];
-                if (up_r && !up && lu[x - cx0 + 1] != lb) lb = unite(parent, lb, lu[x - cx0 + 1]);
-            } else if (up) {
-                lb = lu[x - cx0];
-            } else if (up_l) {
-                lb = lu[x - cx0 - 1];
-                if (up_r && lu[x - cx0 + 1] != lb) lb = unite(parent, lb, lu[x - cx0 + 1]);
-            } else if (up_r) {
-                lb = lu[x - cx0 + 1];
-            }
+            for (int64_t k = j; k < n_prev && prev[k].x0 <= x1; k++)
+                lb = lb ? unite(parent, lb, prev[k].lab) : find_root(parent, prev[k].lab);
             if (!lb) {
                 if (next >= cap) return -1;
                 lb = next++;
@@ -303,14 +307,22 @@ static int64_t label(int64_t *ctx) {
                 a[0] = a[1] = a[2] = 0;
                 a[3] = INT64_MAX;
             }
-            l[x - cx0] = lb;
+            cur[n_cur].x0 = (int32_t)x0;
+            cur[n_cur].x1 = (int32_t)x1;
+            cur[n_cur].lab = lb;
+            n_cur++;
+            const int64_t len = x1 - x0;
             int64_t *a = acc + 4 * lb;
-            a[0] += 1;
-            a[1] += x;
-            a[2] += y;
-            int64_t key = yb + (x >> 1);
+            a[0] += len;
+            a[1] += len * x0 + len * (len - 1) / 2;
+            a[2] += len * y;
+            const int64_t key = yb + (x0 >> 1);
             if (key < a[3]) a[3] = key;
         }
+        tf_run *t = prev;
+        prev = cur;
+        cur = t;
+        n_prev = n_cur;
     }
     /* fold each provisional label's sums into its root; the roots are the blobs */
     int64_t n = 0;
