@@ -25,7 +25,7 @@ class LinkMonitor:
 
     def __init__(self, window: int = 50, max_frame: int = P.MAX_FRAME):
         self.decoder = P.FrameDecoder(max_frame, known_types=P.SURFACE_LINK_TYPES)
-        self.counts = {name: 0 for name in P.MESSAGE_NAMES.values()}
+        self.counts = {cls.name: 0 for cls in P.MESSAGES.values()}
         self.latest: dict[str, dict] = {}
         self.short_payload = 0
         self._surface_t = deque(maxlen=max(2, int(window)))
@@ -38,12 +38,12 @@ class LinkMonitor:
             if msg is None:
                 self.short_payload += 1
                 continue
-            name = P.MESSAGE_NAMES[f.msg_type]
+            name = msg.name
             self.counts[name] += 1
             d = P.message_dict(msg)
             d.update(seq=f.seq, t_ms=f.t_ms)
             self.latest[name] = d
-            if f.msg_type == P.MSG_SURFACE:
+            if f.msg_type == P.MsgType.SURFACE:
                 self._surface_t.append(f.t_ms)
             if host_s is not None:
                 self._host_t.append(host_s)

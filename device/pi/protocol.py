@@ -15,6 +15,7 @@ can import it without numpy.
 from __future__ import annotations
 
 import binascii
+import enum
 import math
 import struct
 from dataclasses import dataclass
@@ -31,13 +32,17 @@ CRC_LEN = 2
 MIN_FRAME = HEADER_LEN + CRC_LEN  # a frame with an empty payload
 MAX_FRAME = 64                    # decoded bytes (header + payload + crc)
 
-# message types: 0x01-0x0F Pi -> MCU, 0x10-0x1F MCU -> Pi, 0x20-0x3F rig link
-MSG_SURFACE = 0x01
-MSG_IMU_SUMMARY = 0x02
-MSG_HEARTBEAT = 0x03
-MSG_FAULT = 0x04
-MSG_GAIT = 0x10
-MSG_COMMAND = 0x11
+
+class MsgType(enum.IntEnum):
+    """The surface link's message types: 0x01-0x0F Pi -> MCU, 0x10-0x1F MCU -> Pi
+    (0x20-0x3F are the rig link's, host/rig/link.py). Each has one class below."""
+    SURFACE = 0x01
+    IMU_SUMMARY = 0x02
+    HEARTBEAT = 0x03
+    FAULT = 0x04
+    GAIT = 0x10
+    COMMAND = 0x11
+
 
 SURFACE_CLASSES = ("no-touch", "hard", "soft", "slippery")   # class_id 0..3
 CLASS_UNKNOWN = 0xFF
@@ -333,16 +338,53 @@ class _Fields:
 
 # -- typed messages ------------------------------------------------------------
 
-_SURFACE = struct.Struct("<BBBBBBBBHHHHH")      # 18 bytes
-_IMU = struct.Struct("<hhhhhhHBH")              # 17 bytes
-_HEARTBEAT = struct.Struct("<IHHbH")            # 11 bytes
-_FAULT = struct.Struct("<HHH")                  # 6 bytes
-_GAIT = struct.Struct("<BHhhhB")                # 10 bytes
-_COMMAND = struct.Struct("<BH")                 # 3 bytes
+class Message:
+    """A typed message: a dataclass of its fields, registered by :func:`message`
+    with its ``msg_type`` (a :class:`MsgType`), its ``name`` and its payload
+    ``layout`` (a ``struct.Struct``). A subclass writes ``pack`` (never raises:
+    clamps and flags) and ``unpack`` (a payload of at least ``layout.size`` bytes)."""
+    msg_type: MsgType
+    name: str
+    layout: struct.Struct
+
+    def encode(self, seq: int, t_ms: int) -> bytes:
+        """Wire bytes of this message (delimiter included); never raises."""
+        return encode_frame(self.msg_type, self.pack(), seq, t_ms)
+
+    @classmethod
+    def decode(cls, payload: bytes):
+        """This message from ``payload``, or None when it is shorter than the layout
+        (extra trailing bytes are ignored: room for v1 additions). Never raises."""
+        if len(payload) < cls.layout.size:
+            return None
+        return cls.unpack(payload)
+
+    def names(self) -> dict:
+        """Names of coded fields, for :func:`message_dict` (none by default)."""
+        return {}
 
 
+MESSAGES: dict[MsgType, type[Message]] = {}     # the one table, filled by @message
+
+
+def message(msg_type: MsgType, layout: str):
+    """Class decorator: give a message class its type, name and payload layout and
+    record it in :data:`MESSAGES` (one class per type)."""
+    msg_type = MsgType(msg_type)
+
+    def register(cls):
+        if msg_type in MESSAGES:
+            raise ValueError(f"msg_type {msg_type.name} (0x{msg_type:02X}) already has "
+                             f"class {MESSAGES[msg_type].__name__}, not {cls.__name__}")
+        cls.msg_type, cls.name, cls.layout = msg_type, msg_type.name.lower(), struct.Struct(layout)
+        MESSAGES[msg_type] = cls
+        return cls
+    return register
+
+
+@message(MsgType.SURFACE, "<BBBBBBBBHHHHH")        # 18 bytes
 @dataclass
-class Surface:
+class Surface(Message):
     """SURFACE (0x01, Pi -> MCU): the surface decision for one window."""
     class_id: int = CLASS_UNKNOWN                # 0..3 (SURFACE_CLASSES), 255 unknown
     probs: tuple = (0.0, 0.0, 0.0, 0.0)          # class probabilities 0..1, sent as u8/255
@@ -355,7 +397,6 @@ class Surface:
     pins: int = 0                                # pins found, 0..65535
     faults: int = 0                              # fault bits (u16)
     texture_id: int = TEXTURE_NONE               # 0..254, 255 none
-    msg_type = MSG_SURFACE
 
     def pack(self) -> bytes:
         k = _Fields()
@@ -367,11 +408,11 @@ class Surface:
         rest = (k.deg(self.shear_dir_deg), k.num(self.shear_px, 100.0, 0, 0xFFFF),
                 k.num(self.load_n, 100.0, 0, 0xFFFF), k.whole(self.pins, 0, 0xFFFF))
         faults = k.whole(self.faults, 0, 0xFFFF)
-        return _SURFACE.pack(cid, *probs, flags, conf, tex, *rest, faults | k.faults)
+        return self.layout.pack(cid, *probs, flags, conf, tex, *rest, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Surface":
-        cid, p0, p1, p2, p3, flags, conf, tex, d, mag, load, pins, faults = _SURFACE.unpack_from(p)
+        cid, p0, p1, p2, p3, flags, conf, tex, d, mag, load, pins, faults = cls.layout.unpack_from(p)
         return cls(cid, (p0 / 255, p1 / 255, p2 / 255, p3 / 255), bool(flags & 1),
                    bool(flags & 2), conf / 255, d / 100, mag / 100, load / 100, pins, faults, tex)
 
@@ -380,16 +421,19 @@ class Surface:
         c = self.class_id
         return SURFACE_CLASSES[c] if isinstance(c, int) and 0 <= c < 4 else "unknown"
 
+    def names(self) -> dict:
+        return {"class_name": self.class_name}
 
+
+@message(MsgType.IMU_SUMMARY, "<hhhhhhHBH")        # 17 bytes
 @dataclass
-class ImuSummary:
+class ImuSummary(Message):
     """IMU summary (0x02, Pi -> MCU): means over the window, in mg and 0.1 deg/s."""
     acc_mg: tuple = (0.0, 0.0, 0.0)              # mean acceleration, mg, i16
     gyro_dps: tuple = (0.0, 0.0, 0.0)            # mean rate, deg/s, sent in 0.1 deg/s, i16
     acc_peak_mg: float = 0.0                     # peak |a| in the window, mg, u16
     samples: int = 0                             # samples averaged, 0..255
     faults: int = 0
-    msg_type = MSG_IMU_SUMMARY
 
     def pack(self) -> bytes:
         k = _Fields()
@@ -398,24 +442,24 @@ class ImuSummary:
         peak = k.num(self.acc_peak_mg, 1.0, 0, 0xFFFF)
         n = k.whole(self.samples, 0, 255)
         faults = k.whole(self.faults, 0, 0xFFFF)
-        return _IMU.pack(*acc, *gyro, peak, n, faults | k.faults)
+        return self.layout.pack(*acc, *gyro, peak, n, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "ImuSummary":
-        ax, ay, az, gx, gy, gz, peak, n, faults = _IMU.unpack_from(p)
+        ax, ay, az, gx, gy, gz, peak, n, faults = cls.layout.unpack_from(p)
         return cls((float(ax), float(ay), float(az)), (gx / 10, gy / 10, gz / 10), float(peak),
                    n, faults)
 
 
+@message(MsgType.HEARTBEAT, "<IHHbH")        # 11 bytes
 @dataclass
-class Heartbeat:
+class Heartbeat(Message):
     """HEARTBEAT (0x03, Pi -> MCU), about once a second."""
     uptime_s: int = 0                            # u32
     rate_fps: float = 0.0                        # camera frame rate, sent in 0.1 fps
     frames_dropped: int = 0                      # u16, saturates
     temp_c: int = -128                           # CPU temperature, i8, -128 unknown
     faults: int = 0
-    msg_type = MSG_HEARTBEAT
 
     def pack(self) -> bytes:
         k = _Fields()
@@ -424,42 +468,42 @@ class Heartbeat:
         dropped = k.whole(self.frames_dropped, 0, 0xFFFF)
         temp = k.num(self.temp_c, 1.0, -128, 127)
         faults = k.whole(self.faults, 0, 0xFFFF)
-        return _HEARTBEAT.pack(up, rate, dropped, temp, faults | k.faults)
+        return self.layout.pack(up, rate, dropped, temp, faults | k.faults)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Heartbeat":
-        up, rate, dropped, temp, faults = _HEARTBEAT.unpack_from(p)
+        up, rate, dropped, temp, faults = cls.layout.unpack_from(p)
         return cls(up, rate / 10, dropped, temp, faults)
 
 
+@message(MsgType.FAULT, "<HHH")        # 6 bytes
 @dataclass
-class Fault:
+class Fault(Message):
     """FAULT (0x04, Pi -> MCU): sent when a fault is raised or cleared."""
     faults: int = 0                              # bits active now
     raised: int = 0                              # bits that became active since the last FAULT
     pins_lost: int = 0                           # reference pins not found, u16
-    msg_type = MSG_FAULT
 
     def pack(self) -> bytes:
         k = _Fields()
         faults = k.whole(self.faults, 0, 0xFFFF)
         raised = k.whole(self.raised, 0, 0xFFFF)
         lost = k.whole(self.pins_lost, 0, 0xFFFF)
-        return _FAULT.pack(faults | k.faults, raised, lost)
+        return self.layout.pack(faults | k.faults, raised, lost)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Fault":
-        return cls(*_FAULT.unpack_from(p))
+        return cls(*cls.layout.unpack_from(p))
 
 
+@message(MsgType.GAIT, "<BHhhhB")        # 10 bytes
 @dataclass
-class Gait:
+class Gait(Message):
     """GAIT context (0x10, MCU -> Pi): what the gait expects of this foot."""
     phase: int = PHASE_STANCE                    # 0 stance, 1 swing
     load_n: float = 0.0                          # expected normal load, 0..6553.5 N in 0.1 N
     vel_mm_s: tuple = (0.0, 0.0, 0.0)            # expected foot velocity x, y, z, mm/s, i16
     flags: int = 0                               # GAIT_FLAG_CLAMPED | GAIT_FLAG_NONFINITE
-    msg_type = MSG_GAIT
 
     def pack(self) -> bytes:
         k = _Fields()
@@ -469,69 +513,50 @@ class Gait:
         flags, _ = _int_field(self.flags, 0, 255, 0)
         flags |= (GAIT_FLAG_CLAMPED if k.faults & FAULT_CLAMPED else 0) | \
                  (GAIT_FLAG_NONFINITE if k.faults & FAULT_NONFINITE else 0)
-        return _GAIT.pack(phase, load, *vel, flags)
+        return self.layout.pack(phase, load, *vel, flags)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Gait":
-        phase, load, vx, vy, vz, flags = _GAIT.unpack_from(p)
+        phase, load, vx, vy, vz, flags = cls.layout.unpack_from(p)
         return cls(phase, load / 10, (float(vx), float(vy), float(vz)), flags)
 
 
+@message(MsgType.COMMAND, "<BH")        # 3 bytes
 @dataclass
-class Command:
+class Command(Message):
     """COMMAND (0x11, MCU -> Pi): re-zero, set rate (fps) or request status."""
     command: int = CMD_REQUEST_STATUS
     arg: int = 0                                 # CMD_SET_RATE: frames per second; else 0
-    msg_type = MSG_COMMAND
 
     def pack(self) -> bytes:
         cmd, _ = _int_field(self.command, 0, 255, 0)
         arg, _ = _int_field(self.arg, 0, 0xFFFF, 0)
-        return _COMMAND.pack(cmd, arg)
+        return self.layout.pack(cmd, arg)
 
     @classmethod
     def unpack(cls, p: bytes) -> "Command":
-        return cls(*_COMMAND.unpack_from(p))
+        return cls(*cls.layout.unpack_from(p))
+
+    def names(self) -> dict:
+        return {"command_name": COMMAND_NAMES.get(self.command, "unknown")}
 
 
-MESSAGES = {cls.msg_type: cls for cls in (Surface, ImuSummary, Heartbeat, Fault, Gait, Command)}
-PAYLOAD_LEN = {MSG_SURFACE: _SURFACE.size, MSG_IMU_SUMMARY: _IMU.size,
-               MSG_HEARTBEAT: _HEARTBEAT.size, MSG_FAULT: _FAULT.size, MSG_GAIT: _GAIT.size,
-               MSG_COMMAND: _COMMAND.size}
-SURFACE_LINK_TYPES = frozenset(MESSAGES)
-MESSAGE_NAMES = {MSG_SURFACE: "surface", MSG_IMU_SUMMARY: "imu_summary",
-                 MSG_HEARTBEAT: "heartbeat", MSG_FAULT: "fault", MSG_GAIT: "gait",
-                 MSG_COMMAND: "command"}
-
-
-def _encode(self, seq: int, t_ms: int) -> bytes:
-    return encode_frame(self.msg_type, self.pack(), seq, t_ms)
-
-
-for _cls in MESSAGES.values():
-    _cls.encode = _encode
-    _cls.encode.__doc__ = "Wire bytes of this message (delimiter included); never raises."
+SURFACE_LINK_TYPES = frozenset(MsgType)
 
 
 def decode_message(frame: RawFrame):
     """The typed message in ``frame``, or None for an unknown type or a payload
-    shorter than its table (extra trailing bytes are ignored: room for v1
-    additions). Never raises."""
+    shorter than its layout (:meth:`Message.decode`). Never raises."""
     cls = MESSAGES.get(frame.msg_type)
-    if cls is None or len(frame.payload) < PAYLOAD_LEN[frame.msg_type]:
-        return None
-    return cls.unpack(frame.payload)
+    return None if cls is None else cls.decode(frame.payload)
 
 
-def message_dict(msg) -> dict:
+def message_dict(msg: Message) -> dict:
     """A JSON-ready dict of a typed message (fault bits also by name)."""
-    d = {"type": MESSAGE_NAMES.get(msg.msg_type, hex(msg.msg_type))}
+    d = {"type": msg.name}
     for k, v in msg.__dict__.items():
         d[k] = list(v) if isinstance(v, tuple) else v
-    if isinstance(msg, Surface):
-        d["class_name"] = msg.class_name
-    if isinstance(msg, Command):
-        d["command_name"] = COMMAND_NAMES.get(msg.command, "unknown")
+    d.update(msg.names())
     for k in ("faults", "raised"):
         if k in d:
             d[k + "_names"] = fault_names(d[k])

@@ -162,13 +162,13 @@ def test_a_short_payload_is_counted_and_changes_nothing():
     u = machine.UART(0, 921600)
     link = SL.SurfaceLink(u, clock=lambda: 0)
     fault = P.Fault(faults=P.FAULT_CAMERA, raised=P.FAULT_CAMERA, pins_lost=3).pack()
-    for msg_type, payload in ((P.MSG_SURFACE, bytes(17)), (P.MSG_IMU_SUMMARY, bytes(16)),
-                              (P.MSG_HEARTBEAT, bytes(10)), (P.MSG_FAULT, fault[:5])):
+    for msg_type, payload in ((P.MsgType.SURFACE, bytes(17)), (P.MsgType.IMU_SUMMARY, bytes(16)),
+                              (P.MsgType.HEARTBEAT, bytes(10)), (P.MsgType.FAULT, fault[:5])):
         u.feed(P.encode_frame(msg_type, payload, 1, 0))
     assert link.poll() == 4
     assert (link.short_payload, link.unknown_type) == (4, 0)
     assert not link.state().valid and link.heartbeats == 0 and link.fault_bits == 0
-    u.feed(P.encode_frame(P.MSG_FAULT, fault, 2, 0))
+    u.feed(P.encode_frame(P.MsgType.FAULT, fault, 2, 0))
     assert link.poll() == 1 and (link.fault_bits, link.pins_lost) == (P.FAULT_CAMERA, 3)
 # -- a long session ----------------------------------------------------------------
 

@@ -67,27 +67,27 @@ def _clean(v):
 
 def raw_fields(msg_type: int, payload: bytes) -> dict:
     """The wire integers, named as device/micropython/surface_link.py names them."""
-    if msg_type == P.MSG_SURFACE:
+    if msg_type == P.MsgType.SURFACE:
         (cid, p0, p1, p2, p3, flags, conf, tex, d, mag, load, pins,
          faults) = struct.unpack("<BBBBBBBBHHHHH", payload)
         return {"class_id": cid, "probs_u8": [p0, p1, p2, p3], "contact": bool(flags & 1),
                 "slip": bool(flags & 2), "slip_conf_u8": conf, "texture_id": tex,
                 "shear_dir_deg_x100": d, "shear_px_x100": mag, "load_n_x100": load,
                 "pins": pins, "faults": faults}
-    if msg_type == P.MSG_IMU_SUMMARY:
+    if msg_type == P.MsgType.IMU_SUMMARY:
         *v, peak, n, faults = struct.unpack("<hhhhhhHBH", payload)
         return {"imu": v, "acc_peak_mg": peak, "imu_samples": n, "faults": faults}
-    if msg_type == P.MSG_HEARTBEAT:
+    if msg_type == P.MsgType.HEARTBEAT:
         up, rate, dropped, temp, faults = struct.unpack("<IHHbH", payload)
         return {"pi_uptime_s": up, "pi_rate_fps_x10": rate, "frames_dropped": dropped,
                 "temp_c": temp, "fault_bits": faults}
-    if msg_type == P.MSG_FAULT:
+    if msg_type == P.MsgType.FAULT:
         f, r, lost = struct.unpack("<HHH", payload)
         return {"fault_bits": f, "fault_raised": r, "pins_lost": lost}
-    if msg_type == P.MSG_GAIT:
+    if msg_type == P.MsgType.GAIT:
         phase, load, vx, vy, vz, flags = struct.unpack("<BHhhhB", payload)
         return {"phase": phase, "load_n_x10": load, "vel_mm_s": [vx, vy, vz], "flags": flags}
-    if msg_type == P.MSG_COMMAND:
+    if msg_type == P.MsgType.COMMAND:
         c, a = struct.unpack("<BH", payload)
         return {"command": c, "arg": a}
     return {}
@@ -159,7 +159,7 @@ def build() -> dict:
         wire = msg.encode(seq, t_ms)
         decoded = P.decode_message(P.FrameDecoder().feed(wire)[0])
         msgs.append({
-            "name": name, "type": P.MESSAGE_NAMES[msg.msg_type], "msg_type": msg.msg_type,
+            "name": name, "type": msg.name, "msg_type": int(msg.msg_type),
             "seq": seq, "t_ms": t_ms,
             "given": {k: _clean(v) for k, v in msg.__dict__.items()},
             "payload_hex": payload.hex(), "wire_hex": wire.hex(), "wire_len": len(wire),

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -235,7 +234,7 @@ def test_decoder_never_raises_on_any_bytes(chunks):
 
 def test_unknown_types_and_newer_versions_are_skipped_and_counted():
     d = P.FrameDecoder(known_types=P.SURFACE_LINK_TYPES)
-    body = P.HEADER.pack(2, P.MSG_SURFACE, 1, 0) + P.Surface().pack()
+    body = P.HEADER.pack(2, P.MsgType.SURFACE, 1, 0) + P.Surface().pack()
     newer = P.cobs_encode(body + P.crc16(body).to_bytes(2, "little")) + b"\x00"
     frames = d.feed(P.encode_frame(0x0E, b"abc", 1, 0) + newer + P.Surface().encode(2, 0))
     assert [f.seq for f in frames] == [2]
@@ -246,9 +245,9 @@ def test_unknown_types_and_newer_versions_are_skipped_and_counted():
 
 
 def test_short_payload_is_not_a_message_but_longer_is_accepted():
-    short = P.FrameDecoder().feed(P.encode_frame(P.MSG_SURFACE, b"\x01" * 5, 1, 0))[0]
+    short = P.FrameDecoder().feed(P.encode_frame(P.MsgType.SURFACE, b"\x01" * 5, 1, 0))[0]
     assert P.decode_message(short) is None
-    longer = P.FrameDecoder().feed(P.encode_frame(P.MSG_COMMAND, b"\x01\x02\x00\xff", 1, 0))[0]
+    longer = P.FrameDecoder().feed(P.encode_frame(P.MsgType.COMMAND, b"\x01\x02\x00\xff", 1, 0))[0]
     assert P.decode_message(longer) == P.Command(1, 2)
 
 
@@ -283,7 +282,8 @@ def test_docs_quote_every_golden_vector_and_the_table_sizes():
     doc = (ROOT / "docs" / "protocol.md").read_text()
     for v in VECTORS["messages"]:
         assert v["wire_hex"] in doc, v["name"]
-    for t, n in P.PAYLOAD_LEN.items():
+    for t, cls in P.MESSAGES.items():
+        n = cls.layout.size
         assert f"| 0x{t:02X} | " in doc
         assert f"| {n} | {n + 12} |" in doc, (hex(t), n)
 
@@ -409,12 +409,39 @@ def test_message_dict_holds_every_field_and_the_names_of_type_class_command_and_
     assert P.message_dict(P.Gait(P.PHASE_SWING, 2.5, (1.0, -2.0, 0.0), 0)) == {
         "type": "gait", "phase": P.PHASE_SWING, "load_n": 2.5, "vel_mm_s": [1.0, -2.0, 0.0],
         "flags": 0}
+    assert P.message_dict(P.ImuSummary(samples=3))["type"] == "imu_summary"
 
-    @dataclass
-    class Other:                  # a message type the table does not name
-        x: tuple = (1, 2)
-        msg_type = 0x7E
-    assert P.message_dict(Other()) == {"type": "0x7e", "x": [1, 2]}
+
+# -- one class per message type (issue 31) -----------------------------------------------
+
+SIZES = {0x01: 18, 0x02: 17, 0x03: 11, 0x04: 6, 0x10: 10, 0x11: 3}
+
+
+def test_every_message_type_has_one_class_in_the_one_table():
+    assert set(P.MESSAGES) == set(P.MsgType) == set(SIZES) == P.SURFACE_LINK_TYPES
+    for t, cls in P.MESSAGES.items():
+        assert (cls.msg_type, cls.name, cls.layout.size) == (t, t.name.lower(), SIZES[t])
+        assert cls.encode is P.Message.encode and cls.decode.__func__ is P.Message.decode.__func__
+        assert "msg_type" not in P.message_dict(cls())     # a class attribute, not a field
+
+
+def test_a_second_class_for_a_type_or_a_type_without_an_enum_member_is_refused():
+    again = type("Again", (P.Message,), {})
+    with pytest.raises(ValueError, match="SURFACE \\(0x01\\) already has class Surface, not Again"):
+        P.message(P.MsgType.SURFACE, "<B")(again)
+    assert P.MESSAGES[P.MsgType.SURFACE] is P.Surface and not hasattr(again, "layout")
+    with pytest.raises(ValueError, match="126"):
+        P.message(0x7E, "<B")
+
+
+@pytest.mark.parametrize("cls", list(P.MESSAGES.values()), ids=lambda c: c.name)
+def test_decode_needs_the_whole_layout_and_ignores_trailing_bytes(cls):
+    payload = cls(faults=P.FAULT_IMU).pack() if "faults" in cls.__dataclass_fields__ \
+        else cls().pack()
+    assert cls.decode(payload[:-1]) is None and cls.decode(b"") is None
+    assert cls.decode(payload) == cls.decode(payload + b"\xff\x01") == cls.unpack(payload)
+    raw = P.FrameDecoder().feed(P.encode_frame(cls.msg_type, payload[:-1], 1, 0))[0]
+    assert P.decode_message(raw) is None
 
 
 @pytest.mark.parametrize("command, arg, want", [
@@ -443,7 +470,7 @@ def test_the_decoder_counts_every_good_and_every_bad_frame():
     """The counters add up: two good frames are 2, two frames with a bad CRC are 2."""
     d = P.FrameDecoder()
     good = P.Surface().encode(1, 0) + P.Surface().encode(2, 0)
-    body = bytearray(P.HEADER.pack(P.VERSION, P.MSG_SURFACE, 3, 0) + P.Surface().pack())
+    body = bytearray(P.HEADER.pack(P.VERSION, P.MsgType.SURFACE, 3, 0) + P.Surface().pack())
     bad = P.cobs_encode(bytes(body) + ((P.crc16(bytes(body)) ^ 1).to_bytes(2, "little"))) + b"\x00"
     assert len(d.feed(good + bad + bad)) == 2
     assert (d.frames_ok, d.crc_errors) == (2, 2)

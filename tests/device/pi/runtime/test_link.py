@@ -33,8 +33,8 @@ def test_writer_keeps_newest_surface_and_never_drops_fault():
     port.accept = False
     w = LinkWriter(port, stall_ms=10)
     for i in range(5):
-        w.send("surface", P.MSG_SURFACE, P.Surface(pins=i).encode(i, 0))
-        w.send("fault", P.MSG_FAULT, P.Fault(faults=1 << (i % 3)).encode(100 + i, 0))
+        w.send("surface", P.MsgType.SURFACE, P.Surface(pins=i).encode(i, 0))
+        w.send("fault", P.MsgType.FAULT, P.Fault(faults=1 << (i % 3)).encode(100 + i, 0))
     assert w.packets_dropped == 4 and w.pending == 6
     time.sleep(0.02)
     assert w.stalled
@@ -55,8 +55,8 @@ def test_writer_stream_stays_framed_under_any_port_capacity(ops):
     w = LinkWriter(port)
     sent_faults = []
     for i, (kind, cap) in enumerate(ops):
-        mt = {"surface": P.MSG_SURFACE, "fault": P.MSG_FAULT, "imu": P.MSG_IMU_SUMMARY,
-              "heartbeat": P.MSG_HEARTBEAT}[kind]
+        mt = {"surface": P.MsgType.SURFACE, "fault": P.MsgType.FAULT, "imu": P.MsgType.IMU_SUMMARY,
+              "heartbeat": P.MsgType.HEARTBEAT}[kind]
         msg = {"surface": P.Surface(pins=i), "fault": P.Fault(pins_lost=i),
                "imu": P.ImuSummary(samples=i % 255), "heartbeat": P.Heartbeat(uptime_s=i)}[kind]
         w.send(kind, mt, msg.encode(i, 0))
@@ -232,9 +232,9 @@ def _run_writer(w: LinkWriter, seconds: float, until=None) -> tuple[int, float]:
     t_end = time.monotonic() + seconds
     while time.monotonic() < t_end and not (until is not None and until(w)):
         t = time.monotonic()
-        w.send("surface", P.MSG_SURFACE, _surface(i))
-        w.send("imu", P.MSG_IMU_SUMMARY, P.ImuSummary(samples=i % 255).encode(i & 0xFFFF, 0))
-        w.send("heartbeat", P.MSG_HEARTBEAT, P.Heartbeat(uptime_s=i).encode(i & 0xFFFF, 0))
+        w.send("surface", P.MsgType.SURFACE, _surface(i))
+        w.send("imu", P.MsgType.IMU_SUMMARY, P.ImuSummary(samples=i % 255).encode(i & 0xFFFF, 0))
+        w.send("heartbeat", P.MsgType.HEARTBEAT, P.Heartbeat(uptime_s=i).encode(i & 0xFFFF, 0))
         w.pump()
         worst = max(worst, time.monotonic() - t)
         i += 3
@@ -305,7 +305,7 @@ def test_a_pty_whose_peer_reads_again_clears_the_stall_and_packets_flow():
         i = 100000
         while time.monotonic() < t_end and w.packets_sent - sent_before <= 100:
             drain()
-            w.send("surface", P.MSG_SURFACE, _surface(i))
+            w.send("surface", P.MsgType.SURFACE, _surface(i))
             w.pump()
             i += 1
             time.sleep(0.002)
@@ -546,4 +546,4 @@ def test_requests_of_one_pass_share_one_answer(tmp_path):
     st = rt.status()
     assert (st["status_requests"], st["status_requests_coalesced"]) == (6, 4)
     assert rt.commands == 6
-    assert rt.writer.sent_by_type.get(P.MSG_HEARTBEAT, 0) >= 2
+    assert rt.writer.sent_by_type.get(P.MsgType.HEARTBEAT, 0) >= 2

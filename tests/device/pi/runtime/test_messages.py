@@ -84,7 +84,7 @@ _GAIT = struct.Struct("<BHhhhB")
 
 def raw_gait(phase, load_x10, vel, flags, seq):
     """A GAIT frame with any phase and flags byte (Gait.pack clamps the phase)."""
-    return P.encode_frame(P.MSG_GAIT, _GAIT.pack(phase, load_x10, *vel, flags), seq, 0)
+    return P.encode_frame(P.MsgType.GAIT, _GAIT.pack(phase, load_x10, *vel, flags), seq, 0)
 
 
 #: (frame it is sent at, wire bytes, taken?): a good swing, then a phase of 2 and of
