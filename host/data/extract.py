@@ -14,7 +14,7 @@ from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutError, LayoutMapper
 from device.pi.vision.layout import layout_for_profile as _layout_for_profile
 from device.pi.faults import FAULT_NO_REFERENCE
-from host.data.windows import DataError
+from host.data.errors import DataError
 
 
 def layout_for_profile(profile: str) -> np.ndarray:

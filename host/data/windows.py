@@ -18,6 +18,7 @@ import numpy as np
 
 from device.checks import whole_number
 from device.pi.protocol import SURFACE_CLASSES
+from host.data.errors import DataError  # re-exported: the old home of DataError
 
 if TYPE_CHECKING:
     from host.data.extract import ClipFeatures
@@ -36,10 +37,6 @@ LABEL_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 RESERVED_LABELS = ("none", NO_TOUCH)
 IMU_CHANNELS = 6                            # ax, ay, az [g], gx, gy, gz [deg/s]
 DEFAULT_FRAME_SIZE = 32
-
-
-class DataError(ValueError):
-    """A bad data spec; the message names the file, row, column or key and the value."""
 
 
 # ----------------------------------------------------------------------------
