@@ -12,7 +12,7 @@ import socket
 import threading
 import time
 from device.pi.runtime.mcapfiles import INSTALL_HINT, McapLogError
-from device.pi.runtime.mcapmsg import CHANNELS
+from device.pi.runtime.mcapmsg import channels as _channels
 
 #: messages the SDK's server queues per viewer before it drops the oldest (uncounted;
 #: :class:`_LiveFront` reads them at once and does the counted dropping)
@@ -70,7 +70,7 @@ class LiveView:
                                f"({exc.strerror or exc})") from None
         self.host, self.port = host, self.front.port
         self._ch = {}
-        for topic, schema in (channels or CHANNELS).items():
+        for topic, schema in (channels or _channels()).items():
             sch = foxglove.Schema(name=schema["title"], encoding="jsonschema",
                                   data=json.dumps(schema).encode())
             self._ch[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json",
