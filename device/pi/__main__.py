@@ -90,13 +90,15 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
 
     if args.mcap or args.foxglove:
-        from device.pi.runtime.mcaplog import LiveView, McapLog, McapLogError, parse_hostport
+        from device.pi.runtime.mcaplog import (LiveView, McapLog, McapLogError, parse_hostport,
+                                               run_metadata)
         try:
             live = (LiveView(*parse_hostport(args.foxglove),
                              max_clients=args.foxglove_max_clients)
                     if args.foxglove else None)
             rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
-                              live=live, background=True, keep_existing=True)
+                              live=live, background=True, keep_existing=True,
+                              metadata=run_metadata(rt))
         except (McapLogError, ValueError) as exc:
             print(f"device.pi run: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT

@@ -7,12 +7,13 @@ queue whose overflow is dropped and counted (docs/viewing.md). Split from
 from __future__ import annotations
 
 import json
+import re
 import selectors
 import socket
 import threading
 import time
 from device.pi.runtime.mcapfiles import INSTALL_HINT, McapLogError
-from device.pi.runtime.mcapmsg import CHANNELS
+from device.pi.runtime.mcapmsg import channels as _channels
 
 #: messages the SDK's server queues per viewer before it drops the oldest (uncounted;
 #: :class:`_LiveFront` reads them at once and does the counted dropping)
@@ -70,7 +71,7 @@ class LiveView:
                                f"({exc.strerror or exc})") from None
         self.host, self.port = host, self.front.port
         self._ch = {}
-        for topic, schema in (channels or CHANNELS).items():
+        for topic, schema in (channels or _channels()).items():
             sch = foxglove.Schema(name=schema["title"], encoding="jsonschema",
                                   data=json.dumps(schema).encode())
             self._ch[topic] = foxglove.Channel(topic, schema=sch, message_encoding="json",
@@ -119,7 +120,7 @@ class LiveView:
 class _Conn:
     """One viewer's connection through :class:`_LiveFront`."""
     __slots__ = ("c", "u", "deadline", "req", "to_client", "to_up", "head", "ws", "inbuf",
-                 "left", "dropping", "drop_msg", "masks")
+                 "left", "dropping", "drop_msg", "masks", "alias")
 
     def __init__(self, c: socket.socket, deadline: float):
         self.c, self.u, self.deadline = c, None, deadline
@@ -133,6 +134,7 @@ class _Conn:
         self.dropping = False             # the current frame is being dropped
         self.drop_msg = False             # the current fragmented message is dropped
         self.masks = {}                   # socket -> registered selector events
+        self.alias = False                # asked for foxglove.websocket.v1 (see _subprotocol)
 
 
 class _LiveFront:
@@ -350,7 +352,7 @@ class _LiveFront:
         u.setblocking(False)
         conn.u = u
         self._conns[u] = conn
-        conn.to_up += conn.req
+        conn.to_up += _subprotocol(conn, bytes(conn.req))
         conn.req = bytearray()
 
     def _from_server(self, conn: _Conn, data: bytes) -> None:
@@ -359,7 +361,10 @@ class _LiveFront:
             end = conn.head.find(b"\r\n\r\n")
             if end < 0:
                 return
-            conn.to_client += conn.head[:end + 4]
+            head = bytes(conn.head[:end + 4])
+            if conn.alias:                         # answer in the name the viewer asked
+                head = _PROTO_ANSWER.sub(lambda m: m.group(1) + OLD_SUBPROTOCOL.encode(), head)
+            conn.to_client += head
             conn.ws = bytes(conn.head[:13]) == b"HTTP/1.1 101 "
             data = bytes(conn.head[end + 4:])
             conn.head = bytearray()
@@ -407,6 +412,27 @@ class _LiveFront:
             pos += h
         mv.release()
         del buf[:pos]
+
+
+#: the subprotocol older viewers ask for; the SDK's server accepts only SDK_SUBPROTOCOL,
+#: the same protocol on the wire under a new name (Foxglove's stance, quoted in
+#: lichtblick-suite/lichtblick pull request 819): the front renames it both ways
+OLD_SUBPROTOCOL, SDK_SUBPROTOCOL = "foxglove.websocket.v1", "foxglove.sdk.v1"
+_PROTO_ASK = re.compile(rb"(?im)^(sec-websocket-protocol:[ \t]*)([^\r\n]*)")
+_PROTO_ANSWER = re.compile(rb"(?im)^(sec-websocket-protocol:[ \t]*)foxglove\.sdk\.v1")
+
+
+def _subprotocol(conn: _Conn, req: bytes) -> bytes:
+    """The upgrade request, its ``foxglove.websocket.v1`` asked as ``foxglove.sdk.v1``
+    when the viewer does not offer the latter (``conn.alias`` then set)."""
+    m = _PROTO_ASK.search(req)
+    if m is None:
+        return req
+    offered = [p.strip() for p in m.group(2).decode("latin-1").split(",")]
+    if OLD_SUBPROTOCOL not in offered or SDK_SUBPROTOCOL in offered:
+        return req
+    conn.alias = True
+    return req[:m.start(2)] + SDK_SUBPROTOCOL.encode() + req[m.end(2):]
 
 
 def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int]:

@@ -19,7 +19,7 @@ import json
 import os
 from pathlib import Path
 
-from device.pi.runtime.mcapmsg import CHANNELS
+from device.pi.runtime.mcapmsg import channels
 
 #: ``--mcap-max-mb`` bounds, MB: below ~1 MB a file is mostly schemas and summary
 MAX_MB_MIN = 1.0
@@ -157,8 +157,9 @@ def recover(src, dst) -> int:
     well-formed MCAP file ``dst``; the number of messages kept."""
     W = writer_module()
     msgs, _ = read_log(src)
-    topics = {**CHANNELS, **{m["topic"]: {"title": m["schema"]} for m in msgs
-                             if m["topic"] not in CHANNELS}}
+    known = channels()
+    topics = {**known, **{m["topic"]: {"title": m["schema"]} for m in msgs
+                          if m["topic"] not in known}}
     with open(dst, "wb") as fh:
         w = W.Writer(fh, compression=W.CompressionType.ZSTD)
         w.start(profile="", library="tacfoot")

@@ -18,10 +18,17 @@ topic                        schema                     when
 ``/tacfoot/faults``          ``tacfoot.Faults``         every FAULT packet sent
 ===========================  =========================  ==============================
 
-Times: a frame's messages are logged at the frame's own time (``t_s`` of the JSON
-log, in ns). Packets and faults, which happen between frames, are logged on the
-same time line: the runtime's clock, shifted by the last frame's offset between
-the two (clamped at 0); those before the first frame at 0.
+Times are Unix-epoch ns (so a log lines up with the robot's other logs): the
+runtime's clock is anchored to ``time.time_ns()`` once, when the log is made. A
+frame's messages are logged at the frame's own time (``t_s`` of the JSON log), its
+time line anchored at the first frame to the clock's epoch time of its arrival.
+Packets and faults, which happen between frames, are logged on the same time line:
+the runtime's clock, shifted by the last frame's offset between the two (those
+before the first frame at the clock's epoch time). Within a topic a log time never
+steps back: one that would (the offset moved between two packets) is logged 1 ns
+after its topic's last, counted in ``mcap_time_clamped``. Each file starts with a
+``tacfoot`` Metadata record (:func:`run_metadata`: version, profile, model hashes,
+config).
 
 Files roll over by size (``run.mcap``, ``run-0001.mcap`` ... once a file reaches
 ``max_mb``), each a complete MCAP file; the runtime's log never truncates one
@@ -74,7 +81,7 @@ from device.pi.runtime.mcapfiles import (  # noqa: F401  (the names this module 
 from device.pi.runtime.mcapfiles import CountingFile as _CountingFile
 from device.pi.runtime.mcapfiles import writer_module as _mcap
 from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module had)
-    CHANNELS, COMPRESSED_IMAGE, FRAME_ID, IMAGE_ANNOTATIONS, LINE_LIST, POINTS, annotations)
+    CHANNELS, FRAME_ID, LINE_LIST, POINTS, annotations)
 
 #: after a failed write, the next file is tried this much later (runtime clock, s)
 RETRY_S = 1.0
@@ -87,6 +94,31 @@ WRITER_POLL_S = 0.02
 CLOSE_WAIT_S = 10.0
 #: ... and leaves one that handled nothing this long (a stalled disk), counted lost, s
 CLOSE_STALL_S = 0.5
+
+
+def run_metadata(rt) -> dict:
+    """The ``tacfoot`` Metadata record of a run (MCAP metadata values are strings):
+    the package version, the sensor profile's name and hash, each loaded model's
+    hashes (its manifest's ``sha256``, JSON) and the leg config (JSON)."""
+    from dataclasses import asdict
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        ver = version("tacfoot")
+    except PackageNotFoundError:
+        ver = "unknown"
+    models = rt.models
+    prof = models.profile or {}
+    hashes = {}
+    for name in ("surface", "texture", "slip", "pressure", "localiser"):
+        mod = getattr(models, name, None)
+        doc = (getattr(getattr(mod, "model", None), "manifest", None)
+               or getattr(mod, "manifest", None))
+        if doc:
+            hashes[name] = doc.get("sha256")
+    return {"version": ver, "profile": str(prof.get("name") or models.profile_source or ""),
+            "profile_sha256": str(prof.get("sha256") or ""),
+            "models": json.dumps(hashes, sort_keys=True),
+            "config": json.dumps(asdict(rt.cfg), sort_keys=True, default=str)}
 
 
 def _copy(a):
@@ -112,10 +144,18 @@ class McapLog:
 
     def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None,
                  live=None, background: bool = False, keep_existing: bool = False,
-                 prog: str = "device.pi run"):
+                 prog: str = "device.pi run", metadata: dict | None = None):
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
-        self.channels = {**CHANNELS, **(channels or {})}
+        self.channels = {**M.channels(), **(channels or {})}
         self.live = live             # a LiveView (--foxglove), or None
+        #: the "tacfoot" Metadata record of every file (name -> string, :func:`run_metadata`)
+        self.metadata = {k: str(v) for k, v in (metadata or {}).items()}
+        #: Unix-epoch ns at runtime clock 0: the one offset that makes log times epoch ns
+        self._epoch_ns = time.time_ns() - (0 if clock is None else int(round(clock() * 1e9)))
+        self._frame_ns = None        # epoch ns minus the frame time line's ns (first frame)
+        self._last_t: dict[str, int] = {}    # topic -> its last log time (writer thread)
+        #: messages whose log time stepped back within their topic, logged 1 ns later
+        self.time_clamped = 0
         self.cfg = cfg
         self.clock = clock
         self.files: list[str] = []
@@ -200,6 +240,8 @@ class McapLog:
             chunk = max(1024, min(self.cfg.chunk_kb * 1024, self.max_bytes // 4))
             w = W.Writer(fh, chunk_size=chunk, compression=W.CompressionType.ZSTD)
             w.start(profile="", library="tacfoot")
+            if self.metadata:
+                w.add_metadata("tacfoot", self.metadata)
             schemas: dict[str, int] = {}
             ids = {}
             for topic, schema in self.channels.items():
@@ -323,6 +365,11 @@ class McapLog:
     def _write(self, topic: str, t_ns: int, data: bytes) -> None:
         if self._abandoned:                  # left by close(): counted there
             return
+        last = self._last_t.get(topic)
+        if last is not None and t_ns < last:     # never back within a topic: counted
+            t_ns = last + 1
+            self.time_clamped += 1
+        self._last_t[topic] = t_ns
         if self.live is not None and self.live.wants(topic):
             self.live.publish(topic, t_ns, data)
         if not self._file_on:
@@ -371,9 +418,11 @@ class McapLog:
         return 0.0 if self.clock is None else float(self.clock())
 
     def _t_ns(self, clock_s: float) -> int:
-        if self._offset_s is None:           # before the first frame: at 0
-            return 0
-        return max(0, int(round((clock_s + self._offset_s) * 1e9)))
+        """Epoch ns of a runtime clock reading: on the frames' time line after the
+        first frame (shifted by the last frame's offset), the clock's before it."""
+        if self._offset_s is None:
+            return self._epoch_ns + int(round(clock_s * 1e9))
+        return self._frame_ns + int(round((clock_s + self._offset_s) * 1e9))
 
     # -- what the runtime logs -----------------------------------------------------
     def frame(self, dec: dict, decision, frame, ef, imu, faults: int, t_avail: float,
@@ -387,13 +436,15 @@ class McapLog:
         c0 = time.thread_time()
         t_s = float(frame.t_s)
         self._offset_s = t_s - t_avail
+        if self._frame_ns is None:           # the frame time line, anchored once
+            self._frame_ns = self._epoch_ns + int(round((t_avail - t_s) * 1e9))
         n = self._frames
         self._frames += 1
         if not self._file_on and not self.live.any():     # no file, no viewer: nothing
             return
         try:
             tex = getattr(decision, "texture", None)
-            t = max(0, int(round(t_s * 1e9)))
+            t = self._frame_ns + int(round(t_s * 1e9))
             ff = ef.features
             img = None
             if n % self.cfg.image_every == 0:
@@ -510,6 +561,7 @@ class McapLog:
               "mcap_files": list(self.files),
               "mcap_file": self.files[-1] if self.files else None,
               "mcap_loop_cpu_s": round(self.loop_cpu_s, 4),
+              "mcap_time_clamped": self.time_clamped,
               "mcap_writer_cpu_s": round(self.writer_cpu_s, 4)}
         if self.live is not None:
             st.update(self.live.status())

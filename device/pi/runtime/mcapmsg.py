@@ -24,37 +24,10 @@ from device.pi.faults import fault_names
 #: the frame id the images and annotations share
 FRAME_ID = "tactip"
 
-_TIME = {"type": "object", "title": "time",
-         "properties": {"sec": {"type": "integer", "minimum": 0},
-                        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}
-_COLOR = {"type": "object", "title": "foxglove.Color",
-          "properties": {k: {"type": "number"} for k in ("r", "g", "b", "a")}}
-_POINT2 = {"type": "object", "title": "foxglove.Point2",
-           "properties": {"x": {"type": "number"}, "y": {"type": "number"}}}
-
-#: Foxglove's JSON schemas (https://github.com/foxglove/foxglove-sdk, schemas/jsonschema)
-COMPRESSED_IMAGE = {
-    "title": "foxglove.CompressedImage", "description": "A compressed image",
-    "type": "object",
-    "properties": {"timestamp": _TIME, "frame_id": {"type": "string"},
-                   "data": {"type": "string", "contentEncoding": "base64"},
-                   "format": {"type": "string"}}}
-IMAGE_ANNOTATIONS = {
-    "title": "foxglove.ImageAnnotations", "description": "Array of annotations for a 2D image",
-    "type": "object",
-    "properties": {
-        "circles": {"type": "array", "items": {"type": "object"}},
-        "points": {"type": "array", "items": {
-            "type": "object", "title": "foxglove.PointsAnnotation",
-            "properties": {
-                "timestamp": _TIME,
-                "type": {"title": "foxglove.PointsAnnotationType", "type": "integer",
-                         "oneOf": [{"title": n, "const": i} for i, n in enumerate(
-                             ("UNKNOWN", "POINTS", "LINE_LOOP", "LINE_STRIP", "LINE_LIST"))]},
-                "points": {"type": "array", "items": _POINT2},
-                "outline_color": _COLOR, "outline_colors": {"type": "array", "items": _COLOR},
-                "fill_color": _COLOR, "thickness": {"type": "number", "minimum": 0}}}},
-        "texts": {"type": "array", "items": {"type": "object"}}}}
+#: the topics that carry Foxglove's well-known messages -> their schema names; the
+#: schemas are Foxglove's own, built from the installed ``foxglove-sdk`` (:func:`channels`)
+FOXGLOVE = {"/tacfoot/image": "foxglove.CompressedImage",
+            "/tacfoot/pins": "foxglove.ImageAnnotations"}
 POINTS, LINE_LIST = 1, 4
 
 
@@ -65,28 +38,119 @@ def _obj(title: str, **props) -> dict:
 _NUM, _INT, _STR, _BOOL = ({"type": "number"}, {"type": "integer"}, {"type": "string"},
                            {"type": "boolean"})
 _NUMS = {"type": "array", "items": _NUM}
+#: null where the value is missing or not finite (the encoders write null, never NaN)
+_NNUM, _NINT, _NSTR = ({"type": ["number", "null"]}, {"type": ["integer", "null"]},
+                       {"type": ["string", "null"]})
+_NNUMS = {"type": "array", "items": _NNUM}
 _STRS = {"type": "array", "items": _STR}
 
-#: topic -> JSON schema (its title is the schema name)
+_GAIT = {"type": ["object", "null"], "title": "tacfoot.GaitContext",
+         "properties": {"stance": _BOOL, "load_n": _NUM, "vel_mm_s": _NUM, "age_ms": _NUM}}
+_PACKET = _obj("tacfoot.Packet", type=_STR, seq=_NINT, t_ms=_NINT)
+_PACKET["description"] = ("a packet decoded, with its header's seq and t_ms; both null "
+                          "on /tacfoot/packets/in, whose reader does not keep the header")
+
+#: topic -> JSON schema (its title is the schema name). A field is null where its value
+#: is missing: no texture model (texture, texture_conf), no pressure estimate, no packet
+#: sent this frame (latency_ms), no fresh gait context (gait, expected_*).
+#: The Foxglove topics (:data:`FOXGLOVE`) hold a title only until :func:`channels`.
 CHANNELS = {
-    "/tacfoot/image": COMPRESSED_IMAGE,
-    "/tacfoot/pins": IMAGE_ANNOTATIONS,
-    "/tacfoot/grid": _obj("tacfoot.ContactGrid", frame=_INT, n=_INT, cells=_NUMS,
+    "/tacfoot/image": {"title": FOXGLOVE["/tacfoot/image"], "type": "object"},
+    "/tacfoot/pins": {"title": FOXGLOVE["/tacfoot/pins"], "type": "object"},
+    "/tacfoot/grid": _obj("tacfoot.ContactGrid", frame=_INT, n=_INT, cells=_NNUMS,
                           contact=_BOOL),
-    "/tacfoot/decision": _obj("tacfoot.Decision", frame=_INT, t_s=_NUM, **{"class": _STR},
-                              probs=_NUMS, surface_conf=_NUM, contact=_BOOL, slip=_BOOL,
-                              slip_conf=_NUM, texture=_STR, texture_conf=_NUM,
-                              pressure=_NUM, shear_dir_deg=_NUM, shear_mag_px=_NUM,
-                              pins=_INT, faults=_STRS, latency_ms=_NUM),
-    "/tacfoot/imu": _obj("tacfoot.Imu", frame=_INT, acc_g=_NUMS, gyro_dps=_NUMS,
+    "/tacfoot/decision": _obj("tacfoot.Decision", frame=_INT, index=_INT, t_s=_NUM,
+                              **{"class": _STR}, class_id=_INT, probs=_NUMS,
+                              surface_conf=_NUM, contact=_BOOL, slip=_BOOL, slip_conf=_NUM,
+                              texture=_NSTR, texture_conf=_NNUM, pressure=_NNUM,
+                              shear_dir_deg=_NUM, shear_mag_px=_NUM, pins=_INT,
+                              faults=_STRS, expected_mag_px=_NNUM,
+                              expected_motion_px=_NNUM, gait=_GAIT, magnitude_px=_NUM,
+                              motion_px=_NNUM, model_probs=_NUMS, rule_probs=_NUMS,
+                              latency_ms=_NNUM),
+    "/tacfoot/imu": _obj("tacfoot.Imu", frame=_INT, acc_g=_NNUMS, gyro_dps=_NNUMS,
                          faults=_INT),
-    "/tacfoot/latency": _obj("tacfoot.Latency", frame=_INT, latency_ms=_NUM,
+    "/tacfoot/latency": _obj("tacfoot.Latency", frame=_INT, latency_ms=_NNUM,
                              pipeline_ms=_NUM),
-    "/tacfoot/packets/out": _obj("tacfoot.Packet", type=_STR, seq=_INT, t_ms=_INT),
-    "/tacfoot/packets/in": _obj("tacfoot.Packet", type=_STR, seq=_INT, t_ms=_INT),
+    "/tacfoot/packets/out": _PACKET,
+    "/tacfoot/packets/in": _PACKET,
     "/tacfoot/faults": _obj("tacfoot.Faults", faults=_INT, names=_STRS, raised=_STRS,
                             pins_lost=_INT),
 }
+
+# protobuf field types (google/protobuf/descriptor.proto) -> JSON schema, as Foxglove's
+# own JSON schemas write them: 64-bit and 32-bit integers alike are integers, bytes base64
+_PB_DOUBLE, _PB_FLOAT, _PB_BOOL, _PB_STRING, _PB_MESSAGE, _PB_BYTES, _PB_ENUM = (
+    1, 2, 8, 9, 11, 12, 14)
+_PB_UNSIGNED = {4, 6, 7, 13}                 # uint64, fixed64, fixed32, uint32
+_PB_TIME = {".google.protobuf.Timestamp": {
+    "type": "object", "title": "time",
+    "properties": {"sec": {"type": "integer", "minimum": 0},
+                   "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}},
+    ".google.protobuf.Duration": {
+    "type": "object", "title": "duration",
+    "properties": {"sec": {"type": "integer"},
+                   "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}}
+
+
+def foxglove_schema(name: str) -> dict:
+    """Foxglove's well-known schema ``name`` (``"foxglove.ImageAnnotations"``) as JSON
+    schema, built from the protobuf descriptors the installed ``foxglove-sdk`` ships
+    (it ships no JSON schemas): every field of Foxglove's own message, none written
+    by hand. Needs ``foxglove-sdk`` (the viz extra) and ``protobuf`` (onnxruntime's)."""
+    import foxglove.messages as fm
+    from google.protobuf import descriptor_pb2
+    fds = descriptor_pb2.FileDescriptorSet.FromString(
+        getattr(fm, name.split(".", 1)[1]).get_schema().data)
+    msgs, enums = {}, {}
+
+    def index(prefix, types, enum_types):
+        for e in enum_types:
+            enums[f"{prefix}.{e.name}"] = e
+        for m in types:
+            msgs[f"{prefix}.{m.name}"] = m
+            index(f"{prefix}.{m.name}", m.nested_type, m.enum_type)
+    for f in fds.file:
+        index("." + f.package, f.message_type, f.enum_type)
+
+    def field(fd) -> dict:
+        if fd.type == _PB_MESSAGE:
+            t = _PB_TIME.get(fd.type_name) or message(fd.type_name)
+        elif fd.type == _PB_ENUM:
+            e = enums[fd.type_name]
+            t = {"title": fd.type_name[1:], "type": "integer",
+                 "oneOf": [{"title": v.name, "const": v.number} for v in e.value]}
+        elif fd.type in (_PB_DOUBLE, _PB_FLOAT):
+            t = {"type": "number"}
+        elif fd.type == _PB_BOOL:
+            t = {"type": "boolean"}
+        elif fd.type == _PB_STRING:
+            t = {"type": "string"}
+        elif fd.type == _PB_BYTES:
+            t = {"type": "string", "contentEncoding": "base64"}
+        else:
+            t = {"type": "integer", **({"minimum": 0} if fd.type in _PB_UNSIGNED else {})}
+        return {"type": "array", "items": t} if fd.label == 3 else t   # 3: repeated
+
+    def message(full: str) -> dict:
+        m = msgs[full]
+        return {"title": full[1:], "type": "object",
+                "properties": {fd.name: field(fd) for fd in m.field}}
+    return message("." + name)
+
+
+_channels_done = False
+
+
+def channels() -> dict:
+    """:data:`CHANNELS`, its Foxglove topics given Foxglove's schemas (once; the
+    ``foxglove-sdk`` import is paid only by a run that opens a log or a view)."""
+    global _channels_done
+    if not _channels_done:
+        for topic, name in FOXGLOVE.items():
+            CHANNELS[topic] = foxglove_schema(name)
+        _channels_done = True
+    return CHANNELS
 
 
 _ENCODE = json.JSONEncoder(separators=(",", ":")).encode     # one encoder, made once

@@ -313,3 +313,16 @@ def test_the_client_limit_is_an_option_checked_at_start(live, capsys):
     assert view.status()["foxglove_refused"] == 1
     first.close()
     second.close()
+
+
+@pytest.mark.parametrize("offered", [["foxglove.websocket.v1"],
+                                     ["foxglove.websocket.v1", "foxglove.sdk.v1"]])
+def test_viewers_that_speak_foxglove_websocket_v1_connect(live, offered):
+    """The SDK's server accepts only foxglove.sdk.v1 (the same protocol under a new
+    name): a viewer offering only foxglove.websocket.v1 is served under the name it
+    asked for; one offering both gets the SDK's."""
+    view = live()
+    with websockets_sync.connect(f"ws://127.0.0.1:{view.port}", subprotocols=offered,
+                                 open_timeout=5) as ws:
+        assert ws.subprotocol == ("foxglove.sdk.v1" if len(offered) == 2 else offered[0])
+        assert json.loads(ws.recv(timeout=5))["op"] == "serverInfo"

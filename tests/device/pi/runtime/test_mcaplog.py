@@ -93,7 +93,7 @@ def test_one_message_per_frame_and_an_image_every_nth(run):
     assert sum(p["type"] == "surface" for p in out) == FRAMES
     assert [p["seq"] for p in out] == list(range(len(out)))      # in the order sent
     t_out = [x[3] for x in m["/tacfoot/packets/out"]]
-    assert t_out[0] == 0 and t_out[-1] <= dec_t[-1] + 10**9      # on the frames' time line
+    assert dec_t[0] - 10**9 <= t_out[0] <= t_out[-1] <= dec_t[-1] + 10**9   # the frames' line
     assert len(m["/tacfoot/packets/in"]) > 0                  # loop:// echoes them back
     faults_out = [p for p in out if p["type"] == "fault"]
     assert len(m["/tacfoot/faults"]) == len(faults_out) >= 1
@@ -105,8 +105,10 @@ def test_decisions_and_timestamps_match_the_json_log(run):
     m = _by_topic(run.file)
     decs = m["/tacfoot/decision"]
     assert len(decs) == len(run.decisions) == FRAMES
+    t0_ns, t0_s = decs[0][3], run.decisions[0]["t_s"]
     for (_, _, _, t_ns, d), line in zip(decs, run.decisions):
-        assert abs(t_ns - line["t_s"] * 1e9) <= 1e3           # the frame's own time, ns
+        # the frame's own time, ns, on a time line anchored to the epoch (time_ns)
+        assert abs((t_ns - t0_ns) - (line["t_s"] - t0_s) * 1e9) <= 1e3
         extra = {k: d.pop(k) for k in ("surface_conf", "texture_conf")}
         assert d == line                                       # the same decision line
         assert extra["surface_conf"] == round(max(line["probs"]), 4)
@@ -300,7 +302,7 @@ def test_the_live_view_alone_builds_only_what_a_viewer_subscribed_to(monkeypatch
     log.frame(*_frame_args(3, t_s=0.25))
     log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), 0.5, 1, 2)
     assert [g[0] for g in one.got] == ["/tacfoot/decision", "/tacfoot/faults"]
-    assert one.got[0][1] == 250_000_000 and one.got[0][2]["frame"] == 3
+    assert abs(one.got[0][1] - time.time_ns()) < 60 * 10**9 and one.got[0][2]["frame"] == 3
     assert built == []                                 # the image is not built either
     assert log.messages_lost == 0
 

@@ -1,10 +1,17 @@
 """device/pi/runtime/mcapmsg.py: the template encoders write the JSON the dict
 versions would (annotations_bytes == annotations, the small messages as their
 schemas name them), a value that is not finite is null (still JSON), and the
-pins template serves any pin count."""
+pins template serves any pin count. And the log follows the rules strict readers
+apply (issue 32 items 8-10): every message validates (``jsonschema``) against its
+channel's schema, Foxglove's topics carry Foxglove's own schemas (from the installed
+foxglove-sdk), log times never step back within a topic and are Unix-epoch ns, and
+each file holds a ``tacfoot`` Metadata record; on a ``sim://`` run and a real clip."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,6 +19,7 @@ import pytest
 
 from device.pi import protocol as P
 from device.pi.runtime import mcapmsg as M
+from tests.realdata import real_data_dir
 
 
 def _ff(n=5, seed=0):
@@ -77,3 +85,85 @@ def test_jpeg_is_the_configured_width():
     assert cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_UNCHANGED).shape == (240, 320)
     img = json.loads(M.image_bytes(1_500_000_000, jpg))
     assert img["timestamp"] == {"sec": 1, "nsec": 500_000_000} and img["format"] == "jpeg"
+
+
+# -- the log against its schemas, its times and its metadata (issue 32 items 8-10) --
+def _run(tmp_path, camera, imu, frames):
+    f = tmp_path / "run.mcap"
+    t0 = time.time_ns()
+    r = subprocess.run([sys.executable, "-m", "device.pi", "run", "--camera", camera,
+                        "--imu", imu, "--serial", "loop://", "--frames", str(frames),
+                        "--json", "--mcap", str(f)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return f, json.loads(r.stdout), t0, time.time_ns()
+
+
+def _read(path):
+    from mcap.reader import make_reader
+    """(schema name -> JSON schema, [(topic, schema name, log_time, message)], metadata)."""
+    with open(path, "rb") as fh:
+        rd = make_reader(fh)
+        msgs = [(ch.topic, s.name, m.log_time, json.loads(m.data), json.loads(s.data))
+                for s, ch, m in rd.iter_messages(log_time_order=False)]
+        fh.seek(0)
+        meta = {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+    return msgs, meta
+
+
+def _check(path, t0, t1) -> dict:
+    jsonschema = pytest.importorskip("jsonschema")
+    msgs, meta = _read(path)
+    assert msgs
+    bad, back, validators = [], {}, {}
+    last: dict[str, int] = {}
+    for topic, name, t, doc, schema in msgs:
+        v = validators.get(name)
+        if v is None:
+            v = validators[name] = jsonschema.Draft202012Validator(schema)
+        errs = list(v.iter_errors(doc))
+        if errs:
+            bad.append(f"{topic}: {errs[0].message}")
+        if topic in last and t < last[topic]:
+            back[topic] = back.get(topic, 0) + 1
+        last[topic] = t
+        # Unix-epoch ns: within the run's wall-clock span (plus a minute's slack)
+        assert t0 - 60 * 10**9 <= t <= t1 + 60 * 10**9, (topic, t, t0)
+    assert not bad, f"{len(bad)} of {len(msgs)} messages break their schema: {bad[:3]}"
+    assert not back, f"log times step back: {back}"
+    return meta
+
+
+def test_foxglove_topics_carry_foxglove_sdk_schemas():
+    pytest.importorskip("foxglove")
+    ch = M.channels()
+    ann = ch["/tacfoot/pins"]
+    assert ann["title"] == "foxglove.ImageAnnotations"
+    # every field of the SDK's message, not a hand copy's subset
+    assert {"circles", "points", "texts", "metadata"} <= set(ann["properties"])
+    pts = ann["properties"]["points"]["items"]["properties"]
+    assert {"timestamp", "type", "points", "outline_color", "outline_colors", "fill_color",
+            "thickness", "metadata"} <= set(pts)
+    assert ch["/tacfoot/image"]["properties"]["data"]["contentEncoding"] == "base64"
+
+
+def test_a_sim_run_validates_is_monotonic_in_epoch_ns_with_metadata(tmp_path):
+    pytest.importorskip("mcap")
+    f, status, t0, t1 = _run(tmp_path, "sim://walk", "sim://walk", 60)
+    meta = _check(f, t0, t1)
+    md = meta["tacfoot"]
+    assert set(md) == {"version", "profile", "profile_sha256", "models", "config"}
+    assert md["profile"] and len(md["profile_sha256"]) == 64
+    models = json.loads(md["models"])
+    assert len(models) >= 1 and len(status["models"]) >= 1      # the shipped models ran
+    assert all(len(h) == 64 for hs in models.values() for h in hs.values())
+    assert json.loads(md["config"])["mcap"]["image_every"] >= 1
+    assert status["mcap_messages_lost"] == 0
+
+
+def test_a_real_clip_validates_and_is_monotonic(tmp_path):
+    pytest.importorskip("mcap")
+    d = real_data_dir("roboskin/concrete.avi", "roboskin/concrete_gyro.npy") / "roboskin"
+    f, _, t0, t1 = _run(tmp_path, str(d / "concrete.avi"),
+                        f"file://{d / 'concrete_gyro.npy'}", 150)
+    _check(f, t0, t1)
