@@ -20,8 +20,18 @@ from host.extras import missing_extra
 GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor, export)
 
 
+def installed_version() -> str:
+    """tacfoot's version as installed (its package metadata)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("tacfoot")
+    except PackageNotFoundError:
+        return "unknown (tacfoot is not installed: run from a checkout)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="host", description="tacfoot host toolkit")
+    p.add_argument("--version", action="version", version=f"host (tacfoot) {installed_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     for group in GROUPS:
         group.register(sub)

@@ -58,3 +58,23 @@ def test_need_names_the_extra_and_lets_other_missing_modules_through(monkeypatch
     assert not isinstance(other.value, MissingExtra)
     assert missing_extra(other.value) is None
     assert missing_extra(ModuleNotFoundError("x", name="skl2onnx.common")).extra == "host"
+
+
+def test_version_prints_the_installed_version(capsys):
+    """``host --version`` (issue 32 item 5): the version of the installed metadata."""
+    from importlib.metadata import version
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"host (tacfoot) {version('tacfoot')}"
+
+
+def test_pyproject_has_an_spdx_licence_the_license_file_and_urls():
+    try:
+        import tomllib
+    except ImportError:                  # Python 3.10
+        import tomli as tomllib
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[3]
+    proj = tomllib.loads((root / "pyproject.toml").read_text())["project"]
+    assert proj["license"] == "MIT" and proj["license-files"] == ["LICENSE"]
+    assert "MIT License" in (root / "LICENSE").read_text()
+    assert proj["classifiers"] and set(proj["urls"]) >= {"Homepage", "Source", "Issues"}
