@@ -145,7 +145,7 @@ def prepare(sections: list[Section], regularise: bool = True, progress: bool = F
     todo = [(s, T) for s in sections
             for T in sorted(set(s.windows) | ({REGULARISER_T} if s.real and regularise else set()))]
     caches: dict = {}
-    for s, T in tqdm(todo, desc="host report: windows", unit="set", disable=not progress):
+    for s, T in tqdm(todo, desc="host report: windows", unit="set", disable=not progress or None):
         cache = caches.setdefault(s.key, {})
         ws = load_specs(s.train_specs, task=s.task, window=T, contact_only=s.real,
                         profile=s.profile, progress=False, cache=cache)

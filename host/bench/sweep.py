@@ -193,7 +193,7 @@ def run_cells(cells, windows: dict, root, jobs: int = 1, keep_seed: int | None =
              for c in cells)
     rows = Parallel(n_jobs=jobs, verbose=verbose, return_as="generator")(tasks)
     return list(tqdm(rows, total=len(cells), desc="host report: cells", unit="cell",
-                     disable=not progress))
+                     disable=not progress or None))
 
 
 def mean_sd(values) -> tuple[float, float, int]:

@@ -242,7 +242,7 @@ class FrameCNN:
 
             net.train()
             with tqdm(range(self.epochs), desc="cnn", unit="epoch", file=sys.stderr,
-                      disable=not self.progress, leave=False) as bar:
+                      disable=not self.progress or None, leave=False) as bar:
                 for _ in bar:
                     order = torch.from_numpy(rng.permutation(N))
                     total = 0.0

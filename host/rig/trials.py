@@ -390,7 +390,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
             f"{first_sync['rtt_ms']:.2f} ms")
         tqdm = need("tqdm").tqdm
         bar = tqdm(total=len(todo), desc=plan.name, unit="trial", file=sys.stderr,
-                   disable=not progress, smoothing=0.1)
+                   disable=not progress or None, smoothing=0.1)
         plate = None
         offsets = []
         for trial in todo:
