@@ -42,6 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--serial", required=True,
                    help="pyserial port or URL: /dev/serial0, loop://, socket://HOST:PORT")
     r.add_argument("--models", help="models folder (default: the package's models/)")
+    r.add_argument("--rules-only", action="store_true",
+                   help="run on the surface rules alone, loading no model (without it, "
+                        "a models folder with no model refuses to start)")
     r.add_argument("--config", help="leg config TOML (default: device/leg.toml)")
     r.add_argument("--fps", type=float, help="camera frame rate (overrides camera.fps)")
     r.add_argument("--float", dest="float_models", action="store_true",
@@ -84,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
                            config=args.config, fps=args.fps, json_log=args.json_log,
                            status=args.status, frames=args.frames,
-                           float_models=args.float_models)
+                           float_models=args.float_models, rules_only=args.rules_only)
     except StartupError as exc:
         print(f"device.pi run: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -4,17 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from host.extras import need
+
 __all__ = ["pyplot", "save_figure"]
 
 
 def pyplot():
     """``matplotlib.pyplot`` on the Agg backend: the commands write files and never
     open a window."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    need("matplotlib").use("Agg")
+    return need("matplotlib.pyplot")
 
 
 def save_figure(fig, out: Path | str, title: str = "", dpi: int = 90) -> Path:

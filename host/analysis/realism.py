@@ -24,6 +24,7 @@ import numpy as np
 
 from device.pi.vision.extract import (ROBOSKIN_PARAMS, PinDetector, VisionParams, dome_mask,
                                       to_gray)
+from host.extras import need
 from device.sim import Simulator, load_scene
 from host.analysis.drag import measure_drag_displacement
 from host.analysis.frames import finite, frame_list, locate_dome, nearest_neighbour_px, stat
@@ -331,7 +332,7 @@ def spec_realism(recordings, params: VisionParams | None = None, seed: int = 0,
     """:func:`recording_realism` of each of ``recordings``: (name, label, frames or a
     function returning them), e.g. the rows of a user's data spec. ``all_within_20pct``
     is over every compared figure."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     params = params or ROBOSKIN_PARAMS
     out = {"pairs": []}

@@ -29,6 +29,7 @@ from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
 from host.data.splits import split_holdout
 from host.learn.tasks import TASK_MODELS
+from host.extras import need
 
 __all__ = ["REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
            "REPORT_TRIALS", "REGULARISER_T", "models_for", "Section",
@@ -138,13 +139,13 @@ def split_text(how: str, T: int) -> str:
 
 def prepare(sections: list[Section], regularise: bool = True, progress: bool = False) -> dict:
     """{(section key, T): (train, test) WindowSets}, each clip's frames encoded once."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     windows = {}
     todo = [(s, T) for s in sections
             for T in sorted(set(s.windows) | ({REGULARISER_T} if s.real and regularise else set()))]
     caches: dict = {}
-    for s, T in tqdm(todo, desc="host report: windows", unit="set", disable=not progress):
+    for s, T in tqdm(todo, desc="host report: windows", unit="set", disable=not progress or None):
         cache = caches.setdefault(s.key, {})
         ws = load_specs(s.train_specs, task=s.task, window=T, contact_only=s.real,
                         profile=s.profile, progress=False, cache=cache)

@@ -13,6 +13,7 @@ import numpy as np
 from host.data.dataset import atomic_write_text, is_dataset
 from host.data.simulate import simulate_to_dataset
 from host.learn.tasks import check_choice, check_int
+from host.extras import need
 
 __all__ = ["BENCH_FPS", "SURFACE_RANGES", "BENCH_KINDS", "scene_toml", "bench_scene",
            "simulate_scenes"]
@@ -180,7 +181,7 @@ def simulate_scenes(out_dir, kinds, n_per_kind: int, seed: int, beyond: bool = F
     ``seed * 100000 + k`` and its parameters come from a random stream of
     (``seed``, kind, k), so two calls with different seeds share nothing.
     Reuses a complete folder written with the same arguments."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     kinds = [check_choice("kind", k, BENCH_KINDS) for k in kinds]
     n_per_kind = check_int("n_per_kind", n_per_kind, 1)

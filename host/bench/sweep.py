@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from host.data.dataset import atomic_write_text
+from host.extras import need
 
 __all__ = ["Cell", "train_row", "int8_why", "run_cell", "run_cells", "aggregate", "mean_sd",
            "time_models"]
@@ -183,7 +184,7 @@ def run_cells(cells, windows: dict, root, jobs: int = 1, keep_seed: int | None =
     ``profiles[data]`` is the sensor profile of a cell's data (default roboskin).
     ``progress``: a tqdm bar over the cells as they finish."""
     from joblib import Parallel, delayed
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     cells = list(cells)
     profiles = profiles or {}
@@ -192,7 +193,7 @@ def run_cells(cells, windows: dict, root, jobs: int = 1, keep_seed: int | None =
              for c in cells)
     rows = Parallel(n_jobs=jobs, verbose=verbose, return_as="generator")(tasks)
     return list(tqdm(rows, total=len(cells), desc="host report: cells", unit="cell",
-                     disable=not progress))
+                     disable=not progress or None))
 
 
 def mean_sd(values) -> tuple[float, float, int]:

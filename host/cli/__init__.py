@@ -2,7 +2,8 @@
 
 Every command that computes a result accepts ``--json``. Bad input (a bad
 argument, scene file or source) gives one clear line on stderr and exit status 2,
-never a traceback; ``--out`` follows one rule (:mod:`host.cli.common`).
+never a traceback, and so does a command that needs an extra the install lacks
+(:mod:`host.extras`); ``--out`` follows one rule (:mod:`host.cli.common`).
 Each command group lives in its own module, which registers its sub-commands.
 """
 from __future__ import annotations
@@ -14,12 +15,23 @@ from device.config import ConfigError
 from host.cli import analyse, bench, deploy, export, learn, localiser, monitor, rig, sim
 from host.cli.common import EXIT_BAD_INPUT, Parser, UserError
 from host.data.dataset import DatasetError
+from host.extras import missing_extra
 
 GROUPS = (sim, analyse, learn, localiser, bench, deploy, rig, monitor, export)
 
 
+def installed_version() -> str:
+    """tacfoot's version as installed (its package metadata)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("tacfoot")
+    except PackageNotFoundError:
+        return "unknown (tacfoot is not installed: run from a checkout)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="host", description="tacfoot host toolkit")
+    p.add_argument("--version", action="version", version=f"host (tacfoot) {installed_version()}")
     sub = p.add_subparsers(dest="command", required=True)
     for group in GROUPS:
         group.register(sub)
@@ -35,6 +47,12 @@ def main(argv: list[str] | None = None) -> int:
         rc = args.func(args)
     except (ConfigError, DatasetError, UserError) as exc:
         print(f"host {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ModuleNotFoundError as exc:  # an optional module the install lacks: name its extra
+        missing = missing_extra(exc)
+        if missing is None:
+            raise
+        print(f"host {args.command}: error: {missing}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except BrokenPipeError:
         return 0

@@ -23,6 +23,7 @@ from device.profile import load_pipeline_profile
 from host.data.dataset import addable_folder, is_dataset
 from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
+from host.extras import need
 
 EXIT_BAD_INPUT = 2
 
@@ -162,7 +163,7 @@ def emit(args, data, text: str | None = None) -> None:
 
 def progress_bar(total: int, desc: str, enabled: bool = True):
     """A frame progress bar on stderr (off when ``enabled`` is False)."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
     return tqdm(total=total, desc=desc, unit="frame", disable=not enabled or None,
                 file=sys.stderr, leave=False)
 

@@ -4,13 +4,14 @@ from __future__ import annotations
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 from device.pi.models.artefact import MAX_T, ModelError, read_spec
 from device.config import ConfigError
 from host.bench.report import TASK_KINDS, build_report
-from host.cli.common import (SEED, UserError, emit, json_default, out_folder, whole,
-                             whole_list)
+from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
+                             whole, whole_list)
 from host.data.dataset import DatasetLocked, lock_folder
 from host.data.load import load_specs
 from host.data.splits import split_holdout
@@ -97,6 +98,9 @@ def _apply_config(args) -> None:
         doc = read_train_toml(args.config)
     except ConfigError as exc:
         raise UserError(f"--config: {exc}") from None
+    if doc.get("module") in REBUILDERS:       # a shipped model's train.toml
+        args.rebuild = doc
+        return
     inverse = {v: k for k, v in CONFIG_KEYS.items()}
     unknown = sorted(set(doc) - set(inverse))
     if unknown:
@@ -111,9 +115,85 @@ def _apply_config(args) -> None:
                         f"got {args.task!r}")
 
 
+#: the ``module`` of a shipped model's train.toml -> what replays it
+REBUILDERS = {"host.bench.shipped": "_rebuild_shipped",
+              "host.localiser.train": "_rebuild_localiser"}
+
+
+def _rebuild(args) -> None:
+    """Replay a shipped model's train.toml (written by the module it names, in its own
+    settings) into ``--out``: the same training its ``command`` runs."""
+    import shutil
+    import tempfile
+    doc, out = args.rebuild, Path(args.out)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix=".replay-", dir=out) as tmp:
+        folder = globals()[REBUILDERS[doc["module"]]](doc, Path(tmp), args)
+        for f in sorted(folder.iterdir()):
+            shutil.move(str(f), str(out / f.name))
+    res = {"config": str(args.config), "module": doc["module"], "name": doc.get("name"),
+           "out": str(out), "files": sorted(f.name for f in out.iterdir()
+                                            if not f.name.startswith(".")),
+           "seconds": round(time.perf_counter() - t0, 1)}
+    emit(args, res, f"{args.config}: replayed {doc['module']} into {out} "
+                    f"({len(res['files'])} files, {res['seconds']} s)")
+
+
+def _real_data(doc: dict, args) -> Path:
+    given = doc.get("real_data")
+    if given and not Path(given).is_absolute():
+        given = str((Path(args.config).resolve().parent / given)
+                    if (Path(args.config).resolve().parent / given).is_dir() else given)
+    return real_data_dir(given)
+
+
+def _rebuild_shipped(doc: dict, tmp: Path, args) -> Path:
+    from host.bench.shipped import DEFAULTS, build_model, build_real_texture
+    name = doc.get("name")
+    if name not in DEFAULTS:
+        raise UserError(f"--config {args.config}: name must be one of {sorted(DEFAULTS)}, "
+                        f"got {name!r}")
+    seed = int(doc.get("seed", 0))
+    try:
+        if doc.get("real_data") is not None:
+            build_real_texture(tmp, tmp / "work", _real_data(doc, args), seed,
+                               progress=not args.json)
+        else:
+            build_model(name, tmp, tmp / "work", seed=seed, trials=doc.get("trials_per_kind"),
+                        progress=not args.json)
+    except TrainError as exc:
+        raise UserError(f"--config {args.config}: {exc}") from None
+    return tmp / name
+
+
+def _rebuild_localiser(doc: dict, tmp: Path, args) -> Path:
+    from host.localiser.train import train_localiser
+    keys = {"profile": "profile", "seed": "seed", "alpha": "alpha", "size": "size",
+            "crop_factor": "crop_factor", "sim_scenes": "n_sim_scenes",
+            "max_depth_mm": "max_depth_mm", "real_weight": "real_weight",
+            "real_clips": "real_clips"}
+    kw = {v: doc[k] for k, v in keys.items() if k in doc}
+    if "real_clips" in kw:
+        kw["real_clips"] = tuple(kw["real_clips"])
+    # its real clips are named under the real recordings folder
+    real = _real_data(doc, args) if doc.get("real_clips") else None
+    try:
+        train_localiser(tmp / "model", real_data=real, progress=not args.json, **kw)
+    except ValueError as exc:
+        raise UserError(f"--config {args.config}: {exc}") from None
+    return tmp / "model"
+
+
 def cmd_train(args):
     if getattr(args, "config", None):
         _apply_config(args)
+        if getattr(args, "rebuild", None):
+            fd = _lock_out(args)
+            try:
+                _rebuild(args)
+            finally:
+                os.close(fd)
+            return 0
     elif not args.task or not args.data:
         raise UserError("host train needs --task and --data (or --config FILE, a model's "
                         "train.toml)")

@@ -15,6 +15,7 @@ from device.pi.vision.layout import LayoutError, LayoutMapper
 from device.pi.vision.layout import layout_for_profile as _layout_for_profile
 from device.pi.faults import FAULT_NO_REFERENCE
 from host.data.errors import DataError
+from host.extras import need
 
 
 def layout_for_profile(profile: str) -> np.ndarray:
@@ -56,7 +57,7 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
     """Run the Pi's :class:`MarkerStream` over ``frames`` (images, or objects with
     ``.image`` and ``.t_s`` such as camera ``Frame``) and collect per-frame features
     on the profile's fixed pin layout."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     enc = FrameEncoder(profile, crop_px=frame_size or None,
                        layout_px=None if mapper is None else mapper.layout_px)

@@ -9,12 +9,13 @@ import numpy as np
 from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Scene, Simulator, load_scene
 from host.data.dataset import DatasetWriter
 from host.data.recordings import profile_ref, sim_recording
+from host.extras import need
 
 __all__ = ["simulate_to_dataset"]
 
 
 def _progress(total: int, desc: str, enabled: bool = True):
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
     return tqdm(total=total, desc=desc, unit="frame", disable=not enabled or None,
                 file=sys.stderr, leave=False)
 

@@ -43,6 +43,7 @@ import numpy as np
 from device.checks import finite_number, positive_number
 from device.pi.models.artefact import MANIFEST
 from host.data.windows import CLASS_TASKS
+from host.extras import MissingExtra
 from host.learn.metrics import label_metrics
 from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, run_onnx, session, write_model,
                                 write_variants)
@@ -63,12 +64,13 @@ INSTALL_HINT = "pip install .[cnn]   (or: pip install torch==2.13.0, the CPU bui
 
 
 def require_torch():
-    """Import and return ``torch``, or raise an ImportError naming the ``cnn`` extra."""
+    """Import and return ``torch``, or raise :class:`~host.extras.MissingExtra` (an
+    ImportError) naming the ``cnn`` extra."""
     try:
         import torch
     except ImportError as exc:
-        raise ImportError(f"the CNN model needs PyTorch, which is the optional 'cnn' extra "
-                          f"of tacfoot: {INSTALL_HINT}; missing: {exc}") from exc
+        raise MissingExtra("torch", "cnn", f"the CNN model needs PyTorch: {INSTALL_HINT}; "
+                                           f"missing: {exc}") from exc
     return torch
 
 
@@ -240,7 +242,7 @@ class FrameCNN:
 
             net.train()
             with tqdm(range(self.epochs), desc="cnn", unit="epoch", file=sys.stderr,
-                      disable=not self.progress, leave=False) as bar:
+                      disable=not self.progress or None, leave=False) as bar:
                 for _ in bar:
                     order = torch.from_numpy(rng.permutation(N))
                     total = 0.0

@@ -10,6 +10,7 @@ from host.data.splits import group_kfold
 from host.data.windows import DataError
 from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hyperparameters,
                                    rule_probs)
+from host.extras import need
 from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.metrics import class_report, regression_metrics
 from host.learn.pressure import bootstrap_mae
@@ -30,7 +31,7 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
     pooled held-out metrics plus each fold's accuracy (or MAE; a regressor's pooled
     MAE also gets ``mae_ci95``, its 95 % interval resampling whole trials). ``augment``
     rotated copies are added to each fold's training part only."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     k = check_int("cv", k, 2)
     if len(ws) < k:

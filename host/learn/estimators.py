@@ -17,6 +17,7 @@ from device.pi.models.rules import RuleClassifier, window_measures
 from host.learn.layers import scaler_class, temporal_class
 from host.learn.regression import ridge_pipeline
 from host.learn.tasks import DEFAULT_ALPHA, DEFAULT_EPOCHS, DEFAULT_HIDDEN, TrainError, check_int
+from host.extras import need
 
 __all__ = ["default_uses_imu", "hyperparameters", "fit_mlp", "fit_estimator",
            "pipeline_to_onnx", "best_threshold", "fit_rule", "rule_probs"]
@@ -84,7 +85,7 @@ def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alp
     improved by ``tol`` for ``patience`` epochs. Returns (pipeline, epochs run,
     final loss)."""
     from sklearn.pipeline import Pipeline
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
 
     steps = []
     if temporal:

@@ -20,6 +20,7 @@ from device.config import ConfigError
 from device.pi.vision.extract import ROBOSKIN_PARAMS, TACTIP_SHEAR_PARAMS, VisionParams
 from device.profile import has_sim_geometry, load_layout, load_pipeline_profile, load_profile
 from device.pi.models.localiser import localiser_input, to_normalised
+from host.extras import need
 
 __all__ = ["Sample", "vision_params_for", "sensor_geometry", "progress_bar", "augment_rows"]
 
@@ -59,7 +60,7 @@ def sensor_geometry(profile: str) -> tuple[np.ndarray, tuple | None]:
 
 def progress_bar(total: int, desc: str, enabled: bool):
     """A tqdm bar on stderr (disabled when ``enabled`` is false)."""
-    from tqdm import tqdm
+    tqdm = need("tqdm").tqdm
     return tqdm(total=total, desc=desc, disable=not enabled or None, file=sys.stderr,
                 leave=False)
 

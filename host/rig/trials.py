@@ -27,6 +27,7 @@ from device.checks import serial_url
 from device.config import ConfigError
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
 from host.rig.plan import DIRECTIONS, Plan, RigLimits, Trial, Variant
+from host.extras import need
 
 RUN_STATE = "rig_run.json"
 
@@ -387,9 +388,9 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
                             "spread_ms": round(first_sync["spread_ms"], 3)}
         log(f"rig clock offset {first_sync['offset_ms']:+.2f} ms (rig - host), round trip "
             f"{first_sync['rtt_ms']:.2f} ms")
-        from tqdm import tqdm
+        tqdm = need("tqdm").tqdm
         bar = tqdm(total=len(todo), desc=plan.name, unit="trial", file=sys.stderr,
-                   disable=not progress, smoothing=0.1)
+                   disable=not progress or None, smoothing=0.1)
         plate = None
         offsets = []
         for trial in todo:

@@ -138,26 +138,27 @@ def _check_inputs(m: Models, n_pins: int) -> None:
 
 
 def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int | None,
-                cfg: LegConfig) -> Models:
+                cfg: LegConfig, *, rules_only: bool = False) -> Models:
     """Every model present in ``models_dir`` (surface, texture, slip, pressure, and
     the localiser when ``cfg.models.localiser``), loaded once. Raises ModelError
     naming the file for a bad one, and naming both when the models carry different
     sensor profiles or the config sets a ``models.profile`` that is not theirs.
     ``profile_n_pins`` None: the pins of the profile the runtime runs
-    (:func:`runtime_profile`)."""
+    (:func:`runtime_profile`). ``rules_only``: load none (the surface rule alone)."""
     m = Models()
     loaded = []
     d = Path(models_dir) if models_dir is not None else default_models_dir()
     if models_dir is not None and not d.is_dir():
         raise ModelError(f"{d}: models folder not found")
     sig = cfg.signing
+    present = d.is_dir() and not rules_only
 
     def checked(manifest: Path) -> Path:
         if manifest.is_file():
             check_manifest(manifest, sig.public_key, sig.allow_unsigned)
         return manifest
 
-    if d.is_dir():
+    if present:
         check_model_set(d, sig.public_key, sig.allow_unsigned)
         for kind in CLASSIFIER_TASKS:
             f = d / kind
@@ -170,7 +171,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
             m.pressure = Regressor.load(checked(manifest_for(f, variant)))
             loaded.append("pressure")
     m.profile, m.profile_source = runtime_profile(m, cfg)
-    if d.is_dir() and cfg.models.localiser:
+    if present and cfg.models.localiser:
         # the localiser of the profile the leg runs: the models' own when the config
         # names none (then checked against the models' profile with the rest)
         name = (m.profile or {}).get("name") or cfg.models.profile
@@ -193,7 +194,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         m.rule = rule_from_config(cfg, profile_n_pins)
     _check_inputs(m, profile_n_pins)
     m.loaded = tuple(loaded)
-    if d.is_dir():
+    if present:
         _use_fused(m, d, variant, checked)
     return m
 
@@ -216,7 +217,8 @@ def _use_fused(m: Models, d: Path, variant: str, checked) -> None:
 
 def check_models_folder(models_dir, fail) -> None:
     """Refuse one model's folder given for the models folder (it would load nothing
-    and run the rules alone); warn when the folder holds no model."""
+    and run the rules alone). A folder with no model is refused by the caller
+    (:func:`~device.pi.runtime.start.build_runtime`) unless the rules alone are asked for."""
     d = Path(models_dir)
     if not d.is_dir():
         return                                # load_models names the missing folder
@@ -225,7 +227,3 @@ def check_models_folder(models_dir, fail) -> None:
              f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
              f"give the folder that holds surface/, texture/, slip/ and pressure/, "
              f"e.g. {d.parent}")
-    tasks = (*CLASSIFIER_TASKS, "pressure")
-    if not any((d / t).is_dir() for t in tasks):
-        print(f"device.pi run: warning: --models {str(models_dir)!r} holds no model folder "
-              f"({', '.join(tasks)}); running the rules only", file=sys.stderr)

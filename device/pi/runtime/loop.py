@@ -467,6 +467,7 @@ class LegRuntime:
                 "link_messages_dropped": self.reader.messages_dropped,
                 "rezeros": dict(self.rezeros),
                 "models": list(self.models.loaded), "fps": self.fps,
+                "rules_only": not self.models.loaded,
                 "models_fused": self.models.fused is not None,
                 "tracker": self._tracker_status(),
                 "gc": self.gc.status(), "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,

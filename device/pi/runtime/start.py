@@ -13,7 +13,7 @@ from device.config import ConfigError
 from device.pi.models.artefact import ModelError
 from device.pi.runtime.config import load_leg_config
 from device.pi.runtime.link import LinkError, open_port
-from device.pi.runtime.load import check_models_folder, load_models
+from device.pi.runtime.load import check_models_folder, default_models_dir, load_models
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, open_imu
 from device.pi.sources.options import opt_bool
@@ -27,9 +27,15 @@ from device.pi.runtime.loop import LegRuntime, StartupError
 def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config=None,
                   fps: float | None = None, json_log: str | None = None,
                   status: str | None = None, frames: int | None = None,
-                  float_models: bool = False, port=None, notify=None) -> LegRuntime:
+                  float_models: bool = False, port=None, notify=None,
+                  rules_only: bool = False) -> LegRuntime:
     """A runtime from the command line's strings; StartupError (exit 2) for a bad
-    config, model, source or port."""
+    config, model, source or port, and for a models folder with no model in it: the
+    leg runs on the surface rule alone only when ``rules_only`` asks for it (it then
+    loads no model, says so in one line on stderr and in the status)."""
+    if rules_only and models_dir is not None:
+        raise StartupError(f"--rules-only loads no model; give it or --models "
+                           f"{str(models_dir)!r}, not both")
     cv2.setNumThreads(1)              # one thread for the work (ONNX Runtime: intra_op 1)
     sys.setswitchinterval(0.001)      # hand a grabbed frame to the loop without a 5 ms wait
     try:
@@ -100,9 +106,17 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     try:
         # the pins and the pipeline are the models' profile's (their model spec)
         models = load_models(models_dir, "float" if float_models else cfg.models.variant,
-                             None, cfg)
+                             None, cfg, rules_only=rules_only)
     except (ModelError, ValueError) as exc:
         fail(str(exc))
+    if rules_only:
+        print("device.pi run: note: --rules-only: no model loaded; the surface decision "
+              "comes from the rules alone (status: rules_only true)", file=sys.stderr)
+    elif not models.loaded:
+        where = models_dir if models_dir is not None else default_models_dir()
+        fail(f"no model found in {'--models ' if models_dir is not None else ''}"
+             f"{str(where)!r} (it should hold surface/, texture/, slip/ or pressure/); "
+             f"give --models DIR, or --rules-only to run on the surface rules alone")
     try:
         imu_src = open_imu(imu)
         opened.append(imu_src)

@@ -139,11 +139,41 @@ def test_status_in_a_missing_folder_and_one_models_folder_refuse_to_start(model_
     # one model's folder, not the folder of models: it would run the rules alone
     rc, err = _run_main(cam + ["--models", str(model_dir / "surface")], capsys)
     assert rc == 2 and "one model's folder" in err and str(model_dir) in err
-    # a folder with no model runs the rules, and says so
+
+
+def test_no_model_refuses_to_start_unless_rules_only_is_asked(model_dir, tmp_path, capsys,
+                                                               monkeypatch):
+    """The leg never runs on its rules alone without saying so (issue 32 item 2)."""
+    cam = ["--camera", "sim://press-hard"]
     empty = tmp_path / "empty"
     empty.mkdir()
     rc, err = _run_main(cam + ["--models", str(empty)], capsys)
-    assert rc == 0 and "warning" in err and "rules only" in err
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("device.pi run: error: no model found in --models ")
+    assert str(empty) in err and "--rules-only" in err
+    # the default folder missing (an install without models): it names where it looked
+    import device.pi.runtime.load as load
+    import device.pi.runtime.start as start
+    for mod in (load, start):
+        monkeypatch.setattr(mod, "default_models_dir", lambda: tmp_path / "site" / "models")
+    rc, err = _run_main(cam + ["--json"], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert str(tmp_path / "site" / "models") in err and "--rules-only" in err
+    # asked for: it runs, says so in one line, and in the status file and summary
+    st = tmp_path / "st.json"
+    rc = main(["run", "--imu", "none", "--serial", "loop://", "--frames", "2", "--json",
+               "--rules-only", "--status", str(st)] + cam)
+    out, err = capsys.readouterr()
+    assert rc == 0 and [ln for ln in err.splitlines() if "rules" in ln] == [
+        "device.pi run: note: --rules-only: no model loaded; the surface decision comes "
+        "from the rules alone (status: rules_only true)"]
+    assert json.loads(out)["rules_only"] is True and json.loads(out)["models"] == []
+    assert json.loads(st.read_text())["rules_only"] is True
+    # with models it says rules_only false; with both options it refuses
+    rc, err = _run_main(cam + ["--models", str(model_dir), "--status", str(st)], capsys)
+    assert rc == 0 and json.loads(st.read_text())["rules_only"] is False
+    rc, err = _run_main(cam + ["--models", str(model_dir), "--rules-only"], capsys)
+    assert rc == 2 and "not both" in err and len(err.strip().splitlines()) == 1
 
 
 def _fill(fd: int) -> None:

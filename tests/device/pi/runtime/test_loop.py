@@ -398,7 +398,7 @@ def test_runtime_takes_the_rate_the_source_runs_at(tmp_path):
     from device.pi.runtime.start import build_runtime
     port = RecordingPort()
     rt = build_runtime("sim://press-hard?realtime=1&fps=15", "none", "loop://", frames=10,
-                       models_dir=str(tmp_path), port=port, notify=lambda s: None)
+                       rules_only=True, port=port, notify=lambda s: None)
     assert rt.fps == 15.0
     rt.run()
     assert rt.frames == 10 and not any(b & FAULT_CAMERA for _, b in rt.fault_log)
