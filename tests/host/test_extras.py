@@ -72,8 +72,7 @@ def test_pyproject_has_an_spdx_licence_the_license_file_and_urls():
         import tomllib
     except ImportError:                  # Python 3.10
         import tomli as tomllib
-    from pathlib import Path
-    root = Path(__file__).resolve().parents[3]
+    from tests import REPO_ROOT as root
     proj = tomllib.loads((root / "pyproject.toml").read_text())["project"]
     assert proj["license"] == "MIT" and proj["license-files"] == ["LICENSE"]
     assert "MIT License" in (root / "LICENSE").read_text()
