@@ -31,8 +31,10 @@ class Robot:
         self.prefixes = [root / f"leg{i}" / "opt" / "tacfoot" for i in (1, 2)]
         self.config = root / "leg.toml"
         self.config.write_text((REPO_ROOT / "device" / "leg.toml").read_text())
+        # one small real model: a leg refuses to start with none (--rules-only aside)
         self.models = root / "models"
         self.models.mkdir()
+        shutil.copytree(REPO_ROOT / "models" / "pressure", self.models / "pressure")
         self.key = root / "key.pem"
         self.file = root / "robot.toml"
         self.file.write_text("".join(
