@@ -26,6 +26,7 @@ import numpy as np
 
 from device.pi.models.artefact import ModelError, read_manifest
 from device.pi.models.winfeat import FeatureSpec, window_stats
+from host.learn.layers import layer_in_graph
 from host.learn.tasks import TrainError
 
 __all__ = ["cut_features", "cut_folder", "graph_inputs", "feature_node_types", "PROB_TOL",
@@ -70,7 +71,6 @@ def cut_features(model, spec: FeatureSpec, seed: int = 0):
     import onnx
     from onnx import TensorProto, helper
 
-    from host.learn.onnx_io import session
 
     g = model.graph
     if len(g.input) != 1:
@@ -78,31 +78,7 @@ def cut_features(model, spec: FeatureSpec, seed: int = 0):
     x_name = g.input[0].name
     X = _windows(spec, 16, seed)
     want = window_stats(spec, X)
-    probe = onnx.ModelProto()
-    probe.CopyFrom(model)
-    cands = [n.output[0] for n in g.node if n.op_type == "Concat"]
-    del probe.graph.output[:]
-    probe.graph.output.extend(helper.make_empty_tensor_value_info(c) for c in cands)
-    try:
-        outs = session(probe).run(cands, {x_name: X})
-    except Exception as exc:            # ONNX Runtime's own exception types
-        raise TrainError("the model cannot be probed for its window features: "
-                         + " ".join(str(exc).split())) from None
-    hits = [c for c, o in zip(cands, outs) if o.shape == want.shape
-            and np.allclose(o, want, rtol=1e-5, atol=1e-5)]
-    if len(hits) != 1:
-        raise TrainError(f"no single tensor of the model equals the window features "
-                         f"({len(hits)} do)")
-    out = hits[0]
-    made = {o: i for i, n in enumerate(g.node) for o in n.output}
-    old, todo = set(), [out]
-    while todo:                          # the nodes the features are computed by
-        i = made.get(todo.pop())
-        if i is not None and i not in old:
-            old.add(i)
-            todo += list(g.node[i].input)
-    inner = {o for i in old for o in g.node[i].output} - {out}
-    kept = [n for i, n in enumerate(g.node) if i not in old]
+    out, inner, kept = layer_in_graph(model, X, want, "the window features", 1e-5)
     reads = {i for n in kept for i in n.input}
     if reads & (inner | {x_name}) or any(o.name in inner for o in g.output):
         raise TrainError("a node after the window features reads the window or one of the "

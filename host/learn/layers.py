@@ -328,26 +328,18 @@ def _temporal_to_onnx(scope, operator, container):
 
 
 
-def replace_temporal_graph(model, params: dict, seed: int = 0):
-    """``model`` (an onnx.ModelProto whose first layer is a :class:`TemporalFeatures`
-    with ``params``, e.g. a manifest's ``training.temporal``) with that layer's nodes
-    replaced by the graph :func:`_temporal_to_onnx` writes now. The rest (scaler,
-    MLP, int8 nodes) is kept as it is. The layer's output is found by its numbers:
-    the Concat whose output equals the transform on random windows. TrainError when
-    none does, or when a later node reads one of the layer's inner tensors."""
+def layer_in_graph(model, X: np.ndarray, want: np.ndarray, what: str, tol: float):
+    """Where a layer's output is in ``model`` (an onnx.ModelProto), found by its
+    numbers: the one Concat whose output, on input ``X``, equals ``want`` within
+    ``tol``. Returns (its tensor name, the inner tensors of the nodes that compute
+    it, the nodes that do not). TrainError naming ``what`` when the model cannot be
+    run or no single Concat matches."""
     import onnx
     from onnx import helper
-    from skl2onnx import convert_sklearn
-    from skl2onnx.common.data_types import FloatTensorType
 
     from host.learn.onnx_io import session
 
-    tf = temporal_class()(**params)
-    n_in = tf._n_in()
-    X = np.random.default_rng(seed).normal(0, 3, (8, n_in)).astype(np.float32)
-    want = tf.fit(X).transform(X)
     g = model.graph
-    x_name = g.input[0].name
     probe = onnx.ModelProto()
     probe.CopyFrom(model)
     cands = [n.output[0] for n in g.node if n.op_type == "Concat"]
@@ -355,15 +347,14 @@ def replace_temporal_graph(model, params: dict, seed: int = 0):
     # outputs of any type (a shape Concat is int64): ONNX Runtime infers them
     probe.graph.output.extend(helper.make_empty_tensor_value_info(c) for c in cands)
     try:
-        outs = session(probe).run(cands, {x_name: X})
+        outs = session(probe).run(cands, {g.input[0].name: X})
     except Exception as exc:            # ONNX Runtime's own exception types
-        raise TrainError("the model cannot be probed for the temporal layer: "
+        raise TrainError(f"the model cannot be probed for {what}: "
                          + " ".join(str(exc).split())) from None
     hits = [c for c, o in zip(cands, outs) if o.shape == want.shape
-            and np.allclose(o, want, rtol=1e-4, atol=1e-4)]
+            and np.allclose(o, want, rtol=tol, atol=tol)]
     if len(hits) != 1:
-        raise TrainError(f"no single tensor of the model equals the temporal layer's output "
-                         f"({len(hits)} do)")
+        raise TrainError(f"no single tensor of the model equals {what} ({len(hits)} do)")
     out = hits[0]
     made = {o: i for i, n in enumerate(g.node) for o in n.output}
     old, todo = set(), [out]
@@ -374,6 +365,27 @@ def replace_temporal_graph(model, params: dict, seed: int = 0):
             todo += list(g.node[i].input)
     inner = {o for i in old for o in g.node[i].output} - {out}
     kept = [n for i, n in enumerate(g.node) if i not in old]
+    return out, inner, kept
+
+
+def replace_temporal_graph(model, params: dict, seed: int = 0):
+    """``model`` (an onnx.ModelProto whose first layer is a :class:`TemporalFeatures`
+    with ``params``, e.g. a manifest's ``training.temporal``) with that layer's nodes
+    replaced by the graph :func:`_temporal_to_onnx` writes now. The rest (scaler,
+    MLP, int8 nodes) is kept as it is. The layer's output is found by its numbers:
+    the Concat whose output equals the transform on random windows. TrainError when
+    none does, or when a later node reads one of the layer's inner tensors."""
+    import onnx
+    from skl2onnx import convert_sklearn
+    from skl2onnx.common.data_types import FloatTensorType
+
+    tf = temporal_class()(**params)
+    n_in = tf._n_in()
+    X = np.random.default_rng(seed).normal(0, 3, (8, n_in)).astype(np.float32)
+    want = tf.fit(X).transform(X)
+    g = model.graph
+    x_name = g.input[0].name
+    out, inner, kept = layer_in_graph(model, X, want, "the temporal layer's output", 1e-4)
     if any(i in inner for n in kept for i in n.input) or \
             any(o.name in inner for o in g.output):
         raise TrainError("a node after the temporal layer reads one of its inner tensors")

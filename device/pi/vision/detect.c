@@ -442,49 +442,34 @@ static float f32_of(int64_t bits) {
     return f;
 }
 
-/* numpy's pairwise sum of float32 values (umath's FLOAT_pairwise_sum) */
-static float pairwise_sum(const float *a, int64_t n) {
-    if (n < 8) {
-        float res = 0.f;
-        for (int64_t i = 0; i < n; i++) res += a[i];
-        return res;
+/* numpy's pairwise sum (umath's FLOAT_/DOUBLE_pairwise_sum), in T's arithmetic:
+   under 8 values one by one, up to 128 in eight running sums, larger halved (at a
+   multiple of 8) */
+#define TF_PAIRWISE_SUM(NAME, T)                                                      \
+    static T NAME(const T *a, int64_t n) {                                            \
+        if (n < 8) {                                                                  \
+            T res = 0;                                                                \
+            for (int64_t i = 0; i < n; i++) res += a[i];                              \
+            return res;                                                               \
+        }                                                                             \
+        if (n <= 128) {                                                               \
+            T r[8];                                                                   \
+            int64_t i;                                                                \
+            for (int j = 0; j < 8; j++) r[j] = a[j];                                  \
+            for (i = 8; i < n - (n % 8); i += 8)                                      \
+                for (int j = 0; j < 8; j++) r[j] += a[i + j];                         \
+            T res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));\
+            for (; i < n; i++) res += a[i];                                           \
+            return res;                                                               \
+        }                                                                             \
+        int64_t n2 = n / 2;                                                           \
+        n2 -= n2 % 8;                                                                 \
+        return NAME(a, n2) + NAME(a + n2, n - n2);                                    \
     }
-    if (n <= 128) {
-        float r[8];
-        int64_t i;
-        for (int j = 0; j < 8; j++) r[j] = a[j];
-        for (i = 8; i < n - (n % 8); i += 8)
-            for (int j = 0; j < 8; j++) r[j] += a[i + j];
-        float res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for (; i < n; i++) res += a[i];
-        return res;
-    }
-    int64_t n2 = n / 2;
-    n2 -= n2 % 8;
-    return pairwise_sum(a, n2) + pairwise_sum(a + n2, n - n2);
-}
 
-/* numpy's pairwise sum of doubles (umath's DOUBLE_pairwise_sum) */
-static double pairwise_sum_d(const double *a, int64_t n) {
-    if (n < 8) {
-        double res = 0.;
-        for (int64_t i = 0; i < n; i++) res += a[i];
-        return res;
-    }
-    if (n <= 128) {
-        double r[8];
-        int64_t i;
-        for (int j = 0; j < 8; j++) r[j] = a[j];
-        for (i = 8; i < n - (n % 8); i += 8)
-            for (int j = 0; j < 8; j++) r[j] += a[i + j];
-        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for (; i < n; i++) res += a[i];
-        return res;
-    }
-    int64_t n2 = n / 2;
-    n2 -= n2 % 8;
-    return pairwise_sum_d(a, n2) + pairwise_sum_d(a + n2, n - n2);
-}
+TF_PAIRWISE_SUM(pairwise_sum, float)
+TF_PAIRWISE_SUM(pairwise_sum_d, double)
+
 
 /* one row's |b - r| added to the 16-bit column sums acc (w columns) */
 TF_VECTOR static void absdiff_add(const uint8_t *b, const uint8_t *r, uint16_t *acc, int64_t w) {

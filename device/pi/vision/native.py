@@ -334,91 +334,64 @@ def kernel(path: Path):
                      ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     grow.restype = ctypes.c_int
     fn.grow = grow
-    fn.detect = _detect_fn(lib)
-    fn.winfeat = _winfeat_fn(lib)
-    fn.grid = _grid_fn(lib)
-    adv = lib.tf_advance
-    adv.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                    ctypes.c_int64, ctypes.c_double, ctypes.c_double, ctypes.c_int64,
-                    ctypes.c_double]
-    adv.restype = None
-    fn.advance = adv
-    shear = lib.tf_shear
-    shear.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_double,
-                      ctypes.c_void_p, ctypes.c_void_p]
-    shear.restype = ctypes.c_int64
-    fn.shear = shear
+    for attr, (symbol, argtypes, restype, slots) in _KERNELS.items():
+        f = getattr(lib, symbol)
+        f.argtypes, f.restype = argtypes, restype
+        if slots is not None and getattr(lib, symbol + "_slots")() != slots:
+            raise NativeBuildError(f"{symbol} has {getattr(lib, symbol + '_slots')()} context "
+                                   f"slots, expected {slots}")
+        setattr(fn, attr, f)
     return fn
 
 
 #: the contact grid's context slots (detect.c's TF_G_*)
 GRID_SLOTS = 15
-
-
-def _grid_fn(lib):
-    grid = lib.tf_grid
-    grid.argtypes = [ctypes.c_void_p]
-    grid.restype = ctypes.c_int64
-    if lib.tf_grid_slots() != GRID_SLOTS:
-        raise NativeBuildError(f"tf_grid has {lib.tf_grid_slots()} context slots, "
-                               f"expected {GRID_SLOTS}")
-    return grid
-
-
-def advance_fn():
-    """``tf_advance`` (the tracker's prediction state, Tracker._advance), or None."""
-    fn = _FN
-    return None if fn is None else fn.advance
-
-
-def shear_fn():
-    """``tf_shear`` (features.shear_and_sum over the rows not lost), or None."""
-    fn = _FN
-    return None if fn is None else fn.shear
-
-
-def grid_fn():
-    """``tf_grid`` of the loaded library (:class:`~device.pi.vision.features.ContactGrid`),
-    or None."""
-    fn = _FN
-    return None if fn is None else fn.grid
-
-
-def _detect_fn(lib):
-    det = lib.tf_detect
-    det.argtypes = [ctypes.c_void_p]
-    det.restype = ctypes.c_int64
-    from device.pi.vision.core import S_SLOTS
-    if lib.tf_detect_slots() != S_SLOTS:
-        raise NativeBuildError(f"tf_detect has {lib.tf_detect_slots()} context slots, "
-                               f"expected {S_SLOTS}")
-    return det
-
-
+#: the pin detection's context slots (detect.c's TF_D_*; device.pi.vision.core.S_SLOTS)
+DETECT_SLOTS = 44
 #: the window features' context slots per model (winfeat.c; device.pi.models.winfeat)
 WINFEAT_SLOTS = 12
 
+_P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
+#: the per-frame kernels besides the matching: the attribute of the kernel function
+#: that holds each, its C symbol, argument and result types, and its context's slot
+#: count (checked against the library's ``<symbol>_slots()``) for one-context kernels
+_KERNELS = {
+    "detect": ("tf_detect", [_P], ctypes.c_int64, DETECT_SLOTS),
+    "winfeat": ("tf_winfeat", [_P], ctypes.c_int, WINFEAT_SLOTS),
+    "grid": ("tf_grid", [_P], ctypes.c_int64, GRID_SLOTS),
+    "advance": ("tf_advance", [_P, _P, _P, _P, _I, _D, _D, _I, _D], None, None),
+    "shear": ("tf_shear", [_P, _P, _I, _D, _P, _P], ctypes.c_int64, None),
+}
 
-def _winfeat_fn(lib):
-    wf = lib.tf_winfeat
-    wf.argtypes = [ctypes.c_void_p]
-    wf.restype = ctypes.c_int
-    if lib.tf_winfeat_slots() != WINFEAT_SLOTS:
-        raise NativeBuildError(f"tf_winfeat has {lib.tf_winfeat_slots()} context slots, "
-                               f"expected {WINFEAT_SLOTS}")
-    return wf
 
-
-def winfeat_fn():
-    """``tf_winfeat`` of the loaded library (:mod:`device.pi.models.winfeat`), or None."""
+def _kernel(attr: str):
     fn = _FN
-    return None if fn is None else fn.winfeat
+    return None if fn is None else getattr(fn, attr)
 
 
 def detect_fn():
     """``tf_detect`` of the loaded library (:mod:`device.pi.vision.core`), or None."""
-    fn = _FN
-    return None if fn is None else fn.detect
+    return _kernel("detect")
+
+
+def winfeat_fn():
+    """``tf_winfeat`` of the loaded library (:mod:`device.pi.models.winfeat`), or None."""
+    return _kernel("winfeat")
+
+
+def grid_fn():
+    """``tf_grid`` (:class:`~device.pi.vision.features.ContactGrid`), or None."""
+    return _kernel("grid")
+
+
+def advance_fn():
+    """``tf_advance`` (the tracker's prediction state, Tracker._advance), or None."""
+    return _kernel("advance")
+
+
+def shear_fn():
+    """``tf_shear`` (features.shear_and_sum over the rows not lost), or None."""
+    return _kernel("shear")
 
 
 _FN = None

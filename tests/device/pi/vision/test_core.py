@@ -292,3 +292,7 @@ def test_the_compiled_shear_is_numpys_to_the_bit(lib, monkeypatch, m, seed, scal
     want = features.shear_and_sum(v, ~lost)
     assert np.array(got).tobytes() == np.array(want).tobytes()
     assert all(np.isfinite(got))
+
+
+def test_the_detection_context_has_the_librarys_slot_count():
+    assert core.S_SLOTS == native.DETECT_SLOTS
