@@ -37,7 +37,7 @@ static int tf_cmp_pair(const void *pa, const void *pb) {
 /* at most this many cells along a side of the grid */
 #define TF_MAX_SIDE 2048.0
 
-int tf_abi_version(void) { return 5; }
+int tf_abi_version(void) { return 6; }
 
 int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_d2,
              int64_t *idx) {
@@ -473,4 +473,93 @@ void tf_advance(const double *work, double *disp, double *vel, const uint8_t *lo
             disp[e] = work[e];
         }
     }
+}
+
+/* One tracker update's usual path (Tracker.update, the compiled twin): the
+ * constant-velocity prediction, tf_grow, the jump test, tf_advance and the fill, in
+ * numpy's order with the same doubles. Integer slots TF_T_* in ci, doubles TF_TD_* in
+ * cd. Returns 0 when done (idx, lost, vec, the state and the counts written), 1 when
+ * the frame is a jump (nothing but pred and work written: the Python path takes the
+ * frame from the start), 2 when it is not the usual case (a current pin beyond
+ * +-1e6 px or not finite, no pin, no memory: nothing trusted), -1 for a bad context. */
+enum {
+    TF_T_CUR = 0,      /* const float *: n x 2 current pins */
+    TF_T_N,
+    TF_T_C,            /* double *: n x 2 scratch (the pins as doubles) */
+    TF_T_R, TF_T_M,    /* const double *: m x 2 reference pins (all finite) */
+    TF_T_PRED, TF_T_VEL, TF_T_DISP, TF_T_WORK,   /* double *: m x 2 each */
+    TF_T_NB, TF_T_VALID, TF_T_K,                 /* neighbours (m x k) and their flags */
+    TF_T_GROW_ROUNDS, TF_T_FINAL_ROUNDS,
+    TF_T_STEPS,
+    TF_T_FILL,         /* 0 predict, 1 hold, 2 zero */
+    TF_T_IDX,          /* int64 *: m, written */
+    TF_T_LOST,         /* uint8 *: m, written */
+    TF_T_VEC,          /* float *: m x 2, written */
+    TF_T_N_OK, TF_T_N_CONF,   /* written */
+    TF_T_SCRATCH,      /* double *: m scratch (the jump test's distances) */
+    TF_T_SLOTS
+};
+enum { TF_TD_GATE = 0, TF_TD_GAIN_STEPS, TF_TD_REACQ_FRAC, TF_TD_MIN_TRACKED, TF_TD_PITCH,
+       TF_TD_VEL_KEEP, TF_TD_VEL_GAIN, TF_TD_SLOTS };
+
+int tf_track_slots(void) { return TF_T_SLOTS * 100 + TF_TD_SLOTS; }
+
+int64_t tf_track(int64_t *ci, const double *cd) {
+    const int64_t n = ci[TF_T_N], m = ci[TF_T_M], steps = ci[TF_T_STEPS];
+    if (m <= 0 || n < 0 || steps < 1) return -1;
+    if (n == 0) return 2;
+    const float *cur = (const float *)(intptr_t)ci[TF_T_CUR];
+    double *c = (double *)(intptr_t)ci[TF_T_C];
+    for (int64_t i = 0; i < 2 * n; i++) {
+        double v = (double)cur[i];
+        if (!(v <= 1.0e6 && v >= -1.0e6)) return 2;      /* NaN fails too */
+        c[i] = v;
+    }
+    const double *r = (const double *)(intptr_t)ci[TF_T_R];
+    double *pred = (double *)(intptr_t)ci[TF_T_PRED], *vel = (double *)(intptr_t)ci[TF_T_VEL];
+    double *disp = (double *)(intptr_t)ci[TF_T_DISP], *work = (double *)(intptr_t)ci[TF_T_WORK];
+    int64_t *idx = (int64_t *)(intptr_t)ci[TF_T_IDX];
+    unsigned char *lost = (unsigned char *)(intptr_t)ci[TF_T_LOST];
+    float *vec = (float *)(intptr_t)ci[TF_T_VEC];
+    const double gate = cd[TF_TD_GATE], rf = cd[TF_TD_REACQ_FRAC];
+    /* np.multiply(vel, gain * steps, out=pred); pred += disp */
+    for (int64_t e = 0; e < 2 * m; e++) {
+        double p = vel[e] * cd[TF_TD_GAIN_STEPS];
+        pred[e] = p + disp[e];
+    }
+    int64_t n_conf = 0;
+    int rc = tf_grow(r, m, c, n, pred, (const int64_t *)(intptr_t)ci[TF_T_NB],
+                     (const unsigned char *)(intptr_t)ci[TF_T_VALID], ci[TF_T_K], gate,
+                     ci[TF_T_GROW_ROUNDS], 2, ci[TF_T_FINAL_ROUNDS], idx, work, &n_conf);
+    if (rc != 0) return 2;
+    int64_t n_ok = 0;
+    for (int64_t i = 0; i < m; i++) n_ok += idx[i] >= 0;
+    const double fm = (double)m;
+    if ((double)n_conf < rf * fm && (double)n >= rf * fm) {
+        int jump = steps > 1 || (double)n_ok < rf * fm;
+        if (!jump) {                 /* the median distance of tracked pins to their prediction */
+            double *d = (double *)(intptr_t)ci[TF_T_SCRATCH];
+            int64_t q = 0;
+            for (int64_t i = 0; i < m; i++)
+                if (idx[i] >= 0)
+                    d[q++] = hypot(work[2 * i] - pred[2 * i], work[2 * i + 1] - pred[2 * i + 1]);
+            double moved = q ? tf_median(d, q, 0) : 0.0;
+            jump = moved > 0.8 * gate;
+        }
+        if (jump) return 1;
+    }
+    for (int64_t i = 0; i < m; i++) lost[i] = idx[i] < 0;
+    if ((double)n_ok >= cd[TF_TD_MIN_TRACKED] * fm)
+        tf_advance(work, disp, vel, lost, m, cd[TF_TD_VEL_KEEP], cd[TF_TD_VEL_GAIN], n_ok < m,
+                   0.5 * cd[TF_TD_PITCH]);
+    const int64_t fill = ci[TF_T_FILL];
+    for (int64_t i = 0; i < m; i++) {
+        if (fill == 1 && lost[i]) continue;
+        if (fill == 2 && lost[i]) { vec[2 * i] = 0.f; vec[2 * i + 1] = 0.f; continue; }
+        vec[2 * i] = (float)work[2 * i];
+        vec[2 * i + 1] = (float)work[2 * i + 1];
+    }
+    ci[TF_T_N_OK] = n_ok;
+    ci[TF_T_N_CONF] = n_conf;
+    return 0;
 }

@@ -59,14 +59,14 @@ import numpy as np
 __all__ = ["SOURCE", "CFLAGS", "packaged_path", "rebuild_hint", "NativeBuildError",
            "NativeFolderError", "library_path", "check_library", "build", "kernel", "load",
            "match_into", "grow_into", "active", "status", "refused", "detect_fn", "winfeat_fn",
-           "grid_fn", "advance_fn", "shear_fn", "SOURCES"]
+           "grid_fn", "advance_fn", "shear_fn", "track_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels and the pin detection
 #: (``detect.c``, :mod:`device.pi.vision.core`)
 SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 5
+ABI_VERSION = 6
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
 #: -O3 vectorises detect.c's integer loops (the same integers in every lane).
 #: setup.py reads SOURCE, SOURCES and CFLAGS from this file without importing it:
@@ -351,6 +351,9 @@ DETECT_SLOTS = 44
 #: the window features' context slots per model (winfeat.c; device.pi.models.winfeat)
 WINFEAT_SLOTS = 12
 
+#: the tracker's update contexts (match.c's TF_T_* integer and TF_TD_* double slots)
+TRACK_SLOTS = (22, 7)
+
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
 #: the per-frame kernels besides the matching: the attribute of the kernel function
 #: that holds each, its C symbol, argument and result types, and its context's slot
@@ -361,6 +364,7 @@ _KERNELS = {
     "grid": ("tf_grid", [_P], ctypes.c_int64, GRID_SLOTS),
     "advance": ("tf_advance", [_P, _P, _P, _P, _I, _D, _D, _I, _D], None, None),
     "shear": ("tf_shear", [_P, _P, _I, _D, _P, _P], ctypes.c_int64, None),
+    "track": ("tf_track", [_P, _P], ctypes.c_int64, 100 * TRACK_SLOTS[0] + TRACK_SLOTS[1]),
 }
 
 
@@ -387,6 +391,11 @@ def grid_fn():
 def advance_fn():
     """``tf_advance`` (the tracker's prediction state, Tracker._advance), or None."""
     return _kernel("advance")
+
+
+def track_fn():
+    """``tf_track`` (Tracker.update's usual frame), or None."""
+    return _kernel("track")
 
 
 def shear_fn():

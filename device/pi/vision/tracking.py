@@ -29,8 +29,9 @@ from device.checks import finite_number, positive_number, whole_number
 from device.pi.faults import FAULT_BAD_INPUT, FAULT_NO_REFERENCE, FAULT_TOO_FEW_PINS
 from device.pi.vision import native
 from device.pi.vision.matching import all_rows_usable, as_points, usable_rows
-from device.pi.vision.neighbours import (layout_neighbours, layout_pitch_px, match_and_grow,
-                                         neighbour_consistency, track_with_neighbours)
+from device.pi.vision.neighbours import (_FINAL_ROUNDS, layout_neighbours, layout_pitch_px,
+                                         match_and_grow, neighbour_consistency,
+                                         track_with_neighbours)
 
 __all__ = [
     "Tracker",
@@ -194,6 +195,7 @@ class Tracker:
         self._vec = np.zeros((m, 2), np.float32)      # output buffer
         self._lost = np.ones(m, bool)
         self.idx = np.full(m, -1, np.int64)
+        self._tctx = None              # the compiled update's context, built when first used
 
     @property
     def has_reference(self) -> bool:
@@ -233,6 +235,7 @@ class Tracker:
         self._settle()
         self._ref = self._ref + self._disp
         self._nb, self._valid = layout_neighbours(self._ref, self.k)
+        self._tctx = None
         self._disp[:] = 0.0
         self._vel[:] = 0.0
         self._vec[:] = 0.0
@@ -319,6 +322,63 @@ class Tracker:
             np.copyto(self._vel, vel0)
             self._advance(work2, idx2 < 0, int(np.count_nonzero(idx2 >= 0)), steps)
 
+    # -- the compiled update (match.c's tf_track) ---------------------------------
+    _FILL_CODE = {"predict": 0, "hold": 1, "zero": 2}
+
+    def _track_context(self, fn):
+        """The integer and double contexts of tf_track for this reference, or None
+        (a reference pin not finite: the numpy path)."""
+        r = self._ref
+        if not np.isfinite(r).all() or r.shape[0] == 0:
+            return None
+        nb = np.ascontiguousarray(self._nb, np.int64)
+        valid = np.ascontiguousarray(self._valid, np.bool_)
+        m = r.shape[0]
+        self._tkeep = (r, nb, valid, np.empty(m, np.float64))
+        ci = np.zeros(native.TRACK_SLOTS[0], np.int64)
+        ci[3], ci[4] = r.ctypes.data, m
+        ci[5], ci[6], ci[7], ci[8] = (self._pred.ctypes.data, self._vel.ctypes.data,
+                                      self._disp.ctypes.data, self._work.ctypes.data)
+        ci[9], ci[10], ci[11] = nb.ctypes.data, valid.ctypes.data, nb.shape[1]
+        ci[12], ci[13] = self.grow_rounds, _FINAL_ROUNDS
+        ci[15] = self._FILL_CODE[self.fill]
+        ci[17], ci[18] = self._lost.ctypes.data, self._vec.ctypes.data
+        ci[21] = self._tkeep[3].ctypes.data
+        cd = np.array([self._gate, 0.0, self.reacquire_frac, self.min_tracked_frac,
+                       self._pitch, 1.0 - _VEL_ALPHA, 0.0], np.float64)
+        return ci, cd
+
+    def _update_compiled(self, cur, steps: int):
+        """The usual frame through tf_track: (vectors, lost), or None when the
+        numpy path must take it (a jump, unusual input, no library)."""
+        fn = native.track_fn()
+        if fn is None or self._job is not None or not isinstance(cur, np.ndarray) \
+                or cur.dtype != np.float32 or cur.ndim != 2 or cur.shape[1] != 2 \
+                or not cur.flags.c_contiguous:
+            return None
+        if self._tctx is None:
+            self._tctx = self._track_context(fn) or False
+        if self._tctx is False:
+            return None
+        ci, cd = self._tctx
+        # the settings a caller may have changed since the context was made
+        ci[12], ci[15] = self.grow_rounds, self._FILL_CODE[self.fill]
+        cd[0], cd[2], cd[3] = self._gate, self.reacquire_frac, self.min_tracked_frac
+        n = cur.shape[0]
+        c = np.empty((n, 2), np.float64)
+        idx = np.empty(self._ref.shape[0], np.int64)
+        ci[0], ci[1], ci[2], ci[14], ci[16] = cur.ctypes.data, n, c.ctypes.data, steps, idx.ctypes.data
+        cd[1] = self.velocity_gain * steps
+        cd[6] = _VEL_ALPHA / steps
+        if fn(ci.ctypes.data, cd.ctypes.data) != 0:
+            return None
+        m = self._ref.shape[0]
+        n_ok = int(ci[19])
+        self.idx = idx
+        self.n_tracked = n_ok
+        self.faults = FAULT_TOO_FEW_PINS if n_ok < self.min_tracked_frac * m else 0
+        return self._vec.copy(), self._lost.copy()
+
     # -- per frame ---------------------------------------------------------------
     def update(self, cur, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Track one frame's pins ``cur`` (n, 2) px, ``steps`` frames after the last
@@ -334,9 +394,13 @@ class Tracker:
             self.n_tracked = 0
             return np.zeros((0, 2), np.float32), np.zeros(0, bool)
         self._settle()
+        self.reacquired = 0
+        steps = steps if isinstance(steps, (int, np.integer)) and 1 <= steps <= 1000 else 1
+        done = self._update_compiled(cur, int(steps))
+        if done is not None:
+            return done
         faults = 0
         cols = None
-        self.reacquired = 0
         searching = False              # a background search holds this frame's answer
         try:
             c = np.asarray(cur, dtype=np.float64)
@@ -355,7 +419,6 @@ class Tracker:
         r = self._ref
         m = r.shape[0]
         # constant-velocity prediction: last vectors plus their last change
-        steps = steps if isinstance(steps, (int, np.integer)) and 1 <= steps <= 1000 else 1
         np.multiply(self._vel, self.velocity_gain * steps, out=self._pred)
         self._pred += self._disp
         if m and c.shape[0]:

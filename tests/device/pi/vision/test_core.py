@@ -207,6 +207,7 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
              "tests/device/pi/vision/test_core.py::test_the_compiled_grid_gives_numpys_grid_and_contact_to_the_bit",
              "tests/device/pi/vision/test_core.py::test_the_compiled_advance_is_numpys_to_the_bit",
              "tests/device/pi/vision/test_core.py::test_the_compiled_shear_is_numpys_to_the_bit",
+             "tests/device/pi/vision/test_core.py::test_the_compiled_tracker_update_is_numpys_to_the_bit",
              "tests/device/pi/vision/test_native.py::test_the_kernel_gives_the_numpy_assignment",
              "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
              "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors",
@@ -296,3 +297,64 @@ def test_the_compiled_shear_is_numpys_to_the_bit(lib, monkeypatch, m, seed, scal
 
 def test_the_detection_context_has_the_librarys_slot_count():
     assert core.S_SLOTS == native.DETECT_SLOTS
+
+
+# -- the tracker's usual frame (match.c's tf_track, Tracker._update_compiled) -------
+
+@settings(max_examples=int(os.environ.get("TACFOOT_FUZZ_EXAMPLES", "100")), deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31), m=st.integers(3, 150), frames=st.integers(1, 8),
+       fill=st.sampled_from(["predict", "hold", "zero"]), drop=st.floats(0, 0.7),
+       extra=st.integers(0, 20), move=st.floats(0, 8), steps=st.lists(st.integers(1, 3), min_size=8),
+       odd=st.sampled_from([None, np.nan, np.inf, 2e6]))
+def test_the_compiled_tracker_update_is_numpys_to_the_bit(lib, monkeypatch, seed, m, frames, fill,
+                                                        drop, extra, move, steps, odd):
+    from device.pi.vision.tracking import Tracker
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(m)))
+    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:m]
+    ref = (grid * 11.7 + rng.normal(0, 0.5, (m, 2)) + 50).astype(np.float64)
+    trackers = {}
+    for compiled in (True, False):
+        t = Tracker(pitch_px=11.7, fill=fill)
+        t.set_reference(ref)
+        trackers[compiled] = t
+    shift = np.zeros(2)
+    for f in range(frames):
+        shift += rng.normal(0, move, 2)
+        cur = ref + shift + rng.normal(0, 0.4, ref.shape)
+        cur = cur[rng.random(m) >= drop]
+        cur = np.vstack([cur, rng.uniform(0, side * 12 + 60, (extra, 2))])
+        rng.shuffle(cur)
+        cur = cur.astype(np.float32)
+        if odd is not None and f == frames - 1 and len(cur):
+            cur[0, 0] = odd
+        out = {}
+        for compiled, t in trackers.items():
+            monkeypatch.setattr(native, "track_fn", (lambda: lib.track) if compiled else (lambda: None))
+            before = t._update_compiled
+            hits = []
+            monkeypatch.setattr(t, "_update_compiled",
+                                lambda c, s, b=before: hits.append(b(c, s)) or hits[-1])
+            v, lost = t.update(cur, steps[f])
+            out[compiled] = (v.tobytes(), lost.tobytes(), t.idx.tobytes(), t.n_tracked, t.faults,
+                             t._disp.tobytes(), t._vel.tobytes(), t.reacquisitions)
+        assert out[True] == out[False]
+
+
+def test_a_smooth_drag_runs_every_frame_through_the_compiled_update(lib, monkeypatch):
+    """The usual frame (no jump, usable pins) takes tf_track, not numpy's path."""
+    from device.pi.vision.tracking import Tracker
+    monkeypatch.setattr(native, "track_fn", lambda: lib.track)
+    rng = np.random.default_rng(1)
+    ref = np.stack(np.meshgrid(np.arange(12), np.arange(12)), -1).reshape(-1, 2) * 11.7 + 40.0
+    t = Tracker(pitch_px=11.7)
+    t.set_reference(ref)
+    ran = []
+    real = t._update_compiled
+    monkeypatch.setattr(t, "_update_compiled", lambda c, s: ran.append(real(c, s)) or ran[-1])
+    for f in range(20):
+        cur = (ref + [0.3 * f, 0.1 * f] + rng.normal(0, 0.2, ref.shape)).astype(np.float32)
+        v, lost = t.update(cur[rng.permutation(len(cur))])
+        assert not lost.any() and abs(float(v[:, 0].mean()) - 0.3 * f) < 0.2
+    assert all(r is not None for r in ran) and len(ran) == 20
