@@ -315,8 +315,12 @@ class Deployer(SshSession):
         self.unwinding = True
         if self.release and self.created and not self.switched:
             rel = f"releases/{self.release}"
+            # removed until it stays gone: a writer that outlived its ssh (a stand-in,
+            # or a copy whose ssh had to be killed) is given two seconds to end
             self.remote("discard", f"cd {q(self.o.prefix)}\n"
-                        f"[ \"$(readlink current || true)\" = {q(rel)} ] || rm -rf {q(rel)}\n",
+                        f"[ \"$(readlink current || true)\" = {q(rel)} ] || "
+                        f"for i in 1 2 3 4 5 6 7 8 9 10; do rm -rf {q(rel)}; sleep 0.2; "
+                        f"[ -e {q(rel)} ] || break; done\n",
                         check=False)
 
     def deploy(self) -> dict:
