@@ -18,3 +18,35 @@ def read_mcap(path) -> tuple[dict, dict]:
         for _, ch, m in r.iter_messages(log_time_order=False):
             msgs.setdefault(ch.topic, []).append((m.log_time, json.loads(m.data)))
     return chans, msgs
+
+
+def sim_run_command(tmp_path, *extra, frames=20, config=None) -> list[str]:
+    """``python -m device.pi run`` on ``sim://walk`` (camera and IMU) over ``loop://``
+    with ``--json``, ``frames`` frames (none: until the scene ends), a leg config
+    written from ``config`` (TOML text) when given, then ``extra``."""
+    import sys
+    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", "sim://walk", "--imu",
+           "sim://walk", "--serial", "loop://", "--json"]
+    if frames:
+        cmd += ["--frames", str(frames)]
+    if config:
+        cfg = tmp_path / "leg.toml"
+        cfg.write_text(config)
+        cmd += ["--config", str(cfg)]
+    return cmd + [str(x) for x in extra]
+
+
+def frame_args(k=0, t_s=0.01, reference=None) -> tuple:
+    """``McapLog.frame``'s arguments for frame ``k``: two pins (the second lost), a
+    64x48 image, a 3x3 grid, no contact, and ``reference`` pins (or None)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    ff = SimpleNamespace(pins=np.array([[10.0, 20.0], [30.0, 40.0]]),
+                         vectors=np.array([[1.0, 0.0], [0.0, 2.0]], np.float32),
+                         lost=np.array([False, True]), grid=np.zeros((3, 3)), contact=False)
+    dec = {"frame": k, "t_s": t_s, "probs": [0.2, 0.8], "texture": None, "pins": 2,
+           "latency_ms": 1.0}
+    frame = SimpleNamespace(t_s=t_s, image=np.zeros((48, 64), np.uint8))
+    return (dec, SimpleNamespace(texture=None), frame, SimpleNamespace(features=ff),
+            np.zeros(6), 0, 1.0, 1.002, reference)

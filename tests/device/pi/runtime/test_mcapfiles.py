@@ -29,33 +29,18 @@ from device.pi.runtime import mcaplog  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcapfiles import read_log, recover  # noqa: E402
 from device.pi.runtime.mcaplog import McapLog  # noqa: E402
-from tests import REPO_ROOT  # noqa: E402
+from tests import REPO_ROOT
+from tests.mcapread import frame_args, sim_run_command  # noqa: E402
 
 MAGIC = b"\x89MCAP0\r\n"                          # the first 8 bytes of every MCAP file
 
 
 def _run(tmp_path, *extra, frames=20, config=None):
-    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", "sim://walk", "--imu",
-           "sim://walk", "--serial", "loop://", "--json"]
-    if frames:
-        cmd += ["--frames", str(frames)]
-    if config:
-        cfg = tmp_path / "leg.toml"
-        cfg.write_text(config)
-        cmd += ["--config", str(cfg)]
-    return cmd + [str(x) for x in extra]
+    return sim_run_command(tmp_path, *extra, frames=frames, config=config)
 
 
 def _frame_args(k=0, t_s=0.01):
-    """McapLog.frame's arguments for frame k: 2 pins, a 64x48 image."""
-    ff = SimpleNamespace(pins=np.array([[10.0, 20.0], [30.0, 40.0]]),
-                         vectors=np.array([[1.0, 0.0], [0.0, 2.0]], np.float32),
-                         lost=np.array([False, True]), grid=np.zeros((3, 3)), contact=False)
-    dec = {"frame": k, "t_s": t_s, "probs": [0.2, 0.8], "texture": None, "pins": 2,
-           "latency_ms": 1.0}
-    frame = SimpleNamespace(t_s=t_s, image=np.zeros((48, 64), np.uint8))
-    return (dec, SimpleNamespace(texture=None), frame, SimpleNamespace(features=ff),
-            np.zeros(6), 0, 1.0, 1.002, None)
+    return frame_args(k, t_s, None)
 
 
 def _bytes_on_disk(folder) -> int:

@@ -24,20 +24,13 @@ from device.pi import protocol as P  # noqa: E402
 from device.pi.runtime import mcaplog  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcaplog import CHANNELS, McapLog, read_log, recover, roll_name  # noqa
+from tests.mcapread import frame_args, sim_run_command  # noqa: E402
 
 FRAMES = 60
 
 
 def _run(tmp_path, *extra, frames=FRAMES, config=None):
-    cmd = [sys.executable, "-m", "device.pi", "run", "--camera", "sim://walk", "--imu",
-           "sim://walk", "--serial", "loop://", "--json"]
-    if frames:
-        cmd += ["--frames", str(frames)]
-    if config:
-        cfg = tmp_path / "leg.toml"
-        cfg.write_text(config)
-        cmd += ["--config", str(cfg)]
-    return cmd + [str(x) for x in extra]
+    return sim_run_command(tmp_path, *extra, frames=frames, config=config)
 
 
 @pytest.fixture(scope="module")
@@ -192,14 +185,7 @@ def test_a_killed_run_leaves_a_readable_prefix(tmp_path):
 
 
 def _frame_args(k=0, t_s=0.01):
-    ff = SimpleNamespace(pins=np.array([[10.0, 20.0], [30.0, 40.0]]),
-                         vectors=np.array([[1.0, 0.0], [0.0, 2.0]], np.float32),
-                         lost=np.array([False, True]), grid=np.zeros((3, 3)), contact=False)
-    dec = {"frame": k, "t_s": t_s, "probs": [0.2, 0.8], "texture": None, "pins": 2,
-           "latency_ms": 1.0}
-    frame = SimpleNamespace(t_s=t_s, image=np.zeros((48, 64), np.uint8))
-    return (dec, SimpleNamespace(texture=None), frame, SimpleNamespace(features=ff),
-            np.zeros(6), 0, 1.0, 1.002, np.array([[10.0, 20.0], [30.0, 40.0]]))
+    return frame_args(k, t_s, np.array([[10.0, 20.0], [30.0, 40.0]]))
 
 
 def test_a_failed_write_is_a_count_and_one_warning_then_the_next_file(tmp_path, capsys,
