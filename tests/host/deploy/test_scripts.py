@@ -46,7 +46,7 @@ def _exec_start_argv(unit: str) -> list[str]:
 
 
 @given(st.text(st.characters(max_codepoint=0x2FF, blacklist_categories=("Cc", "Cs")),
-               min_size=1, max_size=30),
+               min_size=1, max_size=30).filter(str.strip),   # a blank one is refused
        st.lists(st.text(st.characters(min_codepoint=32, max_codepoint=126), min_size=1,
                         max_size=12), max_size=3))
 @settings(max_examples=200, deadline=None)

@@ -15,9 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
 pytest.importorskip("mcap")
