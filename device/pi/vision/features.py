@@ -14,6 +14,13 @@ import math
 import cv2
 import numpy as np
 
+from device.pi.vision import native
+
+
+#: tf_grid's self-check verdicts, (function, '' or why not), by the function's id, the
+#: image shape and the grid's settings
+_GRID_CHECKED: dict = {}
+
 
 class ContactGrid:
     """Where on the dome the binary image has changed since the reference.
@@ -120,13 +127,28 @@ class ContactGrid:
     def _set_compiled(self) -> None:
         """Use tf_grid from now on when the library is loaded and it gives this grid's
         numpy update to the bit on test images of the reference's size."""
-        from device.pi.vision import native
         self._compiled = None
         fn = native.grid_fn()
         if fn is None or self._ref.size == 0:
             self.compiled_why = "no compiled library" if fn is None else "an empty image"
             return
         self._fn = fn
+        # the verdict depends on the library and the grid's geometry and settings, not
+        # on the reference's pixels: a rezero on the leg does not check again
+        # (the entry holds the function, so its id is never another's)
+        key = (id(fn), self._ref.shape, self.n, self.gamma, self.contact_threshold)
+        hit = _GRID_CHECKED.get(key)
+        if hit is None:
+            hit = _GRID_CHECKED[key] = (fn, self._self_check(fn))
+        why = hit[1]
+        self.compiled_why = why
+        if not why:
+            self._ctx = self._context(fn, self.grid, self._cells)
+            self._compiled = self._ctx.ctypes.data
+
+    def _self_check(self, fn) -> str:
+        """'' when tf_grid gives this grid's numpy update to the bit on test images of
+        the reference's size, else why not."""
         # the self-check: numpy's update and the compiled one from the same state
         rng = np.random.default_rng(0)
         state = rng.random(self.grid.shape).astype(np.float32) * 0.2
@@ -141,11 +163,8 @@ class ContactGrid:
             ctx[0], ctx[1] = b.ctypes.data, b.strides[0]
             got = fn(ctx.ctypes.data)
             if got != int(want_contact) or mine.tobytes() != want.tobytes():
-                self.compiled_why = "the compiled grid differs from numpy's on a test image"
-                return
-        self._ctx = self._context(fn, self.grid, self._cells)
-        self._compiled = self._ctx.ctypes.data
-        self.compiled_why = ""
+                return "the compiled grid differs from numpy's on a test image"
+        return ""
 
     def clear_reference(self) -> None:
         self._ref = None
@@ -218,7 +237,6 @@ def shear_and_sum_lost(vectors: np.ndarray, lost: np.ndarray) -> tuple[float, fl
     """:func:`shear_and_sum` over the rows not ``lost``: compiled (detect.c's tf_shear,
     the same doubles) for the tracker's float32 (m, 2) vectors and bool (m,) flags,
     numpy otherwise."""
-    from device.pi.vision import native
     fn = native.shear_fn()
     m = vectors.shape[0] if vectors.ndim == 2 else -1
     if (fn is None or vectors.dtype != np.float32 or lost.dtype != np.bool_ or m < 0
