@@ -19,19 +19,19 @@ import math
 import cv2
 import numpy as np
 
-__all__ = ["S_SLOTS", "gaussian_taps", "box_divisor", "DetectCore"]
+__all__ = ["S_SLOTS", "gaussian_taps", "DetectCore"]
 
 # the context's slots, in detect.c's order
 (S_GRAY, S_GRAY_STRIDE, S_BH, S_BW, S_KN, S_KERNEL, S_ROWS, S_SMOOTH, S_BLOCK,
- S_FLOOR_OFFSET, S_DIV_SCALE, S_DIV_DELTA, S_GY0, S_GX0, S_GY1, S_GX1, S_CY0, S_CX0,
+ S_FLOOR_OFFSET, S_PAD, S_GY0, S_GX0, S_GY1, S_GX1, S_CY0, S_CX0,
  S_CY1, S_CX1, S_MASK, S_COLSUM, S_BINARY, S_BIN_STRIDE, S_LABELS, S_CAP, S_PARENT,
  S_ACC, S_ORDER, S_MIN_AREA, S_MAX_AREA, S_OX, S_OY, S_XY, S_AREAS, S_OUT_CAP,
  S_N_BLOBS, S_STAT_STEP, S_STAT_SUM, S_STAT_SQSUM, S_STAT_N, S_CORNERS, S_N_CORNERS,
- S_CORNER_SUM, S_SLOTS) = range(45)
+ S_CORNER_SUM, S_SLOTS) = range(44)
 
 #: the largest blur kernel and mean block the compiled path takes (OpenCV sums a box
-#: of at most 256 pixels in 16 bits and divides it in fixed point; larger blocks
-#: take another path, which stays on numpy)
+#: of at most 256 pixels in 16 bits; larger blocks take another path, which stays
+#: on numpy)
 MAX_TAPS = 15
 MAX_BLOCK = 15
 
@@ -64,23 +64,6 @@ def gaussian_taps(ksize: int, sigma: float) -> np.ndarray:
     return np.array(taps, np.uint16)
 
 
-def box_divisor(block: int) -> tuple[int, int]:
-    """(multiplier, shift) of the box mean in 16 bits. OpenCV rounds a ``block`` x
-    ``block`` sum ``S`` to the nearest whole mean, ``(2S + d) // 2d`` with ``d =
-    block * block`` (never half-way: ``d`` is odd), which is ``(S + (d - 1) / 2) // d``;
-    ``detect.c`` computes it as ``(((S + (d - 1) / 2) * multiplier) >> 16) >> shift``.
-    The pair is checked here against the division for every possible sum."""
-    d = int(block) * int(block)
-    num = np.arange(d * 255 + 1, dtype=np.int64) + (d - 1) // 2
-    want = num // d
-    for shift in range(16):
-        for mult in (-(-(1 << (16 + shift)) // d), (1 << (16 + shift)) // d):
-            if mult < 65536 and num.max() < 65536 and \
-                    np.array_equal(((num * mult) >> 16) >> shift, want):
-                return mult, shift
-    raise ValueError(f"no exact 16-bit mean for block={block!r}")
-
-
 def _addr(a: np.ndarray) -> int:
     return a.ctypes.data
 
@@ -98,13 +81,13 @@ class DetectCore:
         bh, bw = det._smooth.shape
         k = det.blur_ksize[0] if p.blur_sigma_px > 0 else 0
         self.kernel = (gaussian_taps(k, p.blur_sigma_px) if k else np.zeros(1, np.uint16))
-        scale, delta = box_divisor(p.block)
         gy, gx = det._grown
         cx0, cy0, _, _ = det.core
         ty1 = cy0 + det._core_mask.shape[0]
         tx1 = cx0 + det._core_mask.shape[1]
         ch, cw = ty1 - cy0, tx1 - cx0
         self._rows = np.empty((bh, bw), np.uint16)
+        self._pad = np.empty(bw + 2 * (MAX_TAPS // 2), np.uint8)
         self._colsum = np.empty(bw + bw + 16, np.uint16)
         # two rows of runs (start, end, label), at most cw / 2 + 1 runs a row
         self._labels = np.empty(6 * (cw // 2 + 2), np.int32)
@@ -121,7 +104,7 @@ class DetectCore:
         c[S_ROWS] = _addr(self._rows)
         c[S_SMOOTH] = _addr(det._smooth)
         c[S_BLOCK] = p.block
-        c[S_DIV_SCALE], c[S_DIV_DELTA] = scale, delta
+        c[S_PAD] = _addr(self._pad)
         c[S_GY0], c[S_GY1], c[S_GX0], c[S_GX1] = gy.start, gy.stop, gx.start, gx.stop
         c[S_CY0], c[S_CX0], c[S_CY1], c[S_CX1] = cy0, cx0, ty1, tx1
         c[S_MASK] = _addr(det._core_mask)

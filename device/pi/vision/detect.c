@@ -8,12 +8,15 @@
  *
  * - blur: the row pass sums k[i] * pixel (kernel in 1/256ths, so at most
  *   256 * 255), the column pass sums k[j] * row, and the pixel is (sum + 2^15) >> 16; borders reflect without repeating the edge (BORDER_DEFAULT);
- * - local mean: the block's sum S (block <= 15) rounded to the nearest whole mean
- *   (no sum lies half-way: block^2 is odd), as a 16-bit multiply-high and a shift
- *   (core.py checks the pair for every sum); borders replicate the edge of the
- *   region the mean is taken over;
- * - threshold: 255 where pixel - mean (saturated at 0) > floor(offset), inside the
- *   mask;
+ * - local mean: the block's sum S (block <= 15, N = block^2 pixels) rounded to the
+ *   nearest whole mean, floor((S + (N - 1) / 2) / N) (no sum lies half-way: N is
+ *   odd); borders replicate the edge of the region the mean is taken over;
+ * - threshold: 255 where pixel - mean (saturated at 0) > f = floor(offset) >= 0,
+ *   inside the mask. No mean is divided out: for whole numbers,
+ *   p - floor((S + h) / N) > f  <=>  floor((S + h) / N) <= p - f - 1
+ *                               <=>  S + h < N * (p - f),
+ *   false when p <= f, so the row compares S + h with N * max(p - f, 0) in 16 bits
+ *   (both at most 225 * 255 + 112);
  * - blobs: 8-connected components, ordered as OpenCV's block-based labelling orders
  *   them (by the first 2x2 block, in raster order of blocks, that holds a pixel of
  *   the blob), with the area and the centroid (the integer sums of x and y divided
@@ -47,7 +50,7 @@ enum {
     TF_D_SMOOTH,        /* uint8 *: bh x bw, the blurred box (written) */
     TF_D_BLOCK,         /* the mean's block side (odd, 3..15) */
     TF_D_FLOOR_OFFSET,  /* floor(offset) >= 0 */
-    TF_D_DIV_SCALE, TF_D_DIV_DELTA,   /* the mean's multiplier and shift */
+    TF_D_PAD,           /* uint8 *: bw + 14 scratch, a row with its reflected borders */
     TF_D_GY0, TF_D_GX0, TF_D_GY1, TF_D_GX1,   /* the mean's region, box px */
     TF_D_CY0, TF_D_CX0, TF_D_CY1, TF_D_CX1,   /* the thresholded core, box px */
     TF_D_MASK,          /* const uint8 *: (cy1-cy0) x (cx1-cx0), 0 or 255 */
@@ -90,16 +93,16 @@ static inline int64_t clampi(int64_t p, int64_t lo, int64_t hi) {
     return p < lo ? lo : (p > hi ? hi : p);
 }
 
-/* One row of the blur's row pass, interior columns lo..hi-1, for a constant tap
-   count (the taps are symmetric: k[i] == k[kn-1-i]); 16-bit lanes suffice, the sum
-   is at most 256 * 255. */
-static inline void row_taps(const uint8_t *src, uint16_t *dst, int64_t lo, int64_t hi,
+/* One row of the blur's row pass for a constant tap count: src is the row with r
+   reflected pixels before and after it, dst its bw sums (the taps are symmetric:
+   k[i] == k[kn-1-i]); 16-bit lanes suffice, the sum is at most 256 * 255. */
+static inline void row_taps(const uint8_t *src, uint16_t *dst, int64_t bw,
                             const uint16_t *k, const int kn) {
     const int r = kn / 2;
-    for (int64_t x = lo; x < hi; x++) {
-        uint16_t t = (uint16_t)(k[r] * src[x]);
+    for (int64_t x = 0; x < bw; x++) {
+        uint16_t t = (uint16_t)(k[r] * src[x + r]);
         for (int i = 0; i < r; i++)
-            t = (uint16_t)(t + k[i] * (uint16_t)(src[x - r + i] + src[x + r - i]));
+            t = (uint16_t)(t + k[i] * (uint16_t)(src[x + i] + src[x + kn - 1 - i]));
         dst[x] = t;
     }
 }
@@ -136,22 +139,21 @@ TF_VECTOR static void blur(const int64_t *ctx) {
     }
     const uint16_t *k = (const uint16_t *)(intptr_t)ctx[TF_D_KERNEL];
     uint16_t *rows = (uint16_t *)(intptr_t)ctx[TF_D_ROWS];
+    uint8_t *pad = (uint8_t *)(intptr_t)ctx[TF_D_PAD];
     const int64_t r = kn / 2;
-    const int64_t lo = r < bw ? r : bw, hi = bw - r > lo ? bw - r : lo;
     for (int64_t y = 0; y < bh; y++) {
         const uint8_t *src = gray + y * gs;
+        /* the row with r pixels reflected at each end (BORDER_REFLECT_101) */
+        memcpy(pad + r, src, (size_t)bw);
+        for (int64_t i = 1; i <= r; i++) {
+            pad[r - i] = src[reflect101(-i, bw)];
+            pad[r + bw - 1 + i] = src[reflect101(bw - 1 + i, bw)];
+        }
         uint16_t *dst = rows + y * bw;
         switch (kn) {
-#define TF_ROW_CASE(N) case N: row_taps(src, dst, lo, hi, k, N); break;
+#define TF_ROW_CASE(N) case N: row_taps(pad, dst, bw, k, N); break;
             TF_FOR_ODD_TAPS(TF_ROW_CASE)
 #undef TF_ROW_CASE
-        }
-        /* the r columns at each edge reflect */
-        for (int64_t x = 0; x < bw; x++) {
-            if (x == lo && hi > lo) { x = hi - 1; continue; }
-            uint32_t t = 0;
-            for (int64_t i = 0; i < kn; i++) t += (uint32_t)k[i] * src[reflect101(x + i - r, bw)];
-            dst[x] = (uint16_t)t;
         }
     }
     const uint16_t *s[15];
@@ -165,18 +167,18 @@ TF_VECTOR static void blur(const int64_t *ctx) {
     }
 }
 
-/* One core row's binary from its column sums: the block sums of the padded sums
-   pc (pc[i] is the column cx0 - half + i, replicated at the region's edge), the
-   mean by a 16-bit multiply-high (mean = (((S + bias) * mult) >> 16) >> shift,
-   checked in core.py for every sum), and the threshold inside the mask. */
+/* One core row's binary from its column sums: the block sums S of the padded sums
+   pc (pc[i] is the column cx0 - half + i, replicated at the region's edge), and the
+   threshold inside the mask as S + h < N * max(p - f, 0) (see the top of the file). */
 static inline void threshold_row(const uint16_t *pc, const uint8_t *srow, const uint8_t *mrow,
-                                 uint8_t *brow, int64_t cw, uint16_t bias, uint16_t mult,
-                                 unsigned shift, int16_t fo, const int block) {
+                                 uint8_t *brow, int64_t cw, uint16_t h, uint16_t area,
+                                 uint16_t f, const int block) {
     for (int64_t x = 0; x < cw; x++) {
-        uint16_t sum = 0;
+        uint16_t sum = h;
         for (int t = 0; t < block; t++) sum = (uint16_t)(sum + pc[x + t]);
-        uint16_t mean = (uint16_t)(((uint32_t)(uint16_t)(sum + bias) * mult) >> 16) >> shift;
-        brow[x] = (uint8_t)(((int16_t)srow[x] > (int16_t)(mean + fo) ? 255 : 0) & mrow[x]);
+        uint16_t p = srow[x];
+        uint16_t lim = (uint16_t)(area * (uint16_t)(p > f ? p - f : 0));
+        brow[x] = (uint8_t)((sum < lim ? 255 : 0) & mrow[x]);
     }
 }
 
@@ -185,10 +187,10 @@ TF_VECTOR static void threshold(const int64_t *ctx) {
     const uint8_t *smooth = (const uint8_t *)(intptr_t)ctx[TF_D_SMOOTH];
     const int64_t bw = ctx[TF_D_BW], block = ctx[TF_D_BLOCK];
     const int64_t half = block / 2;
-    const int16_t fo = (int16_t)ctx[TF_D_FLOOR_OFFSET];
-    const uint16_t mult = (uint16_t)ctx[TF_D_DIV_SCALE];
-    const unsigned shift = (unsigned)ctx[TF_D_DIV_DELTA];
-    const uint16_t bias = (uint16_t)((block * block - 1) / 2);
+    const int64_t fo64 = ctx[TF_D_FLOOR_OFFSET];
+    const uint16_t f = (uint16_t)(fo64 < 255 ? fo64 : 255);   /* p > 255: never */
+    const uint16_t area = (uint16_t)(block * block);
+    const uint16_t h = (uint16_t)((block * block - 1) / 2);
     const int64_t gy0 = ctx[TF_D_GY0], gx0 = ctx[TF_D_GX0], gy1 = ctx[TF_D_GY1], gx1 = ctx[TF_D_GX1];
     const int64_t cy0 = ctx[TF_D_CY0], cx0 = ctx[TF_D_CX0], cy1 = ctx[TF_D_CY1], cx1 = ctx[TF_D_CX1];
     const uint8_t *mask = (const uint8_t *)(intptr_t)ctx[TF_D_MASK];
@@ -220,7 +222,7 @@ TF_VECTOR static void threshold(const int64_t *ctx) {
         const uint8_t *mrow = mask + (y - cy0) * cw;
         uint8_t *brow = bin + y * bst + cx0;
         switch (block) {
-#define TF_THR_CASE(N) case N: threshold_row(pc, srow, mrow, brow, cw, bias, mult, shift, fo, N); break;
+#define TF_THR_CASE(N) case N: threshold_row(pc, srow, mrow, brow, cw, h, area, f, N); break;
             TF_FOR_ODD_TAPS(TF_THR_CASE)
 #undef TF_THR_CASE
         }

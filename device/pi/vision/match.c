@@ -37,7 +37,7 @@ static int tf_cmp_pair(const void *pa, const void *pb) {
 /* at most this many cells along a side of the grid */
 #define TF_MAX_SIDE 2048.0
 
-int tf_abi_version(void) { return 6; }
+int tf_abi_version(void) { return 7; }
 
 int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_d2,
              int64_t *idx) {
@@ -174,22 +174,60 @@ static int tf_cmp_double(const void *pa, const void *pb) {
     return (a > b) - (a < b);
 }
 
-/* np.median of v[0..k) (k >= 1) as column_median / neighbour_median compute it */
-static double tf_median(double *v, int64_t k, int even_as_sum_half) {
-    if (k <= 16) {                                   /* insertion sort: few values */
-        for (int64_t i = 1; i < k; i++) {
-            double x = v[i];
-            int64_t j = i - 1;
-            while (j >= 0 && v[j] > x) { v[j + 1] = v[j]; j--; }
-            v[j + 1] = x;
+/* the kth smallest of v[0..n) (0 <= kth < n), every value finite: Hoare's
+   selection. v is reordered so that v[0..kth) <= v[kth] <= v(kth..n). */
+static double tf_select(double *v, int64_t n, int64_t kth) {
+    int64_t lo = 0, hi = n - 1;
+    while (lo < hi) {
+        const double pivot = v[lo + (hi - lo) / 2];
+        int64_t i = lo, j = hi;
+        while (i <= j) {
+            while (v[i] < pivot) i++;
+            while (v[j] > pivot) j--;
+            if (i <= j) {
+                double t = v[i]; v[i] = v[j]; v[j] = t;
+                i++; j--;
+            }
         }
+        if (kth <= j) hi = j;
+        else if (kth >= i) lo = i;
+        else break;                                  /* v[kth] == pivot */
+    }
+    return v[kth];
+}
+
+/* np.median of v[0..k) (k >= 1) as column_median / neighbour_median compute it: the
+   same order statistics a sort gives, by selection (a NaN, which has no order,
+   takes the sort) */
+static double tf_median(double *v, int64_t k, int even_as_sum_half) {
+    double lo, hi;
+    int finite = 1;
+    for (int64_t i = 0; i < k; i++) if (v[i] != v[i]) { finite = 0; break; }
+    if (k <= 16 || !finite) {
+        if (k <= 16) {                               /* insertion sort: few values */
+            for (int64_t i = 1; i < k; i++) {
+                double x = v[i];
+                int64_t j = i - 1;
+                while (j >= 0 && v[j] > x) { v[j + 1] = v[j]; j--; }
+                v[j + 1] = x;
+            }
+        } else {
+            qsort(v, (size_t)k, sizeof(double), tf_cmp_double);
+        }
+        lo = v[(k - 1) / 2];
+        hi = v[k / 2];
     } else {
-        qsort(v, (size_t)k, sizeof(double), tf_cmp_double);
+        hi = tf_select(v, k, k / 2);
+        lo = hi;
+        if (k % 2 == 0) {                            /* the largest below the middle */
+            lo = v[0];
+            for (int64_t i = 1; i < k / 2; i++) if (v[i] > lo) lo = v[i];
+        }
     }
     if (even_as_sum_half)                            /* neighbour_median: (lo + hi) * 0.5 */
-        return (v[(k - 1) / 2] + v[k / 2]) * 0.5;
-    if (k % 2) return v[k / 2];                      /* column_median */
-    return (v[k / 2 - 1] + v[k / 2]) / 2.0;
+        return (lo + hi) * 0.5;
+    if (k % 2) return hi;                            /* column_median */
+    return (lo + hi) / 2.0;
 }
 
 /* match points p (cnt, 2) against the current pins listed in cols (nc of them, or all

@@ -66,7 +66,7 @@ SOURCE = Path(__file__).with_name("match.c")
 #: (``detect.c``, :mod:`device.pi.vision.core`)
 SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 6
+ABI_VERSION = 7
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
 #: -O3 vectorises detect.c's integer loops (the same integers in every lane).
 #: setup.py reads SOURCE, SOURCES and CFLAGS from this file without importing it:
@@ -347,7 +347,7 @@ def kernel(path: Path):
 #: the contact grid's context slots (detect.c's TF_G_*)
 GRID_SLOTS = 15
 #: the pin detection's context slots (detect.c's TF_D_*; device.pi.vision.core.S_SLOTS)
-DETECT_SLOTS = 44
+DETECT_SLOTS = 43
 #: the window features' context slots per model (winfeat.c; device.pi.models.winfeat)
 WINFEAT_SLOTS = 12
 

@@ -96,13 +96,19 @@ def test_the_core_gives_opencvs_bytes(fn, h, w, seed, kind, block, sigma, offset
 
 
 @pytest.mark.parametrize("block", [3, 5, 7, 9, 11, 13, 15])
-def test_the_16_bit_mean_is_the_rounded_mean_for_every_sum(block):
-    mult, shift = core.box_divisor(block)
-    d = block * block
-    s = np.arange(d * 255 + 1, dtype=np.int64)
-    mean = (((s + (d - 1) // 2) * mult) >> 16) >> shift
-    assert np.array_equal(mean, np.floor(s / d + 0.5).astype(np.int64))
-    assert mult < 65536
+def test_the_threshold_without_a_division_is_the_rounded_mean_threshold(block):
+    """detect.c compares S + h < N * max(p - f, 0) in 16 bits instead of dividing out
+    the mean: the same answer as OpenCV's rounded mean for every sum, pixel and
+    offset, and nothing leaves 16 bits."""
+    n = block * block
+    s = np.arange(n * 255 + 1, dtype=np.int64)[:, None]
+    mean = np.floor(s / n + 0.5).astype(np.int64)
+    for f in (0, 1, 14, 60, 254, 255):
+        p = np.arange(256, dtype=np.int64)[None, :]
+        want = np.maximum(p - mean, 0) > f
+        got = s + (n - 1) // 2 < n * np.maximum(p - f, 0)
+        assert np.array_equal(got, want), f
+    assert n * 255 + (n - 1) // 2 < 65536
 
 
 @pytest.mark.parametrize("ksize, sigma", [(3, 0.5), (5, 1.0), (7, 1.5), (15, 3.5)])
