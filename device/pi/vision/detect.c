@@ -96,7 +96,7 @@ static inline int64_t clampi(int64_t p, int64_t lo, int64_t hi) {
 /* One row of the blur's row pass for a constant tap count: src is the row with r
    reflected pixels before and after it, dst its bw sums (the taps are symmetric:
    k[i] == k[kn-1-i]); 16-bit lanes suffice, the sum is at most 256 * 255. */
-static inline void row_taps(const uint8_t *src, uint16_t *dst, int64_t bw,
+static inline void row_taps(const uint8_t *restrict src, uint16_t *restrict dst, int64_t bw,
                             const uint16_t *k, const int kn) {
     const int r = kn / 2;
     for (int64_t x = 0; x < bw; x++) {
@@ -111,7 +111,7 @@ static inline void row_taps(const uint8_t *src, uint16_t *dst, int64_t bw,
    row value (at most 65280) is split into its high and low bytes, so both sums stay
    within 16 bits: (A + (B >> 8) + 128) >> 8 with A = sum k[j] * hi[j] and
    B = sum k[j] * lo[j] (A + B / 256 <= 255 * 256, so no lane overflows). */
-static inline void col_taps(const uint16_t *const *s, uint8_t *out, int64_t bw,
+static inline void col_taps(const uint16_t *const *s, uint8_t *restrict out, int64_t bw,
                             const uint16_t *k, const int kn) {
     const int r = kn / 2;
     for (int64_t x = 0; x < bw; x++) {
@@ -170,8 +170,8 @@ TF_VECTOR static void blur(const int64_t *ctx) {
 /* One core row's binary from its column sums: the block sums S of the padded sums
    pc (pc[i] is the column cx0 - half + i, replicated at the region's edge), and the
    threshold inside the mask as S + h < N * max(p - f, 0) (see the top of the file). */
-static inline void threshold_row(const uint16_t *pc, const uint8_t *srow, const uint8_t *mrow,
-                                 uint8_t *brow, int64_t cw, uint16_t h, uint16_t area,
+static inline void threshold_row(const uint16_t *restrict pc, const uint8_t *restrict srow,
+                                 const uint8_t *restrict mrow, uint8_t *restrict brow, int64_t cw, uint16_t h, uint16_t area,
                                  uint16_t f, const int block) {
     for (int64_t x = 0; x < cw; x++) {
         uint16_t sum = h;
