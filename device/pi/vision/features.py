@@ -65,6 +65,7 @@ class ContactGrid:
         #: the compiled update's context (detect.c's tf_grid), set with a reference
         #: when the library is loaded and its self-check passes; else numpy
         self._compiled = None
+        self._last_binary, self._last_addr = None, 0   # the last binary and its address
         #: why the update runs on numpy ('' when compiled)
         self.compiled_why = "no reference"
 
@@ -181,9 +182,11 @@ class ContactGrid:
                 and binary.shape == ref.shape and binary.strides[1] == 1:
             self.bad_input = False
             c = self._ctx
-            c[0], c[1] = binary.ctypes.data, binary.strides[0]
+            if binary is not self._last_binary:    # the detector's buffer: the same each frame
+                self._last_binary = binary
+                self._last_addr = binary.ctypes.data
+            c[0], c[1] = self._last_addr, binary.strides[0]
             hit = self._fn(ptr)
-            c[0] = 0
             if hit >= 0:
                 return self.grid, bool(hit)
         if binary is not None and ref is not None:

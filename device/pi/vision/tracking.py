@@ -196,6 +196,7 @@ class Tracker:
         self._lost = np.ones(m, bool)
         self.idx = np.full(m, -1, np.int64)
         self._tctx = None              # the compiled update's context, built when first used
+        self._tcap, self._tcur = 0, None   # its scratch copy of a frame's pins
 
     @property
     def has_reference(self) -> bool:
@@ -358,6 +359,7 @@ class Tracker:
             return None
         if self._tctx is None:
             self._tctx = self._track_context(fn) or False
+            self._tcap = 0             # a new context points at no scratch yet
         if self._tctx is False:
             return None
         ci, cd = self._tctx
@@ -365,9 +367,12 @@ class Tracker:
         ci[12], ci[15] = self.grow_rounds, self._FILL_CODE[self.fill]
         cd[0], cd[2], cd[3] = self._gate, self.reacquire_frac, self.min_tracked_frac
         n = cur.shape[0]
-        c = np.empty((n, 2), np.float64)
+        if n > self._tcap:             # the kernel's copy of the pins, grown as needed
+            self._tcap = max(2 * n, 256)
+            self._tcur = np.empty((self._tcap, 2), np.float64)
+            ci[2] = self._tcur.ctypes.data
         idx = np.empty(self._ref.shape[0], np.int64)
-        ci[0], ci[1], ci[2], ci[14], ci[16] = cur.ctypes.data, n, c.ctypes.data, steps, idx.ctypes.data
+        ci[0], ci[1], ci[14], ci[16] = cur.ctypes.data, n, steps, idx.ctypes.data
         cd[1] = self.velocity_gain * steps
         cd[6] = _VEL_ALPHA / steps
         if fn(ci.ctypes.data, cd.ctypes.data) != 0:
