@@ -9,7 +9,7 @@ DEMO_OUT ?= out/demo
 
 REAL_DATA ?= $(if $(TACFOOT_REAL_DATA),$(TACFOOT_REAL_DATA),../shared/data)
 
-.PHONY: native demo test install install-test install-cnn install-node clean bench models mutate memcheck
+.PHONY: native demo test install install-test install-cnn install-node clean bench models mutate memcheck layout
 
 $(PY):
 	$(PYTHON) -m venv $(VENV) || { echo "python3 -m venv failed: on Debian/Ubuntu run 'sudo apt-get install python3-venv'"; exit 1; }
@@ -85,6 +85,12 @@ models: $(VENV)/.installed
 	$(PY) -m host.bench.shipped --out models --work out/sim-data --real-data $(REAL_DATA) --quiet
 	$(PY) -m host.learn.cut models
 	$(PY) -m host.learn.fuse models
+
+# Rewrite docs/foxglove-layout.json from the code that builds it
+# (device/pi/runtime/foxglove_layout.py, foxglove-sdk's foxglove.layouts; a test checks
+# the file is what the code builds)
+layout: $(VENV)/.installed
+	$(PY) -m device.pi.runtime.foxglove_layout --out docs/foxglove-layout.json
 
 # Mutation testing (docs/testing.md): mutmut on a private copy of the tree (it writes
 # mutants/ there, never here), one mutant in ten (names ending in MUTATE_SAMPLE; '' for

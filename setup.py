@@ -1,4 +1,6 @@
-"""The package's one compiled part: the frame core's C library, built by ``pip install``.
+"""The package's one compiled part: the frame core's C library, built by ``pip install``;
+and the shipped files (models, trial files, the Foxglove layout, the source files host
+deploy rebuilds from) copied into the package (``BuildShipped``, device/shipped.py).
 
 Everything else about the package is in pyproject.toml. The C files
 (``device.pi.vision.native.SOURCES``) hold no Python API: they are compiled into a
@@ -18,15 +20,18 @@ import ast
 import hashlib
 import os
 import platform
+import shutil
 import sys
 from pathlib import Path
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
+from setuptools.command.build_py import build_py
 from setuptools.errors import BaseError, CCompilerError
 
 HERE = Path(__file__).resolve().parent
 NATIVE_PY = HERE / "device" / "pi" / "vision" / "native.py"
+SHIPPED_PY = HERE / "device" / "shipped.py"
 #: the extension's dotted name; the file it makes is named by library_name()
 LIBRARY = "device.pi.vision._tacfoot_core"
 
@@ -107,6 +112,43 @@ class BuildCore(build_ext):
                     old.unlink()
 
 
+def shipped_files(shipped_py: Path = SHIPPED_PY) -> tuple[str, dict]:
+    """``PACKAGED`` and ``SHIPPED`` as device/shipped.py defines them (literals, read
+    without importing the package): the folder inside ``device`` and {name there: path
+    in the source tree} of the files a wheel carries beside the code."""
+    found = {}
+    for node in ast.parse(shipped_py.read_text(), str(shipped_py)).body:
+        target = node.targets[0] if isinstance(node, ast.Assign) and len(node.targets) == 1 else None
+        if isinstance(target, ast.Name) and target.id in ("PACKAGED", "SHIPPED"):
+            found[target.id] = ast.literal_eval(node.value)
+    if set(found) != {"PACKAGED", "SHIPPED"}:
+        raise SystemExit(f"setup.py: {shipped_py} defines no PACKAGED or SHIPPED literal")
+    return found["PACKAGED"], found["SHIPPED"]
+
+
+class BuildShipped(build_py):
+    """build_py that also copies the shipped files (the default models, the trial
+    files, the Foxglove layout, the source files host deploy rebuilds from) into the
+    package, under ``device/<PACKAGED>/``, so an installed wheel finds them from any
+    folder (device/shipped.py). An editable install reads them from the checkout; a
+    tree without one of them (host deploy's copy has no models) builds without it."""
+
+    def run(self) -> None:
+        super().run()
+        if getattr(self, "editable_mode", False):
+            return
+        packaged, shipped = shipped_files()
+        root = Path(self.build_lib) / "device" / packaged
+        for name, rel in shipped.items():
+            src, dst = HERE / rel, root / name
+            if src.is_dir():
+                shutil.copytree(src, dst, dirs_exist_ok=True,
+                                ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+            elif src.is_file():
+                self.mkpath(str(dst.parent))
+                self.copy_file(str(src), str(dst))
+
+
 def core_extension() -> Extension:
     s = native_settings()
     return Extension(
@@ -121,4 +163,4 @@ def core_extension() -> Extension:
 
 
 if __name__ == "__main__":
-    setup(ext_modules=[core_extension()], cmdclass={"build_ext": BuildCore})
+    setup(ext_modules=[core_extension()], cmdclass={"build_ext": BuildCore, "build_py": BuildShipped})

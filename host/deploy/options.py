@@ -9,8 +9,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from device.config import tomllib
+from device.shipped import PACKAGED, shipped
+from device.shipped import models_dir as shipped_models_dir
 
+#: the folder holding the packages: a checkout, or site-packages of an installed toolkit
 REPO = Path(__file__).resolve().parents[2]
+#: what the leg's source distribution is built from, beside the packages: a checkout's
+#: own files, or the copies an installed wheel carries (device/shipped.py)
+SOURCE_FILES = ("pyproject.toml", "setup.py", "README.md", "LICENSE", "MANIFEST.in")
 MANAGERS = ("auto", "systemd", "none")
 
 
@@ -179,7 +185,7 @@ class DeployOptions:
     def models_dir(self) -> Path | None:
         if self.models:
             return Path(self.models)
-        d = REPO / "models"
+        d = shipped_models_dir()        # a checkout's models/, or the wheel's copy
         return d if d.is_dir() else None
 
     def config_file(self) -> Path | None:
@@ -189,10 +195,27 @@ class DeployOptions:
         return f if f.is_file() else None
 
 
+def source_file(name: str) -> Path:
+    """One of :data:`SOURCE_FILES`: the checkout's, or the installed wheel's copy."""
+    return shipped(f"source/{name}")
+
+
+def check_source() -> None:
+    """DeployInputError (one line) when there is nothing to build the leg's source
+    distribution from: neither a checkout nor a wheel that carries its source files."""
+    missing = [n for n in ("pyproject.toml", "setup.py") if not source_file(n).is_file()]
+    if missing:
+        raise DeployInputError(
+            f"host deploy builds the leg's source distribution from a tacfoot checkout or "
+            f"an installed wheel that carries its source files, and {REPO} has neither (no "
+            f"{', '.join(missing)} beside it or in device/{PACKAGED}/source): run host "
+            f"deploy from a checkout, or install a wheel built by this version's setup.py")
+
+
 def project_version() -> str:
     """The version in pyproject.toml (the package being built)."""
     try:
-        with open(REPO / "pyproject.toml", "rb") as fh:
+        with open(source_file("pyproject.toml"), "rb") as fh:
             return str(tomllib.load(fh)["project"]["version"])
     except (OSError, KeyError, ValueError):
         return "0"

@@ -47,8 +47,8 @@ import time
 from pathlib import Path
 
 from device.pi.models.artefact import sha256_file
-from host.deploy.options import (REPO, DeployError, DeployInputError, DeployOptions,
-                                 project_version)
+from host.deploy.options import (PACKAGED, REPO, SOURCE_FILES, DeployError, DeployInputError,
+                                 DeployOptions, check_source, project_version, source_file)
 from host.deploy.scripts import (HEALTH_PY, SUDO, VERIFY_RELEASE_PY, q, render_ctl,
                                  render_unit, runtime_argv, status_path)
 from host.deploy.models import check_models_profile, config_profile_file, fuse_release_models
@@ -127,7 +127,10 @@ class Deployer(SshSession):
         """Build the tacfoot source distribution from a clean copy of the source tree
         (setuptools' PEP 517 hook, no build isolation, as ``pip wheel`` was): a wheel
         built here would carry a library for this machine's CPU, so the Pi's pip
-        builds the wheel, and compiles the C, from this."""
+        builds the wheel, and compiles the C, from this. From an installed toolkit the
+        tree is the installed packages (without the shipped data) and the source files
+        the wheel carries: the same files a checkout gives."""
+        check_source()
         cmd = [sys.executable, "-c", "import sys, setuptools.build_meta as b; "
                "b.build_sdist(sys.argv[1])", str(out_dir / "dist")]
         step = self.record("build", "local", f"cd {shlex.quote(str(out_dir / 'src'))} && "
@@ -138,10 +141,16 @@ class Deployer(SshSession):
         src = out_dir / "src"
         src.mkdir(parents=True)
         ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.egg-info", "build", "*.so")
-        for name in ("pyproject.toml", "setup.py", "README.md"):
-            shutil.copy2(REPO / name, src / name)
+        for name in SOURCE_FILES:
+            if source_file(name).is_file():
+                shutil.copy2(source_file(name), src / name)
+        packaged = (REPO / "device" / PACKAGED).resolve()
+
+        def skip(folder, names):           # the wheel's shipped data: not in the sdist
+            return set(ignore(folder, names)) | (
+                {PACKAGED} if Path(folder).resolve() == packaged.parent else set())
         for pkg in ("device", "host"):
-            shutil.copytree(REPO / pkg, src / pkg, ignore=ignore)
+            shutil.copytree(REPO / pkg, src / pkg, ignore=skip)
         r = subprocess.run(cmd, capture_output=True, text=True, start_new_session=True, cwd=src)
         step.update(rc=r.returncode, seconds=round(time.monotonic() - t0, 3))
         self.check_stop("build")

@@ -30,6 +30,7 @@ from device.pi.models.window import RollingWindow
 from device.pi.runtime.config import LegConfig
 from device.pi.vision.layout import layout_for_profile
 from device.pi.models.localiser import Localiser
+from device.shipped import models_dir
 from device.pi.models.signature import check_manifest, check_model_set
 
 #: the classifier tasks, each loaded from the folder of that name
@@ -52,7 +53,9 @@ class Models:
 
 
 def default_models_dir() -> Path:
-    return Path(__file__).resolve().parents[3] / "models"
+    """The shipped default models: ``models/`` of a checkout, or the copy an installed
+    wheel carries (:mod:`device.shipped`)."""
+    return models_dir()
 
 
 def rule_from_config(cfg: LegConfig, n_pins: int) -> RuleClassifier:

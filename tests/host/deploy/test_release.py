@@ -421,3 +421,47 @@ def test_unreachable_pi_and_nothing_to_roll_back_give_clear_errors(pi, tmp_path)
     res = run(pi.opts(prefix=str(tmp_path / "empty")), rollback=True, log=_quiet)
     assert not res["ok"] and "no previous release under" in res["error"]
     assert not (tmp_path / "empty").exists()
+
+
+# -- from an installed toolkit ----------------------------------------------------------
+
+_SDIST_NAMES = """
+import json, sys, tarfile, tempfile
+from pathlib import Path
+from host.deploy.options import DeployOptions
+from host.deploy.release import Deployer
+sd = Deployer(DeployOptions(target="pi@leg1"), log=lambda *a, **k: None).build_sdist(
+    Path(tempfile.mkdtemp()))
+with tarfile.open(sd) as t:
+    print(json.dumps([sd.name, sorted(n.split("/", 1)[1] for n in t.getnames() if "/" in n)]))
+"""
+
+
+def test_an_installed_toolkit_plans_and_builds_the_release_a_checkout_would(tmp_path):
+    """From a wheel unpacked as site-packages, run from an empty folder: the dry run
+    names the real version and the wheel's shipped models, and the leg's source
+    distribution holds the same files as the checkout's. A wheel without its source
+    files refuses in one line."""
+    from tests.wheel import build_wheel, clean_env, unpack
+    site = unpack(build_wheel(tmp_path), tmp_path / "site")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    env = clean_env(PYTHONPATH=str(site))
+    plan = subprocess.run([sys.executable, "-m", "host", "deploy", "pi@leg1", "--dry-run"],
+                          cwd=empty, env=env, capture_output=True, text=True, timeout=120)
+    assert plan.returncode == 0, plan.stderr[-2000:]
+    assert f", models {site / 'device' / 'data' / 'models'}, config " in plan.stdout
+    assert f"/releases/{project_version()}-" in plan.stdout and project_version() != "0"
+    got = subprocess.run([sys.executable, "-c", _SDIST_NAMES], cwd=empty, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr[-2000:]
+    want = subprocess.run([sys.executable, "-c", _SDIST_NAMES], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env=clean_env(PYTHONPATH=str(REPO)))
+    assert json.loads(got.stdout) == json.loads(want.stdout)
+    assert "setup.py" in json.loads(got.stdout)[1]
+    assert not [n for n in json.loads(got.stdout)[1] if n.startswith("device/data/")]
+    shutil.rmtree(site / "device" / "data" / "source")
+    plan = subprocess.run([sys.executable, "-m", "host", "deploy", "pi@leg1", "--dry-run"],
+                          cwd=empty, env=env, capture_output=True, text=True, timeout=120)
+    assert plan.returncode == 2 and len(plan.stderr.strip().splitlines()) == 1, plan.stderr
+    assert "no pyproject.toml, setup.py beside it" in plan.stderr
