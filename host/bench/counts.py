@@ -16,6 +16,9 @@ as a folder of PGM files (cached under ``out/bench/frames/<clip>/``):
   given ``?realtime=1``), the config a copy of ``device/leg.toml`` with
   ``stall_periods = 100`` so the slowed run raises no camera fault. The runtime
   reads each frame from its PGM file, so a frame's count includes that read;
+* ``runtime_pty``: the same with ``--serial`` a pty this harness drains: a packet
+  is one ``write()``, as on the leg's UART, where ``loop://`` queues every byte
+  through Python and loops the leg's own packets back to its reader;
 * ``pipeline``: ``MarkerStream('roboskin').process`` on each gray frame, the frames
   loaded into memory first (:mod:`host.bench.count_drivers`);
 * the pipeline's stages, by the difference of cumulative variants (detection;
@@ -73,7 +76,7 @@ FRAME_BUDGET_MS = 1000.0 / FRAME_FPS
 STALL_PERIODS = 100
 CACHE = Path("out/bench/frames")
 #: what is counted, in the table's order; the stages sit under the pipeline
-TARGETS = ("runtime", "pipeline", "peer")
+TARGETS = ("runtime", "runtime_pty", "pipeline", "peer")
 STAGE_NAMES = {"detect": "detection", "track": "tracking", "grid": "contact grid",
                "features": "features", "rest": "rest of process()"}
 _LINE = re.compile(r"^(summary|totals):\s*(\d+)", re.M)
@@ -195,10 +198,11 @@ def callgrind_cmd(out_file, argv) -> list[str]:
     return ["valgrind", "--tool=callgrind", f"--callgrind-out-file={out_file}", *map(str, argv)]
 
 
-def runtime_argv(frames_dir, imu: str, n: int, config, python=sys.executable) -> list[str]:
+def runtime_argv(frames_dir, imu: str, n: int, config, python=sys.executable,
+                 serial: str = "loop://") -> list[str]:
     """The leg runtime end to end on the PGM folder, unpaced, ``n`` frames."""
     return [python, "-m", "device.pi", "run", "--camera", str(frames_dir), "--imu", imu,
-            "--serial", "loop://", "--frames", str(n), "--config", str(config), "--json"]
+            "--serial", serial, "--frames", str(n), "--config", str(config), "--json"]
 
 
 def driver_argv(kind: str, frames_dir, n: int, timings=None, python=sys.executable) -> list[str]:
@@ -217,11 +221,41 @@ def _shown(argv) -> str:
     return " ".join("python" if a == sys.executable else a for a in map(str, argv))
 
 
+PTY = "PTY"      # in a runtime argv: the slave of a pty this harness drains
+
+
+def _on_pty(cmd: list, timeout: float):
+    """Run ``cmd`` with :data:`PTY` replaced by a pty's slave, whose master a thread
+    of this process reads and drops (what a UART's far end does); a pty is written
+    with one ``write()`` a packet, as /dev/serial0 is, where pyserial's ``loop://``
+    queues every byte through Python."""
+    import pty
+    import threading
+    import tty
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+
+    def drain():
+        try:
+            while os.read(master, 65536):
+                pass
+        except OSError:
+            pass
+    threading.Thread(target=drain, daemon=True).start()
+    try:
+        cmd = [os.ttyname(slave) if a == PTY else a for a in cmd]
+        return subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=timeout)
+    finally:
+        os.close(slave)
+        os.close(master)
+
+
 def run_counted(argv, out_file, timeout: float = 3600) -> dict:
     """Run ``argv`` under callgrind; its instruction count, seconds, and the stdout."""
     cmd = callgrind_cmd(out_file, argv)
     t0 = time.monotonic()
-    r = subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=timeout)
+    r = (_on_pty(cmd, timeout) if PTY in cmd else
+         subprocess.run(cmd, capture_output=True, text=True, env=_env(), timeout=timeout))
     secs = time.monotonic() - t0
     if r.returncode != 0:
         tail = [ln for ln in r.stderr.strip().splitlines() if ln.strip() and
@@ -239,6 +273,8 @@ def _jobs(clip: Path, frames_dir: Path, config: Path, n1: int, n2: int, work: Pa
     jobs = []
     for n in (n1, n2):
         jobs.append(("runtime", n, runtime_argv(frames_dir, imu, n, config), None))
+        jobs.append(("runtime_pty", n, runtime_argv(frames_dir, imu, n, config, serial=PTY),
+                     None))
         timings = work / f"timings-{n}.json"
         jobs.append(("pipeline", n, driver_argv("pipeline", frames_dir, n, timings), timings))
         jobs.append(("peer", n, driver_argv("peer", frames_dir, n), None))
@@ -376,6 +412,8 @@ def format_counts(res: dict) -> str:
         lines.append(f"  {'':<34}{'M instr':>9}{'Pi 4 ms':>9}  (budget at "
                      f"{FRAME_FPS:g} fps {FRAME_BUDGET_MS:.2f} ms)")
         rows = [("leg runtime end to end", c["figures"]["runtime"]),
+                ("  the same, serial on a pty", c["figures"].get("runtime_pty",
+                                                                 {"per_frame": None})),
                 ("marker pipeline", c["figures"]["pipeline"])]
         rows += [(f"  {STAGE_NAMES[k]}", v) for k, v in c["stages"].items()]
         rows.append(("SimpleBlobDetector peer", c["figures"]["peer"]))
