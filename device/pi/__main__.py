@@ -140,8 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(st))
     else:
+        prof = st["profile"]
         print(f"device.pi run: {st['frames']} frames, {st['packets_sent']} packets sent, "
-              f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}",
+              f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}; "
+              f"profile {prof['name']} ({prof['source']}, {prof['pins']} pins)",
               file=sys.stderr)
     return rc
 

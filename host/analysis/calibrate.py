@@ -16,7 +16,9 @@ naming the frames) when they are not: when pins move more than ``STILL_PX``
 frames, when fewer than ``MIN_PIN_SHARE`` of the blobs the threshold finds per
 frame are steady pins, or when more than ``MAX_LOOSE_SHARE`` of the pins kept are
 loose by wandering (a pin whose core is clipped by glare is loose but not moving).
-:func:`stillest_start` finds the stillest run of frames in a clip.
+It also refuses a layout whose pins are not on a lattice (``MIN_LATTICE``) and,
+given the sensor's pin count, one more than ``PIN_TOLERANCE`` off it.
+:mod:`host.analysis.still` finds a clip's still stretch.
 
 The result is a ``[vision]`` and a ``[layout]`` section (``device/profile.py``)
 that the Pi loads as it is and that ``host train --profile`` maps every frame onto. Without a dome, ``dome_px`` is the circle
@@ -52,6 +54,13 @@ STILL_PX = 0.75
 MIN_PIN_SHARE = 0.5
 #: ... and at most this share of those pins loose by wandering
 MAX_LOOSE_SHARE = 0.5
+#: at least this share of the pins at the lattice spacing (:func:`lattice_regularity`)
+MIN_LATTICE = 0.85
+#: a layout may be this share of the expected pin count off it (at least 3 pins)
+PIN_TOLERANCE = 0.03
+#: a threshold setting finding more blobs than this in a frame finds noise, not pins
+#: (the densest skin seen has about 1200 blobs a frame); it is not scored further
+MAX_BLOBS = 2500
 
 
 class NotAtRest(ValueError):
@@ -90,29 +99,13 @@ def check_still(motion: np.ndarray, start: int) -> None:
                         f"contact (--start, --frames)")
 
 
-def stillest_start(grays: list[np.ndarray], n: int) -> tuple[int, float]:
-    """The first frame of the stillest run of ``n`` frames of ``grays`` (the first
-    run whose largest frame-to-frame motion is within ``STILL_PX``, else the run with
-    the least), and that run's largest motion (px). The pins are found with the
-    threshold fitted on the first ``n`` frames."""
-    n = max(1, min(int(n), len(grays)))
-    if n < 2:
-        return 0, 0.0
-    dome = find_region(grays[:n])
-    p, info, _ = fit_threshold(grays[:n], dome)
-    motion = frame_motion(grays, p, dome, info["pitch_px"])
-    worst = np.array([motion[s:s + n - 1].max() for s in range(len(grays) - n + 1)])
-    still = np.flatnonzero(worst <= STILL_PX)
-    s = int(still[0]) if len(still) else int(np.argmin(worst))
-    return s, float(worst[s])
-
-
-
 def _score(frames, params, dome):
     det = PinDetector(params, frames[0].shape, dome)
     counts, areas, nns = [], [], []
     for g in frames:
         xy, a = det.detect(g)
+        if len(xy) > MAX_BLOBS:
+            return -1.0, None
         counts.append(len(xy))
         areas.append(a)
         nns.append(nearest_neighbour_px(xy))
@@ -130,12 +123,16 @@ def _score(frames, params, dome):
                           "regular": float(regular), "steady": float(steady)}
 
 
+def is_binary(gray: np.ndarray) -> bool:
+    """Whether a frame is already binarised (nearly every pixel 0 or 255)."""
+    return bool(np.count_nonzero((gray == 0) | (gray == 255)) > 0.97 * gray.size)
+
+
 def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, float]:
     """The threshold block and offset under which the blobs look most like a pin
     lattice (inside ``dome``, or the whole frame with None): (params, the fit's
     figures, score)."""
-    g0 = grays[0]
-    binary_input = np.count_nonzero((g0 == 0) | (g0 == 255)) > 0.97 * g0.size
+    binary_input = is_binary(grays[0])
     blur = 0.0 if binary_input else 1.0
     shrink = 1.0 if binary_input or dome is None else 0.75
     settings = [VisionParams(block=block, offset=float(offset), blur_sigma_px=blur,
@@ -158,10 +155,20 @@ def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, fl
     return p, info, score
 
 
+def stretched(gray: np.ndarray) -> np.ndarray:
+    """``gray`` with its 0.5th..99.5th percentile stretched to 0..255: a dark
+    exposure's dome stands out as a camera's does."""
+    lo, hi = np.percentile(gray, (0.5, 99.5))
+    if hi - lo < 1:
+        return gray
+    return np.clip((gray.astype(np.float32) - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
 def find_region(grays: list[np.ndarray]):
     """The dome (cx, cy, r) px found in most of the first frames, or None when no
     round dome is in view (the pins are then searched on the whole frame)."""
-    domes = [d for d in (find_dome(g) for g in grays[:5]) if d is not None]
+    domes = [d for d in (find_dome(g) or find_dome(stretched(g)) for g in grays[:5])
+             if d is not None]
     if len(domes) * 2 <= min(5, len(grays)):
         return None
     return tuple(float(v) for v in np.median(np.array(domes), axis=0))
@@ -207,9 +214,11 @@ def rest_pins(grays: list[np.ndarray], dome, params: VisionParams, info: dict
     return rest, region, "one"
 
 
-def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0) -> dict:
+def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0,
+              expect_pins: int | None = None) -> dict:
     """Fit ``[vision]`` parameters and the rest ``[layout]`` from no-contact frames
-    (gray or BGR); ``start`` is the first frame's index in its clip (recorded only).
+    (gray or BGR); ``start`` is the first frame's index in its clip (recorded only);
+    ``expect_pins`` the sensor's pin count, when known.
     The result's ``rest`` (:class:`RestPins`) and ``region`` (:class:`Region`) say
     which blobs were kept and why the others were not. Frames that are not at rest
     (see the module's rules) are a :class:`NotAtRest` naming them."""
@@ -239,6 +248,13 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
                         f"centres wandering over the frames (over {MAX_LOOSE_SHARE:.0%}): the "
                         f"frames are not at rest; calibrate from still frames without contact "
                         f"(--start, --frames)")
+    n_loose = int(rest.pins_loose.sum())
+    if n_loose > MAX_LOOSE_SHARE * len(pins) and not is_binary(grays[0]):
+        raise NotAtRest(f"{which}: {n_loose} of the {len(pins)} pins found are loose, most "
+                        f"of them with a core clipped at full scale (over {MAX_LOOSE_SHARE:.0%}):"
+                        f" the exposure is too bright for a layout; lower it and calibrate "
+                        f"again")
+    check_layout(pins, which, expect_pins)
     pitch = float(np.median(nn_px(pins)))
     area = info["area_px"]
     if dome is None:    # no dome in view: the region is the circle around the pins
@@ -263,6 +279,24 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
             "spot_scale": scale, "lattice_regularity": round(lattice_regularity(pins), 3),
             "fit": {"score": score, "regular_fraction": info["regular"],
                     "count_steadiness": info["steady"], "median_pin_area_px": area}}
+
+
+def check_layout(pins: np.ndarray, which: str, expect_pins: int | None = None) -> None:
+    """A :class:`NotAtRest` naming the frames (``which``) when fewer than
+    ``MIN_LATTICE`` of ``pins`` are at the lattice spacing, or when ``expect_pins``
+    is given and the count is more than ``PIN_TOLERANCE`` of it (at least 3) off."""
+    reg = lattice_regularity(pins)
+    if reg < MIN_LATTICE:
+        raise NotAtRest(f"{which}: only {reg:.0%} of the {len(pins)} pins found are at the "
+                        f"lattice spacing (under {MIN_LATTICE:.0%}): glare or texture, not a "
+                        f"pin lattice at rest; calibrate from still frames without contact "
+                        f"(--start, --frames)")
+    if expect_pins is not None:
+        tol = max(3, round(PIN_TOLERANCE * expect_pins))
+        if abs(len(pins) - expect_pins) > tol:
+            raise NotAtRest(f"{which}: {len(pins)} pins found, the sensor has {expect_pins} "
+                            f"(--pins; more than {tol} off): the frames are not at rest, or "
+                            f"the exposure hides or adds pins (see --overlay)")
 
 
 def rest_contrast(grays, params: VisionParams, dome) -> float:
@@ -298,6 +332,37 @@ def loose_flags(res: dict) -> np.ndarray:
     flags = np.zeros(len(res["layout"]), bool)
     flags[np.asarray(res.get("loose", []), np.int64)] = True
     return flags
+
+
+#: in a merge, a clip whose layout matches fewer than this share of the smaller
+#: layout's pins (aligned by a shift) disagrees with that clip
+MATCH_SHARE = 0.85
+
+
+def clip_outliers(results: list[dict]) -> dict[int, str]:
+    """{index: why} of the calibrations (of clips of one sensor, to be merged) that
+    disagree with the others: a pin count more than ``PIN_TOLERANCE`` (at least 3)
+    off the clips' median, or a layout that matches fewer than ``MATCH_SHARE`` of
+    the pins of most of the others. With two clips that disagree, both are named."""
+    counts = np.array([len(r["layout"]) for r in results], float)
+    med = float(np.median(counts))
+    tol = max(3, round(PIN_TOLERANCE * med))
+    pitch = results[0]["vision"]["pitch_px"]
+    lays = [np.asarray(r["layout"], np.float64).reshape(-1, 2) for r in results]
+    out = {}
+    for i, n in enumerate(counts):
+        if abs(n - med) > tol:
+            out[i] = f"{int(n)} pins, the clips' median {med:g} (more than {tol} off)"
+            continue
+        bad = 0
+        for j in range(len(lays)):
+            if j != i:
+                ag = agreement(lays[i], lays[j], pitch)
+                bad += ag["matched"] < MATCH_SHARE * min(ag["pins"])
+        if 2 * bad > len(lays) - 1 or (len(lays) == 2 and bad):
+            out[i] = (f"a layout that matches under {MATCH_SHARE:.0%} of the pins of "
+                      f"{bad} of the other {len(lays) - 1}")
+    return out
 
 
 def merge_results(results: list[dict]) -> dict:

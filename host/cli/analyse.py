@@ -193,60 +193,67 @@ def cmd_plot(args):
     emit(args, res, text)
 
 
-#: without --start, calibrate looks for its still frames in this many leading frames
-#: of a clip (when its first --frames are not at rest)
-STILL_SEARCH_FRAMES = 120
-
-
-def _rest_frames(source: str, start: int, count: int, gray: bool = False) -> list:
-    """Frames ``start`` .. ``start + count`` of a clip (frame indices in the clip),
-    stopping there; fewer when the clip ends sooner."""
-    from device.pi.vision.extract import to_gray
-    frames = []
+def _clip_frames(source: str, start: int = 0):
+    """The frames of a clip from frame ``start`` on, read one at a time."""
     with open_source(source) as cam:
         for k, fr in enumerate(read_frames(cam)):
             if k >= start:
-                frames.append(to_gray(fr.image) if gray else fr.image.copy())
-            if len(frames) >= count:
-                break
-    if not frames:
-        raise UserError(f"{source}: no frames to calibrate from (--start {start})")
-    return frames
+                yield fr.image
 
 
-def _calibrate_clip(source: str, start: int | None, count: int, name: str):
-    """(the first frame used, its calibration) of one clip: from frame ``start`` on,
-    or, without ``start``, its first ``count`` frames when they are at rest, else the
-    stillest run of ``count`` frames in its first ``STILL_SEARCH_FRAMES``. Too few
-    frames after a ``start``, or frames not at rest, are a UserError naming them."""
-    from host.analysis.calibrate import NotAtRest, stillest_start
-    frames = _rest_frames(source, start or 0, count)
-    if len(frames) < count:
-        if start:
-            raise UserError(f"{source}: --start {start} --frames {count} asks for frames "
-                            f"{start}..{start + count - 1}, but the clip ends at frame "
+def _calibrate_clip(source: str, start: int | None, count: int | None, name: str,
+                    pins: int | None = None):
+    """(the first frame used, its calibration) of one clip. With ``start``: frames
+    ``start`` .. ``start + count - 1`` (count default 16), which must be still; too
+    few of them is a UserError. Without: the earliest still stretch of ``count``
+    frames (:func:`calibrate_clip`), or, with no ``count`` given and no stretch of
+    16, the longest of at least 6, said on stderr in one line. Refusals are a
+    UserError naming the clip and the frames."""
+    from host.analysis.calibrate import NotAtRest
+    from host.analysis.still import LEAST_FRAMES, WANT_FRAMES, calibrate_clip
+    want = count or WANT_FRAMES
+    stream = _clip_frames(source, start or 0)
+    try:
+        if start is None:
+            found = calibrate_clip(stream, want, want if count else LEAST_FRAMES, name=name,
+                                   expect_pins=pins)
+            if found.note:
+                print(f"host calibrate: {source}: {found.note}", file=sys.stderr)
+            return found.frame, found.result
+        frames = [f.copy() for _, f in zip(range(want), stream)]
+        if not frames:
+            raise UserError(f"{source}: no frames to calibrate from (--start {start})")
+        if len(frames) < want:
+            raise UserError(f"{source}: --start {start} --frames {want} asks for frames "
+                            f"{start}..{start + want - 1}, but the clip ends at frame "
                             f"{start + len(frames) - 1} ({len(frames)} of them); choose an "
                             f"earlier --start or fewer --frames")
-        print(f"host calibrate: {source}: the clip has {len(frames)} frame(s), under "
-              f"--frames {count}; calibrating from all of them", file=sys.stderr)
-    try:
-        return frames[0], calibrate(frames, name=name, start=start or 0)
-    except NotAtRest as exc:
-        if start is not None or len(frames) < count:
-            raise UserError(f"{source}: {exc}") from None
-        first = exc
-    except ValueError as exc:
+        return frames[0], calibrate(frames, name=name, start=start, expect_pins=pins)
+    except (NotAtRest, ValueError) as exc:
         raise UserError(f"{source}: {exc}") from None
-    head = _rest_frames(source, 0, max(STILL_SEARCH_FRAMES, 2 * count), gray=True)
-    s, worst = stillest_start(head, count)
-    if s == 0 or len(head) < s + count:
-        raise UserError(f"{source}: {first}; no stiller run of {count} frames in its first "
-                        f"{len(head)}") from None
-    try:
-        return head[s], calibrate(head[s:s + count], name=name, start=s)
-    except ValueError as exc:
-        raise UserError(f"{source}: {first}; the stillest run of {count} frames in its "
-                        f"first {len(head)}, {exc}") from None
+    finally:
+        stream.close()
+
+
+def _drop_outliers(results: list, drop: bool) -> list:
+    """``results`` (source, frame, calibration) without the clips that disagree with
+    the others (:func:`clip_outliers`): a UserError naming them unless ``drop``, then
+    a warning line each on stderr; a UserError when fewer than two would agree."""
+    from host.analysis.calibrate import clip_outliers
+    bad = clip_outliers([r for _, _, r in results])
+    if not bad:
+        return results
+    named = "; ".join(f"{results[i][0]} gives {why}" for i, why in bad.items())
+    keep = [r for i, r in enumerate(results) if i not in bad]
+    if not drop or len(keep) < 2:
+        hint = ("merge without it: --drop-outliers" if len(keep) >= 2 else
+                "too few clips agree to tell which is right")
+        raise UserError(f"the clips disagree: {named}; calibrate each alone (--overlay) to "
+                        f"see why, or {hint}")
+    for i, why in bad.items():
+        print(f"host calibrate: warning: {results[i][0]} gives {why}: left out of the "
+              f"merge (--drop-outliers)", file=sys.stderr)
+    return keep
 
 
 def cmd_calibrate(args):
@@ -254,8 +261,10 @@ def cmd_calibrate(args):
     name = args.name or out.stem
     results = []
     for source in args.sources:
-        frame, res = _calibrate_clip(source, args.start, args.frames, name)
+        frame, res = _calibrate_clip(source, args.start, args.frames, name, args.pins)
         results.append((source, frame, res))
+    if len(results) > 1:
+        results = _drop_outliers(results, args.drop_outliers)
     source, frame, res = results[0]
     clips = [{"source": s, "start": r["start"], "frames": r["frames"],
               "pins": len(r["layout"]), "loose": len(r["loose"]), "blobs": r["blobs"]}
@@ -394,11 +403,18 @@ def register(sub) -> None:
                         "sensor are merged (the pins most of them find)")
     s.add_argument("--out", required=True, help="profile .toml to write")
     s.add_argument("--start", type=whole(0, 10_000_000), default=None, metavar="K",
-                   help="first rest frame (its index in the clip); default: frame 0, or, "
-                        "when the first --frames are not at rest, the stillest run of "
-                        f"--frames frames in the first {STILL_SEARCH_FRAMES}")
-    s.add_argument("--frames", type=whole(1, 100_000), default=16, metavar="N",
-                   help="rest frames to use from --start (nothing touching); default 16")
+                   help="first rest frame (its index in the clip); these --frames must be "
+                        "still. Default: the clip's earliest still stretch, found by itself")
+    s.add_argument("--frames", type=whole(2, 100_000), default=None, metavar="N",
+                   help="rest frames to use (nothing touching); default 16, or, when no "
+                        "clip has a still stretch of 16, its longest of at least 6 (said "
+                        "on stderr)")
+    s.add_argument("--pins", type=whole(3, 100_000), default=None, metavar="N",
+                   help="the sensor's pin count, when known: a layout more than 3%% (at "
+                        "least 3 pins) off it is refused")
+    s.add_argument("--drop-outliers", action="store_true",
+                   help="merge without the clips whose pin count or layout disagrees with "
+                        "the others (warned on stderr); default: refuse the merge")
     s.add_argument("--overlay", metavar="PNG",
                    help="also write the first rest frame (of the first clip) at twice its "
                         "size with the pins kept and the blobs rejected, and why")

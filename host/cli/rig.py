@@ -35,14 +35,14 @@ def _open_range(args):
     """The camera, opened at ``--start`` for ``--frames`` frames when given (file and
     simulated sources only: a live camera has no frame numbers to start from)."""
     if args.frames is not None and args.seconds is not None:
-        raise UserError(f"host record: give --seconds or --frames, not both (got --seconds "
+        raise UserError(f"give --seconds or --frames, not both (got --seconds "
                         f"{args.seconds:g} and --frames {args.frames})")
     if args.frames is None and args.seconds is None:
         args.seconds = 30.0
     if args.frames is None and not args.start:
         return open_source(args.camera)
     if args.camera.lower().startswith("v4l2://"):
-        raise UserError(f"host record: --start/--frames need a file or sim:// source; "
+        raise UserError(f"--start/--frames need a file or sim:// source; "
                         f"{args.camera} is a live camera (use --seconds)")
     opts = {"start_frame": args.start}
     if args.frames is not None:
@@ -85,7 +85,7 @@ def _record(args, out, log):
                            progress=bar.update, frames=args.frames, start=args.start,
                            profile=args.profile)
     except (RecordError, CameraError, IMUError) as exc:
-        raise UserError(f"host record: {exc}; nothing was added to {args.out}") from None
+        raise UserError(f"{exc}; nothing was added to {args.out}") from None
     finally:
         if imu is not None:
             imu.close()

@@ -324,3 +324,30 @@ def test_foxglove_without_the_viz_extra_or_with_a_bad_port_refuses_to_start(monk
     rc, err = _run_main(["--camera", "sim://press-hard", "--foxglove", "8765"], capsys)
     line, = err.strip().splitlines()
     assert rc == 2 and "--foxglove" in line and "pip install .[viz]" in line
+
+
+def test_the_runtime_says_which_profile_it_runs(tmp_path, capsys):
+    """Its last line, its JSON summary and its status file name the profile it runs
+    (name, where it came from, pins): the default roboskin, and a calibrated .toml
+    the leg config names (issue 33)."""
+    from device.sim import Simulator, load_scene
+    from host.analysis.calibrate import calibrate, write_profile
+    base = ["run", "--imu", "none", "--serial", "loop://", "--frames", "2", "--rules-only",
+            "--camera", "sim://no-touch"]
+    st = tmp_path / "st.json"
+    assert main(base + ["--status", str(st)]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.endswith("; profile roboskin (roboskin, 133 pins)"), last
+    assert json.loads(st.read_text())["profile"] == {"name": "roboskin", "source": "roboskin",
+                                                     "pins": 133}
+    sim = Simulator(load_scene("no-touch"), seed=0)
+    prof = write_profile(calibrate([sim.render(i) for i in range(6)], name="mine"),
+                         tmp_path / "mine.toml")
+    cfg = tmp_path / "leg.toml"
+    cfg.write_text(f'[models]\nprofile = "{prof}"\n')
+    assert main(base + ["--config", str(cfg), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)["profile"]
+    assert got["name"] == "mine" and got["source"] == str(prof) and abs(got["pins"] - 133) <= 3
+    assert main(base + ["--config", str(cfg)]) == 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.endswith(f"; profile mine ({prof}, {got['pins']} pins)"), last

@@ -41,3 +41,23 @@ def test_record_mcap_to_a_missing_folder_records_nothing(tmp_path, capsys):
                "--out", str(out), "--mcap", str(tmp_path / "nope" / "r.mcap")])
     assert rc == 2 and "does not exist" in capsys.readouterr().err
     assert not (out / "dataset.json").exists()
+
+
+def test_record_errors_name_the_command_once(tmp_path, capsys):
+    """`host record: error: host record: ...` doubled its prefix (issue 33): each
+    refusal is one line with the prefix once."""
+    import cv2
+    noise = tmp_path / "clip"
+    noise.mkdir()
+    cv2.imwrite(str(noise / "a.png"), np.zeros((64, 64), np.uint8))
+    cases = [(["--camera", "sim://no-touch", "--seconds", "1", "--frames", "3"],
+              "give --seconds or --frames, not both"),
+             (["--camera", "v4l2:///dev/video9", "--frames", "3"],
+              "--start/--frames need a file or sim:// source"),
+             (["--camera", str(noise), "--frames", "3", "--start", "5"],
+              "no frames from frame 5; nothing was added to")]
+    for argv, what in cases:
+        assert main(["record", *argv, "--label", "x", "--out", str(tmp_path / "d")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("host record: error: ") and what in err[0], err
+        assert err[0].count("host record:") == 1, err
