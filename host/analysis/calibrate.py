@@ -38,6 +38,7 @@ from host.analysis.rest_pins import (MIN_SEEN, WANDER_PITCH, Region, RestPins, a
                                      merge_with_flags, nn_px)
 from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
+from device.errors import TacfootError
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
@@ -54,7 +55,7 @@ MIN_PIN_SHARE = 0.5
 MAX_LOOSE_SHARE = 0.5
 
 
-class NotAtRest(ValueError):
+class NotAtRest(TacfootError, ValueError):
     """The frames given are not a still, no-contact stretch; the message names them."""
 
 

@@ -49,6 +49,7 @@ import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from device.errors import TacfootError
 
 __all__ = ["N1", "N2", "PI4_INSTR_PER_S", "FRAME_BUDGET_MS", "DEFAULT_CLIPS",
            "parse_callgrind", "per_frame", "pi4_ms", "write_pgm", "frame_folder",
@@ -79,7 +80,7 @@ STAGE_NAMES = {"detect": "detection", "track": "tracking", "grid": "contact grid
 _LINE = re.compile(r"^(summary|totals):\s*(\d+)", re.M)
 
 
-class CountError(RuntimeError):
+class CountError(TacfootError, RuntimeError):
     """A counted run failed or its output held no total; the message says which."""
 
 

@@ -24,11 +24,12 @@ from host.data.dataset import addable_folder, is_dataset
 from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 from host.extras import need
+from device.errors import TacfootError
 
 EXIT_BAD_INPUT = 2
 
 
-class UserError(Exception):
+class UserError(TacfootError):
     """Bad input from the user: printed as one line, exit status 2."""
 
 

@@ -9,16 +9,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from device.config import tomllib
+from device.errors import TacfootError
 
 REPO = Path(__file__).resolve().parents[2]
 MANAGERS = ("auto", "systemd", "none")
 
 
-class DeployError(Exception):
+class DeployError(TacfootError):
     """A deploy step failed; the message names the step."""
 
 
-class DeployInputError(ValueError):
+class DeployInputError(TacfootError, ValueError):
     """Bad deploy options (a missing models folder, a bad --env ...)."""
 
 

@@ -53,11 +53,12 @@ from host.data.recordings import profile_ref, source_recording
 from host.data.video import frame_times
 from host.data.windows import LABEL_RE, check_label_name
 from host.rig.trials import RUN_STATE
+from device.errors import TacfootError
 
 __all__ = ["RecordError", "record", "LABEL_RE"]
 
 
-class RecordError(ValueError):
+class RecordError(TacfootError, ValueError):
     """A bad argument or an unusable output folder; the message names it."""
 
 

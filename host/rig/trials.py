@@ -28,11 +28,12 @@ from device.config import ConfigError
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
 from host.rig.plan import DIRECTIONS, Plan, RigLimits, Trial, Variant
 from host.extras import need
+from device.errors import TacfootError
 
 RUN_STATE = "rig_run.json"
 
 
-class RigSetupError(ValueError):
+class RigSetupError(TacfootError, ValueError):
     """The rig or the camera cannot be opened or does not answer: nothing ran."""
 
 

@@ -49,11 +49,11 @@ kept (e.g. as a reference frame).
 
 from __future__ import annotations
 
+import logging
 import errno
 import math
 import os
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +67,9 @@ from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
 from device.pi.sources.luma import PACKED_YUV, PLANE_GRAY, luma_plane, to_gray_frame
 from device.pi.sources.options import opt_bool, opt_fps, opt_int, parse_options
 from device.closing import Closing
+from device.errors import TacfootError
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "BadFrameError",
@@ -91,7 +94,7 @@ IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".
 VIDEO_SUFFIXES = frozenset({".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".h264"})
 
 
-class CameraError(OSError):
+class CameraError(TacfootError, OSError):
     """A camera or recording cannot be opened or read."""
 
 
@@ -248,9 +251,9 @@ class VideoFileSource(CameraSource):
             fps = declared
         elif fps is None:
             fps = DEFAULT_FILE_FPS
-            print(f"warning: camera source {self.source!r}: the file declares {declared:g} "
-                  f"frames/s, outside {FPS_MIN_HZ:g}..{FPS_MAX_HZ:g}; reading it at "
-                  f"{DEFAULT_FILE_FPS:g} frames/s (give ?fps= to choose)", file=sys.stderr)
+            _log.warning("warning: camera source %r: the file declares %g frames/s, outside "
+                         "%g..%g; reading it at %g frames/s (give ?fps= to choose)",
+                         self.source, declared, FPS_MIN_HZ, FPS_MAX_HZ, DEFAULT_FILE_FPS)
         self.fps = fps
         count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
         total = count if count > 0 else None

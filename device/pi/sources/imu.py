@@ -36,8 +36,8 @@ that cannot be used at open time raises ``IMUError`` naming it.
 
 from __future__ import annotations
 
+import logging
 import re
-import sys
 import time
 from pathlib import Path
 from urllib.parse import parse_qsl, unquote, urlsplit
@@ -48,6 +48,8 @@ from device.pi.sources.mpu6050 import (ACCEL_RANGES_G, FAULT_ENDED, FAULT_OFFLIN
                                        GYRO_RANGES_DPS, MPU6050, IMUError, IMUUnavailable)
 from device.closing import Closing
 from device.pi.sources.options import opt_bool, opt_choice, opt_int_in, opt_positive, parse_options
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["ImuSource", "MPU6050Source", "RetryingImuSource", "FileImuSource", "NoImuSource", "open_imu",
            "FULL_SCALE"]
@@ -223,10 +225,9 @@ class FileImuSource(ImuSource):
                 self.index = 0
                 self.wraps += 1
                 if self.wraps == 1:     # said once: the rows repeat from here on
-                    print(f"warning: IMU source {self.source!r}: the recording's "
-                          f"{self.n_frames} rows ran out; looping from its first row "
-                          f"(give ?loop=0 to hold the last row with the imu_ended fault)",
-                          file=sys.stderr)
+                    _log.warning("warning: IMU source %r: the recording's %d rows ran out; "
+                                 "looping from its first row (give ?loop=0 to hold the last "
+                                 "row with the imu_ended fault)", self.source, self.n_frames)
             else:
                 self.faults = FAULT_ENDED
                 return self._ret(out)
