@@ -38,7 +38,7 @@ from host.analysis.rest_pins import (MIN_SEEN, WANDER_PITCH, Region, RestPins, a
                                      merge_with_flags, nn_px)
 from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
-from device.errors import TacfootError
+from device.errors import InputError, TacfootError
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
@@ -155,7 +155,7 @@ def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, fl
     score, p, info = best
     if p is None:
         where = "" if dome is not None else "no dome in view and "
-        raise ValueError(f"{where}no threshold setting found pins: is this a TacTip clip?")
+        raise InputError(f"{where}no threshold setting found pins: is this a TacTip clip?")
     return p, info, score
 
 
@@ -343,7 +343,7 @@ def rest_contact(grays, vision: dict) -> dict:
             mag_max = max(mag_max, float(ff.magnitude_sum) / max(1, len(ff.vectors)))
     contact_px = round(max(prof.contact_px, CONTACT_MARGIN * mag_max), 3)
     if contact_px > prof.pitch_px:
-        raise ValueError(f"the contact threshold these frames need ({contact_px} px of mean "
+        raise InputError(f"the contact threshold these frames need ({contact_px} px of mean "
                          f"pin travel) is beyond the pin pitch ({prof.pitch_px} px): the "
                          f"leading frames are not at rest; calibrate from a clip that starts "
                          f"without contact")

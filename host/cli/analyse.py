@@ -3,12 +3,14 @@ marker pipeline."""
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from device.errors import TacfootError, one_line
 from device.pi.models.window import RollingWindow
 from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutError
@@ -20,8 +22,10 @@ from host.analysis.realism import realism_table, side_by_side_png, spec_realism
 from host.analysis.sim2real import (SIM2REAL_TRIALS, real_texture_manifest, sim2real_table,
                                     sim_to_real, stroke_scene)
 from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
-                             open_stream, out_file, progress_bar, read_frames, whole)
+                             open_stream, out_file, progress_bar, whole)
 from host.cli.export import add_mcap_args
+
+_log = logging.getLogger(__name__)
 
 
 def _profile_from_models(args) -> None:
@@ -29,19 +33,16 @@ def _profile_from_models(args) -> None:
     ``--localiser`` or ``--pressure`` is given, else ``--profile`` (default roboskin).
     A ``--profile`` other than the models', or two models carrying different
     profiles, is a UserError naming both."""
-    from device.pi.models.artefact import ModelError, read_spec
+    from device.pi.models.artefact import read_spec
     from host.learn.onnx_io import models_profile
 
     specs = {}
-    try:
-        for folder in (args.localiser, args.pressure):
-            if folder:
-                spec, mpath = read_spec(folder)
-                specs[str(mpath)] = spec
-        if specs:
-            args.profile, _ = models_profile(specs, args.profile)
-    except (ModelError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    for folder in (args.localiser, args.pressure):
+        if folder:
+            spec, mpath = read_spec(folder)
+            specs[str(mpath)] = spec
+    if specs:
+        args.profile, _ = models_profile(specs, args.profile)
     args.profile = args.profile or "roboskin"
 
 
@@ -136,7 +137,7 @@ def cmd_analyse(args):
     try:
         with cam, progress_bar(total or 0, "analyse",
                                not args.json and args.out is not None) as bar:
-            for fr in read_frames(cam):
+            for fr in cam:
                 f, pressure = _process(stream, encoder, window, reg, fr)
                 line = frame_line(f, pressure, bool(args.localiser))
                 out.write(json.dumps(line) + "\n")
@@ -179,8 +180,8 @@ def cmd_plot(args):
                 stats.append(st)
         else:
             inputs = [load_directions(p) for p in args.inputs]
-    except (OSError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    except OSError as exc:                    # a file that cannot be read: name it
+        raise UserError(one_line(exc)) from None
     out = plot_directions(inputs, out_file(args.out), title=args.title or "")
     res = {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]}
     text = f"wrote {out}"
@@ -204,7 +205,7 @@ def _rest_frames(source: str, start: int, count: int, gray: bool = False) -> lis
     from device.pi.vision.extract import to_gray
     frames = []
     with open_source(source) as cam:
-        for k, fr in enumerate(read_frames(cam)):
+        for k, fr in enumerate(cam):
             if k >= start:
                 frames.append(to_gray(fr.image) if gray else fr.image.copy())
             if len(frames) >= count:
@@ -227,15 +228,15 @@ def _calibrate_clip(source: str, start: int | None, count: int, name: str):
                             f"{start}..{start + count - 1}, but the clip ends at frame "
                             f"{start + len(frames) - 1} ({len(frames)} of them); choose an "
                             f"earlier --start or fewer --frames")
-        print(f"host calibrate: {source}: the clip has {len(frames)} frame(s), under "
-              f"--frames {count}; calibrating from all of them", file=sys.stderr)
+        _log.warning("host calibrate: %s: the clip has %d frame(s), under --frames %d; "
+                     "calibrating from all of them", source, len(frames), count)
     try:
         return frames[0], calibrate(frames, name=name, start=start or 0)
     except NotAtRest as exc:
         if start is not None or len(frames) < count:
             raise UserError(f"{source}: {exc}") from None
         first = exc
-    except ValueError as exc:
+    except TacfootError as exc:               # the clip named: the error cannot know it
         raise UserError(f"{source}: {exc}") from None
     head = _rest_frames(source, 0, max(STILL_SEARCH_FRAMES, 2 * count), gray=True)
     s, worst = stillest_start(head, count)
@@ -244,7 +245,7 @@ def _calibrate_clip(source: str, start: int | None, count: int, name: str):
                         f"{len(head)}") from None
     try:
         return head[s], calibrate(head[s:s + count], name=name, start=s)
-    except ValueError as exc:
+    except TacfootError as exc:
         raise UserError(f"{source}: {first}; the stillest run of {count} frames in its "
                         f"first {len(head)}, {exc}") from None
 
@@ -265,11 +266,8 @@ def cmd_calibrate(args):
     lay = res["layout"]
     res["out"] = str(write_profile(res, out))
     if args.overlay:
-        try:
-            res["overlay"] = str(write_overlay(args.overlay, frame, results[0][2]["rest"],
-                                               results[0][2]["region"]))
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
+        res["overlay"] = str(write_overlay(args.overlay, frame, results[0][2]["rest"],
+                                           results[0][2]["region"]))
     v = res["vision"]
     text = (f"wrote {args.out}: {'dome' if res['dome_in_view'] else 'no dome in view, region'} "
             f"{v['dome_px']}, block {v['block']}, offset {v['offset']}, pin area "
@@ -334,30 +332,23 @@ def _sim2real(args, found: dict, profile: str, work: str) -> tuple[dict | None, 
 
 def cmd_realism(args):
     from host.bench.specs import check_profile, check_specs
-    from host.data.windows import DataError
     from host.localiser.samples import vision_params_for
 
     if not args.data:
         raise UserError(REALISM_NO_DATA)
     if args.real_frames is not None and args.real_frames < 20:     # windows of T = 10 need room
         raise UserError(f"--real-frames must be at least 20, got {args.real_frames}")
-    try:                             # every file checked before any long work
-        profile = check_profile(args.profile)
-        found = check_specs(args.data)
-    except DataError as exc:
-        raise UserError(str(exc)) from None
+    profile = check_profile(args.profile)      # every file checked before any long work
+    found = check_specs(args.data)
     recs = [r for rs in found.values() for r in rs]
     items = [(r.name, r.label, _frames_of(r)) for r in recs]
-    try:
-        res = spec_realism(items, vision_params_for(profile), seed=args.seed,
-                           progress=not args.json)
-        if args.png:
-            first = next((f for f in (_frames_of(r)() for r in recs) if len(f)), None)
-            if first is None:
-                raise UserError("--png: no recording of --data has frames")
-            res["png"] = side_by_side_png(first[0], recs[0].name, args.png, seed=args.seed)
-    except (DataError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    res = spec_realism(items, vision_params_for(profile), seed=args.seed,
+                       progress=not args.json)
+    if args.png:
+        first = next((f for f in (_frames_of(r)() for r in recs) if len(f)), None)
+        if first is None:
+            raise UserError("--png: no recording of --data has frames")
+        res["png"] = side_by_side_png(first[0], recs[0].name, args.png, seed=args.seed)
     res.update(data=[str(d) for d in args.data], profile=str(profile))
     text = realism_table(res) + ("\nall compared figures within 20%: "
                                  f"{'yes' if res['all_within_20pct'] else 'NO'}")
@@ -365,7 +356,7 @@ def cmd_realism(args):
         with tempfile.TemporaryDirectory(prefix="tacfoot-sim2real-") as tmp:
             try:
                 res["sim_to_real"], more = _sim2real(args, found, profile, args.work or tmp)
-            except (DataError, ValueError) as exc:
+            except TacfootError as exc:
                 raise UserError(f"sim-to-real: {exc}") from None
         text += "\n\n" + more
     emit(args, res, text)
