@@ -105,8 +105,8 @@ def _run(args) -> int:
                        config=args.config, fps=args.fps, json_log=args.json_log,
                        status=args.status, frames=args.frames,
                        float_models=args.float_models, rules_only=args.rules_only)
-    log.debug("device.pi run: camera %s at %g frames/s, IMU %s, serial %s, models %s",
-              args.camera, rt.cfg.camera.fps, args.imu, args.serial,
+    log.debug("device.pi run: camera %s, IMU %s, serial %s, models %s",
+              args.camera, args.imu, args.serial,
               "none (--rules-only)" if args.rules_only else (args.models or "the package's"))
 
     if args.mcap or args.foxglove:

@@ -16,6 +16,7 @@ trials not yet in the dataset.
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import threading
 import time
@@ -328,7 +329,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
     from host.rig.link import LinkLost, RigError
 
     out = Path(out)
-    log = log or (lambda msg: print(msg, file=sys.stderr))
+    log = log or logging.getLogger(__name__).info
     done_ids: set = set()
     if is_dataset(out):
         idx = read_index(out)

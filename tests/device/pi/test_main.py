@@ -342,7 +342,7 @@ def test_quiet_leaves_errors_only_verbose_adds_debug_and_json_stays_on_stdout(ca
                "--camera", "sim://walk", "--json"])
     out, err = capsys.readouterr()
     assert rc == 0 and json.loads(out)["frames"] == 2
-    assert err.startswith("device.pi run: camera sim://walk at ")
+    assert err.startswith("device.pi run: camera sim://walk, IMU none, ")
     rc, err = _run_main(["-q", "--camera", "sim://nope"], capsys)
     assert rc == 2 and err.count("\n") == 1 and "device.pi run: error: --camera" in err
 
