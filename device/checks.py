@@ -1,7 +1,8 @@
 """Argument checks shared by the Pi code, the simulator and the host.
 
-Each returns the value as a plain int or float, or raises ``error`` (ValueError,
-or a caller's subclass such as host.data's DataError) naming the argument and
+Each returns the value as a plain int or float, or raises ``error`` (by default
+:class:`device.errors.InputError`, a ValueError; or a caller's class such as
+host.data's DataError) naming the argument and
 the value: ``k must be a whole number >= 1, got k=0``. A bool is not a number
 here, and numeric text is not either (source query strings are parsed by
 :mod:`device.pi.sources.options`).
@@ -12,6 +13,8 @@ import math
 from urllib.parse import urlsplit
 
 import numpy as np
+
+from device.errors import InputError
 
 __all__ = ["whole_number", "finite_number", "positive_number", "frame_rate", "bounds_text",
            "serial_url", "FPS_MIN_HZ", "FPS_MAX_HZ"]
@@ -34,7 +37,7 @@ def bounds_text(lo, hi, lo_open: bool = False, hi_open: bool = False) -> str:
 
 
 def whole_number(name: str, value, lo: int | None = None, hi: int | None = None,
-                 error: type[ValueError] = ValueError) -> int:
+                 error: type[ValueError] = InputError) -> int:
     """``value`` as an int in ``[lo, hi]`` (either bound may be None)."""
     if (isinstance(value, bool) or not isinstance(value, (int, np.integer))
             or (lo is not None and value < lo) or (hi is not None and value > hi)):
@@ -44,7 +47,7 @@ def whole_number(name: str, value, lo: int | None = None, hi: int | None = None,
 
 def finite_number(name: str, value, lo: float | None = None, hi: float | None = None, *,
                   lo_open: bool = False, hi_open: bool = False,
-                  error: type[ValueError] = ValueError) -> float:
+                  error: type[ValueError] = InputError) -> float:
     """``value`` as a finite float within the bounds (closed unless ``lo_open`` /
     ``hi_open``; either may be None)."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
@@ -58,12 +61,12 @@ def finite_number(name: str, value, lo: float | None = None, hi: float | None = 
     return v
 
 
-def positive_number(name: str, value, error: type[ValueError] = ValueError) -> float:
+def positive_number(name: str, value, error: type[ValueError] = InputError) -> float:
     """``value`` as a finite float > 0."""
     return finite_number(name, value, 0, lo_open=True, error=error)
 
 
-def frame_rate(name: str, value, error: type[ValueError] = ValueError) -> float:
+def frame_rate(name: str, value, error: type[ValueError] = InputError) -> float:
     """``value`` as a frame rate in [:data:`FPS_MIN_HZ`, :data:`FPS_MAX_HZ`] frames/s."""
     return finite_number(name, value, FPS_MIN_HZ, FPS_MAX_HZ, error=error)
 
@@ -72,7 +75,7 @@ def frame_rate(name: str, value, error: type[ValueError] = ValueError) -> float:
 _NETWORK_SCHEMES = ("socket", "rfc2217")
 
 
-def serial_url(url, error: type[ValueError] = ValueError) -> str:
+def serial_url(url, error: type[ValueError] = InputError) -> str:
     """``url`` when it can name a serial port: a device path or a pyserial URL
     (``loop://``, ``socket://host:port``). A ``socket://`` or ``rfc2217://`` URL
     must carry a host and a port in 1..65535: pyserial's own message for a

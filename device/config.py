@@ -11,6 +11,7 @@ import math
 import sys
 from pathlib import Path
 from typing import Any, Iterable
+from device.errors import TacfootError
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -18,7 +19,7 @@ else:  # pragma: no cover - Python 3.10 on Raspberry Pi OS bookworm
     import tomli as tomllib
 
 
-class ConfigError(ValueError):
+class ConfigError(TacfootError, ValueError):
     """A scene, profile or config file holds a bad field."""
 
 

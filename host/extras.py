@@ -12,6 +12,7 @@ here, into one line and exit status 2 (:func:`missing_extra`).
 from __future__ import annotations
 
 import importlib
+from device.errors import TacfootError
 
 #: top-level module -> the extra of pyproject.toml that installs it
 EXTRA_OF = {
@@ -21,7 +22,7 @@ EXTRA_OF = {
 }
 
 
-class MissingExtra(ModuleNotFoundError):
+class MissingExtra(TacfootError, ModuleNotFoundError):
     """An optional module is not installed: the message names the extra."""
 
     def __init__(self, module: str, extra: str, hint: str | None = None):

@@ -17,6 +17,7 @@ from pathlib import Path
 from device.checks import serial_url
 from device.pi import protocol as P
 from device.sim.mpy.runner import MPY_LIB, cpython_path, mpy_unavailable, run_mpy
+from device.errors import TacfootError
 
 
 class LinkMonitor:
@@ -100,7 +101,7 @@ def _round(v):
     return None if v is None else round(v, 3)
 
 
-class MonitorError(Exception):
+class MonitorError(TacfootError):
     """The source cannot be opened (one clear line for the CLI)."""
 
 

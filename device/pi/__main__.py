@@ -2,14 +2,21 @@
 
 Exit status: 0 when it stops (end of a finite source, ``--frames`` reached, SIGTERM
 or Ctrl-C); 2 when it refuses to start (bad config, model, source or port), with
-one line on stderr naming what is wrong; 3 when, after SIGTERM or Ctrl-C, the loop
+one line on stderr naming what is wrong (every :class:`device.errors.TacfootError`
+is caught in :func:`main`, and only there; any other exception is a defect and shows
+its traceback); 3 when, after SIGTERM or Ctrl-C, the loop
 had not finished within :data:`STOP_GRACE_S` and the process was ended without its
 clean-up (a guard: SIGTERM always ends the process within a second).
+
+Messages go through :mod:`logging` to one stderr handler (:mod:`device.logs`):
+``-q`` leaves errors only, ``-v`` adds debug notes; ``--json`` output on stdout is
+untouched.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import signal
@@ -18,7 +25,9 @@ import threading
 import time
 
 
-from device.pi.runtime.loop import EXIT_BAD_INPUT, StartupError
+from device import logs
+from device.errors import InputError, TacfootError, one_line
+from device.pi.runtime.loop import EXIT_BAD_INPUT
 from device.pi.runtime.start import build_runtime
 from device.pi.vision import native
 
@@ -28,6 +37,8 @@ STOP_GRACE_S = 0.8
 #: it has not written by then (a stalled disk) is counted lost (mcap_messages_lost)
 MCAP_STOP_WAIT_S = 0.5
 EXIT_FORCED = 3
+
+log = logging.getLogger("device.pi.run")     # not __name__: run as __main__
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -65,49 +76,48 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--frames", type=int, help="stop after N frames (tests, benchmarks)")
     r.add_argument("--json", action="store_true",
                    help="print a JSON summary on stdout when the runtime stops")
+    logs.add_arguments(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with logs.configured(args.verbose, args.quiet):
+        try:
+            return _run(args)
+        except TacfootError as exc:     # bad config, model, source or port: one line
+            log.error("device.pi run: error: %s", one_line(exc))
+            return EXIT_BAD_INPUT
+
+
+def _run(args) -> int:
     if args.frames is not None and args.frames < 1:
-        print(f"device.pi run: error: --frames must be >= 1, got {args.frames}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        raise InputError(f"--frames must be >= 1, got {args.frames}")
     if args.mcap or args.foxglove:
         err = _check_mcap(args)
         if err:
-            print(f"device.pi run: error: {err}", file=sys.stderr)
-            return EXIT_BAD_INPUT
+            raise InputError(err)
     refused = native.refused()          # a library is there but was not loaded: say why
     if refused:
-        print(f"device.pi run: warning: the tracker's compiled kernel is not loaded: {refused}; "
-              f"the tracker runs on numpy ({native.rebuild_hint()})",
-              file=sys.stderr)
-    try:
-        rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
-                           config=args.config, fps=args.fps, json_log=args.json_log,
-                           status=args.status, frames=args.frames,
-                           float_models=args.float_models, rules_only=args.rules_only)
-    except StartupError as exc:
-        print(f"device.pi run: error: {exc}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        log.warning("device.pi run: warning: the tracker's compiled kernel is not loaded: %s; "
+                    "the tracker runs on numpy (%s)", refused, native.rebuild_hint())
+    rt = build_runtime(args.camera, args.imu, args.serial, models_dir=args.models,
+                       config=args.config, fps=args.fps, json_log=args.json_log,
+                       status=args.status, frames=args.frames,
+                       float_models=args.float_models, rules_only=args.rules_only)
+    log.debug("device.pi run: camera %s, IMU %s, serial %s, models %s",
+              args.camera, args.imu, args.serial,
+              "none (--rules-only)" if args.rules_only else (args.models or "the package's"))
 
     if args.mcap or args.foxglove:
-        from device.pi.runtime.mcaplog import (LiveView, McapLog, McapLogError, parse_hostport,
-                                               run_metadata)
-        try:
-            live = (LiveView(*parse_hostport(args.foxglove),
-                             max_clients=args.foxglove_max_clients)
-                    if args.foxglove else None)
-            rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
-                              live=live, background=True, keep_existing=True,
-                              metadata=run_metadata(rt))
-        except (McapLogError, ValueError) as exc:
-            print(f"device.pi run: error: {exc}", file=sys.stderr)
-            return EXIT_BAD_INPUT
+        from device.pi.runtime.mcaplog import LiveView, McapLog, parse_hostport, run_metadata
+        live = (LiveView(*parse_hostport(args.foxglove), max_clients=args.foxglove_max_clients)
+                if args.foxglove else None)
+        rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
+                          live=live, background=True, keep_existing=True,
+                          metadata=run_metadata(rt))
         if live is not None:
-            print(f"device.pi run: Foxglove live view on ws://{live.host}:{live.port}",
-                  file=sys.stderr, flush=True)
+            log.info("device.pi run: Foxglove live view on ws://%s:%s", live.host, live.port)
     guard: list[threading.Timer] = []
 
     def stop(signum, frame):
@@ -141,10 +151,10 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(st))
     else:
         prof = st["profile"]
-        print(f"device.pi run: {st['frames']} frames, {st['packets_sent']} packets sent, "
-              f"{st['packets_dropped']} dropped, faults now {st['fault_names'] or 'none'}; "
-              f"profile {prof['name']} ({prof['source']}, {prof['pins']} pins)",
-              file=sys.stderr)
+        log.info("device.pi run: %s frames, %s packets sent, %s dropped, faults now %s; "
+                 "profile %s (%s, %s pins)", st["frames"], st["packets_sent"],
+                 st["packets_dropped"], st["fault_names"] or "none", prof["name"],
+                 prof["source"], prof["pins"])
     return rc
 
 

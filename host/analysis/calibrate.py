@@ -40,6 +40,7 @@ from host.analysis.rest_pins import (MIN_SEEN, WANDER_PITCH, Region, RestPins, a
                                      merge_with_flags, nn_px)
 from host.analysis.spot_scale import local_pitch_px
 from host.data.dataset import atomic_write_text
+from device.errors import InputError, TacfootError
 
 BLOCKS = (7, 9, 11, 15, 21, 31)
 OFFSETS = (4, 6, 8, 10, 12, 14, 16, 20, 25, 30)
@@ -63,7 +64,7 @@ PIN_TOLERANCE = 0.03
 MAX_BLOBS = 2500
 
 
-class NotAtRest(ValueError):
+class NotAtRest(TacfootError, ValueError):
     """The frames given are not a still, no-contact stretch; the message names them."""
 
 
@@ -151,7 +152,7 @@ def fit_threshold(grays: list[np.ndarray], dome) -> tuple[VisionParams, dict, fl
     score, p, info = best
     if p is None:
         where = "" if dome is not None else "no dome in view and "
-        raise ValueError(f"{where}no threshold setting found pins: is this a TacTip clip?")
+        raise InputError(f"{where}no threshold setting found pins: is this a TacTip clip?")
     return p, info, score
 
 
@@ -224,7 +225,7 @@ def calibrate(frames: list[np.ndarray], name: str = "calibrated", start: int = 0
     (see the module's rules) are a :class:`NotAtRest` naming them."""
     grays = [to_gray(f) for f in frames]
     if not grays:
-        raise ValueError("calibrate needs at least one frame")
+        raise InputError("calibrate needs at least one frame")
     dome = find_region(grays)
     p, info, score = fit_threshold(grays, dome)
     motion = frame_motion(grays, p, dome, info["pitch_px"])
@@ -407,7 +408,7 @@ def rest_contact(grays, vision: dict) -> dict:
             mag_max = max(mag_max, float(ff.magnitude_sum) / max(1, len(ff.vectors)))
     contact_px = round(max(prof.contact_px, CONTACT_MARGIN * mag_max), 3)
     if contact_px > prof.pitch_px:
-        raise ValueError(f"the contact threshold these frames need ({contact_px} px of mean "
+        raise InputError(f"the contact threshold these frames need ({contact_px} px of mean "
                          f"pin travel) is beyond the pin pitch ({prof.pitch_px} px): the "
                          f"leading frames are not at rest; calibrate from a clip that starts "
                          f"without contact")

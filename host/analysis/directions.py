@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from device.errors import InputError
 
 #: below this average-vector length (px) a direction is noise: flagged ``weak``
 MIN_DIRECTION_PX = 0.5
@@ -29,9 +30,9 @@ def read_lines(path: Path | str) -> list[dict]:
             try:
                 d = json.loads(text)
             except json.JSONDecodeError:
-                raise ValueError(f"{path}:{n}: not a JSON line") from None
+                raise InputError(f"{path}:{n}: not a JSON line") from None
             if not isinstance(d, dict):
-                raise ValueError(f"{path}:{n}: expected a JSON object, got {text[:40]!r}")
+                raise InputError(f"{path}:{n}: expected a JSON object, got {text[:40]!r}")
             if not d.get("summary"):
                 lines.append(d)
     return lines
@@ -63,10 +64,10 @@ def direction_series(lines: list[dict]) -> dict:
     (``host analyse`` was run without ``--localiser``) or no rest frame exists.
     """
     if not any("localised_px" in d for d in lines):
-        raise ValueError("no line has localised_px: run host analyse with --localiser")
+        raise InputError("no line has localised_px: run host analyse with --localiser")
     rest = next((d for d in lines if _sound(d)), None)
     if rest is None:
-        raise ValueError("no rest frame: no line has a reference and a sound localisation")
+        raise InputError("no rest frame: no line has a reference and a sound localisation")
     rest_px = np.asarray(rest["localised_px"], np.float64)
     frames, vec, loc = [], [], []
     for d in lines:
@@ -74,7 +75,7 @@ def direction_series(lines: list[dict]) -> dict:
             continue
         pins = np.asarray(d["localised_px"], np.float64)
         if pins.shape != rest_px.shape:
-            raise ValueError(f"frame {d.get('frame')}: localised_px has shape {pins.shape}, "
+            raise InputError(f"frame {d.get('frame')}: localised_px has shape {pins.shape}, "
                              f"the rest frame {rest_px.shape}")
         frames.append(int(d.get("frame", len(frames))))
         vec.append((float(d["shear_x"]), float(d["shear_y"])))

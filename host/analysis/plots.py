@@ -14,6 +14,7 @@ import numpy as np
 
 from host.analysis.directions import compare_directions, direction_series, read_lines
 from host.analysis.figures import pyplot, save_figure
+from device.errors import InputError
 
 SENSATIONS = ("left", "right", "centre")
 
@@ -26,12 +27,12 @@ def load_directions(path: Path | str) -> dict:
         try:
             a = np.load(path, allow_pickle=False)
         except EOFError:            # zero-length or cut short
-            raise ValueError(f"{path}: the file is empty or cut short (no .npy array)") from None
+            raise InputError(f"{path}: the file is empty or cut short (no .npy array)") from None
         if not isinstance(a, np.ndarray) or a.ndim != 4 or a.shape[-1] != 2:
-            raise ValueError(f"{path}: expected shape (trials, sensations, pressures, 2), "
+            raise InputError(f"{path}: expected shape (trials, sensations, pressures, 2), "
                              f"got {getattr(a, 'shape', type(a).__name__)}")
         if a.size == 0:
-            raise ValueError(f"{path}: no vectors to plot (shape {a.shape})")
+            raise InputError(f"{path}: no vectors to plot (shape {a.shape})")
         t, s, p, _ = a.shape
         sens = np.broadcast_to(np.arange(s)[None, :, None], (t, s, p)).reshape(-1)
         pres = np.broadcast_to(np.arange(p)[None, None, :], (t, s, p)).reshape(-1)
@@ -39,7 +40,7 @@ def load_directions(path: Path | str) -> dict:
     lines = _lines(path)
     xs = [(d["shear_x"], d["shear_y"]) for d in lines if d.get("contact")]
     if not xs:
-        raise ValueError(f"{path}: no contact frame to plot (of {len(lines)} frame lines)")
+        raise InputError(f"{path}: no contact frame to plot (of {len(lines)} frame lines)")
     xy = np.asarray(xs, dtype=float).reshape(-1, 2)
     return {"label": path.stem, "xy": xy, "sensation": np.zeros(len(xy), int),
             "pressure": np.zeros(len(xy), int)}
@@ -50,7 +51,7 @@ def _lines(path: Path) -> list[dict]:
     plot would look like a result)."""
     lines = read_lines(path)
     if not lines:
-        raise ValueError(f"{path}: the file holds no frame lines (empty)")
+        raise InputError(f"{path}: the file holds no frame lines (empty)")
     return lines
 
 
@@ -94,10 +95,10 @@ def load_comparison(path: Path | str) -> tuple[list[dict], dict]:
     try:
         series = direction_series(lines)
     except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+        raise InputError(f"{path}: {exc}") from None
     n = len(series["frame"])
     if n == 0:
-        raise ValueError(f"{path}: no contact frame with a sound localisation to compare")
+        raise InputError(f"{path}: no contact frame with a sound localisation to compare")
     zeros = np.zeros(n, int)
     inputs = [{"label": f"{path.stem}: tracked vectors", "xy": series["vectors_px"],
                "sensation": zeros, "pressure": zeros},

@@ -51,6 +51,7 @@ import numpy as np
 
 from device.pi.vision.matching import match_pins
 from host.analysis.spot_scale import local_pitch_px, multiscale_spots
+from device.errors import InputError
 
 #: a rest pin is found in at least this share of the frames
 MIN_SEEN = 0.8
@@ -527,5 +528,5 @@ def write_overlay(path, frame: np.ndarray, rest: RestPins, region: Region):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(str(path), overlay_image(frame, rest, region)):
-        raise ValueError(f"could not write the overlay PNG {path}")
+        raise InputError(f"could not write the overlay PNG {path}")
     return path

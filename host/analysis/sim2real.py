@@ -26,6 +26,7 @@ from host.data.load import load_spec, load_specs
 from host.data.simulate import simulate_to_dataset
 from host.learn.evaluate import evaluate_model
 from host.learn.train import train_model
+from device.errors import InputError
 
 __all__ = ["SIM2REAL_TEXTURES", "SIM2REAL_MODEL", "SIM2REAL_TRIALS", "sim2real_table", "stroke_scene", "simulate_strokes",
            "real_texture_manifest", "sim_to_real"]
@@ -50,7 +51,7 @@ def stroke_scene(texture: str, rng: np.random.Generator, calibrated: bool = True
     over ``texture`` (a simulator surface preset; ``calibrated`` takes its
     ``roboskin-`` fit when there is one) with the roboskin profile at 120 fps."""
     if texture not in PRESETS:
-        raise ValueError(f"texture must be a simulator surface preset "
+        raise InputError(f"texture must be a simulator surface preset "
                          f"({', '.join(sorted(PRESETS))}), got {texture!r}")
     preset = (f"roboskin-{texture}" if calibrated and f"roboskin-{texture}" in PRESETS
               else texture)

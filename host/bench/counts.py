@@ -52,6 +52,7 @@ import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from device.errors import InputError, TacfootError
 
 __all__ = ["N1", "N2", "PI4_INSTR_PER_S", "FRAME_BUDGET_MS", "DEFAULT_CLIPS",
            "parse_callgrind", "per_frame", "pi4_ms", "write_pgm", "frame_folder",
@@ -82,7 +83,7 @@ STAGE_NAMES = {"detect": "detection", "track": "tracking", "grid": "contact grid
 _LINE = re.compile(r"^(summary|totals):\s*(\d+)", re.M)
 
 
-class CountError(RuntimeError):
+class CountError(TacfootError, RuntimeError):
     """A counted run failed or its output held no total; the message says which."""
 
 
@@ -377,7 +378,7 @@ def bench_counts(real_data, clips=DEFAULT_CLIPS, n1: int = N1, n2: int = N2, job
                  cache=CACHE, progress=None) -> dict:
     """The counts of each clip (a name in ``real_data/roboskin/`` or a path)."""
     if n1 < 1 or n2 <= n1:
-        raise ValueError(f"--n1/--n2: need 1 <= n1 < n2, got n1={n1}, n2={n2}")
+        raise InputError(f"--n1/--n2: need 1 <= n1 < n2, got n1={n1}, n2={n2}")
     if not valgrind_found():
         raise CountError("valgrind not found (Debian: apt-get install valgrind)")
     paths = []

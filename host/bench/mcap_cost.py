@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from host.bench.costs import PI4_FACTOR
+from device.errors import TacfootError
 
 #: the most each variant may cost of the runtime's throughput
 GOALS = {"mcap": 0.10, "viewer": 0.20}
@@ -51,7 +52,7 @@ VARIANTS = ("none", "mcap", "viewer")
 CLIP, GYRO = "roboskin/concrete.avi", "roboskin/concrete_gyro.npy"
 
 
-class BenchError(Exception):
+class BenchError(TacfootError):
     """The benchmark cannot run (no clip, a child that failed); names the cause."""
 
 

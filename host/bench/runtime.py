@@ -35,6 +35,7 @@ import sys
 
 from device.pi.runtime.loop import EXIT_BAD_INPUT
 from host.bench.costs import PI4_FACTOR
+from device.errors import TacfootError
 
 # upper bounds on simulated hardware
 GOALS = {"latency_ms_p99": 2.0, "rss_mb_peak": 150.0}
@@ -83,7 +84,7 @@ def with_option(url: str, option: str) -> str:
     return url + ("&" if "?" in url else "?") + option
 
 
-class RunRefused(Exception):
+class RunRefused(TacfootError):
     """``device.pi run`` refused its input (a camera, IMU or models folder it cannot
     use: exit 2); the message is its own one-line reason."""
 

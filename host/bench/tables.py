@@ -21,6 +21,7 @@ from host.bench.costs import PI4_FACTOR, machine, machine_line
 from host.bench.sim import PIPELINE_MEDIAN_MS, PIPELINE_SPEEDUP
 from host.bench.runtime import goal_text, pi4_estimate
 from host.data.dataset import atomic_write_text
+from device.errors import InputError
 
 
 
@@ -30,7 +31,7 @@ def replace_section(text: str, name: str, body: str) -> str:
     start, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
     i, j = text.find(start), text.find(end)
     if i < 0 or j < 0 or j < i:
-        raise ValueError(f"markers {start} ... {end} not found in order in the document")
+        raise InputError(f"markers {start} ... {end} not found in order in the document")
     return text[:i + len(start)] + "\n" + body.strip("\n") + "\n" + text[j:]
 
 

@@ -3,12 +3,15 @@ marker pipeline."""
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from device.errors import TacfootError, one_line
+from device.pi.sources.camera import CameraError
 from device.pi.models.window import RollingWindow
 from device.pi.vision.encoder import FrameEncoder
 from device.pi.vision.layout import LayoutError
@@ -20,8 +23,10 @@ from host.analysis.realism import realism_table, side_by_side_png, spec_realism
 from host.analysis.sim2real import (SIM2REAL_TRIALS, real_texture_manifest, sim2real_table,
                                     sim_to_real, stroke_scene)
 from host.cli.common import (SEED, UserError, emit, load_localiser, load_regressor, open_source,
-                             open_stream, out_file, progress_bar, read_frames, whole)
+                             open_stream, out_file, progress_bar, whole)
 from host.cli.export import add_mcap_args
+
+_log = logging.getLogger(__name__)
 
 
 def _profile_from_models(args) -> None:
@@ -29,19 +34,16 @@ def _profile_from_models(args) -> None:
     ``--localiser`` or ``--pressure`` is given, else ``--profile`` (default roboskin).
     A ``--profile`` other than the models', or two models carrying different
     profiles, is a UserError naming both."""
-    from device.pi.models.artefact import ModelError, read_spec
+    from device.pi.models.artefact import read_spec
     from host.learn.onnx_io import models_profile
 
     specs = {}
-    try:
-        for folder in (args.localiser, args.pressure):
-            if folder:
-                spec, mpath = read_spec(folder)
-                specs[str(mpath)] = spec
-        if specs:
-            args.profile, _ = models_profile(specs, args.profile)
-    except (ModelError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    for folder in (args.localiser, args.pressure):
+        if folder:
+            spec, mpath = read_spec(folder)
+            specs[str(mpath)] = spec
+    if specs:
+        args.profile, _ = models_profile(specs, args.profile)
     args.profile = args.profile or "roboskin"
 
 
@@ -136,7 +138,7 @@ def cmd_analyse(args):
     try:
         with cam, progress_bar(total or 0, "analyse",
                                not args.json and args.out is not None) as bar:
-            for fr in read_frames(cam):
+            for fr in cam:
                 f, pressure = _process(stream, encoder, window, reg, fr)
                 line = frame_line(f, pressure, bool(args.localiser))
                 out.write(json.dumps(line) + "\n")
@@ -179,8 +181,8 @@ def cmd_plot(args):
                 stats.append(st)
         else:
             inputs = [load_directions(p) for p in args.inputs]
-    except (OSError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    except OSError as exc:                    # a file that cannot be read: name it
+        raise UserError(one_line(exc)) from None
     out = plot_directions(inputs, out_file(args.out), title=args.title or "")
     res = {"out": str(out), "points": [int(len(d["xy"])) for d in inputs]}
     text = f"wrote {out}"
@@ -196,7 +198,7 @@ def cmd_plot(args):
 def _clip_frames(source: str, start: int = 0):
     """The frames of a clip from frame ``start`` on, read one at a time."""
     with open_source(source) as cam:
-        for k, fr in enumerate(read_frames(cam)):
+        for k, fr in enumerate(cam):
             if k >= start:
                 yield fr.image
 
@@ -218,7 +220,7 @@ def _calibrate_clip(source: str, start: int | None, count: int | None, name: str
             found = calibrate_clip(stream, want, want if count else LEAST_FRAMES, name=name,
                                    expect_pins=pins)
             if found.note:
-                print(f"host calibrate: {source}: {found.note}", file=sys.stderr)
+                _log.warning("host calibrate: %s: %s", source, found.note)
             return found.frame, found.result
         frames = [f.copy() for _, f in zip(range(want), stream)]
         if not frames:
@@ -229,8 +231,10 @@ def _calibrate_clip(source: str, start: int | None, count: int | None, name: str
                             f"{start + len(frames) - 1} ({len(frames)} of them); choose an "
                             f"earlier --start or fewer --frames")
         return frames[0], calibrate(frames, name=name, start=start, expect_pins=pins)
-    except (NotAtRest, ValueError) as exc:
-        raise UserError(f"{source}: {exc}") from None
+    except CameraError:                      # names its own file: the main catch says it
+        raise
+    except (NotAtRest, TacfootError) as exc:
+        raise UserError(f"{source}: {one_line(exc)}") from None
     finally:
         stream.close()
 
@@ -251,8 +255,8 @@ def _drop_outliers(results: list, drop: bool) -> list:
         raise UserError(f"the clips disagree: {named}; calibrate each alone (--overlay) to "
                         f"see why, or {hint}")
     for i, why in bad.items():
-        print(f"host calibrate: warning: {results[i][0]} gives {why}: left out of the "
-              f"merge (--drop-outliers)", file=sys.stderr)
+        _log.warning("host calibrate: warning: %s gives %s: left out of the merge "
+                     "(--drop-outliers)", results[i][0], why)
     return keep
 
 
@@ -274,11 +278,8 @@ def cmd_calibrate(args):
     lay = res["layout"]
     res["out"] = str(write_profile(res, out))
     if args.overlay:
-        try:
-            res["overlay"] = str(write_overlay(args.overlay, frame, results[0][2]["rest"],
-                                               results[0][2]["region"]))
-        except ValueError as exc:
-            raise UserError(str(exc)) from None
+        res["overlay"] = str(write_overlay(args.overlay, frame, results[0][2]["rest"],
+                                           results[0][2]["region"]))
     v = res["vision"]
     text = (f"wrote {args.out}: {'dome' if res['dome_in_view'] else 'no dome in view, region'} "
             f"{v['dome_px']}, block {v['block']}, offset {v['offset']}, pin area "
@@ -343,30 +344,23 @@ def _sim2real(args, found: dict, profile: str, work: str) -> tuple[dict | None, 
 
 def cmd_realism(args):
     from host.bench.specs import check_profile, check_specs
-    from host.data.windows import DataError
     from host.localiser.samples import vision_params_for
 
     if not args.data:
         raise UserError(REALISM_NO_DATA)
     if args.real_frames is not None and args.real_frames < 20:     # windows of T = 10 need room
         raise UserError(f"--real-frames must be at least 20, got {args.real_frames}")
-    try:                             # every file checked before any long work
-        profile = check_profile(args.profile)
-        found = check_specs(args.data)
-    except DataError as exc:
-        raise UserError(str(exc)) from None
+    profile = check_profile(args.profile)      # every file checked before any long work
+    found = check_specs(args.data)
     recs = [r for rs in found.values() for r in rs]
     items = [(r.name, r.label, _frames_of(r)) for r in recs]
-    try:
-        res = spec_realism(items, vision_params_for(profile), seed=args.seed,
-                           progress=not args.json)
-        if args.png:
-            first = next((f for f in (_frames_of(r)() for r in recs) if len(f)), None)
-            if first is None:
-                raise UserError("--png: no recording of --data has frames")
-            res["png"] = side_by_side_png(first[0], recs[0].name, args.png, seed=args.seed)
-    except (DataError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    res = spec_realism(items, vision_params_for(profile), seed=args.seed,
+                       progress=not args.json)
+    if args.png:
+        first = next((f for f in (_frames_of(r)() for r in recs) if len(f)), None)
+        if first is None:
+            raise UserError("--png: no recording of --data has frames")
+        res["png"] = side_by_side_png(first[0], recs[0].name, args.png, seed=args.seed)
     res.update(data=[str(d) for d in args.data], profile=str(profile))
     text = realism_table(res) + ("\nall compared figures within 20%: "
                                  f"{'yes' if res['all_within_20pct'] else 'NO'}")
@@ -374,7 +368,7 @@ def cmd_realism(args):
         with tempfile.TemporaryDirectory(prefix="tacfoot-sim2real-") as tmp:
             try:
                 res["sim_to_real"], more = _sim2real(args, found, profile, args.work or tmp)
-            except (DataError, ValueError) as exc:
+            except TacfootError as exc:
                 raise UserError(f"sim-to-real: {exc}") from None
         text += "\n\n" + more
     emit(args, res, text)

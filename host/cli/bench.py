@@ -2,13 +2,22 @@
 real-frame tables of docs/BENCHMARKS.md."""
 from __future__ import annotations
 
-import sys
+import logging
 from pathlib import Path
 
+from device.errors import InputError
 from host.bench import sim as bench_sim
-from host.bench.runtime import RunRefused, bench_runtime, format_runtime
+from host.bench.runtime import bench_runtime, format_runtime
 from host.bench.tables import write_tables
 from host.cli.common import UserError, emit, real_data_dir, whole
+
+
+log = logging.getLogger(__name__)
+
+
+def _progress(message: str) -> None:
+    """A benchmark's progress note (shown by default, hidden by -q)."""
+    log.info("host bench: %s", message)
 
 
 def cmd_bench(args):
@@ -19,14 +28,10 @@ def cmd_bench(args):
         emit(args, res, bench_sim.format_sim(res))
     elif args.what == "pipeline":
         from host.bench.specs import check_profile, check_specs
-        from host.data.windows import DataError
-        try:
-            profile = check_profile(args.profile)
-            recs = check_specs([args.data])[args.data] if args.data else []
-        except DataError as exc:
-            raise UserError(str(exc)) from None
+        profile = check_profile(args.profile)
+        recs = check_specs([args.data])[args.data] if args.data else []
         if not args.data:
-            print("host bench: no --data; timing simulated frames only", file=sys.stderr)
+            log.info("host bench: no --data; timing simulated frames only")
         res = bench_sim.bench_pipeline(recs, repeats=max(1, min(args.repeats, 5)),
                                        profile=profile, limit=min(args.frames, 300))
         emit(args, res, bench_sim.format_pipeline(res))
@@ -36,14 +41,10 @@ def cmd_bench(args):
             camera = f"file://{camera}"          # a bare path is a file source
         if args.imu and camera is None:
             raise UserError("--imu goes with --camera (sim://walk brings its own IMU)")
-        try:
-            res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
-                                imu=args.imu, profile=args.profile)
-        except (RunRefused, ValueError) as exc:  # the runtime's one-line reason, or a
-            raise UserError(str(exc)) from None  # --profile that is not the models' own
+        res = bench_runtime(frames=args.frames, models=args.models, camera=camera,
+                            imu=args.imu, profile=args.profile)
         emit(args, res, format_runtime(res))
     elif args.what == "tables":
-        from host.data.windows import DataError
         if not args.data:
             raise UserError("tables: pass --data SPEC (a CSV manifest path,label[,imu] of the "
                             "recordings; make bench writes the authors' one)")
@@ -53,11 +54,8 @@ def cmd_bench(args):
         try:
             res = write_tables(doc, args.data, frames=args.frames,
                                repeats=max(1, min(args.repeats, 5)), models=args.models,
-                               progress=lambda m: print(f"host bench: {m}", file=sys.stderr),
-                               profile=args.profile)
-        except DataError as exc:
-            raise UserError(str(exc)) from None
-        except ValueError as exc:
+                               progress=_progress, profile=args.profile)
+        except InputError as exc:                # the document lacks the table markers
             raise UserError(f"--doc {doc}: {exc}") from None
         emit(args, res, f"wrote the real-frame tables into {doc}")
     elif args.what == "scaling":
@@ -68,21 +66,15 @@ def cmd_bench(args):
         if args.flat_profile and not Path(args.flat_profile).is_file():
             raise UserError(f"--flat-profile: no such file: {args.flat_profile}")
         if not args.data:
-            print("host bench: no --data; timing simulated frames only", file=sys.stderr)
+            log.info("host bench: no --data; timing simulated frames only")
         res = bench_scaling(args.data, args.flat_profile, frames=min(args.frames, 400),
-                            repeats=max(1, min(args.repeats, 3)),
-                            progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
+                            repeats=max(1, min(args.repeats, 3)), progress=_progress)
         emit(args, res, format_scaling(res))
     elif args.what == "texture-robustness":
         from host.bench.texture_robust import format_robustness, robustness
-        from host.data.windows import DataError
         if args.data and not Path(args.data).is_dir():
             raise UserError(f"--data: {args.data} is not a folder (it holds roboskin/)")
-        try:
-            res = robustness(real_data_dir(args.data), args.work,
-                             progress=lambda m: print(f"host bench: {m}", file=sys.stderr))
-        except DataError as exc:
-            raise UserError(str(exc)) from None
+        res = robustness(real_data_dir(args.data), args.work, progress=_progress)
         emit(args, res, format_robustness(res))
     elif args.what == "counts":
         from host.bench import counts
@@ -93,12 +85,8 @@ def cmd_bench(args):
         if not counts.valgrind_found():
             raise UserError("counts: valgrind not found (Debian: apt-get install valgrind)")
         clips = [c for c in (args.clips or ",".join(counts.DEFAULT_CLIPS)).split(",") if c]
-        try:
-            res = counts.bench_counts(real_data_dir(args.data), clips, args.n1, args.n2,
-                                      args.jobs, progress=lambda m: print(
-                                          f"host bench: {m}", file=sys.stderr))
-        except (counts.CountError, ValueError) as exc:
-            raise UserError(str(exc)) from None
+        res = counts.bench_counts(real_data_dir(args.data), clips, args.n1, args.n2,
+                                  args.jobs, progress=_progress)
         emit(args, res, counts.format_counts(res))
 
 

@@ -3,20 +3,23 @@ argument parser and its checked number types, ``--out`` handling, JSON output,
 progress bars, and opening sources, streams and models.
 
 Bad input is one line on stderr and exit status 2, never a traceback
-(docs/architecture.md, "Bad input and --out")."""
+(docs/architecture.md, "Bad input and --out"): a command raises a
+:class:`device.errors.TacfootError` (:class:`UserError` for what only the command can
+see) and ``host``'s ``main`` reports it; a command catches one only to add what the
+error cannot know (the flag or file it came from)."""
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 from device.checks import bounds_text, finite_number, whole_number
-from device.pi.models.artefact import ModelError
 from device.pi.models.regressor import Regressor
-from device.pi.sources.camera import CameraError, open_camera
+from device.pi.sources.camera import open_camera
 from device.pi.models.localiser import Localiser
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import load_pipeline_profile
@@ -24,11 +27,12 @@ from host.data.dataset import addable_folder, is_dataset
 from host.rig.trials import RUN_STATE
 from host.learn.onnx_io import json_default  # noqa: F401  (the commands' JSON of numpy values)
 from host.extras import need
+from device.errors import TacfootError
 
 EXIT_BAD_INPUT = 2
 
 
-class UserError(Exception):
+class UserError(TacfootError):
     """Bad input from the user: printed as one line, exit status 2."""
 
 
@@ -137,22 +141,6 @@ def dataset_folder(path: Path) -> bool:
     return addable_folder(path, (RUN_STATE,))
 
 
-def camera_text(exc: OSError) -> str:
-    """A camera error as one line: ``FILE: what is wrong``."""
-    if getattr(exc, "filename", None) and getattr(exc, "strerror", None):
-        return f"{exc.filename}: {exc.strerror}"
-    return str(exc)
-
-
-def read_frames(cam) -> Iterator:
-    """The frames of an open camera; a frame it cannot read (an unreadable image, or
-    one of another size in a folder) is a :class:`UserError` naming it."""
-    try:
-        yield from cam
-    except CameraError as exc:
-        raise UserError(camera_text(exc)) from None
-
-
 def emit(args, data, text: str | None = None) -> None:
     """Print ``data`` as one JSON document with ``--json``, else ``text``."""
     if getattr(args, "json", False):
@@ -162,9 +150,11 @@ def emit(args, data, text: str | None = None) -> None:
 
 
 def progress_bar(total: int, desc: str, enabled: bool = True):
-    """A frame progress bar on stderr (off when ``enabled`` is False)."""
+    """A frame progress bar on stderr: off when ``enabled`` is False or ``-q`` hides
+    progress notes, else tqdm decides (``disable=None``: a bar only on a terminal)."""
     tqdm = need("tqdm").tqdm
-    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled or None,
+    shown = enabled and logging.getLogger("host").isEnabledFor(logging.INFO)
+    return tqdm(total=total, desc=desc, unit="frame", disable=not shown or None,
                 file=sys.stderr, leave=False)
 
 
@@ -186,32 +176,19 @@ def is_recording(source: str) -> bool:
 
 
 def open_source(source: str):
-    """The camera for a source string; a bad one is a :class:`UserError`."""
-    try:
-        return open_camera(source)
-    except CameraError as exc:
-        raise UserError(camera_text(exc)) from None
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
-
-
-def _load_model(load, model_dir: str | None):
-    if not model_dir:
-        return None
-    try:
-        return load(model_dir)
-    except ModelError as exc:
-        raise UserError(str(exc)) from None
+    """The camera for a source string; a bad one raises its CameraError or
+    InputError, which ``host``'s ``main`` reports in one line."""
+    return open_camera(source)
 
 
 def load_localiser(model_dir: str | None) -> Localiser | None:
     """The localiser in ``model_dir`` (None without one)."""
-    return _load_model(Localiser.load, model_dir)
+    return Localiser.load(model_dir) if model_dir else None
 
 
 def load_regressor(model_dir: str | None) -> Regressor | None:
     """The pressure regressor in ``model_dir`` (None without one)."""
-    return _load_model(Regressor.load, model_dir)
+    return Regressor.load(model_dir) if model_dir else None
 
 
 def open_stream(args, localiser: Localiser | None = None) -> MarkerStream:

@@ -7,16 +7,18 @@ exit status is 128 + the signal's number."""
 from __future__ import annotations
 
 import contextlib
+import logging
 import signal
-import sys
 
-from host.cli.common import UserError, emit
+from host.cli.common import emit
 from host.deploy.options import DeployInputError, add_arguments, options_from_args
 from host.deploy.release import run, summary_text
 from host.deploy.robot import deploy_robot, read_robot, robot_text, status
 from host.deploy.ssh import Stop
 
 SIGNALS = ("SIGTERM", "SIGHUP", "SIGINT")
+
+_log = logging.getLogger(__name__)
 
 
 def _legs(args) -> list:
@@ -64,32 +66,28 @@ def _exit_code(res: dict, stop: Stop, dry_run: bool) -> int:
 
 
 def cmd_deploy(args):
-    log = (lambda msg: print(msg, file=sys.stderr)) if not args.dry_run or args.json else (
-        lambda msg: None)
-    warn = lambda msg: print(msg, file=sys.stderr)      # noqa: E731
-    try:
-        legs = _legs(args)
-        for o in legs:
-            o.check()
-        if args.status:
-            if args.dry_run:
-                raise DeployInputError("--status only reads each leg (it connects to them); "
-                                       "it has no --dry-run")
-            res = status(legs)
-            emit(args, res, robot_text(res))
-            return 0 if res["ok"] else 1
-        if len(legs) == 1 and not args.robot:
-            with stopped_by_signals(warn) as stop:
-                res = run(legs[0], dry_run=args.dry_run, rollback=args.rollback, log=log,
-                          stop=stop)
-            emit(args, res, summary_text(res))
-            return _exit_code(res, stop, args.dry_run)
-        if args.rollback:
-            raise DeployInputError("--rollback takes one target")
+    log = _log.info if not args.dry_run or args.json else (lambda msg: None)
+    warn = _log.warning
+    legs = _legs(args)
+    for o in legs:
+        o.check()
+    if args.status:
+        if args.dry_run:
+            raise DeployInputError("--status only reads each leg (it connects to them); "
+                                   "it has no --dry-run")
+        res = status(legs)
+        emit(args, res, robot_text(res))
+        return 0 if res["ok"] else 1
+    if len(legs) == 1 and not args.robot:
         with stopped_by_signals(warn) as stop:
-            res = deploy_robot(legs, dry_run=args.dry_run, log=log, stop=stop)
-    except DeployInputError as exc:
-        raise UserError(str(exc)) from None
+            res = run(legs[0], dry_run=args.dry_run, rollback=args.rollback, log=log,
+                      stop=stop)
+        emit(args, res, summary_text(res))
+        return _exit_code(res, stop, args.dry_run)
+    if args.rollback:
+        raise DeployInputError("--rollback takes one target")
+    with stopped_by_signals(warn) as stop:
+        res = deploy_robot(legs, dry_run=args.dry_run, log=log, stop=stop)
     emit(args, res, robot_text(res))
     return _exit_code(res, stop, args.dry_run)
 

@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
-import sys
 import time
 from pathlib import Path
 
-from device.pi.models.artefact import MAX_T, ModelError, read_spec
+from device.pi.models.artefact import MAX_T, read_spec
 from device.config import ConfigError
 from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
@@ -23,6 +23,8 @@ from host.learn.onnx_io import models_profile
 from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
 from host.learn.train import check_classes, train_model
 
+_log = logging.getLogger(__name__)
+
 
 def _load_windows(args, task: str, window: int, min_classes: int = 2, specs=None):
     try:
@@ -30,7 +32,7 @@ def _load_windows(args, task: str, window: int, min_classes: int = 2, specs=None
                           contact_only=getattr(args, "contact_only", False),
                           profile=args.profile, progress=not args.json,
                           min_classes=min_classes)
-    except (DataError, FileNotFoundError) as exc:
+    except FileNotFoundError as exc:       # a spec that names a missing file
         raise UserError(str(exc)) from None
 
 
@@ -52,8 +54,8 @@ def _lock_out(args) -> int:
     try:
         fd = lock_folder(out, "another host train is writing a model to this folder; "
                               "wait for it to finish, or choose another --out")
-    except DatasetLocked as exc:
-        raise UserError(str(exc)) from None
+    except DatasetLocked:                  # its own one line (a TacfootError)
+        raise
     except OSError as exc:
         raise UserError(f"--out {out}: cannot lock the folder ({exc.strerror or exc})") \
             from None
@@ -222,17 +224,14 @@ def _train(args):
     made = {"profile": args.profile, "config": train_config(args),
             "trained_on": {"data": data_source(recs), "recordings": recs,
                            "test_recordings": recordings_of(args.test) if args.test else []}}
-    try:
-        if args.model == "cnn":
-            res = _train_cnn(args, ws, ws_test, made)
-        else:
-            res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
-                              quantise=args.quantise, seed=args.seed, out_dir=args.out,
-                              progress=not args.json,
-                              identity=not getattr(args, "no_identity_check", False), **made)
-        write_model_docs(args.out)
-    except (TrainError, DataError, ConfigError) as exc:
-        raise UserError(str(exc)) from None
+    if args.model == "cnn":
+        res = _train_cnn(args, ws, ws_test, made)
+    else:
+        res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
+                          quantise=args.quantise, seed=args.seed, out_dir=args.out,
+                          progress=not args.json,
+                          identity=not getattr(args, "no_identity_check", False), **made)
+    write_model_docs(args.out)
     res = _jsonable(res)
     m = res.get("metrics", {})
     m = m.get("test") or {}
@@ -242,10 +241,10 @@ def _train(args):
     check = res.get("identity_check") or {}
     if check and not args.json:
         for line in identity_lines(check):
-            print(f"host train: identity check: {line}", file=sys.stderr)
+            _log.info("host train: identity check: %s", line)
     if check.get("warning") and not args.json:
-        print(f"host train: warning: {check['warning']} (host eval --identity shows the "
-              f"figures)", file=sys.stderr)
+        _log.warning("host train: warning: %s (host eval --identity shows the figures)",
+                     check["warning"])
     if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
         headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
     emit(args, res, f"wrote {args.out} ({args.task} {args.model}, T={args.window}): "
@@ -304,18 +303,15 @@ def _train_cnn(args, ws, ws_test=None, made=None):
 
 
 def cmd_eval(args):
-    try:
-        spec, mpath = read_spec(args.model_dir)
-        args.profile, _ = models_profile({mpath: spec}, args.profile)
-    except (ModelError, ConfigError, ValueError) as exc:
-        raise UserError(str(exc)) from None
+    spec, mpath = read_spec(args.model_dir)
+    args.profile, _ = models_profile({mpath: spec}, args.profile)
     ws = _load_windows(args, spec.kind, spec.T, min_classes=1)
     try:
         res = evaluate_model(args.model_dir, ws, variant=args.variant)
         if args.identity:
             res["identity_check"] = _identity(spec, ws, args)
-    except (ModelError, ValueError, TrainError) as exc:
-        raise UserError(str(exc)) from None
+    except ValueError as exc:      # windows that do not fit the model: host.learn.evaluate
+        raise UserError(str(exc)) from None      # and the identity check raise ValueError
     emit(args, res, json.dumps(res, indent=1, default=json_default))
 
 
@@ -350,7 +346,7 @@ def _spec_hint(spec: str) -> str:
 def cmd_report(args):
     specs = args.data or []
     if not specs:
-        print("host report: no --data; simulated sections only", file=sys.stderr)
+        _log.info("host report: no --data; simulated sections only")
     if args.jobs == 0 or args.jobs < -1:
         raise UserError(f"--jobs: a number of workers >= 1 (or -1 for all cores), got "
                         f"{args.jobs}")

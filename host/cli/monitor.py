@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from host.cli.common import UserError, emit, number, whole
-from host.monitor import MonitorError, bench_link, format_bench, run_monitor
+from host.monitor import bench_link, format_bench, run_monitor
 
 
 def cmd_monitor(args):
@@ -12,10 +12,7 @@ def cmd_monitor(args):
         return
     if not args.source:
         raise UserError("give a SERIAL_URL_OR_FILE to monitor (or --bench)")
-    try:
-        run_monitor(args.source, as_json=args.json, count=args.count, seconds=args.seconds)
-    except MonitorError as exc:
-        raise UserError(str(exc)) from None
+    run_monitor(args.source, as_json=args.json, count=args.count, seconds=args.seconds)
 
 
 def register(sub) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 
+from device.errors import TacfootError, one_line
 from device.pi.sources.camera import CameraError, open_camera
 from device.pi.sources.imu import IMUError, open_imu
 from host.cli.export import add_mcap_args, mcap_last_trials, open_log
@@ -22,11 +23,8 @@ def cmd_rig(args):
                       f"about {s['estimated_s'] / 60:.1f} min")
         return 0
     out = out_folder(args.out, holds=dataset_folder, what="a tacfoot dataset")
-    try:
-        s = run(plan, args.rig, args.camera, out, resume=args.resume,
-                profile=args.profile, progress=not args.json, yes=args.yes, seed=args.seed)
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
+    s = run(plan, args.rig, args.camera, out, resume=args.resume,
+            profile=args.profile, progress=not args.json, yes=args.yes, seed=args.seed)
     emit(args, s, summary_text(s))
     return 1 if s["failed"] or s["remaining"] else 0
 
@@ -49,10 +47,8 @@ def _open_range(args):
         opts["end_frame"] = args.start + args.frames
     try:
         return open_camera(args.camera, **opts)
-    except CameraError as exc:
-        raise UserError(f"--camera {args.camera}: {exc}") from None
-    except ValueError as exc:
-        raise UserError(f"--camera {args.camera}: {exc}") from None
+    except TacfootError as exc:              # the flag named: the source's error has no flag
+        raise UserError(f"--camera {args.camera}: {one_line(exc)}") from None
 
 
 def cmd_record(args):
@@ -73,7 +69,7 @@ def _record(args, out, log):
     if args.imu:
         try:
             imu = open_imu(args.imu)
-        except (IMUError, ValueError) as exc:
+        except TacfootError as exc:          # IMUError, or a bad source (InputError)
             camera.close()
             raise UserError(f"--imu {args.imu}: {exc}") from None
     fps = getattr(camera, "fps", None) or 120.0

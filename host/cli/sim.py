@@ -24,7 +24,7 @@ from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_ca
 from host.cli.export import add_mcap_args, mcap_last_trials, open_log
 from host.cli.common import (SEED, UserError, dataset_folder, emit, is_recording, number,
                              open_source, open_stream, out_file, out_folder, progress_bar,
-                             read_frames, whole)
+                             whole)
 from host.data.dataset import is_dataset, load_trial
 from host.data.simulate import simulate_to_dataset
 
@@ -101,7 +101,7 @@ def _view_pipeline(args):
     keep = set(pick_frames(total, most).tolist()) if total else None
     images, picked = [], []
     with cam:
-        for fr in read_frames(cam):
+        for fr in cam:
             f = stream.process(fr.image, fr.t_s)
             if stream.reference is None or (keep is not None and f.index not in keep):
                 continue

@@ -54,13 +54,14 @@ import numpy as np
 
 from device.jsondoc import read_json_doc
 from device.closing import Closing
+from device.errors import TacfootError
 
 FORMAT = "tacfoot-dataset"
 VERSION = 1
 INDEX = "dataset.json"
 
 
-class DatasetError(ValueError):
+class DatasetError(TacfootError, ValueError):
     pass
 
 

@@ -6,7 +6,8 @@ extract's :class:`~host.data.extract.ClipFeatures`, so with the error in ``windo
 the two imported each other. ``from host.data.windows import DataError`` still works.
 """
 from __future__ import annotations
+from device.errors import TacfootError
 
 
-class DataError(ValueError):
+class DataError(TacfootError, ValueError):
     """A bad data spec; the message names the file, row, column or key and the value."""

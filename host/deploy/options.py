@@ -11,6 +11,7 @@ from pathlib import Path
 from device.config import tomllib
 from device.shipped import PACKAGED, shipped
 from device.shipped import models_dir as shipped_models_dir
+from device.errors import TacfootError
 
 #: the folder holding the packages: a checkout, or site-packages of an installed toolkit
 REPO = Path(__file__).resolve().parents[2]
@@ -20,11 +21,11 @@ SOURCE_FILES = ("pyproject.toml", "setup.py", "README.md", "LICENSE", "MANIFEST.
 MANAGERS = ("auto", "systemd", "none")
 
 
-class DeployError(Exception):
+class DeployError(TacfootError):
     """A deploy step failed; the message names the step."""
 
 
-class DeployInputError(ValueError):
+class DeployInputError(TacfootError, ValueError):
     """Bad deploy options (a missing models folder, a bad --env ...)."""
 
 

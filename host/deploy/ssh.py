@@ -11,13 +11,13 @@ as after a failed step (the steps that put the old release back still run). Ever
 ``ssh`` runs in its own session, so Ctrl-C in the terminal reaches only ``host``."""
 from __future__ import annotations
 
+import logging
 import os
 import re
 import select
 import shutil
 import signal
 import subprocess
-import sys
 import tarfile
 import tempfile
 import threading
@@ -69,7 +69,7 @@ class SshSession:
         opts.check()
         self.o = opts
         self.dry_run = dry_run
-        self.log = log if log is not None else (lambda msg: print(msg, file=sys.stderr))
+        self.log = log if log is not None else logging.getLogger(__name__).info
         self.steps: list[dict] = []
         self.copy_hook = None          # called (proc, bytes_sent) while copying
         self._cm_dir: str | None = None          # ssh ControlMaster socket folder

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from device.checks import whole_number
+from device.errors import TacfootError
 
 __all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "TASK_HIDDEN",
            "TASK_RATES", "LAYOUT", "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
@@ -59,7 +60,7 @@ MIN_AGREEMENT = 0.99
 MAX_REGRESSION_CHANGE = 0.01
 
 
-class TrainError(ValueError):
+class TrainError(TacfootError, ValueError):
     """Bad training input or a failed check; the message names the field and value."""
 
 

@@ -15,6 +15,7 @@ import time
 from dataclasses import dataclass
 
 from device.pi.protocol import FrameDecoder, encode_frame
+from device.errors import TacfootError
 
 # host -> rig
 HOME, MOVE_TO, PRESS, DRAG, LIFT, READ, STREAM, STOP, PING = range(0x21, 0x2A)
@@ -36,7 +37,7 @@ _SAMPLE = struct.Struct("<Hiii6hBB")
 _PONG = struct.Struct("<IIH")
 
 
-class RigError(RuntimeError):
+class RigError(TacfootError, RuntimeError):
     """The rig refused a command, failed one, or the link is gone."""
 
 

@@ -37,9 +37,9 @@ last frame, and a trial of a video file keeps the file's own frame times in ``t_
 """
 from __future__ import annotations
 
+import logging
 import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -53,11 +53,12 @@ from host.data.recordings import profile_ref, source_recording
 from host.data.video import frame_times
 from host.data.windows import LABEL_RE, check_label_name
 from host.rig.trials import RUN_STATE
+from device.errors import TacfootError
 
 __all__ = ["RecordError", "record", "LABEL_RE"]
 
 
-class RecordError(ValueError):
+class RecordError(TacfootError, ValueError):
     """A bad argument or an unusable output folder; the message names it."""
 
 
@@ -147,8 +148,9 @@ def _frame_times(grid: list[float], src: list[float], clock, video: Path | None,
         t = [float(x - src[0]) for x in src]
         return t, {"timestamps": "the file's own (pts x time_base)"}
     rate = f"{fps:g} frames/s" if fps else "1 frame/s"
-    print(f"warning: {camera_url}: the file's own frame times are not used ({why}); "
-          f"t_s is on a uniform grid at {rate}, the rate it declares", file=sys.stderr)
+    logging.getLogger(__name__).warning(
+        "warning: %s: the file's own frame times are not used (%s); t_s is on a uniform "
+        "grid at %s, the rate it declares", camera_url, why, rate)
     return grid, {"timestamps": f"uniform at {rate} (the file's own not used: {why})"}
 
 

@@ -16,6 +16,7 @@ trials not yet in the dataset.
 from __future__ import annotations
 
 import json
+import logging
 import sys
 import threading
 import time
@@ -28,11 +29,12 @@ from device.config import ConfigError
 from device.sim.scene import SURFACE_LABELS, TEXTURE_LABELS
 from host.rig.plan import DIRECTIONS, Plan, RigLimits, Trial, Variant
 from host.extras import need
+from device.errors import TacfootError
 
 RUN_STATE = "rig_run.json"
 
 
-class RigSetupError(ValueError):
+class RigSetupError(TacfootError, ValueError):
     """The rig or the camera cannot be opened or does not answer: nothing ran."""
 
 
@@ -327,7 +329,7 @@ def run(plan: Plan, rig_url: str, camera_url: str, out: Path | str, resume: bool
     from host.rig.link import LinkLost, RigError
 
     out = Path(out)
-    log = log or (lambda msg: print(msg, file=sys.stderr))
+    log = log or logging.getLogger(__name__).info
     done_ids: set = set()
     if is_dataset(out):
         idx = read_index(out)

@@ -56,6 +56,7 @@ else:  # pragma: no cover - Python 3.10 on Raspberry Pi OS bookworm
 
 from device.config import ConfigError
 from device.profile import PROFILE_DIR, builtin_toml, parse_pipeline_profile
+from device.errors import TacfootError
 
 __all__ = ["ModelSpec", "SpecError", "SPEC_VERSION", "METRIC_KEYS", "DATA_SOURCES",
            "profile_record", "profile_hash", "profile_from_text", "same_profile",
@@ -75,7 +76,7 @@ _CORE = ("format", "version", "feature_spec", "kind", "task", "model", "classes"
          "trained_on", "config", "training", "features")
 
 
-class SpecError(ValueError):
+class SpecError(TacfootError, ValueError):
     """A manifest does not follow the model spec; the message names the file and
     the field. (:class:`device.pi.models.artefact.ModelError` derives from it.)"""
 

@@ -21,6 +21,7 @@ import re
 import sys
 from pathlib import Path
 
+from device.errors import InputError
 from device.pi.runtime.mcapmsg import channels as logged_channels
 
 #: a message path as the panels use it: the topic, then an optional field (and index)
@@ -51,7 +52,7 @@ PLOTS = [
 COLUMNS = [[IMAGE, FAULTS], [DECISIONS, *PLOTS]]
 
 
-class LayoutError(ValueError):
+class LayoutError(InputError):
     """A panel names a topic or field the runtime does not log."""
 
 

@@ -49,6 +49,7 @@ import serial
 
 from device.checks import serial_url
 from device.pi import protocol
+from device.errors import TacfootError
 
 #: FAULT packets that may wait before newer ones replace the newest waiting one
 FAULT_QUEUE = 64
@@ -65,7 +66,7 @@ READ_BUDGET = 16384
 MAX_MESSAGES = 256
 
 
-class LinkError(OSError):
+class LinkError(TacfootError, OSError):
     """The serial port cannot be opened."""
 
 

@@ -14,6 +14,7 @@ import threading
 import time
 from device.pi.runtime.mcapfiles import INSTALL_HINT, McapLogError
 from device.pi.runtime.mcapmsg import channels as _channels
+from device.errors import InputError
 
 #: messages the SDK's server queues per viewer before it drops the oldest (uncounted;
 #: :class:`_LiveFront` reads them at once and does the counted dropping)
@@ -48,7 +49,7 @@ class LiveView:
                  client_bytes: int | None = None):
         max_clients = LIVE_MAX_CLIENTS if max_clients is None else max_clients
         if not (isinstance(max_clients, int) and 1 <= max_clients <= 1000):
-            raise ValueError(f"--foxglove-max-clients must be 1..1000, got {max_clients!r}")
+            raise InputError(f"--foxglove-max-clients must be 1..1000, got {max_clients!r}")
         try:
             import foxglove
         except ImportError:
@@ -443,6 +444,6 @@ def parse_hostport(text: str, default_host: str = "127.0.0.1") -> tuple[str, int
     except ValueError:
         p = -1
     if not 0 <= p <= 65535:
-        raise ValueError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
+        raise InputError(f"--foxglove {text!r}: give [HOST:]PORT, a port 0..65535 "
                          f"(e.g. 8765 or 0.0.0.0:8765)")
     return (host or default_host), p

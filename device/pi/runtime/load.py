@@ -15,7 +15,7 @@ naming both files and hashes; a config that does not set it runs the models'
 profile (``models.profile``'s default, roboskin, only without models)."""
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +32,8 @@ from device.pi.vision.layout import layout_for_profile
 from device.pi.models.localiser import Localiser
 from device.shipped import models_dir
 from device.pi.models.signature import check_manifest, check_model_set
+
+_log = logging.getLogger(__name__)
 
 #: the classifier tasks, each loaded from the folder of that name
 CLASSIFIER_TASKS = ("surface", "texture", "slip")
@@ -214,8 +216,7 @@ def _use_fused(m: Models, d: Path, variant: str, checked) -> None:
     m.fused, why = load_fused(d, variant, members, check=checked)
     m.fused_note = why
     if m.fused is None and (d / FUSED_DIR).is_dir():      # absent: nothing to say
-        print(f"device.pi run: note: models: {why}; running one session per model",
-              file=sys.stderr)
+        _log.info("device.pi run: note: models: %s; running one session per model", why)
 
 
 def check_models_folder(models_dir, fail) -> None:

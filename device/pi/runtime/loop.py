@@ -1,7 +1,8 @@
 """The leg runtime: camera + IMU in, surface decisions out over the UART.
 
 ``python -m device.pi run --camera v4l2:///dev/video0 --imu i2c://1/0x68 --serial
-/dev/serial0`` (or ``sim://walk``, ``sim://walk``, ``loop://`` with no hardware). See
+/dev/serial0`` (or ``sim://walk`` for the camera and the IMU and ``loop://`` for the port, with no
+hardware). See
 docs/runtime.md for the options, the config keys, the packets and the fault handling.
 
 One loop, one thread for the work (a second thread only grabs frames, so a camera
@@ -19,9 +20,9 @@ systemd watchdog is fed.
 """
 from __future__ import annotations
 
+import logging
 import math
 import os
-import sys
 import time
 from collections import deque
 
@@ -46,6 +47,9 @@ from device.pi.runtime.stats import BoundedStats
 from device.pi.runtime.status import JsonLog, write_status_file
 from device.pi.vision import native
 from device.pi.vision.encoder import FrameEncoder
+from device.errors import TacfootError
+
+_log = logging.getLogger(__name__)
 
 #: a live camera that delivered nothing for this long is closed and reopened
 REOPEN_AFTER_S = 1.0
@@ -60,7 +64,7 @@ FAULT_LOG = 256
 STATUS_ANSWER_GAP_S = 0.05
 
 
-class StartupError(Exception):
+class StartupError(TacfootError):
     """The runtime cannot start: a bad config, model, source or port (exit 2)."""
 
 
@@ -484,14 +488,16 @@ class LegRuntime:
                 "matcher_reason": native.status(), "reacquire": t.reacquire,
                 "reacquisitions": t.reacquisitions, "reacquire_errors": t.reacquire_errors}
 
-    def write_status(self, force: bool = False) -> None:
+    def write_status(self) -> None:
+        """Rewrite the status file now (the loop calls it every status interval,
+        :meth:`close` once more at the end); a refusal is said once, then retried."""
         if not self.status_path:
             return
         ok = write_status_file(self.status_path, self.status())
         if not ok and not self._status_warned:     # once: the file system refused
             self._status_warned = True
-            print(f"device.pi run: warning: --status {self.status_path}: cannot write the "
-                  f"status file; retrying", file=sys.stderr)
+            _log.warning("device.pi run: warning: --status %s: cannot write the status "
+                         "file; retrying", self.status_path)
         elif ok:
             self._status_warned = False
 
@@ -502,7 +508,7 @@ class LegRuntime:
             self.writer.pump()
         if self.mcap is not None:     # first: the status then counts what it lost
             self.mcap.close()
-        self.write_status(force=True)
+        self.write_status()
         self._notify("STOPPING=1")
         if self.json_log is not None:
             self.json_log.flush()

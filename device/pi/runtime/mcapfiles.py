@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from device.pi.runtime.mcapmsg import channels
+from device.errors import TacfootError
 
 #: ``--mcap-max-mb`` bounds, MB: below ~1 MB a file is mostly schemas and summary
 MAX_MB_MIN = 1.0
@@ -27,7 +28,7 @@ MAX_MB_MAX = 1_048_576.0
 INSTALL_HINT = "MCAP logging needs the viz extra: pip install .[viz]"
 
 
-class McapLogError(OSError):
+class McapLogError(TacfootError, OSError):
     """The MCAP log cannot be opened (no ``mcap`` package, a bad path)."""
 
 

@@ -63,9 +63,9 @@ base install runs without them.
 """
 from __future__ import annotations
 
+import logging
 import json
 import os
-import sys
 import threading
 import time
 from collections import deque
@@ -82,6 +82,8 @@ from device.pi.runtime.mcapfiles import CountingFile as _CountingFile
 from device.pi.runtime.mcapfiles import writer_module as _mcap
 from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module had)
     CHANNELS, FRAME_ID, LINE_LIST, POINTS, annotations)
+
+_log = logging.getLogger(__name__)
 
 #: after a failed write, the next file is tried this much later (runtime clock, s)
 RETRY_S = 1.0
@@ -215,8 +217,8 @@ class McapLog:
         except OSError as exc:
             raise McapLogError(f"--mcap {str(path)!r}: {exc.strerror or exc}") from None
         if self._base != self.path:
-            print(f"{self.prog}: --mcap {self.path} already holds an earlier log, kept; "
-                  f"this run writes {self.files[0]}", file=sys.stderr, flush=True)
+            _log.info("%s: --mcap %s already holds an earlier log, kept; this run writes %s",
+                      self.prog, self.path, self.files[0])
 
     @property
     def messages_lost(self) -> int:
@@ -411,8 +413,8 @@ class McapLog:
             err = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
             where = (" in the status (mcap_messages_lost)" if self.prog == "device.pi run"
                      else "")
-            print(f"{self.prog}: warning: --mcap {self.path}: cannot write ({err}); "
-                  f"running on, counting the lost messages{where}", file=sys.stderr)
+            _log.warning("%s: warning: --mcap %s: cannot write (%s); running on, counting "
+                         "the lost messages%s", self.prog, self.path, err, where)
 
     def _now(self) -> float:
         return 0.0 if self.clock is None else float(self.clock())

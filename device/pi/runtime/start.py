@@ -4,6 +4,7 @@ config, the models, the sources and the port, each refused with one line
 :mod:`device.pi.runtime.loop`."""
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from urllib.parse import parse_qsl, urlsplit
@@ -19,6 +20,8 @@ from device.pi.sources.imu import IMUError, IMUUnavailable, RetryingImuSource, o
 from device.pi.sources.options import opt_bool
 from device.profile import load_pipeline_profile
 from device.pi.runtime.loop import LegRuntime, StartupError
+
+_log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------
 # Building from source strings
@@ -47,7 +50,7 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
         cfg.camera.fps = frame_rate("--fps", fps, error=StartupError)
     try:
         load_pipeline_profile(cfg.models.profile)
-    except Exception as exc:
+    except (OSError, ValueError) as exc:         # ProfileError is a ValueError
         raise StartupError(f"{cfg.source or 'config'}: models.profile: {exc}") from None
     live = camera.lower().startswith("v4l2://")
     q = dict(parse_qsl(urlsplit(camera).query))
@@ -110,8 +113,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     except (ModelError, ValueError) as exc:
         fail(str(exc))
     if rules_only:
-        print("device.pi run: note: --rules-only: no model loaded; the surface decision "
-              "comes from the rules alone (status: rules_only true)", file=sys.stderr)
+        _log.warning("device.pi run: note: --rules-only: no model loaded; the surface "
+                     "decision comes from the rules alone (status: rules_only true)")
     elif not models.loaded:
         where = models_dir if models_dir is not None else default_models_dir()
         fail(f"no model found in {'--models ' if models_dir is not None else ''}"
@@ -123,8 +126,8 @@ def build_runtime(camera: str, imu: str, serial: str, *, models_dir=None, config
     except IMUUnavailable as exc:
         # nothing answers yet: run with the IMU fault set and keep trying (a wrong
         # device or a bad option below still refuses to start)
-        print(f"device.pi run: warning: --imu: {exc}; running with the IMU fault set, "
-              f"retrying", file=sys.stderr)
+        _log.warning("device.pi run: warning: --imu: %s; running with the IMU fault set, "
+                     "retrying", exc)
         imu_src = RetryingImuSource(imu, exc)
         opened.append(imu_src)
     except (ValueError, IMUError) as exc:

@@ -3,11 +3,13 @@ temporary file, then ``os.replace``), so a reader never sees half a file; and it
 decision log (``--json-log``), whose failures never stop the runtime."""
 from __future__ import annotations
 
+import logging
 import io
 import json
 import os
-import sys
 from pathlib import Path
+
+_log = logging.getLogger(__name__)
 
 
 def write_status_file(path: str | Path, doc: dict) -> bool:
@@ -59,9 +61,9 @@ class JsonLog:
         self.lines_lost += 1
         if not self.warned:
             self.warned = True
-            print(f"device.pi run: warning: --json-log {self.name}: cannot write ({err}); "
-                  f"running on, counting the lost lines in the status "
-                  f"(json_log_lines_lost)", file=sys.stderr)
+            _log.warning("device.pi run: warning: --json-log %s: cannot write (%s); running "
+                         "on, counting the lost lines in the status (json_log_lines_lost)",
+                         self.name, err)
         return False
 
     def flush(self) -> None:

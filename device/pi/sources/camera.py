@@ -49,11 +49,11 @@ kept (e.g. as a reference frame).
 
 from __future__ import annotations
 
+import logging
 import errno
 import math
 import os
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -67,6 +67,9 @@ from device.checks import FPS_MAX_HZ, FPS_MIN_HZ
 from device.pi.sources.luma import PACKED_YUV, PLANE_GRAY, luma_plane, to_gray_frame
 from device.pi.sources.options import opt_bool, opt_fps, opt_int, parse_options
 from device.closing import Closing
+from device.errors import InputError, TacfootError
+
+_log = logging.getLogger(__name__)
 
 __all__ = [
     "BadFrameError",
@@ -91,7 +94,7 @@ IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".
 VIDEO_SUFFIXES = frozenset({".avi", ".mp4", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".h264"})
 
 
-class CameraError(OSError):
+class CameraError(TacfootError, OSError):
     """A camera or recording cannot be opened or read."""
 
 
@@ -113,7 +116,7 @@ class Frame:
 # ------------------------------------------------------------------ options
 def _opt_fourcc(name: str, value: Any) -> str:
     if not isinstance(value, str) or len(value) != 4 or not value.isascii():
-        raise ValueError(f"{name} must be 4 ASCII characters such as 'MJPG', got {value!r}")
+        raise InputError(f"{name} must be 4 ASCII characters such as 'MJPG', got {value!r}")
     return value
 
 
@@ -121,9 +124,9 @@ def _range_opts(opts: dict) -> tuple[int, int | None]:
     start = opts.get("start_frame", 0)
     end = opts.get("end_frame")
     if start < 0:
-        raise ValueError(f"start_frame must be >= 0, got {start!r}")
+        raise InputError(f"start_frame must be >= 0, got {start!r}")
     if end is not None and end < start:
-        raise ValueError(f"end_frame must be >= start_frame ({start}), got {end!r}")
+        raise InputError(f"end_frame must be >= start_frame ({start}), got {end!r}")
     return start, end
 
 
@@ -248,9 +251,9 @@ class VideoFileSource(CameraSource):
             fps = declared
         elif fps is None:
             fps = DEFAULT_FILE_FPS
-            print(f"warning: camera source {self.source!r}: the file declares {declared:g} "
-                  f"frames/s, outside {FPS_MIN_HZ:g}..{FPS_MAX_HZ:g}; reading it at "
-                  f"{DEFAULT_FILE_FPS:g} frames/s (give ?fps= to choose)", file=sys.stderr)
+            _log.warning("warning: camera source %r: the file declares %g frames/s, outside "
+                         "%g..%g; reading it at %g frames/s (give ?fps= to choose)",
+                         self.source, declared, FPS_MIN_HZ, FPS_MAX_HZ, DEFAULT_FILE_FPS)
         self.fps = fps
         count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT))
         total = count if count > 0 else None
@@ -368,7 +371,7 @@ class SimSource(CameraSource):
         from device.sim import Simulator, load_scene   # lazy: the Pi never needs the simulator
 
         if not scene:
-            raise ValueError(f"sim source needs a scene name or path, got {source or scene!r}")
+            raise InputError(f"sim source needs a scene name or path, got {source or scene!r}")
         self.source = source if source is not None else f"sim://{scene}"
         start, end = _range_opts({"start_frame": start_frame, "end_frame": end_frame})
         self.sim = Simulator(load_scene(scene), seed=seed)
@@ -414,9 +417,9 @@ class V4L2Source(CameraSource):
         self.source = source if source is not None else f"v4l2://{device}"
         for name, v in (("width", width), ("height", height)):
             if v is not None and v <= 0:
-                raise ValueError(f"{name} must be > 0, got {v!r}")
+                raise InputError(f"{name} must be > 0, got {v!r}")
         if buffersize < 1:
-            raise ValueError(f"buffersize must be >= 1, got {buffersize!r}")
+            raise InputError(f"buffersize must be >= 1, got {buffersize!r}")
         fps = _fps_opt({"fps": fps})
         if isinstance(device, str) and not os.path.exists(device):
             raise CameraError(errno.ENOENT, "no such camera device", device)
@@ -503,7 +506,7 @@ def _open_path(path_str: str, source: str, query: dict, opts: dict) -> CameraSou
 def open_camera(source: str, **opts) -> CameraSource:
     """Open the camera source named by ``source``; see the module docstring."""
     if not isinstance(source, str) or not source.strip():
-        raise ValueError(f"camera source must be a non-empty string, got {source!r}")
+        raise InputError(f"camera source must be a non-empty string, got {source!r}")
     if "://" not in source:
         return _open_path(source, source, {}, opts)
     scheme, rest = source.split("://", 1)
@@ -517,7 +520,7 @@ def open_camera(source: str, **opts) -> CameraSource:
             query = dict(parse_qsl(q, keep_blank_values=True))
         path_str = unquote(path_str)
         if not path_str:
-            raise ValueError(f"file source needs a path, got {source!r}")
+            raise InputError(f"file source needs a path, got {source!r}")
         return _open_path(path_str, source, query, opts)
     if scheme == "sim":
         parts = urlsplit(source)
@@ -532,7 +535,7 @@ def open_camera(source: str, **opts) -> CameraSource:
         elif parts.netloc.isdigit():
             device = int(parts.netloc)          # v4l2://0 -> camera index 0
         else:
-            raise ValueError(f"v4l2 source needs a device such as v4l2:///dev/video0, got {source!r}")
+            raise InputError(f"v4l2 source needs a device such as v4l2:///dev/video0, got {source!r}")
         return V4L2Source(device, source=source, **o)
-    raise ValueError(f"unknown camera source scheme {scheme!r} in {source!r}; "
+    raise InputError(f"unknown camera source scheme {scheme!r} in {source!r}; "
                      f"use v4l2://, file://, sim:// or a path")

@@ -36,8 +36,8 @@ that cannot be used at open time raises ``IMUError`` naming it.
 
 from __future__ import annotations
 
+import logging
 import re
-import sys
 import time
 from pathlib import Path
 from urllib.parse import parse_qsl, unquote, urlsplit
@@ -48,6 +48,9 @@ from device.pi.sources.mpu6050 import (ACCEL_RANGES_G, FAULT_ENDED, FAULT_OFFLIN
                                        GYRO_RANGES_DPS, MPU6050, IMUError, IMUUnavailable)
 from device.closing import Closing
 from device.pi.sources.options import opt_bool, opt_choice, opt_int_in, opt_positive, parse_options
+from device.errors import InputError
+
+_log = logging.getLogger(__name__)
 
 __all__ = ["ImuSource", "MPU6050Source", "RetryingImuSource", "FileImuSource", "NoImuSource", "open_imu",
            "FULL_SCALE"]
@@ -223,10 +226,9 @@ class FileImuSource(ImuSource):
                 self.index = 0
                 self.wraps += 1
                 if self.wraps == 1:     # said once: the rows repeat from here on
-                    print(f"warning: IMU source {self.source!r}: the recording's "
-                          f"{self.n_frames} rows ran out; looping from its first row "
-                          f"(give ?loop=0 to hold the last row with the imu_ended fault)",
-                          file=sys.stderr)
+                    _log.warning("warning: IMU source %r: the recording's %d rows ran out; "
+                                 "looping from its first row (give ?loop=0 to hold the last "
+                                 "row with the imu_ended fault)", self.source, self.n_frames)
             else:
                 self.faults = FAULT_ENDED
                 return self._ret(out)
@@ -253,21 +255,21 @@ def _driver(bus, address, source, opts, **extra) -> MPU6050:
     try:
         return MPU6050(bus, address, **opts, **extra)
     except ValueError as e:
-        raise ValueError(f"{e} (IMU source {source!r})") from None
+        raise InputError(f"{e} (IMU source {source!r})") from None
 
 
 def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
     """Open the IMU named by ``source`` (see the module docstring). ``bus`` replaces
     the ``smbus2.SMBus`` an ``i2c://`` source would open (tests, shared buses)."""
     if not isinstance(source, str) or not source.strip():
-        raise ValueError(f"IMU source must be a non-empty string such as 'i2c://1/0x68', got {source!r}")
+        raise InputError(f"IMU source must be a non-empty string such as 'i2c://1/0x68', got {source!r}")
     s = source.strip()
     if s.lower() == "none":
         if opts:
-            raise ValueError(f"IMU source 'none' takes no options, got {sorted(opts)}")
+            raise InputError(f"IMU source 'none' takes no options, got {sorted(opts)}")
         return NoImuSource(s)
     if "://" not in s:
-        raise ValueError(f"unknown IMU source {source!r}; use i2c://BUS/ADDR, file://PATH.npy, sim://SCENE or none")
+        raise InputError(f"unknown IMU source {source!r}; use i2c://BUS/ADDR, file://PATH.npy, sim://SCENE or none")
     scheme, rest = s.split("://", 1)
     scheme = scheme.lower()
     if scheme == "i2c":
@@ -275,11 +277,11 @@ def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
         m = re.fullmatch(r"(\d+)", parts.netloc or "")
         addr_s = parts.path.strip("/") or "0x68"
         if m is None or not re.fullmatch(r"0[xX][0-9a-fA-F]{1,2}|\d{1,3}", addr_s):
-            raise ValueError(f"bad IMU source {source!r}: expected i2c://BUS/ADDR such as i2c://1/0x68")
+            raise InputError(f"bad IMU source {source!r}: expected i2c://BUS/ADDR such as i2c://1/0x68")
         bus_no = int(m.group(1))
         address = int(addr_s, 0)
         if not 0x08 <= address <= 0x77:
-            raise ValueError(f"bad IMU source {source!r}: address 0x{address:02x} is outside 0x08..0x77")
+            raise InputError(f"bad IMU source {source!r}: address 0x{address:02x} is outside 0x08..0x77")
         o = parse_options("IMU", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _DRIVER_OPTS)
         own_bus = bus is None
         if own_bus:
@@ -300,7 +302,7 @@ def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
         parts = urlsplit(s)
         scene = unquote(parts.netloc + parts.path)
         if not scene:
-            raise ValueError(f"bad IMU source {source!r}: sim:// needs a scene name or path, e.g. sim://walk")
+            raise InputError(f"bad IMU source {source!r}: sim:// needs a scene name or path, e.g. sim://walk")
         o = parse_options("IMU", source, dict(parse_qsl(parts.query, keep_blank_values=True)), opts, _SIM_OPTS)
         seed = o.pop("seed", 0)
         realtime = o.pop("realtime", False)
@@ -309,7 +311,7 @@ def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
         try:
             fake = FakeMPU6050.from_scene(scene, seed=seed, clock=time.monotonic if realtime else None, **fake_kw)
         except (FileNotFoundError, ValueError) as e:       # ConfigError is a ValueError
-            raise ValueError(f"bad IMU source {source!r}: {e}") from None
+            raise InputError(f"bad IMU source {source!r}: {e}") from None
         drv = _driver(fake, fake.address, source, o)
         return MPU6050Source(drv, source, step_rows=not realtime)
     if scheme == "file":
@@ -318,7 +320,7 @@ def open_imu(source: str, *, bus=None, **opts) -> ImuSource:
             path_str, query = rest.split("?", 1)
         path_str = unquote(path_str)
         if not path_str:
-            raise ValueError(f"bad IMU source {source!r}: file:// needs a path to an (F, 6) .npy")
+            raise InputError(f"bad IMU source {source!r}: file:// needs a path to an (F, 6) .npy")
         o = parse_options("IMU", source, dict(parse_qsl(query, keep_blank_values=True)), opts, _FILE_OPTS)
         return FileImuSource(path_str, source=source, **o)
-    raise ValueError(f"unknown IMU source scheme {scheme!r} in {source!r}; use i2c://, file://, sim:// or none")
+    raise InputError(f"unknown IMU source scheme {scheme!r} in {source!r}; use i2c://, file://, sim:// or none")

@@ -41,6 +41,7 @@ from typing import Callable
 import numpy as np
 
 from device.pi.sources.options import opt_choice, opt_int_in, opt_positive
+from device.errors import TacfootError
 
 __all__ = [
     "IMUError",
@@ -109,7 +110,7 @@ def fault_names(bits: int) -> list[str]:
     return out
 
 
-class IMUError(RuntimeError):
+class IMUError(TacfootError, RuntimeError):
     """The IMU cannot be used: wrong device, nothing answering, bad recording."""
 
 

@@ -14,6 +14,7 @@ from typing import Any, Callable
 import numpy as np
 
 from device.checks import frame_rate
+from device.errors import InputError
 
 __all__ = ["opt_int", "opt_int_in", "opt_float", "opt_positive", "opt_fps", "opt_bool",
            "opt_choice", "parse_options"]
@@ -22,12 +23,12 @@ __all__ = ["opt_int", "opt_int_in", "opt_float", "opt_positive", "opt_fps", "opt
 def opt_int(name: str, value: Any) -> int:
     """An int (decimal text accepted)."""
     if isinstance(value, bool):
-        raise ValueError(f"{name} must be an int, got {value!r}")
+        raise InputError(f"{name} must be an int, got {value!r}")
     if isinstance(value, (int, np.integer)):
         return int(value)
     if isinstance(value, str) and re.fullmatch(r"[+-]?\d+", value.strip()):
         return int(value)
-    raise ValueError(f"{name} must be an int, got {value!r}")
+    raise InputError(f"{name} must be an int, got {value!r}")
 
 
 def opt_int_in(name: str, value: Any, lo: int, hi: int) -> int:
@@ -37,24 +38,24 @@ def opt_int_in(name: str, value: Any, lo: int, hi: int) -> int:
         try:
             value = int(s, 16) if s.startswith("0x") else int(s, 10)
         except ValueError:
-            raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {value!r}") from None
+            raise InputError(f"{name} must be an int in [{lo}, {hi}], got {value!r}") from None
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValueError(f"{name} must be an int in [{lo}, {hi}], got {value!r}")
+        raise InputError(f"{name} must be an int in [{lo}, {hi}], got {value!r}")
     if not lo <= int(value) <= hi:
-        raise ValueError(f"{name} must be in [{lo}, {hi}], got {value!r}")
+        raise InputError(f"{name} must be in [{lo}, {hi}], got {value!r}")
     return int(value)
 
 
 def opt_float(name: str, value: Any) -> float:
     """A finite number."""
     if isinstance(value, bool):
-        raise ValueError(f"{name} must be a number, got {value!r}")
+        raise InputError(f"{name} must be a number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number, got {value!r}") from None
+        raise InputError(f"{name} must be a number, got {value!r}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+        raise InputError(f"{name} must be finite, got {value!r}")
     return v
 
 
@@ -62,7 +63,7 @@ def opt_positive(name: str, value: Any) -> float:
     """A finite number > 0."""
     v = opt_float(name, value)
     if v <= 0:
-        raise ValueError(f"{name} must be > 0, got {value!r}")
+        raise InputError(f"{name} must be > 0, got {value!r}")
     return v
 
 
@@ -80,7 +81,7 @@ def opt_bool(name: str, value: Any) -> bool:
         return bool(value)
     if isinstance(value, str) and value.strip().lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
         return value.strip().lower() in ("1", "true", "yes", "on")
-    raise ValueError(f"{name} must be a bool, got {value!r}")
+    raise InputError(f"{name} must be a bool, got {value!r}")
 
 
 def opt_choice(name: str, value: Any, allowed: tuple) -> int:
@@ -89,7 +90,7 @@ def opt_choice(name: str, value: Any, allowed: tuple) -> int:
     for i, a in enumerate(allowed):
         if v == a:
             return i
-    raise ValueError(f"{name} must be one of {list(allowed)}, got {value!r}")
+    raise InputError(f"{name} must be one of {list(allowed)}, got {value!r}")
 
 
 def parse_options(kind: str, source: str, query: dict, kwargs: dict,
@@ -102,11 +103,11 @@ def parse_options(kind: str, source: str, query: dict, kwargs: dict,
     merged = {**query, **kwargs}
     unknown = sorted(set(merged) - set(spec))
     if unknown:
-        raise ValueError(f"unknown option {unknown[0]!r} for {kind} source {source!r}; known: {sorted(spec)}")
+        raise InputError(f"unknown option {unknown[0]!r} for {kind} source {source!r}; known: {sorted(spec)}")
     out = {}
     for k, v in merged.items():
         try:
             out[k] = spec[k](k, v)
         except ValueError as e:
-            raise ValueError(f"{e} ({kind} source {source!r})") from None
+            raise InputError(f"{e} ({kind} source {source!r})") from None
     return out

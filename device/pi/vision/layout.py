@@ -15,12 +15,13 @@ import numpy as np
 from device.checks import positive_number
 from device.pi.vision.matching import match_pins
 from device.profile import load_layout
+from device.errors import TacfootError
 
 __all__ = ["LayoutError", "layout_assignment", "to_layout", "LayoutMapper",
            "layout_for_profile", "binary_crop"]
 
 
-class LayoutError(ValueError):
+class LayoutError(TacfootError, ValueError):
     """A profile has no fixed pin layout."""
 
 

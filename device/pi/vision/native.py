@@ -55,6 +55,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from device.errors import TacfootError
 
 __all__ = ["SOURCE", "CFLAGS", "packaged_path", "rebuild_hint", "NativeBuildError",
            "NativeFolderError", "library_path", "check_library", "build", "kernel", "load",
@@ -84,7 +85,7 @@ def _cflags() -> tuple[str, ...]:
     return CFLAGS + tuple(os.environ.get("TACFOOT_NATIVE_CFLAGS", "").split())
 
 
-class NativeBuildError(RuntimeError):
+class NativeBuildError(TacfootError, RuntimeError):
     """The kernel could not be compiled (no compiler, or it failed)."""
 
 

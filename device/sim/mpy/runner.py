@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from device.errors import TacfootError
 
 __all__ = ["MpyUnavailable", "RUNNER", "STANDIN", "MPY_LIB", "PACKAGE", "mpy_unavailable",
            "run_mpy", "cpython_path"]
@@ -33,7 +34,7 @@ ROOT = HERE.parents[2]
 PACKAGE = ROOT / "node_modules" / "@micropython" / "micropython-webassembly-pyscript"
 
 
-class MpyUnavailable(RuntimeError):
+class MpyUnavailable(TacfootError, RuntimeError):
     """Node or the MicroPython npm package is missing; the message says which."""
 
 

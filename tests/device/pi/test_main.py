@@ -351,3 +351,34 @@ def test_the_runtime_says_which_profile_it_runs(tmp_path, capsys):
     assert main(base + ["--config", str(cfg)]) == 0
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last.endswith(f"; profile mine ({prof}, {got['pins']} pins)"), last
+
+
+# --- one catch for tacfoot's errors, and -v/-q (issues 31 and 32) ------------------
+
+def test_quiet_leaves_errors_only_verbose_adds_debug_and_json_stays_on_stdout(capsys):
+    base = ["--camera", "sim://walk", "--json"]
+    assert _run_main(base, capsys) == (0, "")          # --json: the summary is on stdout
+    rc = main(["run", "--imu", "none", "--serial", "loop://", "--frames", "2",
+               "--camera", "sim://walk"])
+    out, err = capsys.readouterr()
+    assert rc == 0 and out == "" and err.startswith("device.pi run: 2 frames, ")
+    rc = main(["run", "-q", "--imu", "none", "--serial", "loop://", "--frames", "2",
+               "--camera", "sim://walk"])
+    assert rc == 0 and capsys.readouterr() == ("", "")
+    rc = main(["-v", "run", "--imu", "none", "--serial", "loop://", "--frames", "2",
+               "--camera", "sim://walk", "--json"])
+    out, err = capsys.readouterr()
+    assert rc == 0 and json.loads(out)["frames"] == 2
+    assert err.startswith("device.pi run: camera sim://walk, IMU none, ")
+    rc, err = _run_main(["-q", "--camera", "sim://nope"], capsys)
+    assert rc == 2 and err.count("\n") == 1 and "device.pi run: error: --camera" in err
+
+
+def test_a_plain_bug_in_the_runtime_is_not_reported_as_bad_input(monkeypatch, capsys):
+    import device.pi.__main__ as entry
+
+    def broken(*a, **kw):
+        raise KeyError("fps")
+    monkeypatch.setattr(entry, "build_runtime", broken)
+    with pytest.raises(KeyError):
+        _run_main(["--camera", "sim://walk"], capsys)

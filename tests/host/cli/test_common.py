@@ -152,7 +152,7 @@ BAD_INPUTS = [
     ("simulate minimal --out {d}/s1 --trials -3",
      "argument --trials: must be a whole number in [1, 10000], got '-3'"),
     ("calibrate sim://minimal --out {d}/c.toml --frames -5",
-     "argument --frames: must be a whole number in [1, 100000], got '-5'"),
+     "argument --frames: must be a whole number in [2, 100000], got '-5'"),
     ("train --task surface --data {d}/ds --out {d}/m3 --window 0",
      "argument --window: must be a whole number in [1, 1000], got '0'"),
     ("simulate minimal --out {d}/s1 --seed -1", "argument --seed: must be a whole number"),

@@ -317,21 +317,30 @@ def test_without_models_the_configs_profile_runs(tmp_path):
 
 
 def test_the_fused_graph_is_used_when_it_matches_and_else_one_line_says_why(
-        model_dir, tmp_path, capsys):
+        model_dir, tmp_path, caplog):
+    import logging
+
     from host.learn.fuse import fuse_models
+
+    caplog.set_level(logging.INFO, logger="device")
+
+    def said() -> str:                                 # the notes logged since last asked
+        text = "".join(r.getMessage() + "\n" for r in caplog.records)
+        caplog.clear()
+        return text
 
     d = tmp_path / "models"
     for t in ("surface", "pressure"):
         shutil.copytree(model_dir / t, d / t)
     m = load_models(d, "int8", 133, LegConfig())
     assert m.fused is None and "no fused/ graph" in m.fused_note
-    assert capsys.readouterr().err == ""               # no fused graph: nothing to say
+    assert said() == ""               # no fused graph: nothing to say
     fuse_models(d)
     for variant in ("int8", "float"):
         m = load_models(d, variant, 133, LegConfig())
         assert m.fused is not None and m.fused_note == ""
         assert m.fused.members == {"surface": m.surface, "pressure": m.pressure}
-    assert capsys.readouterr().err == ""
+    assert said() == ""
     from host.learn.train import train_model
     from tests.windows import synthetic
 
@@ -341,7 +350,7 @@ def test_the_fused_graph_is_used_when_it_matches_and_else_one_line_says_why(
                 out_dir=d / "pressure", progress=False)
     m = load_models(d, "int8", 133, LegConfig())
     assert m.fused is None and m.pressure is not None
-    err = capsys.readouterr().err
+    err = said()
     assert err.startswith("device.pi run: note: models: ") and "pressure member" in err
     assert "rebuild it" in err and err.count("\n") == 1
 

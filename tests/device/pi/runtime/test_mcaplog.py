@@ -187,7 +187,7 @@ def _frame_args(k=0, t_s=0.01):
     return frame_args(k, t_s, np.array([[10.0, 20.0], [30.0, 40.0]]))
 
 
-def test_a_failed_write_is_a_count_and_one_warning_then_the_next_file(tmp_path, capsys,
+def test_a_failed_write_is_a_count_and_one_warning_then_the_next_file(tmp_path, caplog,
                                                                       monkeypatch):
     now, full = [0.0], [False]
     real = mcaplog._CountingFile.write
@@ -206,7 +206,7 @@ def test_a_failed_write_is_a_count_and_one_warning_then_the_next_file(tmp_path, 
         log.frame(*_frame_args(k))                # never an exception into the loop
         log.packet("out", P.Fault(faults=1, raised=1, pins_lost=0), now[0], k, 10)
     assert log.messages_lost > 0
-    err = capsys.readouterr().err
+    err = "".join(r.getMessage() for r in caplog.records if r.levelname == "WARNING")
     assert err.count("--mcap") == 1 and "No space left" in err and "mcap_messages_lost" in err
     lost = log.messages_lost
     log.frame(*_frame_args(6))                    # before RETRY_S: dropped and counted
