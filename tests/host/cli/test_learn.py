@@ -295,7 +295,7 @@ def test_train_computes_every_feature_with_its_profile_and_the_model_carries_it(
     clf = Classifier.load(out)
     assert clf.n_features == man["input"]["shape"][1] == \
         RollingWindow(2, 331).encode("vectors").size
-    assert man["trained_on"]["recordings"][0]["sha256"] and man["config"]["profile"] == \
+    assert man["measured"]["trained_on"]["recordings"][0]["sha256"] and man["config"]["profile"] == \
         "tactip331"
     assert (out / "README.md").is_file() and "331 pins" in (out / "README.md").read_text()
     # eval takes the profile from the model; another profile is an error naming both

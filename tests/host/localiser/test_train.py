@@ -43,7 +43,7 @@ def test_artefact_manifest_and_size(trained):
     for key in ("median_px", "p90_px"):
         assert key in m["metrics"]["test"]["sim_heldout"]
     assert set(m["metrics"]) == {"train", "test", "cv"} and m["crop_size"] == m["size"]
-    assert m["profile"]["n_pins"] == N_PINS and m["trained_on"]["data"] in (
+    assert m["profile"]["n_pins"] == N_PINS and m["measured"]["trained_on"]["data"] in (
         "simulated", "real", "real+simulated")
     # under 1 MB (float16 weights, cast once by onnxruntime)
     assert trained["res"]["size_bytes"] < 1_000_000
