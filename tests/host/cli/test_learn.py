@@ -289,7 +289,7 @@ def test_train_computes_every_feature_with_its_profile_and_the_model_carries_it(
     assert main(["train", "--task", "texture", "--window", "2", "--data", str(data),
                  "--profile", "tactip331", "--out", str(out), "--json"]) == 0
     man = json.loads((out / "manifest.json").read_text())
-    assert man["roughness"] is True
+    assert man["params"]["roughness"] is True
     assert man["profile"]["name"] == "tactip331" and man["profile"]["n_pins"] == 331
     assert "[vision]" in man["profile"]["toml"]
     clf = Classifier.load(out)
