@@ -1,4 +1,4 @@
-"""The JSON documents tacfoot writes beside its data (a model's manifest.json, a
+"""The JSON documents tacfoot writes beside its data (a model's manifest, a
 dataset's dataset.json): a ``format`` name and a ``version`` number, read with
 errors that name the file."""
 from __future__ import annotations

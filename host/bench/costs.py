@@ -117,9 +117,9 @@ def model_cost(model_dir, ws, warmup: int = 20) -> dict:
     layout and its file size."""
     from device.pi.models.window import encode
 
-    pred, doc, kind = evaluate.load_variant(model_dir, "float")
-    layout = doc.get("input_layout", "vectors")
-    uses_imu = bool(doc.get("uses_imu", False))
+    pred, spec, kind = evaluate.load_variant(model_dir, "float")
+    layout = spec.input_layout
+    uses_imu = spec.uses_imu
     call = pred.predict_one if kind == "regressor" else pred.predict
 
     def decide(i):
@@ -139,7 +139,7 @@ def model_cost(model_dir, ws, warmup: int = 20) -> dict:
         wall.append((time.perf_counter() - w0) * 1e3)
     folder = Path(model_dir)
     return {"wall": percentiles(wall), "cpu": percentiles(cpu), "input_layout": layout,
-            "size_bytes": int((folder / doc["onnx"]).stat().st_size) if doc.get("onnx") else 0}
+            "size_bytes": int((folder / spec.onnx).stat().st_size) if spec.onnx else 0}
 
 
 def decision_cost(vision: dict, model: dict, factor: float = PI4_FACTOR) -> dict:

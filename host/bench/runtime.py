@@ -98,7 +98,7 @@ def runtime_config(models: str | None, profile: str | None, folder) -> str | Non
     from pathlib import Path
 
     from device.config import read_toml
-    from device.pi.models.artefact import read_spec
+    from device.pi.models.manifest import MANIFEST, read_spec
     from device.pi.models.spec import profile_record
     from device.pi.runtime.config import DEFAULT_CONFIG, load_leg_config
     from device.pi.runtime.load import default_models_dir
@@ -106,7 +106,7 @@ def runtime_config(models: str | None, profile: str | None, folder) -> str | Non
     from host.learn.onnx_io import models_profile
 
     root = Path(models) if models else default_models_dir()
-    specs = {str(mf): read_spec(mf)[0] for mf in sorted(root.glob("*/manifest.json"))}
+    specs = {str(mf): read_spec(mf)[0] for mf in sorted(root.glob(f"*/{MANIFEST}"))}
     source, rec = models_profile(specs, profile)
     if rec["sha256"] == profile_record(load_leg_config().models.profile)["sha256"]:
         return None

@@ -13,7 +13,7 @@ windows only; their rest is its held-out test). The other models, and texture
 without real data, are trained on simulated trials of the roboskin sensor (surface
 parameters drawn from the training ranges of :data:`host.bench.scenes.SURFACE_RANGES`,
 fixed seeds), exported to ONNX with the scaler folded in, quantised to int8 and
-checked against float, and written as ``models/<name>/`` (manifest.json, a model
+checked against float, and written as ``models/<name>/`` (the manifest, a model
 spec (:mod:`device.pi.models.spec`); model.onnx, model.int8.onnx; README.md, the
 model card, and train.toml, the config: :mod:`host.learn.card`). The surface model must pass the int8 check; for the
 others a failed check ships the float model alone (the texture FNN's first layer
@@ -45,12 +45,13 @@ import sys
 import time
 from pathlib import Path
 
-from device.pi.models.artefact import read_manifest, read_spec, sha256_file
+from device.pi.models.artefact import sha256_file
+from device.pi.models.manifest import read_spec, write_variant_specs
 from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
-from host.learn.card import write_model_docs
-from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_spec, write_variants
+from host.learn.card import measure_cost, write_model_docs
+from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, session
 from host.learn.tasks import (DEFAULT_ALPHA, DEFAULT_EPOCHS, DEFAULT_MODEL, DEFAULT_WINDOW,
                               TASK_HIDDEN, TASK_RATES, TrainError)
 from host.learn.train import train_model
@@ -176,7 +177,7 @@ def build_real_texture(out_root, work, real_data, seed: int = 0,
                                    rates=TASK_RATES.get("texture", ())))
     size = _check_size(tmp, "texture")
     _install(tmp, out_root / "texture")
-    write_model_docs(out_root / "texture")      # the card named after its folder
+    write_model_docs(out_root / "texture", measure=False)   # the card named after its folder
     test = res["metrics"]["test"]
     return {"name": "texture", "task": "texture", "model": model, "T": T, "data": "real",
             "clips": sorted(REAL_TEXTURE), "windows": len(ws), "test_windows": len(wt),
@@ -201,21 +202,21 @@ def regraph(folder, seed: int = 0) -> dict:
     from host.learn.layers import replace_temporal_graph
 
     folder = Path(folder)
-    doc, _ = read_manifest(folder)
-    params = (doc.get("training") or {}).get("temporal")
+    spec, _ = read_spec(folder)
+    params = spec.training.get("temporal")
     if not params:
         raise TrainError(f"{folder}: the manifest records no temporal layer to rewrite")
-    if doc.get("features") is not None:
+    if spec.features is not None:
         raise TrainError(f"{folder}: its window features run outside the graph (features "
-                         f"version {doc['features'].get('version')!r}): no layer to rewrite")
+                         f"version {spec.features.get('version')!r}): no layer to rewrite")
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
-    X = np.random.default_rng(seed).normal(0, 3, (256, doc["input"]["shape"][1]))
+    X = np.random.default_rng(seed).normal(0, 3, (256, spec.n_inputs))
     X = X.astype(np.float32)
     out, new_bytes = {}, {}
     for name in names:                  # every file is checked before any is written
         old = onnx.load(str(folder / name))
         new = replace_temporal_graph(old, params, seed)
-        feed = {doc["input"].get("name", "x"): X}
+        feed = {spec.input_name: X}
         try:
             a, b = session(old).run(None, feed), session(new).run(None, feed)
         except Exception as exc:       # ONNX Runtime's own exception types
@@ -227,11 +228,11 @@ def regraph(folder, seed: int = 0) -> dict:
         out[name] = ((folder / name).stat().st_size, len(new_bytes[name]))
     for name, data in new_bytes.items():
         atomic_write(folder / name, lambda fh, data=data: fh.write(data))
-    updates = {}
-    if INT8_NAME in out and isinstance(doc.get("int8"), dict):
-        updates["int8"] = dict(doc["int8"], float_bytes=out[FLOAT_NAME][1],
-                               int8_bytes=out[INT8_NAME][1])
-    write_variants(folder, INT8_NAME in out and doc.get("variant") == "int8", updates)
+    q = spec.measured.int8
+    if INT8_NAME in out and isinstance(q, dict):
+        spec.measured.int8 = dict(q, float_bytes=out[FLOAT_NAME][1], int8_bytes=out[INT8_NAME][1])
+    fill_variants(folder, spec, INT8_NAME in out and spec.variant == "int8")
+    write_variant_specs(folder, spec)
     return out
 
 
@@ -247,18 +248,17 @@ def shipped_config(name: str, task: str, model: str, T: int, seed: int, **more) 
 
 
 def mark_trained_on(folder: Path, trained_on: dict, config: dict | None = None) -> None:
-    """Record in each manifest of ``folder`` (through the model spec) what the model
-    was trained on: ``data`` (real or simulated), ``recordings`` (path, sha256,
+    """Record in the spec of ``folder`` what the model was trained on (``measured``): ``data`` (real or simulated), ``recordings`` (path, sha256,
     frames), ``split`` and, where real data exist, its accuracy on real frames; and
-    ``config``, the settings that rebuild it. Then the model card and train.toml."""
-    for name in ("manifest.json", "manifest.float.json"):
-        if (Path(folder) / name).is_file():
-            spec, _ = read_spec(Path(folder) / name)
-            spec.trained_on = dict(trained_on)
-            if config is not None:
-                spec.config = dict(config)
-            write_spec(folder, spec, name=name)
-    write_model_docs(folder)
+    ``config``, the settings that rebuild it; time its cost per decision, write its
+    manifests once, then the model card and train.toml."""
+    spec, _ = read_spec(folder)
+    spec.measured.trained_on = dict(trained_on)
+    if config is not None:
+        spec.config = dict(config)
+    spec.measured.cost_per_decision = measure_cost(folder, spec)
+    write_variant_specs(folder, spec)          # the manifests written once, from the spec
+    write_model_docs(folder, measure=False)
 
 
 def _check_size(tmp: Path, name: str) -> int:

@@ -230,29 +230,29 @@ def model_trainer(folder):
     """A trainer that trains nothing: the texture model in ``folder`` (e.g. the shipped
     ``models/texture``, its default variant) classifies the windows. Returns
     (trainer, T of the model)."""
-    from device.pi.models.artefact import read_manifest
+    from device.pi.models.manifest import read_spec
     from host.learn.cut import graph_inputs
     from host.learn.inputs import model_inputs
     from host.learn.onnx_io import run_onnx, session
 
     folder = Path(folder)
     try:
-        doc, _ = read_manifest(folder)
+        spec, _ = read_spec(folder)
     except (OSError, ValueError) as exc:
         raise DataError(f"--model {folder}: {exc}") from None
-    if doc.get("input_layout") != "vectors" or doc.get("uses_imu"):
+    if spec.input_layout != "vectors" or spec.uses_imu:
         raise DataError(f"--model {folder}: a texture model reading vectors without the IMU "
-                        f"is needed, got input_layout={doc.get('input_layout')!r} "
-                        f"uses_imu={doc.get('uses_imu')!r}")
-    sess = session((folder / doc["onnx"]).read_bytes())
-    classes = [str(c) for c in doc["classes"]]
+                        f"is needed, got input_layout={spec.input_layout!r} "
+                        f"uses_imu={spec.uses_imu!r}")
+    sess = session((folder / spec.onnx).read_bytes())
+    classes = [str(c) for c in spec.classes]
 
     def trainer(ws_train, ws_test, seed):
         def predict(ws):
-            return run_onnx(sess, graph_inputs(doc, model_inputs(ws, "vectors", False),
+            return run_onnx(sess, graph_inputs(spec, model_inputs(ws, "vectors", False),
                                                folder)).argmax(axis=1)
         return predict, classes
-    return trainer, int(doc.get("T") or doc.get("window"))
+    return trainer, spec.T
 
 
 def _per_clip(predict, classes, sets: dict, T: int) -> dict:

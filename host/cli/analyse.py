@@ -34,7 +34,7 @@ def _profile_from_models(args) -> None:
     ``--localiser`` or ``--pressure`` is given, else ``--profile`` (default roboskin).
     A ``--profile`` other than the models', or two models carrying different
     profiles, is a UserError naming both."""
-    from device.pi.models.artefact import read_spec
+    from device.pi.models.manifest import read_spec
     from host.learn.onnx_io import models_profile
 
     specs = {}

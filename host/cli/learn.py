@@ -7,7 +7,8 @@ import os
 import time
 from pathlib import Path
 
-from device.pi.models.artefact import MAX_T, read_spec
+from device.pi.models.artefact import MAX_T
+from device.pi.models.manifest import read_spec
 from device.config import ConfigError
 from host.bench.report import TASK_KINDS, build_report
 from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
@@ -230,8 +231,11 @@ def _train(args):
         res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
                           quantise=args.quantise, seed=args.seed, out_dir=args.out,
                           progress=not args.json,
-                          identity=not getattr(args, "no_identity_check", False), **made)
-    write_model_docs(args.out)
+                          identity=not getattr(args, "no_identity_check", False),
+                          measure=True, **made)
+    # README.md and train.toml; train_model timed the model and wrote its manifest
+    # once, the CNN's manifest gets its cost here
+    write_model_docs(args.out, measure=args.model == "cnn")
     res = _jsonable(res)
     m = res.get("metrics", {})
     m = m.get("test") or {}

@@ -16,7 +16,8 @@ import numpy as np
 
 from device.pi import protocol as P
 from device.pi.vision.pipeline import fault_names
-from device.pi.models.artefact import ModelError, read_manifest
+from device.pi.models.artefact import ModelError
+from device.pi.models.manifest import has_manifest, read_spec
 from device.pi.runtime.load import default_models_dir
 from device.sim import SURFACE_LABELS, TEXTURE_LABELS, Simulator, builtin_scenes, load_scene
 from host.analysis.view import (draw_vectors, pick_frames, save_images, truth_caption,
@@ -147,11 +148,12 @@ def _gait_plan(scene, sim, stance_load_n: float = 8.0) -> list:
 SIM_TEXTURE = "texture-sim"
 
 
-def _read_texture_manifest(folder: Path) -> dict | None:
+def _read_texture_spec(folder: Path):
+    """The spec of the texture model in ``folder``, None when there is none."""
     try:
-        return read_manifest(folder)[0] if (folder / "manifest.json").is_file() else None
+        return read_spec(folder)[0] if has_manifest(folder) else None
     except (ModelError, OSError, ValueError) as exc:
-        raise UserError(f"{folder / 'manifest.json'}: {exc}") from None
+        raise UserError(str(exc)) from None
 
 
 def _demo_models(out: Path, models_dir: Path) -> tuple[Path, dict]:
@@ -162,7 +164,7 @@ def _demo_models(out: Path, models_dir: Path) -> tuple[Path, dict]:
     the texture model is ``models_dir/texture`` (the real-trained one when shipped)."""
     if not models_dir.is_dir():
         raise UserError(f"--models {str(models_dir)!r}: no such models folder")
-    sim_man = _read_texture_manifest(models_dir / SIM_TEXTURE)
+    sim_man = _read_texture_spec(models_dir / SIM_TEXTURE)
     run_dir = out / "runtime-models"
     if run_dir.is_dir():
         shutil.rmtree(run_dir)                       # a demo replaces its own files
@@ -174,10 +176,10 @@ def _demo_models(out: Path, models_dir: Path) -> tuple[Path, dict]:
                 (run_dir / f.name).symlink_to(f.resolve(), target_is_directory=True)
         (run_dir / "texture").symlink_to((models_dir / SIM_TEXTURE).resolve(),
                                          target_is_directory=True)
-        return run_dir, {"folder": f"{models_dir.name}/{SIM_TEXTURE}", "manifest": sim_man}
-    man = _read_texture_manifest(models_dir / "texture")
-    return models_dir, {"folder": f"{models_dir.name}/texture" if man else None,
-                        "manifest": man}
+        return run_dir, {"folder": f"{models_dir.name}/{SIM_TEXTURE}", "spec": sim_man}
+    spec = _read_texture_spec(models_dir / "texture")
+    return models_dir, {"folder": f"{models_dir.name}/texture" if spec else None,
+                        "spec": spec}
 
 
 def _texture_label(texture: dict, agreement: dict) -> list[str]:
@@ -185,13 +187,13 @@ def _texture_label(texture: dict, agreement: dict) -> list[str]:
     from: a simulation-trained model by name; a real-trained one with its figures
     on real frames (from its manifest) and its agreement on this simulated walk,
     marked out of domain."""
-    man = texture.get("manifest")
-    if man is None:
+    spec = texture.get("spec")
+    if spec is None:
         return ["texture: no texture model in the models folder (column '-')"]
-    on = man.get("trained_on") or {}
+    on = spec.measured.trained_on
     if on.get("data") == "simulated":
         return [f"texture: simulation-trained model ({texture['folder']})"]
-    test = (man.get("metrics") or {}).get("test") or {}
+    test = spec.metrics.get("test") or {}
     real = on.get("data") == "real"
     acc = on.get("real_accuracy", test.get("accuracy")) if real else test.get("accuracy")
     fig = (f"held-out accuracy {acc:.2f}" + (" on real frames" if real else "")
@@ -363,14 +365,14 @@ def cmd_demo(args):
            "slip_frames": int(t["slip"].sum())}
     models_dir = Path(args.models) if args.models else default_models_dir()
     run_models, texture = _demo_models(out, models_dir)
-    classes = list((texture["manifest"] or {}).get("classes") or [])
+    classes = list(texture["spec"].classes) if texture["spec"] else []
     res.update(_demo_runtime(args.scene, args.seed, out, sim, scene, not args.fast,
                              not args.json, run_models, classes))
     res["segments"] = _demo_segments(scene, sim, out)
     agreement = _texture_agreement(res["segments"])
     label = _texture_label(texture, agreement)
-    res["texture"] = {"model": texture["folder"], "trained_on": (texture["manifest"] or {})
-                      .get("trained_on"), "agreement": agreement, "label": label}
+    res["texture"] = {"model": texture["folder"], "trained_on": texture["spec"].measured.trained_on
+                      if texture["spec"] else None, "agreement": agreement, "label": label}
     with open(out / "steps.jsonl", "w") as fh:
         for r in res["segments"]:
             fh.write(json.dumps(r) + "\n")

@@ -32,13 +32,14 @@ def check_models_profile(models: Path | None, cfg: Path | None) -> dict | None:
     set it runs the models' profile): DeployInputError naming both files and hashes
     when they differ or when two models carry different profiles (the leg would
     refuse to start). None without models."""
-    from device.pi.models.artefact import ModelError, read_spec
+    from device.pi.models.artefact import ModelError
+    from device.pi.models.manifest import MANIFEST, read_spec
     from host.learn.onnx_io import models_profile
 
     if models is None:
         return None
     try:
-        specs = {str(mf): read_spec(mf)[0] for mf in sorted(Path(models).glob("*/manifest.json"))}
+        specs = {str(mf): read_spec(mf)[0] for mf in sorted(Path(models).glob(f"*/{MANIFEST}"))}
         if not specs:
             return None
         leg = _leg_profile(cfg)

@@ -7,7 +7,7 @@ A key file that group or others may read is refused, as ssh refuses one.
 
 What a deploy signs (:mod:`device.pi.models.signature` has the format):
 
-- every model manifest it ships (``manifest.json.sig`` beside ``manifest.json``),
+- every model manifest it ships (its ``.sig`` beside it, :mod:`device.pi.models.signature`),
   after checking that each file the manifest lists lies inside the model's folder
   and has the SHA-256 the manifest gives;
 - the set of models: ``models/models-set.json`` names every model folder and the
@@ -30,7 +30,8 @@ import stat
 from pathlib import Path
 
 from device.config import tomllib
-from device.pi.models.artefact import ModelError, checked_model_file, read_manifest
+from device.pi.models.artefact import ModelError, checked_model_file
+from device.pi.models.manifest import MANIFEST, read_spec
 from device.pi.models.signature import (SET_FILE, decode_public_key, key_id,
                                         model_set_doc, signature_doc, signature_path,
                                         verify)
@@ -131,9 +132,10 @@ def check_listed_files(manifest: Path) -> None:
     (:func:`device.pi.models.artefact.checked_model_file`); DeployInputError naming
     it if not."""
     try:
-        doc, folder = read_manifest(manifest)
-        hashes = doc["sha256"]
-        names = set(hashes) | ({doc["onnx"]} if doc["onnx"] is not None else set())
+        spec, mpath = read_spec(manifest)
+        folder = mpath.parent
+        hashes = spec.sha256
+        names = set(hashes) | ({spec.onnx} if spec.onnx is not None else set())
         for name in sorted(names):
             checked_model_file(folder, name, hashes, manifest)
     except (ModelError, TypeError) as exc:
@@ -152,7 +154,7 @@ def sign_models(models: Path, key: SigningKey) -> list[Path]:
     doc = model_set_doc(models)
     empty = sorted(name for name, manifests in doc["models"].items() if not manifests)
     if empty:
-        raise DeployInputError(f"will not sign: {models / empty[0]} holds no manifest.json")
+        raise DeployInputError(f"will not sign: {models / empty[0]} holds no {MANIFEST}")
     (models / SET_FILE).write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
     key.sign_file(models / SET_FILE)
     return done

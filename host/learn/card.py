@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from device.config import read_toml
-from device.pi.models.artefact import (FLOAT_MANIFEST, MANIFEST, ort_session, read_spec,
-                                       sha256_file)
+from device.pi.models.artefact import ort_session, sha256_file
+from device.pi.models.manifest import MANIFEST, read_spec, write_variant_specs
 from device.pi.models.spec import ModelSpec
 from host.data.dataset import atomic_write_text
 
@@ -205,7 +205,7 @@ def _metric_lines(spec: ModelSpec) -> list[str]:
 
 
 def _int8_line(spec: ModelSpec) -> str:
-    q = spec.int8
+    q = spec.measured.int8
     if not q:
         return "not quantised (float model)"
     if q.get("failed"):
@@ -238,7 +238,7 @@ def _identity_lines(spec: ModelSpec) -> list[str]:
 
 
 def _cost_lines(spec: ModelSpec) -> list[str]:
-    c = spec.params.get("cost_per_decision")
+    c = spec.measured.cost_per_decision
     if not isinstance(c, dict) or not isinstance(c.get("files"), dict):
         return ["- cost per decision: not measured here (see docs/BENCHMARKS.md, "
                 "`host bench runtime`)"]
@@ -252,10 +252,10 @@ def _cost_lines(spec: ModelSpec) -> list[str]:
 
 def card_text(spec: ModelSpec, name: str = "") -> str:
     """The model card (markdown) of ``spec``; ``name`` is the model folder's name."""
-    t = spec.trained_on
+    t = spec.measured.trained_on
     recs = t.get("recordings") or []
     lines = [f"# Model card: {name or spec.kind}", "",
-             "Written from the model's manifest.json (the model spec) by "
+             f"Written from the model's {MANIFEST} (the model spec) by "
              "`host.learn.card`; do not edit by hand.", "",
              "## What it decides", "",
              f"{DECIDES.get(spec.kind, spec.task)}.", "",
@@ -268,7 +268,7 @@ def card_text(spec: ModelSpec, name: str = "") -> str:
              "## Sensor", "",
              f"- profile `{spec.profile['name']}`, {spec.profile['n_pins']} pins, "
              f"sha256 `{spec.profile['sha256'][:16]}`",
-             "- the profile's full text is in manifest.json (`profile.toml`); host eval, "
+             f"- the profile's full text is in {MANIFEST} (`profile.toml`); host eval, "
              "analyse, bench and the runtime use it, and refuse another profile", "",
              "## Data", "",
              f"- {t.get('data', 'unknown')} data"
@@ -342,7 +342,7 @@ def _one_input(session, spec: ModelSpec, seed: int = 0) -> tuple[str, np.ndarray
         x = rng.integers(0, 256, size=shape).astype(dtype)
     else:
         x = rng.standard_normal(shape).astype(dtype)
-        clip = spec.params.get("input_clip")
+        clip = getattr(spec.params, "input_clip", None)
         if isinstance(clip, list) and len(clip) == 2 and len(clip[0]) == x.shape[-1]:
             x = np.clip(x, np.asarray(clip[0], dtype), np.asarray(clip[1], dtype))
     return inp.name, x
@@ -382,26 +382,17 @@ def measure_cost(folder: Path | str, spec: ModelSpec, inputs: np.ndarray | None 
     return out
 
 
-def _record_cost(folder: Path, cost: dict) -> None:
-    """``cost`` in the folder's manifest.json (and manifest.float.json, if any)."""
-    from host.learn.onnx_io import write_manifest
-    for name in (MANIFEST, FLOAT_MANIFEST):
-        if (folder / name).is_file():
-            doc = json.loads((folder / name).read_text())
-            doc["cost_per_decision"] = cost
-            write_manifest(folder, doc, name)
-
-
 def write_model_docs(folder: Path | str, measure: bool = True,
                      inputs: np.ndarray | None = None) -> dict:
     """README.md (the model card) and, when the spec has a config, train.toml, for
-    the model folder ``folder`` from its manifest.json. With ``measure`` (at train
-    time), the cost per decision is timed here first (:func:`measure_cost`, on
-    ``inputs`` when given) and recorded in the manifest. Returns {name: path}."""
-    spec, _ = read_spec(Path(folder) / MANIFEST)
+    the model folder ``folder`` from its spec. With ``measure`` (a writer that did
+    not time the model itself), the cost per decision is timed here first
+    (:func:`measure_cost`, on ``inputs`` when given) and recorded in the spec's
+    ``measured`` (the manifests written again, from the spec). Returns {name: path}."""
+    spec, _ = read_spec(folder)
     if measure and (spec.files or spec.onnx):
-        _record_cost(Path(folder), measure_cost(folder, spec, inputs))
-        spec, _ = read_spec(Path(folder) / MANIFEST)
+        spec.measured.cost_per_decision = measure_cost(folder, spec, inputs)
+        write_variant_specs(folder, spec)
     out = {CARD: write_card(folder, spec)}
     if spec.config:
         out[TRAIN_TOML] = write_train_toml(folder, spec.config)

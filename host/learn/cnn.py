@@ -21,7 +21,7 @@ Training is deterministic: a fixed seed (weights, batch order and dropout), two
 threads (``torch.set_num_threads(2)``) and ``torch.use_deterministic_algorithms``;
 the caller's torch RNG, thread count and determinism setting are restored after.
 The model is exported with ``torch.onnx.export`` (opset 17, a dynamic batch axis)
-and written by :func:`host.learn.onnx_io.write_model` as ONNX + manifest.json; the Pi
+and written by :func:`host.learn.onnx_io.write_model` as ONNX + its manifest; the Pi
 loads it with :func:`device.pi.models.artefact.load_model`. ONNX Runtime's output is
 checked against torch's on training and held-out windows (``ONNX_ATOL``).
 
@@ -30,7 +30,6 @@ without it :func:`require_torch` raises an ImportError that says how to install 
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import tempfile
@@ -41,12 +40,12 @@ from pathlib import Path
 import numpy as np
 
 from device.checks import finite_number, positive_number
-from device.pi.models.artefact import MANIFEST
+from device.pi.models.manifest import has_manifest, read_spec, write_variant_specs
 from host.data.windows import CLASS_TASKS
 from host.extras import MissingExtra
 from host.learn.metrics import label_metrics
-from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, run_onnx, session, write_model,
-                                write_variants)
+from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, fill_variants, run_onnx, session,
+                                write_model)
 from host.learn.quantise import quantise_model
 from host.learn.tasks import check_int
 
@@ -341,7 +340,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     ``ws_test``: held-out windows (e.g. from :func:`host.data.splits.split_grouped`); their
     metrics come from ONNX Runtime running the exported model, as on the Pi.
     ``params`` go to :class:`FrameCNN` (``hidden``, ``filters``, ``lr``, ...).
-    ``out_dir``: write model.onnx + manifest.json there (kind = the task), a model
+    ``out_dir``: write model.onnx + its manifest there (kind = the task), a model
     spec carrying ``profile`` (the sensor profile: name, path or record; default
     roboskin), ``trained_on`` and ``config`` (:mod:`device.pi.models.spec`).
 
@@ -443,14 +442,15 @@ def quantise_cnn(float_onnx: Path | str, ws_calib, out_path: Path | str,
 
 def _adopt_int8(q: Path, report: dict) -> None:
     """When the int8 file was written into a CNN model folder as model.int8.onnx,
-    make it the folder's default as ``host train --quantise`` does: manifest.json
-    names the int8 file (checksums of both), manifest.float.json the float one."""
+    make it the folder's default as ``host train --quantise`` does: the spec names the
+    int8 file (checksums of both) and records the int8 check under ``measured``; the
+    float variant gets its own manifest."""
     folder = q.parent
-    if q.name != INT8_NAME or not (folder / MANIFEST).is_file() \
-            or not (folder / FLOAT_NAME).is_file():
+    if q.name != INT8_NAME or not has_manifest(folder) or not (folder / FLOAT_NAME).is_file():
         return
-    doc = json.loads((folder / MANIFEST).read_text())
-    if doc.get("model") != MODEL:
+    spec, _ = read_spec(folder)
+    if spec.model != MODEL:
         return
-    write_variants(folder, int8=True,
-                   updates={"int8": {k: v for k, v in report.items() if k != "path"}})
+    spec.measured.int8 = {k: v for k, v in report.items() if k != "path"}
+    fill_variants(folder, spec, int8=True)
+    write_variant_specs(folder, spec)

@@ -13,7 +13,7 @@ MLP nodes, their weights and the int8 nodes are kept as they are.
 checks each against the old graph on random windows (the same class, probabilities
 within :data:`PROB_TOL`; nothing is written unless every file passes), and records
 the new files (SHA-256, sizes), the input (the feature vector) and the ``features``
-record in the manifests (``manifest.json``, ``manifest.float.json``), so ``host
+record in the manifests (the default's and the float one's), so ``host
 deploy`` signs them as any other model. ``make models`` runs it before the fuse.
 """
 from __future__ import annotations
@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import ModelError, read_manifest
+from device.pi.models.artefact import ModelError
+from device.pi.models.manifest import has_manifest, read_spec, write_variant_specs
 from device.pi.models.winfeat import FeatureSpec, window_stats
 from host.learn.layers import layer_in_graph
 from host.learn.tasks import TrainError
@@ -39,12 +40,12 @@ PROB_TOL = 1e-4
 INPUT_NAME = "x"
 
 
-def graph_inputs(doc: dict, X: np.ndarray, where="manifest") -> np.ndarray:
-    """What the graph of the model ``doc`` (its manifest) reads for encoded windows
-    ``X``: their window features when the manifest has a ``features`` record, else
-    ``X`` itself."""
+def graph_inputs(model_spec, X: np.ndarray, where="manifest") -> np.ndarray:
+    """What the graph of the model of ``model_spec`` (a ModelSpec) reads for encoded
+    windows ``X``: their window features when the spec has a ``features`` record,
+    else ``X`` itself."""
     from device.pi.models.winfeat import feature_spec
-    spec = feature_spec(doc.get("features"), str(where))
+    spec = feature_spec(model_spec.features, str(where))
     return X if spec is None else window_stats(spec, X)
 
 
@@ -107,8 +108,8 @@ def cut_features(model, spec: FeatureSpec, seed: int = 0):
     return new
 
 
-def _spec_of(doc: dict, where) -> FeatureSpec:
-    params = (doc.get("training") or {}).get("temporal")
+def _spec_of(model_spec, where) -> FeatureSpec:
+    params = model_spec.training.get("temporal")
     if not params:
         raise TrainError(f"{where}: the manifest records no window-feature layer to cut")
     return FeatureSpec(params["T"], params["n_pins"], params.get("uses_imu", False),
@@ -128,15 +129,15 @@ def cut_folder(folder, seed: int = 0) -> dict:
     import onnx
 
     from host.data.dataset import atomic_write
-    from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, session, write_variants
+    from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, session
 
     folder = Path(folder)
-    doc, _ = read_manifest(folder)
-    if doc.get("features") is not None:
+    mspec, mpath = read_spec(folder)
+    if mspec.features is not None:
         return {}
-    spec = _spec_of(doc, folder / "manifest.json")
-    if doc["input"]["shape"][1:] != [spec.n_inputs]:
-        raise TrainError(f"{folder}: input {doc['input']['shape']} is not the window of "
+    spec = _spec_of(mspec, mpath)
+    if mspec.n_inputs != spec.n_inputs or mspec.input_dims is not None:
+        raise TrainError(f"{folder}: input of {mspec.n_inputs} values is not the window of "
                          f"{spec.n_inputs} values its layer reads")
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
     X = _windows(spec, 512, seed + 1)
@@ -158,12 +159,13 @@ def cut_folder(folder, seed: int = 0) -> dict:
         out[name] = ((folder / name).stat().st_size, len(new_bytes[name]))
     for name, data in new_bytes.items():
         atomic_write(folder / name, lambda fh, data=data: fh.write(data))
-    updates = {"features": spec.record(),
-               "input": dict(doc["input"], shape=[None, spec.n_features])}
-    if INT8_NAME in out and isinstance(doc.get("int8"), dict):
-        updates["int8"] = dict(doc["int8"], float_bytes=out[FLOAT_NAME][1],
-                               int8_bytes=out[INT8_NAME][1])
-    write_variants(folder, INT8_NAME in out and doc.get("variant") == "int8", updates)
+    mspec.features = spec.record()
+    mspec.n_inputs = spec.n_features
+    q = mspec.measured.int8
+    if INT8_NAME in out and isinstance(q, dict):
+        mspec.measured.int8 = dict(q, float_bytes=out[FLOAT_NAME][1], int8_bytes=out[INT8_NAME][1])
+    fill_variants(folder, mspec, INT8_NAME in out and mspec.variant == "int8")
+    write_variant_specs(folder, mspec)
     return out
 
 
@@ -175,11 +177,10 @@ def main(argv=None) -> int:
     done = {}
     try:
         for folder in sorted(Path(args[0]).iterdir()):
-            mf = folder / "manifest.json"
-            if not mf.is_file():
+            if not has_manifest(folder):
                 continue
-            doc = json.loads(mf.read_text())
-            if doc.get("model") != "fnn" or not (doc.get("training") or {}).get("temporal"):
+            mspec, _ = read_spec(folder)
+            if mspec.model != "fnn" or not mspec.training.get("temporal"):
                 continue
             done[folder.name] = {k: list(v) for k, v in cut_folder(folder).items()}
     except (ModelError, TrainError, OSError, ValueError) as exc:

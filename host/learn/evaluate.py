@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import (MANIFEST, VARIANTS, ModelError, manifest_for, model_file,
-                                      read_manifest)
+from device.pi.models.artefact import ModelError, model_file
+from device.pi.models.manifest import VARIANTS, manifest_for, manifest_path, read_spec
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import encode
@@ -35,31 +35,31 @@ __all__ = ["evaluate_model", "load_variant", "percentiles", "variant_manifest", 
 
 def variant_manifest(model_dir, variant: str | None) -> Path:
     """The manifest file that loads ``variant`` (None: the default), picked by the
-    Pi's :func:`device.pi.models.artefact.manifest_for`. Unlike the Pi, which runs
+    Pi's :func:`device.pi.models.manifest.manifest_for`. Unlike the Pi, which runs
     the model it has, an evaluation refuses a folder without the variant asked for."""
-    doc, folder = read_manifest(model_dir)
-    mpath = Path(model_dir) if Path(model_dir).is_file() else folder / MANIFEST
-    if variant is None or doc.get("model") == "rule":
-        if variant == "int8" and doc.get("model") == "rule":
+    spec, mpath = read_spec(model_dir)
+    folder = mpath.parent
+    if variant is None or spec.model == "rule":
+        if variant == "int8" and spec.model == "rule":
             raise ModelError(f"{mpath}: a rule model has no int8 variant")
         return mpath
     picked = manifest_for(folder, variant)          # ValueError for an unknown variant
-    if read_manifest(picked)[0].get("variant", "float") != variant:
+    if read_spec(picked)[0].variant != variant:
         raise ModelError(f"{mpath}: the model folder has no {variant} model"
                          + (" (train with --quantise)" if variant == "int8" else ""))
     return picked
 
 
 def load_variant(model_dir, variant: str | None = None):
-    """(predictor, manifest, kind) for a model folder: a Classifier, RuleClassifier
+    """(predictor, spec, kind) for a model folder: a Classifier, RuleClassifier
     or Regressor, loaded with the Pi's code."""
     mpath = variant_manifest(model_dir, variant)
-    doc, _ = read_manifest(mpath)
-    if doc.get("model") == "rule":
-        return Classifier.load(mpath), doc, "rule"
-    if doc.get("kind") == "pressure":
-        return Regressor.load(mpath, kind="pressure"), doc, "regressor"
-    return Classifier.load(mpath), doc, "classifier"
+    spec, _ = read_spec(mpath)
+    if spec.model == "rule":
+        return Classifier.load(mpath), spec, "rule"
+    if spec.kind == "pressure":
+        return Regressor.load(mpath, kind="pressure"), spec, "regressor"
+    return Classifier.load(mpath), spec, "classifier"
 
 
 def percentiles(ms, mean: bool = True, digits: int | None = 5) -> dict:
@@ -88,9 +88,9 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     bad model folder and ValueError for windows that do not fit the model, or whose
     labels are not all classes of the model.
     """
-    pred_obj, doc, kind = load_variant(model_dir, variant)
-    task = doc.get("kind")
-    T = doc.get("T")
+    pred_obj, spec, kind = load_variant(model_dir, variant)
+    task = spec.kind
+    T = spec.T
     if len(ws) == 0:
         raise ValueError("ws holds no windows")
     if ws.task != task:
@@ -98,8 +98,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
                          f"task {task!r}")
     if T is not None and ws.window != T:
         raise ValueError(f"the windows have T={ws.window} frames, the model sees T={T}")
-    layout = doc.get("input_layout", "vectors")
-    uses_imu = bool(doc.get("uses_imu", False))
+    layout = spec.input_layout
+    uses_imu = spec.uses_imu
     if uses_imu and ws.imu is None:
         raise ValueError("the model uses the IMU but the windows carry none")
     if kind != "regressor" and ws.labels is not None:
@@ -119,11 +119,11 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
                              f"(its classes: {list(pred_obj.classes)}); a score over them would "
                              f"mean nothing: fix the labels or evaluate a model trained on them")
     X = model_inputs(ws, layout, uses_imu)
-    shape = [int(d) for d in doc["input"]["shape"][1:]]
-    if isinstance(doc.get("features"), dict):   # the graph reads features of the window
-        shape = [int(getattr(pred_obj, "n_features", doc["features"].get("n_inputs")))]
+    shape = list(spec.input_dims or [spec.n_inputs])
+    if isinstance(spec.features, dict):   # the graph reads features of the window
+        shape = [int(getattr(pred_obj, "n_features", spec.features.get("n_inputs")))]
     if int(np.prod(X.shape[1:])) != int(np.prod(shape)):
-        prof = doc.get("profile") if isinstance(doc.get("profile"), dict) else {}
+        prof = spec.profile
         pins = (f"; the windows have {ws.n_pins} pins, the model's sensor profile "
                 f"{prof.get('name')!r} has {prof.get('n_pins')}: load the data with the "
                 f"model's profile (host eval does, unless --profile says otherwise)"
@@ -158,8 +158,8 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         encode(layout, **parts)
         enc.append((clock() - t0) * 1e3)
 
-    res = {"model_dir": str(model_dir), "task": task, "model": doc.get("model"),
-           "variant": doc.get("variant", "float") if kind != "rule" else "rule", "T": T,
+    res = {"model_dir": str(model_dir), "task": task, "model": spec.model,
+           "variant": spec.variant if kind != "rule" else "rule", "T": T,
            "input_layout": layout, "uses_imu": uses_imu, "n_windows": int(len(ws))}
     if kind == "regressor":
         pred = np.array(outs, np.float64)
@@ -181,9 +181,9 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
             res["metrics"]["slip_f1"] = res["metrics"]["per_class"]["slip"]["f1"]
             res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))
     folder = Path(model_dir) if Path(model_dir).is_dir() else Path(model_dir).parent
-    onnx_name = doc.get("onnx")
+    onnx_name = spec.onnx
     res["model_bytes"] = int(model_file(folder, onnx_name).stat().st_size) if onnx_name else 0
-    res["manifest_bytes"] = int((folder / MANIFEST).stat().st_size)
+    res["manifest_bytes"] = int(manifest_path(folder).stat().st_size)
     res["latency_ms"] = percentiles(lat)
     res["encode_ms"] = percentiles(enc)
     res["threads"] = 1

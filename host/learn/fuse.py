@@ -17,7 +17,7 @@ The fused graph is written as a model folder, ``MODELS/fused``, beside the
 artefacts it was built from::
 
     fused/fused.onnx           the members' default files (int8 where quantised), fused
-    fused/manifest.json        a model spec (kind "fused") naming the file and its
+    fused/<manifest>           a model spec (kind "fused") naming the file and its
                                SHA-256, and in ``members`` each member's task,
                                manifest, ONNX file and that file's SHA-256
     fused/fused.float.onnx     the same for the float variant (when the members
@@ -43,9 +43,8 @@ import json
 import sys
 from pathlib import Path
 
-from device.pi.models.artefact import (FLOAT_MANIFEST, MANIFEST, ModelError,
-                                      checked_model_file, manifest_for, read_manifest,
-                                      sha256_file)
+from device.pi.models.artefact import ModelError, checked_model_file, sha256_file
+from device.pi.models.manifest import FLOAT_MANIFEST, MANIFEST, manifest_for, read_spec
 from device.pi.models.fused import FUSED_DIR, FUSED_KIND, FUSED_TASKS
 from device.pi.models.spec import ModelSpec, check_same_profiles
 from host.data.dataset import atomic_write
@@ -53,7 +52,7 @@ from host.data.dataset import atomic_write
 __all__ = ["fuse_models", "fused_graph", "fused_copy", "FuseError"]
 
 #: (ONNX file, manifest) of each pick in the fused folder, as
-#: :func:`device.pi.models.artefact.manifest_for` picks the members' manifests
+#: :func:`device.pi.models.manifest.manifest_for` picks the members' manifests
 FUSED_FILES = {"int8": ("fused.onnx", MANIFEST),
                "float": ("fused.float.onnx", FLOAT_MANIFEST)}
 
@@ -69,7 +68,7 @@ class FuseError(ModelError):
 
 def _members(models_dir: Path, variant: str) -> list[dict]:
     """The ONNX models of ``models_dir`` the leg runs per frame, as loaded for
-    ``variant``: task, manifest path, document and ONNX file."""
+    ``variant``: task, manifest path, spec and ONNX file."""
     out = []
     for task in FUSED_TASKS:
         folder = models_dir / task
@@ -78,26 +77,26 @@ def _members(models_dir: Path, variant: str) -> list[dict]:
         mf = manifest_for(folder, variant)
         if mf.is_dir():
             continue                              # no manifest: the leg refuses it anyway
-        doc, _ = read_manifest(mf)
-        if doc.get("model") == "rule" or doc.get("onnx") is None:
+        spec, _ = read_spec(mf)
+        if spec.model == "rule" or spec.onnx is None:
             continue                              # a rule has no graph
-        onnx = checked_model_file(folder, doc["onnx"], doc["sha256"], mf)   # its hash
-        out.append({"task": task, "manifest": mf, "doc": doc, "onnx": onnx})
+        onnx = checked_model_file(folder, spec.onnx, spec.sha256, mf)   # its hash
+        out.append({"task": task, "manifest": mf, "spec": spec, "onnx": onnx})
     return out
 
 
-def _output_name(graph, doc: dict, task: str) -> str:
+def _output_name(graph, spec, task: str) -> str:
     """The output the runtime reads: a classifier's manifest ``output`` (default
     probabilities, else the last), the regressor's first."""
     names = [o.name for o in graph.output]
     if task == "pressure":
         return names[0]
-    want = doc.get("output", "probabilities")
+    want = spec.output
     return want if want in names else names[-1]
 
 
 def fused_graph(members: list[dict]):
-    """(onnx.ModelProto, member records) of ``members`` (task, doc, onnx path) side
+    """(onnx.ModelProto, member records) of ``members`` (task, spec, onnx path) side
     by side: names prefixed with ``task/``, only the read output kept, the opsets
     raised to the highest among them (onnx.version_converter)."""
     import onnx
@@ -124,7 +123,7 @@ def fused_graph(members: list[dict]):
             except Exception as exc:       # the converter's own errors
                 raise FuseError(f"{m['onnx']}: cannot raise its opset to {opsets['']} to fuse "
                                 f"it ({exc})") from None
-        keep = _output_name(p.graph, m["doc"], m["task"])
+        keep = _output_name(p.graph, m["spec"], m["task"])
         prefix = f"{m['task']}/"
         p = compose.add_prefix(p, prefix)
         g = p.graph
@@ -158,12 +157,12 @@ def _encoding(member: dict) -> tuple | None:
     that read the same share one input of the fused graph, as the leg gives them the
     same window encoding (or the same features, computed once). None for the
     regressor (its input is clipped to its own training range)."""
-    doc = member["doc"]
+    spec = member["spec"]
     if member["task"] == "pressure":
         return None
-    return (doc.get("T"), doc.get("input_layout"), bool(doc.get("uses_imu", False)),
-            json.dumps(doc.get("input", {}).get("shape")),
-            json.dumps(doc.get("features"), sort_keys=True))
+    return (spec.T, spec.input_layout, spec.uses_imu,
+            json.dumps([None, *(spec.input_dims or [spec.n_inputs])]),
+            json.dumps(spec.features, sort_keys=True))
 
 
 def _shared_nodes(nodes, inits, outputs: set) -> list:
@@ -240,12 +239,12 @@ def subset_graph(model, tasks):
 def _trained_on(specs: list) -> dict:
     """The members' training data as one record: their data kind (real+simulated
     when they differ) and their recordings."""
-    kinds = {s.trained_on.get("data", "unknown") for s in specs}
+    kinds = {s.measured.trained_on.get("data", "unknown") for s in specs}
     data = kinds.pop() if len(kinds) == 1 else (
         "real+simulated" if kinds <= {"real", "simulated", "real+simulated"} else "unknown")
     recs, seen = [], set()
     for s in specs:
-        for r in s.trained_on.get("recordings", []):
+        for r in s.measured.trained_on.get("recordings", []):
             if r.get("path") not in seen:
                 seen.add(r.get("path"))
                 recs.append(r)
@@ -255,15 +254,13 @@ def _trained_on(specs: list) -> dict:
 
 def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: str,
           sha: str, size: int, subsets: list[dict], subset_sha: dict) -> ModelSpec:
-    specs = {str(m["manifest"]): ModelSpec.from_manifest(m["doc"], m["manifest"])
-             for m in members}
+    specs = {str(m["manifest"]): m["spec"] for m in members}
     profile = check_same_profiles({w: s.profile for w, s in specs.items()})
     n = sum(s.n_inputs for s in specs.values())
     rows = []
     for m, r in zip(members, recs):
-        doc = m["doc"]
         rows.append({**r, "manifest": str(m["manifest"].relative_to(models_dir)),
-                     "onnx": doc["onnx"], "sha256": sha256_file(m["onnx"]),
+                     "onnx": m["spec"].onnx, "sha256": sha256_file(m["onnx"]),
                      "n_inputs": specs[str(m["manifest"])].n_inputs,
                      "T": specs[str(m["manifest"])].T})
     return ModelSpec(kind=FUSED_KIND, task=FUSED_KIND, model="fused", classes=[],
@@ -271,9 +268,9 @@ def _spec(models_dir: Path, members: list[dict], recs: list[dict], onnx_name: st
                      profile={k: profile[k] for k in ("name", "n_pins", "sha256", "toml")},
                      input_name=recs[0]["input"], output=recs[0]["output"],
                      output_kind="fused",
-                     trained_on=_trained_on(list(specs.values())),
+                     measured={"trained_on": _trained_on(list(specs.values()))},
                      onnx=onnx_name, sha256={onnx_name: sha, **subset_sha}, size_bytes=size,
-                     variant="int8" if any(m["doc"].get("variant") == "int8" for m in members)
+                     variant="int8" if any(m["spec"].variant == "int8" for m in members)
                      else "float", params={"members": rows, "subsets": subsets})
 
 
@@ -300,7 +297,7 @@ def fuse_models(models_dir: Path | str) -> dict:
         plans[variant] = members
     if out.exists():
         shutil.rmtree(out)                      # stale: rebuilt from the members as they are
-    from host.learn.onnx_io import write_spec
+    from device.pi.models.manifest import write_spec
 
     for variant, members in plans.items():
         model, recs = fused_graph(members)

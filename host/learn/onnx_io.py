@@ -1,9 +1,11 @@
-"""Model artefacts on the host: write ONNX + manifest.json (the one manifest writer,
-read back by ``device.pi.models.artefact``) and run ONNX models with ONNX Runtime.
+"""Model artefacts on the host: build a model's spec and write ONNX files (the
+manifest itself is written by :mod:`device.pi.models.manifest`), and run ONNX models
+with ONNX Runtime.
 
 A model folder holds ``model.onnx`` (float32) and, for a quantised model,
-``model.int8.onnx`` beside it; ``manifest.json`` loads the default variant and
-``manifest.float.json`` the float one (:func:`write_variants`).
+``model.int8.onnx`` beside it; :func:`fill_variants` records both in the spec, whose
+manifest loads the default variant (the float one has a manifest of its own,
+:func:`device.pi.models.manifest.write_variant_specs`).
 """
 from __future__ import annotations
 
@@ -12,21 +14,21 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import (FEATURE_SPEC_VERSION, FLOAT_MANIFEST, FORMAT, MANIFEST,
-                                      ort_session, sha256_file)
-from device.pi.models.spec import (METRIC_KEYS, ModelSpec, SpecError, check_same_profiles,
-                                   profile_record, profile_source)
-from host.data.dataset import atomic_write, atomic_write_text
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, ort_session, sha256_file
+from device.pi.models.manifest import write_spec
+from device.pi.models.params import family_of, field_names
+from device.pi.models.spec import (MEASURED_KEYS, METRIC_KEYS, ModelSpec, SpecError,
+                                   check_same_profiles, profile_record, profile_source)
+from host.data.dataset import atomic_write
 
-__all__ = ["FLOAT_NAME", "INT8_NAME", "FLOAT_MANIFEST", "json_default", "sklearn_to_onnx",
-           "new_spec", "new_manifest", "write_manifest", "write_spec", "write_model",
-           "write_variants", "model_bytes", "session", "run_onnx", "is_classifier",
-           "spec_profile", "profile_source", "models_profile"]
+__all__ = ["FLOAT_NAME", "INT8_NAME", "json_default", "sklearn_to_onnx", "new_spec",
+           "write_model", "fill_variants", "model_bytes", "session", "run_onnx",
+           "is_classifier", "spec_profile", "profile_source", "models_profile"]
 
-#: the fields of :class:`ModelSpec` a writer's ``keys`` may set (the rest are params)
+#: the fields of :class:`ModelSpec` a writer's ``keys`` may set
 _SPEC_KEYS = ("task", "model", "classes", "T", "input_layout", "output", "output_kind",
-              "uses_imu", "crop_size", "metrics", "int8", "trained_on", "config", "training",
-              "files", "variants", "variant")
+              "uses_imu", "crop_size", "metrics", "config", "training", "files", "variants",
+              "variant")
 
 FLOAT_NAME = "model.onnx"
 INT8_NAME = "model.int8.onnx"
@@ -92,10 +94,13 @@ def training_record(training: dict) -> dict:
 def new_spec(n_features: int, keys: dict, onnx: str | None = None,
              sha256: str | None = None, size_bytes: int = 0,
              input_name: str = "x", input_dims: list | None = None) -> ModelSpec:
-    """A :class:`ModelSpec` from a writer's ``keys``: ``kind`` and the spec's fields
-    (task, model, classes, T, metrics (missing ones of train/test/cv null), profile (a
-    name, path or record; default roboskin), trained_on, config, ...); any other key
-    is a kind-specific parameter. The ONNX file ``onnx`` with its checksum, a float32
+    """A :class:`ModelSpec` from a writer's ``keys``: ``kind``, ``T`` (required) and
+    the spec's fields (task, model (default the kind), classes, metrics (missing ones
+    of train/test/cv null), profile (a name, path or record; default roboskin),
+    config, training, ...); the measured facts (``trained_on``, ``int8``,
+    ``identity``, ``cost_per_decision``) go to ``measured``; the kind's parameters
+    (:mod:`device.pi.models.params`) to ``params``; any other key is part of the
+    run's record (``training``). The ONNX file ``onnx`` with its checksum, a float32
     input of ``n_features``; no ONNX file for a rule."""
     keys = _plain(dict(keys))
     kind = keys.pop("kind")
@@ -103,66 +108,47 @@ def new_spec(n_features: int, keys: dict, onnx: str | None = None,
     bad = sorted(set(metrics) - set(METRIC_KEYS))
     if bad:
         raise SpecError(f"metrics: keys {bad} are not among {list(METRIC_KEYS)}")
+    if "T" not in keys:
+        raise SpecError(f"T: a {kind} model's spec needs the frames it reads per window")
     kw = {k: keys.pop(k) for k in _SPEC_KEYS if k in keys}
     kw = {k: v for k, v in kw.items() if v is not None}     # None: the spec's default
-    if "training" in kw:
-        kw["training"] = training_record(kw["training"])
     kw.setdefault("task", kind)
-    kw.setdefault("model", keys.get("model", kind))
+    kw.setdefault("model", kind)
     kw.setdefault("classes", [])
-    kw.setdefault("T", 1)
     kw.setdefault("input_layout", "vectors")
     profile = spec_profile(keys.pop("profile", None))
+    measured = {k: keys.pop(k) for k in MEASURED_KEYS if k in keys and keys[k] is not None}
+    names = set(field_names(family_of(kind, kw["model"])))
+    params = {k: keys.pop(k) for k in list(keys) if k in names}
+    training = dict(kw.pop("training", {}), **keys)        # the rest: the run's record
     return ModelSpec(kind=kind, n_inputs=int(n_features), profile=profile, input_name=input_name,
                      input_dims=list(input_dims) if input_dims else None,
-                     metrics={k: metrics.get(k) for k in METRIC_KEYS}, params=keys,
-                     onnx=onnx, sha256={onnx: sha256} if onnx else {},
+                     metrics={k: metrics.get(k) for k in METRIC_KEYS}, params=params,
+                     measured=measured, training=training_record(training),
+                     onnx=onnx, sha256={onnx: sha256} if onnx and sha256 else {},
                      size_bytes=int(size_bytes), feature_spec=FEATURE_SPEC_VERSION, **kw)
-
-
-def new_manifest(n_features: int, keys: dict, onnx: str | None = None,
-                 sha256: str | None = None, size_bytes: int = 0, input_name: str = "x",
-                 input_dims: list | None = None) -> dict:
-    """The manifest of :func:`new_spec` (the model spec, version 2)."""
-    return new_spec(n_features, keys, onnx, sha256, size_bytes, input_name,
-                    input_dims).to_manifest(FORMAT)
-
-
-def write_manifest(folder: Path | str, doc: dict, name: str = MANIFEST) -> Path:
-    """Write ``doc`` as ``folder/name`` atomically, after checking it follows the
-    model spec (SpecError naming the file and field if not); returns the path."""
-    path = Path(folder) / name
-    ModelSpec.from_manifest(_plain(doc), path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(doc, indent=1, default=json_default))
-    return path
-
-
-def write_spec(folder: Path | str, spec: ModelSpec, name: str = MANIFEST) -> Path:
-    """Write ``spec`` as the manifest ``folder/name``."""
-    return write_manifest(folder, spec.to_manifest(FORMAT), name)
 
 
 def write_model(onnx_model, out_dir: Path | str, kind: str, n_features: int,
                 extra: dict | None = None, onnx_name: str = FLOAT_NAME,
                 input_name: str = "x", input_dims: list | None = None) -> Path:
-    """Write ``onnx_model`` (an onnx.ModelProto) and its manifest atomically."""
+    """Write ``onnx_model`` (an onnx.ModelProto) and its spec's manifest atomically,
+    once; returns the folder."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     data = onnx_model.SerializeToString()
     atomic_write(out / onnx_name, lambda fh: fh.write(data))
-    write_manifest(out, new_manifest(n_features, {"kind": kind, **(extra or {})}, onnx_name,
-                                     sha256_file(out / onnx_name), len(data), input_name,
-                                     input_dims))
+    write_spec(out, new_spec(n_features, {"kind": kind, **(extra or {})}, onnx_name,
+                             sha256_file(out / onnx_name), len(data), input_name, input_dims))
     return out
 
 
-def write_variants(folder: Path | str, int8: bool, updates: dict | None = None) -> dict:
-    """Record every model file of ``folder`` in its manifest.json (sha256 and size
-    of ``model.onnx`` and, with ``int8``, ``model.int8.onnx``; ``variants``), with
-    ``updates`` merged in. With ``int8`` the manifest loads the int8 file and
-    ``manifest.float.json`` the float one; without, the float file is the default
-    and a stale ``manifest.float.json`` is removed. Returns the files' records."""
+def fill_variants(folder: Path | str, spec: ModelSpec, int8: bool) -> dict:
+    """Record every model file of ``folder`` in ``spec`` (sha256 and size of
+    ``model.onnx`` and, with ``int8``, ``model.int8.onnx``; ``files``, ``variants``),
+    the int8 file the default with ``int8``, else the float one. Nothing is written
+    (:func:`device.pi.models.manifest.write_variant_specs` writes the manifests).
+    Returns the files' records."""
     folder = Path(folder)
     names = {FLOAT_NAME: "float"}
     if int8:
@@ -170,18 +156,13 @@ def write_variants(folder: Path | str, int8: bool, updates: dict | None = None) 
     files = {n: {"variant": v, "size_bytes": (folder / n).stat().st_size,
                  "sha256": sha256_file(folder / n)} for n, v in names.items()}
     default = INT8_NAME if int8 else FLOAT_NAME
-    doc = json.loads((folder / MANIFEST).read_text())
-    doc.update(_plain(updates or {}))
-    doc.update({"sha256": {n: f["sha256"] for n, f in files.items()}, "files": files,
-                "variants": {f["variant"]: n for n, f in files.items()},
-                "onnx": default, "variant": names[default],
-                "size_bytes": files[default]["size_bytes"]})
-    write_manifest(folder, doc)
-    if int8:
-        write_manifest(folder, dict(doc, onnx=FLOAT_NAME, variant="float",
-                                    size_bytes=files[FLOAT_NAME]["size_bytes"]), FLOAT_MANIFEST)
-    else:
-        (folder / FLOAT_MANIFEST).unlink(missing_ok=True)
+    spec.sha256 = {n: f["sha256"] for n, f in files.items()}
+    spec.files = files
+    spec.variants = {f["variant"]: n for n, f in files.items()}
+    spec.onnx = default
+    spec.variant = names[default]
+    spec.size_bytes = files[default]["size_bytes"]
+    spec.check("ModelSpec")
     return files
 
 

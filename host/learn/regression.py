@@ -55,7 +55,7 @@ def export_regressor(X, y, out_dir, kind: str = "pressure", alpha: float = 150.0
 
     X, y = clean(X), np.asarray(y, dtype=np.float64)
     pipe = ridge_pipeline(alpha).fit(X, y)
-    info = {"alpha": alpha, "target_mean": float(y.mean()),
+    info = {"T": 1, "alpha": alpha, "target_mean": float(y.mean()),     # one frame per row
             "target_range": [float(y.min()), float(y.max())],
             "input_clip": [X.min(axis=0).tolist(), X.max(axis=0).tolist()]}
     info.update(extra or {})

@@ -1,7 +1,7 @@
 """``host train``: windows in, a deployable model folder out.
 
 :func:`train_model` turns windows (:class:`host.data.windows.WindowSet`) into a deployable
-model folder: ONNX (the scaler folded into the graph) + ``manifest.json``, and with
+model folder: ONNX (the scaler folded into the graph) + its manifest, and with
 ``quantise=True`` an int8 ONNX file beside the float one, checked against it.
 
 The tasks and models are listed in :mod:`host.learn.tasks`; the fnn's graph is
@@ -22,7 +22,7 @@ on the training windows (:func:`host.learn.cv.cross_validate_model`).
 
 Model folder::
 
-    manifest.json          task, classes, T, feature spec, input layout, IMU use,
+    (the manifest)         task, classes, T, feature spec, input layout, IMU use,
                            metrics, int8 check, sha256 + size of each file, data summary
     manifest.float.json    (quantised models only) the same, loading the float file
     model.onnx             float32
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import MANIFEST
+from device.pi.models.manifest import write_spec, write_variant_specs
 from host.data.dataset import atomic_write
 from device.pi.vision.neighbours import layout_neighbours
 from host.data.extract import layout_for_profile
@@ -48,8 +48,9 @@ from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hy
 from host.learn.inputs import augment_rotations, model_inputs
 from host.learn.identity import identity_check
 from host.learn.metrics import add_intervals, class_report, regression_metrics
-from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, new_manifest, run_onnx, session,
-                                spec_profile, write_manifest, write_model, write_variants)
+from host.learn.card import measure_cost
+from host.learn.onnx_io import (FLOAT_NAME, INT8_NAME, fill_variants, new_spec, run_onnx, session,
+                                spec_profile)
 from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
 from host.learn.rates import augment_rates
@@ -155,10 +156,11 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
                 rates=None, profile: str = "roboskin", trained_on: dict | None = None,
                 config: dict | None = None,
                 calibration_windows: int = 2000, calibrate_method: str = "minmax",
-                min_agreement: float = MIN_AGREEMENT, identity: bool = False) -> dict:
+                min_agreement: float = MIN_AGREEMENT, identity: bool = False,
+                measure: bool = False) -> dict:
     """Train ``model`` for ``task`` on ``ws_train``; evaluate on ``ws_test`` (or a
     held-out part of ``ws_train``, see the module doc); write the model folder
-    ``out_dir`` (ONNX + manifest.json, + int8 when ``quantise``). Returns the
+    ``out_dir`` (ONNX + its manifest, + int8 when ``quantise``). Returns the
     result (metrics, int8 check, files, timings) as a JSON-able dict; it is also
     the manifest's core.
 
@@ -187,7 +189,10 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
     sensor ``profile`` (every feature, the texture roughness neighbours included,
     is computed with it), ``trained_on`` (data real/simulated, recordings with
     checksums; ``split`` is filled with the held-out protocol) and ``config`` (the
-    training config that made it, see ``host train --config``).
+    training config that made it, see ``host train --config``). Its ``measured``
+    record holds the int8 and identity verdicts, the training data and, with
+    ``measure``, the cost per decision (:func:`host.learn.card.measure_cost`): the
+    manifest is written once, with all of them.
     """
     if quantise not in (True, False, "if-passes"):
         raise TrainError(f"quantise must be True, False or 'if-passes', got {quantise!r}")
@@ -300,10 +305,10 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         result["metrics"] = metrics
         result["int8"] = ({"skipped": "a rule has no weights to quantise"} if quantise
                           else None)
-        write_manifest(out, new_manifest(X.shape[1], {
-            **rc.to_manifest(), "metrics": metrics, **spec_keys,
+        mpath = write_spec(out, new_spec(X.shape[1], {
+            **rc.spec_fields(), "metrics": metrics, **spec_keys,
             "training": _training_info(ws_train, ws_test, holdout, seed, {})}))
-        result["files"] = {MANIFEST: {"size_bytes": (out / MANIFEST).stat().st_size}}
+        result["files"] = {mpath.name: {"size_bytes": mpath.stat().st_size}}
         result["train_s"] = round(time.perf_counter() - t_start, 3)
         return result
 
@@ -380,7 +385,8 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
              "output": "variable" if regression else "probabilities",
              "output_kind": "value" if regression else "probabilities",
              "variant": "int8" if qbytes is not None else "float",
-             "metrics": metrics, "int8": int8, **spec_keys,
+             "metrics": metrics, "int8": int8, "identity": result.get("identity_check"),
+             **spec_keys,
              "training": _training_info(ws_train, ws_test, holdout, seed,
                                         dict(hp, **fit_info, augment=augment,
                                              rates=list(rates),
@@ -390,15 +396,18 @@ def train_model(task: str, model: str, ws_train, ws_test=None, cv: int | None = 
         extra.update({"target_mean": float(y.mean()),
                       "target_range": [float(y.min()), float(y.max())],
                       "input_clip": [X.min(axis=0).tolist(), X.max(axis=0).tolist()]})
-    # the float file and its manifest, the int8 file beside it, then the manifest
-    # again with the checksum and size of every file
-    write_model(onnx_model, out, kind=task, n_features=X.shape[1], extra=extra,
-                onnx_name=FLOAT_NAME)
+    # the float file, the int8 file beside it, then the spec with the checksum and size
+    # of every file and what was measured, written once
+    atomic_write(out / FLOAT_NAME, lambda fh: fh.write(fbytes))
     if qbytes is not None:
         atomic_write(out / INT8_NAME, lambda fh: fh.write(qbytes))
     else:
         (out / INT8_NAME).unlink(missing_ok=True)     # a stale int8 file from an earlier run
-    files = write_variants(out, int8=qbytes is not None)
+    spec = new_spec(X.shape[1], dict(extra, kind=task), FLOAT_NAME)
+    files = fill_variants(out, spec, int8=qbytes is not None)
+    if measure:
+        spec.measured.cost_per_decision = measure_cost(out, spec)
+    write_variant_specs(out, spec)
     result["files"] = files
     result["default"] = default
     result["train_s"] = round(time.perf_counter() - t_start, 3)

@@ -112,7 +112,7 @@ def train_localiser(
     ``stage_s`` per stage), ``training`` (counts, the rejected real frames
     with clip, frame and reason), ``metrics`` (held-out pin errors, px) and
     ``estimator`` (the fitted scikit-learn Ridge; it is not written
-    anywhere: the artefact is model.onnx + manifest.json).
+    anywhere: the artefact is model.onnx + its manifest).
     """
     _check_args(size, alpha, crop_factor, n_aug)
     params = vision_params_for(profile)

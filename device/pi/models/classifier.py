@@ -1,7 +1,7 @@
 """The Pi-side classifier: a surface, texture or slip model run through ONNX Runtime.
 
-A model folder holds ``manifest.json`` and one or two ONNX files (float, and int8 when
-it was quantised; the manifest's ``onnx`` names the one loaded by default). The
+A model folder holds its manifest (:mod:`device.pi.models.manifest`) and one or two
+ONNX files (float, and int8 when it was quantised; the manifest's ``onnx`` names the one loaded by default). The
 manifest says which classes the model outputs, how many frames ``T`` it sees, its
 ``input_layout`` (``vectors``, ``grids`` or ``frames``, see :mod:`device.pi.models.window`)
 and whether it uses the IMU, so the caller builds its input with the same encoder as
@@ -31,16 +31,14 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import (BoundRun, ModelError, load_model, model_file,
-                                       read_manifest)
+from device.pi.models.artefact import BoundRun, ModelError, load_model, model_file
+from device.pi.models.manifest import read_spec
 from device.pi.models.rules import RuleClassifier
 from device.pi.models.winfeat import WindowFeatures, feature_spec, window_stats
 from device.pi.numerics import finite, sigmoid, softmax
 
 #: tasks a classifier serves
 CLASS_TASKS = ("surface", "texture", "slip")
-#: what the model's output holds: probabilities (default) or logits
-OUTPUT_KINDS = ("probabilities", "logits")
 #: no input value beyond this reaches a model
 INPUT_CLIP = 1.0e6
 
@@ -84,63 +82,35 @@ def clean_probabilities(p, n_classes: int | None = None) -> tuple[np.ndarray, bo
 # The classifier
 # ----------------------------------------------------------------------------
 
-def _check_manifest(doc: dict, where: str) -> dict:
-    """The classifier fields of a manifest, checked; a bad one names the file."""
-    classes = doc.get("classes")
-    if (not isinstance(classes, list) or len(classes) < 2
-            or not all(isinstance(c, str) and c for c in classes)):
-        raise ModelError(f"{where}: 'classes' must list at least 2 class names, got "
-                         f"{classes!r}")
-    twice = sorted({c for c in classes if classes.count(c) > 1})
-    if twice:
-        raise ModelError(f"{where}: 'classes' names {twice} more than once; each output of "
-                         f"the model is one class, got {classes!r}")
-    layout = doc.get("input_layout")
-    if layout not in ("vectors", "grids", "frames"):
-        raise ModelError(f"{where}: input_layout must be vectors, grids or frames, got "
-                         f"{layout!r}")
-    T = doc.get("T")
-    if isinstance(T, bool) or not isinstance(T, int) or T < 1:
-        raise ModelError(f"{where}: T must be a whole number >= 1, got {T!r}")
-    out = doc.get("output_kind", "probabilities")
-    if out not in OUTPUT_KINDS:
-        raise ModelError(f"{where}: output_kind must be one of {list(OUTPUT_KINDS)}, got "
-                         f"{out!r}")
-    return {"classes": list(classes), "input_layout": layout, "T": T,
-            "uses_imu": bool(doc.get("uses_imu", False)), "output_kind": out}
-
-
 class Classifier:
     """A loaded classifier; :meth:`predict` is the per-decision call.
 
-    Parameters are read from the manifest: ``classes``, ``T``, ``input_layout``,
+    Parameters are read from the model's spec (``model.spec``): ``classes``, ``T``, ``input_layout``,
     ``uses_imu``, ``output_kind`` and ``output`` (the name of the output that holds
     the probabilities or logits; default ``probabilities``, else the last output).
     """
 
     def __init__(self, model):
         self.model = model
-        m = model.manifest
-        where = str(model.path / "manifest.json")
-        info = _check_manifest(m, where)
-        self.classes = info["classes"]
-        self.T = info["T"]
-        self.input_layout = info["input_layout"]
-        self.uses_imu = info["uses_imu"]
-        self.output_kind = info["output_kind"]
-        self.task = m.get("kind", "")
-        self.onnx_path = model_file(model.path, m["onnx"], where)
+        spec = model.spec               # checked as a classifier's by the one parse
+        where = str(model.source)
+        self.classes = list(spec.classes)
+        self.T = spec.T
+        self.input_layout = spec.input_layout
+        self.uses_imu = spec.uses_imu
+        self.output_kind = spec.output_kind
+        self.task = spec.kind
+        self.onnx_path = model_file(model.path, spec.onnx, where)
         sess = model.session
         shape = list(sess.get_inputs()[0].shape)
         dims = [d if isinstance(d, int) else None for d in shape[1:]]
         if not dims or any(d is None for d in dims):
-            mshape = m.get("input", {}).get("shape", [])
-            dims = [int(d) for d in mshape[1:]] if len(mshape) > 1 else dims
+            dims = list(spec.input_dims or [spec.n_inputs])
         if not dims or any(d is None or d < 1 for d in dims):
             raise ModelError(f"{self.onnx_path}: cannot tell the input shape ({shape})")
         #: what the runtime computes from the window for a graph that reads window
         #: features (features version 2), else None (the graph reads the window)
-        self.features = feature_spec(m.get("features"), where)
+        self.features = feature_spec(spec.features, where)
         graph_shape = tuple(int(d) for d in dims)
         if self.features is not None:
             if self.input_layout != "vectors" or self.features.T != self.T or \
@@ -156,7 +126,7 @@ class Classifier:
             self.input_shape = graph_shape
         self.n_features = int(np.prod(self.input_shape))
         names = [o.name for o in sess.get_outputs()]
-        want = m.get("output", "probabilities")
+        want = spec.output
         self._out_index = names.index(want) if want in names else len(names) - 1
         self._out_name = names[self._out_index]
         self._x = np.zeros((1,) + graph_shape, np.float32)
@@ -190,13 +160,12 @@ class Classifier:
         """A classifier from a model folder (or its manifest). ``expect_kind`` (a task
         name) is checked against the manifest's ``kind``. A rule manifest gives a
         :class:`device.pi.models.rules.RuleClassifier`."""
-        doc, folder = read_manifest(path)
-        if doc.get("model") == "rule":
+        spec, mpath = read_spec(path)
+        if spec.model == "rule":
             return RuleClassifier.load(path, expect_kind=expect_kind)
-        kind = doc.get("kind")
-        if expect_kind is None and kind not in CLASS_TASKS:
-            raise ModelError(f"{folder / 'manifest.json'}: kind is {kind!r}, not a classifier "
-                             f"task ({', '.join(CLASS_TASKS)})")
+        if expect_kind is None and spec.kind not in CLASS_TASKS:
+            raise ModelError(f"{mpath}: kind is {spec.kind!r}, not a classifier task "
+                             f"({', '.join(CLASS_TASKS)})")
         return cls(load_model(path, expect_kind=expect_kind))
 
     @property

@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from device.pi.models.artefact import (ModelError, checked_model_file, load_model,
-                                       manifest_for, model_file, ort_session)
+from device.pi.models.artefact import (ModelError, checked_model_file, load_model, model_file,
+                                       ort_session)
+from device.pi.models.manifest import MANIFEST, manifest_for
 from device.pi.models.signature import SignatureError
 from device.pi.models.winfeat import WindowFeatures
 
@@ -199,8 +200,8 @@ def _reads_same(a, b) -> bool:
 
 
 def _onnx_sha(mod) -> str | None:
-    doc = mod.model.manifest
-    return (doc.get("sha256") or {}).get(doc.get("onnx"))
+    spec = mod.model.spec
+    return spec.sha256.get(spec.onnx)
 
 
 def _subsets(model, mf: Path, want: dict) -> list:
@@ -208,17 +209,14 @@ def _subsets(model, mf: Path, want: dict) -> list:
     ``tasks`` and the ``onnx`` file of the graph cut down to them (its SHA-256 in the
     manifest's ``sha256``, each member's input and output as in ``want``, {task:
     member row}). ModelError naming the manifest or the file for a bad one."""
-    doc = model.manifest
-    rows = doc.get("subsets") or []
-    if not isinstance(rows, list):
-        raise ModelError(f"{mf}: subsets must be a list of tables, got {rows!r}")
+    rows = model.spec.params.subsets          # FusedParams, typed by the one parse
     out = []
     for r in rows:
         have = r.get("tasks") if isinstance(r, dict) else None
         if not isinstance(have, list) or not have or not set(have) < set(want):
             raise ModelError(f"{mf}: a subset's tasks must be some of the members "
                              f"{sorted(want)}, got {have!r}")
-        path = checked_model_file(model.path, r.get("onnx"), doc.get("sha256"), mf)
+        path = checked_model_file(model.path, r.get("onnx"), model.spec.sha256, mf)
         try:
             sess = ort_session(str(path))
         except Exception as exc:      # onnxruntime's own exception types
@@ -241,14 +239,12 @@ def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
         return None, f"no {FUSED_DIR}/ graph in {models_dir}"
     mf = manifest_for(folder, variant)
     if mf.is_dir():
-        return None, f"{folder}: no manifest.json"
+        return None, f"{folder}: no {MANIFEST}"
     try:
         if check is not None:
             check(mf)
         model = load_model(mf, expect_kind=FUSED_KIND)
-        rows = model.manifest.get("members")
-        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-            raise ModelError(f"{mf}: members must be a list of tables")
+        rows = model.spec.params.members      # FusedParams: a list of tables
         want = {r.get("task"): r for r in rows}
         if set(want) != set(loaded) or len(want) != len(rows):
             return None, (f"{mf}: built from {sorted(t for t in want if t)}, the leg loaded "
@@ -257,9 +253,9 @@ def load_fused(models_dir: Path | str, variant: str, loaded: dict, check=None):
         names_out = {o.name for o in model.session.get_outputs()}
         for task, r in want.items():
             mod = loaded[task]
-            if r.get("sha256") != _onnx_sha(mod) or r.get("onnx") != mod.model.manifest["onnx"]:
+            if r.get("sha256") != _onnx_sha(mod) or r.get("onnx") != mod.model.spec.onnx:
                 return None, (f"{mf}: its {task} member is not the loaded "
-                              f"{model_file(mod.model.path, mod.model.manifest['onnx'])} "
+                              f"{model_file(mod.model.path, mod.model.spec.onnx)} "
                               f"(another file or hash); rebuild it (python -m host.learn.fuse)")
             inp = names_in.get(r.get("input"))
             dims = [d for d in (inp.shape[1:] if inp is not None else []) if isinstance(d, int)]

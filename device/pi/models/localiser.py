@@ -256,7 +256,7 @@ class Localiser:
     >>> det.detect(frame)                                          # doctest: +SKIP
     >>> pins_px, fault = loc.locate(det.binary, dome, box=det.box) # doctest: +SKIP
 
-    Manifest keys used: ``n_pins``, ``size``, ``crop_factor``,
+    Parameters used (the spec's ``params``): ``n_pins``, ``size``, ``crop_factor``,
     ``mean_layout_norm`` (N x 2), and optionally ``fill_range`` (plausible
     mean of the input, [lo, hi]), ``fill_grid`` and ``fill_cells_range``
     (the same per cell of a grid over the crop: [lo x g*g, hi x g*g]) and
@@ -265,20 +265,19 @@ class Localiser:
     """
 
     def __init__(self, model: Model) -> None:
-        m = model.manifest
-        where = f"{model.path / 'manifest.json'}"
+        p = model.spec.params           # LocaliserParams, typed by the one parse
+        where = f"{model.source}"
         try:
-            self.n_pins = int(m["n_pins"])
-            self.size = _check_size(int(m["size"]))
-            self.crop_factor = _check_factor(float(m["crop_factor"]))
-            mean = np.asarray(m["mean_layout_norm"], dtype=np.float64)
-            fill = m.get("fill_range", [0.0, 1.0])
-            self.fill_range = (float(fill[0]), float(fill[1]))
-            self.fill_grid = int(m.get("fill_grid", 0))
-            cells = np.asarray(m.get("fill_cells_range", [[0.0], [1.0]]), dtype=np.float32)
-            self.max_dev_norm = float(m.get("max_dev_norm", math.inf))
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise ModelError(f"{where}: bad localiser manifest ({exc})") from None
+            self.n_pins = p.n_pins
+            self.size = _check_size(p.size)
+            self.crop_factor = _check_factor(float(p.crop_factor))
+            mean = np.asarray(p.mean_layout_norm, dtype=np.float64)
+            self.fill_range = (float(p.fill_range[0]), float(p.fill_range[1]))
+            self.fill_grid = p.fill_grid
+            cells = np.asarray(p.fill_cells_range, dtype=np.float32)
+            self.max_dev_norm = math.inf if p.max_dev_norm is None else float(p.max_dev_norm)
+        except (TypeError, ValueError, IndexError) as exc:
+            raise ModelError(f"{where}: bad localiser parameters ({exc})") from None
         if self.n_pins < 1 or mean.shape != (self.n_pins, 2) or not np.isfinite(mean).all():
             raise ModelError(f"{where}: mean_layout_norm must be finite ({self.n_pins}, 2), "
                              f"got shape {mean.shape}")
@@ -286,12 +285,12 @@ class Localiser:
         if g and (self.size % g or cells.shape != (2, g * g)):
             raise ModelError(f"{where}: fill_cells_range must be 2 x {g * g} and size "
                              f"{self.size} divisible by fill_grid {g}")
-        n_in = m.get("input", {}).get("shape", [None, None])[1]
+        n_in = model.spec.n_inputs
         if n_in != self.size * self.size:
             raise ModelError(f"{where}: input width {n_in} does not match size "
                              f"{self.size} ({self.size * self.size})")
         self.model = model
-        self.manifest = m
+        self.spec = model.spec
         self.mean_layout_norm = mean.astype(np.float32)
         self._x = np.zeros((1, self.size * self.size), np.float32)
         self._scratch: dict = {}

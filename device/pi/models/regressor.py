@@ -18,7 +18,7 @@ class Regressor:
     """Loaded once; :meth:`predict_one` is the per-frame call.
 
     Inputs are cleaned (NaN/inf -> 0) and clipped to the range seen in
-    training (stored in the manifest as ``input_clip``), so an extreme frame
+    training (the spec's ``params.input_clip``), so an extreme frame
     cannot push the output to infinity; an input of exactly 0 (an untracked pin)
     is left at 0 even when the training range excludes it, so it still reads as
     untracked. :attr:`fault` is set for the call when an input was NaN/inf or larger
@@ -29,18 +29,18 @@ class Regressor:
 
     def __init__(self, model, kind: str = "pressure"):
         self.model = model
-        m = model.manifest
-        self.n_features = int(m["input"]["shape"][1])
-        clip = m.get("input_clip")
+        spec = model.spec
+        p = spec.params                 # RegressorParams, typed by the one parse
+        self.n_features = spec.n_inputs
         self._lo = self._hi = None
-        if clip is not None:
-            self._lo = np.asarray(clip[0], np.float32)
-            self._hi = np.asarray(clip[1], np.float32)
-        self.fallback = float(m.get("target_mean", 0.0))
+        if p.input_clip is not None:
+            self._lo = np.asarray(p.input_clip[0], np.float32)
+            self._hi = np.asarray(p.input_clip[1], np.float32)
+        self.fallback = float(p.target_mean)
         #: the window the model reads: T frames, encoded as ``input_layout``
-        self.T = int(m.get("T", 1))
-        self.input_layout = str(m.get("input_layout", "vectors"))
-        self.uses_imu = bool(m.get("uses_imu", False))
+        self.T = spec.T
+        self.input_layout = spec.input_layout
+        self.uses_imu = spec.uses_imu
         self._x = np.zeros((1, self.n_features), np.float32)
         sess = model.session
         self._runner = BoundRun(sess, model.input_name, self._x, sess.get_outputs()[0].name)

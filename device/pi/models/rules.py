@@ -35,13 +35,14 @@ skin motion of a hard floor at the commanded stance load and foot speed, which
 ``host train --model rule`` sets from the training windows (it picks the thresholds
 by a one-dimensional search; nothing else is fitted).
 
-manifest.json (beside the usual keys; ``onnx`` is null)::
+The manifest (the model spec, beside the usual keys; ``onnx`` is null)::
 
     {"model": "rule", "kind": "surface", "classes": [...], "T": 3,
-     "input_layout": "vectors", "uses_imu": false, "n_pins": 133,
-     "rule": {"contact_px": 1.0, "expected_mag_px": 6.0, "soft_ratio": 0.6,
-              "expected_motion_px": 0.5, "wet_ratio": 0.3},
-     "rule_sha256": "..."}   # of the canonical JSON of "rule"
+     "input_layout": "vectors", "uses_imu": false,
+     "params": {"n_pins": 133,
+                "rule": {"contact_px": 1.0, "expected_mag_px": 6.0, "soft_ratio": 0.6,
+                         "expected_motion_px": 0.5, "wet_ratio": 0.3},
+                "rule_sha256": "..."}}   # of the canonical JSON of "rule"
 """
 from __future__ import annotations
 
@@ -51,7 +52,8 @@ import math
 
 import numpy as np
 
-from device.pi.models.artefact import FEATURE_SPEC_VERSION, MANIFEST, ModelError, read_manifest
+from device.pi.models.artefact import FEATURE_SPEC_VERSION, ModelError
+from device.pi.models.manifest import read_spec
 from device.pi.numerics import finite, sigmoid1
 from device.pi.protocol import SURFACE_CLASSES  # the SURFACE class ids
 from device.pi.vision.features import direction_deg
@@ -150,7 +152,7 @@ class RuleClassifier:
     """
 
     def __init__(self, rule: dict, classes, T: int, n_pins: int, task: str = "surface",
-                 manifest: dict | None = None, path=None):
+                 spec=None, path=None):
         if task not in RULE_TASKS:
             raise ValueError(f"task must be one of {list(RULE_TASKS)}, got task={task!r}")
         known = SURFACE_CLASSES if task == "surface" else SLIP_CLASSES
@@ -175,31 +177,32 @@ class RuleClassifier:
         self.uses_imu = False
         self.n_features = self.T * self.n_pins * 2
         self.input_shape = (self.n_features,)
-        self.manifest = manifest or {}
+        #: the spec it was loaded from (None for a rule built from the leg config)
+        self.spec = spec
         self.path = path
         self.fault = False
         self.last: dict = {}
 
     @classmethod
     def load(cls, path, expect_kind: str | None = None) -> "RuleClassifier":
-        doc, folder = read_manifest(path)
-        where = str(folder / MANIFEST)
-        if doc.get("model") != "rule":
-            raise ModelError(f"{where}: not a rule model (model {doc.get('model')!r})")
-        if int(doc["feature_spec"]) != FEATURE_SPEC_VERSION:
-            raise ModelError(f"{where}: feature-spec version {doc['feature_spec']} does not "
+        spec, mpath = read_spec(path)
+        where = str(mpath)
+        if spec.model != "rule":
+            raise ModelError(f"{where}: not a rule model (model {spec.model!r})")
+        if spec.feature_spec != FEATURE_SPEC_VERSION:
+            raise ModelError(f"{where}: feature-spec version {spec.feature_spec} does not "
                              f"match this runtime's {FEATURE_SPEC_VERSION}; rebuild the rule")
-        if expect_kind is not None and doc.get("kind") != expect_kind:
-            raise ModelError(f"{where}: kind is {doc.get('kind')!r}, expected {expect_kind!r}")
-        rule = doc.get("rule")
-        if doc.get("rule_sha256") != (rule_sha256(rule) if isinstance(rule, dict) else None):
+        if expect_kind is not None and spec.kind != expect_kind:
+            raise ModelError(f"{where}: kind is {spec.kind!r}, expected {expect_kind!r}")
+        p = spec.params                 # RuleParams, typed by the one parse
+        if p.rule_sha256 != rule_sha256(p.rule):
             raise ModelError(f"{where}: the rule table does not match its checksum "
                              f"rule_sha256; the manifest is corrupt or was edited")
-        if doc.get("uses_imu"):
+        if spec.uses_imu:
             raise ModelError(f"{where}: a rule model reads no IMU (uses_imu must be false)")
         try:
-            return cls(rule, doc.get("classes", []), doc.get("T"), doc.get("n_pins"),
-                       task=doc.get("kind"), manifest=doc, path=folder)
+            return cls(p.rule, spec.classes, spec.T, p.n_pins, task=spec.kind, spec=spec,
+                       path=mpath.parent)
         except ValueError as exc:
             raise ModelError(f"{where}: {exc}") from None
 
@@ -207,8 +210,9 @@ class RuleClassifier:
     def n_classes(self) -> int:
         return len(self.classes)
 
-    def to_manifest(self) -> dict:
-        """The manifest keys of this rule (the writer adds format, version, etc.)."""
+    def spec_fields(self) -> dict:
+        """The spec's fields and parameters of this rule, for a writer
+        (:func:`host.learn.onnx_io.new_spec`)."""
         return {"model": "rule", "kind": self.task, "classes": list(self.classes),
                 "T": self.T, "input_layout": "vectors", "uses_imu": False,
                 "n_pins": self.n_pins, "rule": dict(self.rule),

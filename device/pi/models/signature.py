@@ -5,7 +5,7 @@ manifest's bytes covers the model: replacing ``model.onnx`` and re-hashing the
 manifest breaks the signature. ``host deploy`` signs every manifest it ships with
 the host's key (:mod:`host.deploy.signing`) and writes the signature beside it::
 
-    manifest.json.sig
+    <manifest>.sig   (e.g. the model's manifest, with .sig added to its name)
     {"format": "tacfoot-signature", "version": 1, "algorithm": "ed25519",
      "key_id": "<first 16 hex of SHA-256 of the public key>", "signature": "<base64>"}
 
@@ -19,7 +19,7 @@ at the top of the models folder names every model folder it ships and the SHA-25
 of each of its manifests::
 
     {"format": "tacfoot-models-set", "version": 1,
-     "models": {"surface": {"manifest.json": "<sha256>", ...}, ...}}
+     "models": {"surface": {"<manifest file>": "<sha256>", ...}, ...}}
 
 :func:`check_model_set` refuses a models folder where a model it names is missing
 or changed, where a model it does not name appears, or, when signatures are

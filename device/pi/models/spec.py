@@ -1,45 +1,38 @@
-"""The model spec: the one schema of a model folder's ``manifest.json``.
+"""The model spec: the one schema of a model folder's manifest.
 
-Every writer (``host train``, the CNN, the localiser, the pressure model, the
-shipped-model builder) builds a :class:`ModelSpec` and writes
-:meth:`ModelSpec.to_manifest`; every loader parses the manifest with
-:meth:`ModelSpec.from_manifest`, whose errors name the file and the field.
+The manifest files are read and written by :mod:`device.pi.models.manifest` only,
+the one module that names them. Every writer (``host train``, the CNN, the localiser,
+the pressure model, the fuser, the shipped-model builder) builds a
+:class:`ModelSpec`, fills in what it measured and writes it once with
+:func:`write_spec` (:func:`write_variant_specs` for both variants); every reader
+gets a :class:`ModelSpec` from :func:`read_spec`, whose errors are one line naming
+the file, the field and the value. A loaded model carries its spec
+(:class:`device.pi.models.artefact.Model`).
 
 A spec holds:
 
 * what the model decides: ``kind`` (the folder's task: surface, texture, slip,
-  pressure, localiser), ``task``, ``model`` (the estimator: fnn, ridge, rule,
+  pressure, localiser, fused), ``task``, ``model`` (the estimator: fnn, ridge, rule,
   cnn, ...) and ``classes`` (empty for a regressor);
-* what it reads and gives: ``T`` (frames per window), ``input_layout``
-  (vectors, frames, image), ``n_inputs``, ``input_name``, ``output`` (the ONNX
-  output's name), ``output_kind``, ``uses_imu`` and ``crop_size`` (the image
-  side of a frame- or image-reading model, else None);
-* ``metrics``: exactly the keys ``train``, ``test`` and ``cv``, each a dict (any
-  content: accuracy, intervals, counts) or None;
-* ``profile``: the sensor the model was trained for: ``name``, ``n_pins``,
-  ``sha256`` (of its parsed content, see :func:`profile_hash`) and ``toml`` (the
-  profile file's full text), so a model carries its sensor;
-* ``trained_on``: the training data: ``data`` (real, simulated or unknown),
-  ``recordings`` (a list of ``{"path", "sha256", "frames"}``; sha256 or frames
-  may be null where unknown), ``split`` (the protocol, in words) and any more
-  keys (scenes, ...);
-* ``config``: the training config that made the model (also written as
-  ``train.toml`` beside the manifest by the host), and ``training``: the run's
-  record (data summary, hyperparameters, fit times);
+* what it reads and gives: ``T`` (frames per window, required), ``input_layout``,
+  ``n_inputs``, ``input_name``, ``output``, ``output_kind``, ``uses_imu`` and
+  ``crop_size`` (the image side of a frame- or image-reading model, else None);
+* ``metrics``: exactly the keys ``train``, ``test`` and ``cv``, each a table or null;
+* ``profile``: the sensor the model was trained for (``name``, ``n_pins``,
+  ``sha256`` of its parsed content, :func:`profile_hash`, and ``toml``, its text);
+* ``config``: the training config that made the model, and ``training``: the run's
+  record (data summary, hyperparameters, fit times, export checks);
 * the artefact: ``onnx``, ``sha256``, ``size_bytes``, ``files``, ``variants``,
-  ``variant``, ``int8`` (the int8 check) and ``feature_spec`` (the version of the
-  window encoding);
-* ``features``: for a model whose graph reads window features rather than the
-  window, the record of what the runtime computes (``version``, ``kind`` and the
-  kind's parameters, :mod:`device.pi.models.winfeat`); absent (None) for a model
-  that reads the encoded window itself;
-* ``params``: kind-specific parameters the loaders read (``ignored_pins``,
-  ``roughness``, ``input_clip``, ``target_mean``, ``rule``, the localiser's
-  layout ...), written as top-level keys of the manifest.
+  ``variant`` and ``feature_spec``; ``features``, for a graph that reads window
+  features, the record of what the runtime computes (:mod:`device.pi.models.winfeat`);
+* ``params``: the kind's typed parameters, one dataclass per family of models
+  registered in :data:`device.pi.models.params.PARAMS`;
+* ``measured``: what the run measured (:class:`Measured`: ``trained_on``, the
+  ``int8`` and ``identity`` verdicts, ``cost_per_decision``), never a parameter.
 
-Version 2 of the manifest is this schema; the key variants of version 1
-(``window`` for ``T``, ``heldout``/``held_out`` for ``test``, a profile given by
-name only) are refused.
+Version 3 is this schema. A version 2 manifest (parameters and measured facts as
+top-level keys) is read into it; the key variants of version 1 (``window`` for
+``T``, ``heldout`` for ``test``, a profile given by name only) are refused.
 """
 from __future__ import annotations
 
@@ -55,15 +48,19 @@ else:  # pragma: no cover - Python 3.10 on Raspberry Pi OS bookworm
     import tomli as tomllib
 
 from device.config import ConfigError
+from device.pi.models.params import PARAMS, Params, family_of, field_names, parse_params
 from device.profile import PROFILE_DIR, builtin_toml, parse_pipeline_profile
 from device.errors import TacfootError
 
-__all__ = ["ModelSpec", "SpecError", "SPEC_VERSION", "METRIC_KEYS", "DATA_SOURCES",
-           "profile_record", "profile_hash", "profile_from_text", "same_profile",
-           "check_same_profiles", "profile_source"]
+__all__ = ["ModelSpec", "Measured", "SpecError", "ModelError", "SPEC_VERSION", "FORMAT",
+           "MAX_T", "METRIC_KEYS", "DATA_SOURCES", "profile_record", "profile_hash", "profile_from_text",
+           "same_profile", "check_same_profiles", "profile_source"]
 
-#: the manifest version this schema reads and writes
-SPEC_VERSION = 2
+#: the manifest version this schema writes (version 2 is read as well)
+SPEC_VERSION = 3
+FORMAT = "tacfoot-model"
+#: the longest window a model may read, frames (8 s at 120 fps)
+MAX_T = 1000
 #: the one key each for training, held-out test and cross-validation metrics
 METRIC_KEYS = ("train", "test", "cv")
 DATA_SOURCES = ("real", "simulated", "real+simulated", "unknown")
@@ -72,13 +69,17 @@ LEGACY_KEYS = {"window": "T", "heldout": "metrics.test", "held_out": "metrics.te
                "test_data": "training.test_data"}
 _CORE = ("format", "version", "feature_spec", "kind", "task", "model", "classes", "T",
          "input_layout", "input", "output", "output_kind", "uses_imu", "crop_size", "onnx",
-         "sha256", "size_bytes", "files", "variants", "variant", "metrics", "int8", "profile",
-         "trained_on", "config", "training", "features")
+         "sha256", "size_bytes", "files", "variants", "variant", "metrics", "profile",
+         "config", "training", "features", "params", "measured")
 
 
 class SpecError(TacfootError, ValueError):
     """A manifest does not follow the model spec; the message names the file and
-    the field. (:class:`device.pi.models.artefact.ModelError` derives from it.)"""
+    the field."""
+
+
+class ModelError(SpecError):
+    """A model artefact cannot be used; the message names the file."""
 
 
 def _canonical(doc) -> bytes:
@@ -175,6 +176,61 @@ def _empty_metrics() -> dict:
     return {k: None for k in METRIC_KEYS}
 
 
+def _unknown_data() -> dict:
+    return {"data": "unknown", "recordings": [], "split": None}
+
+
+@dataclass
+class Measured:
+    """What a run measured of the model, one record apart from its parameters:
+    ``trained_on`` (the training data), ``int8`` (the int8 check's verdict),
+    ``identity`` (the recording-identity check's verdict, :mod:`host.learn.identity`)
+    and ``cost_per_decision`` (timed at train time); null where not measured."""
+    trained_on: dict = field(default_factory=_unknown_data)
+    int8: dict | None = None
+    identity: dict | None = None
+    cost_per_decision: dict | None = None
+
+    def to_doc(self) -> dict:
+        return {k: getattr(self, k) for k in MEASURED_KEYS}
+
+    def check(self, where) -> None:
+        def bad(f, why, v):
+            raise SpecError(f"{where}: measured.{f} {why}, got {v!r}")
+
+        t = self.trained_on
+        if not isinstance(t, dict) or t.get("data") not in DATA_SOURCES:
+            bad("trained_on.data", f"must be one of {list(DATA_SOURCES)}",
+                t.get("data") if isinstance(t, dict) else t)
+        if "held_out" in t or "heldout" in t:
+            bad("trained_on", "names its protocol under 'split' (not held_out)", sorted(t))
+        recs = t.get("recordings", [])
+        if not isinstance(recs, list):
+            bad("trained_on.recordings", "must be a list", recs)
+        for i, r in enumerate(recs):
+            if not isinstance(r, dict) or not isinstance(r.get("path"), str):
+                bad(f"trained_on.recordings[{i}]", "must be a table with a path "
+                                                   "(sha256, frames)", r)
+        for f in ("int8", "identity", "cost_per_decision"):
+            if getattr(self, f) is not None and not isinstance(getattr(self, f), dict):
+                bad(f, "must be a table or null", getattr(self, f))
+
+    @classmethod
+    def from_doc(cls, doc, where) -> "Measured":
+        if not isinstance(doc, dict):
+            raise SpecError(f"{where}: measured must be a table, got {doc!r}")
+        unknown = sorted(set(doc) - set(MEASURED_KEYS))
+        if unknown:
+            raise SpecError(f"{where}: measured.{unknown[0]} is not a measured fact (they are "
+                            f"{list(MEASURED_KEYS)}), got {doc[unknown[0]]!r}")
+        m = cls(**doc)
+        m.check(where)
+        return m
+
+
+MEASURED_KEYS = ("trained_on", "int8", "identity", "cost_per_decision")
+
+
 @dataclass
 class ModelSpec:
     kind: str
@@ -193,12 +249,12 @@ class ModelSpec:
     uses_imu: bool = False
     crop_size: int | None = None
     metrics: dict = field(default_factory=_empty_metrics)
-    int8: dict | None = None
-    trained_on: dict = field(default_factory=lambda: {"data": "unknown", "recordings": [],
-                                                      "split": None})
     config: dict = field(default_factory=dict)
     training: dict = field(default_factory=dict)
-    params: dict = field(default_factory=dict)
+    #: the kind's typed parameters (:mod:`device.pi.models.params`); a dict is parsed
+    params: Params | dict = field(default_factory=dict)
+    #: what the run measured (:class:`Measured`); a dict is parsed
+    measured: Measured | dict = field(default_factory=Measured)
     onnx: str | None = None
     sha256: dict = field(default_factory=dict)
     size_bytes: int = 0
@@ -209,7 +265,24 @@ class ModelSpec:
     features: dict | None = None
 
     def __post_init__(self) -> None:
+        self._typed("ModelSpec")
         self.check("ModelSpec")
+
+    def _typed(self, where) -> None:
+        """``params`` and ``measured`` given as tables parsed into their records."""
+        for f in ("kind", "model"):
+            if not isinstance(getattr(self, f), str) or not getattr(self, f).strip():
+                raise SpecError(f"{where}: {f} must be a non-empty name, got "
+                                f"{getattr(self, f)!r}")
+        if not isinstance(self.params, Params):
+            try:
+                self.params = parse_params(self.params, self.kind, self.model, str(where))
+            except TypeError as exc:
+                raise SpecError(f"{where}: params: {exc}") from None
+            except ValueError as exc:
+                raise SpecError(str(exc)) from None
+        if not isinstance(self.measured, Measured):
+            self.measured = Measured.from_doc(self.measured, where)
 
     # -- checks ----------------------------------------------------------------
     def check(self, where) -> None:
@@ -225,10 +298,13 @@ class ModelSpec:
         if not isinstance(self.classes, list) or not all(isinstance(c, str)
                                                          for c in self.classes):
             bad("classes", "must be a list of class names", self.classes)
-        for f, lo in (("T", 1), ("n_inputs", 1), ("feature_spec", 0), ("size_bytes", 0)):
+        for f, lo, hi, what in (("T", 1, MAX_T, f"of frames in [1, {MAX_T}]"),
+                                ("n_inputs", 1, 1 << 30, ">= 1"),
+                                ("feature_spec", 0, 1 << 30, ">= 0"),
+                                ("size_bytes", 0, 1 << 40, ">= 0")):
             v = getattr(self, f)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                bad(f, f"must be a whole number >= {lo}", v)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                bad(f, f"must be a whole number {what}", v)
         if self.input_dims is not None:
             dims = self.input_dims
             if (not isinstance(dims, list) or not dims or not all(
@@ -252,6 +328,40 @@ class ModelSpec:
         for k in METRIC_KEYS:
             if m[k] is not None and not isinstance(m[k], dict):
                 bad(f"metrics.{k}", "must be a table or null", m[k])
+        self._check_profile(where, bad)
+        if not isinstance(self.measured, Measured) or not isinstance(self.params, Params):
+            self._typed(where)
+        self.measured.check(where)
+        if not isinstance(self.params, PARAMS[family_of(self.kind, self.model)]):
+            bad("params", f"must be the parameters of a {family_of(self.kind, self.model)} "
+                          f"model", type(self.params).__name__)
+        try:
+            self.params.check(str(where))
+            self.params.check_spec(self, str(where))
+        except ValueError as exc:
+            raise SpecError(str(exc)) from None
+        sha = self.sha256
+        if not isinstance(sha, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                for k, v in sha.items()):
+            bad("sha256", "must map file names to SHA-256 hex digests", sha)
+        for f in ("config", "training"):
+            if not isinstance(getattr(self, f), dict):
+                bad(f, "must be a table", getattr(self, f))
+        for k in ("data", "test_data"):
+            if isinstance(self.training.get(k), dict) and "window" in self.training[k]:
+                bad(f"training.{k}.window", "is an old key; the model spec names it 'T'",
+                    self.training[k]["window"])
+        f = self.features
+        if f is not None and (not isinstance(f, dict) or isinstance(f.get("version"), bool)
+                              or not isinstance(f.get("version"), int)
+                              or not isinstance(f.get("kind"), str)):
+            bad("features", "must be a table with a whole-number version and a kind, or absent",
+                f)
+        if not (isinstance(self.onnx, str) and self.onnx.strip()) and \
+                not (self.onnx is None and self.model == "rule"):
+            bad("onnx", "must be the model file's name (null only for a rule model)", self.onnx)
+
+    def _check_profile(self, where, bad) -> None:
         p = self.profile
         if not isinstance(p, dict) or not all(k in p for k in ("name", "n_pins", "sha256",
                                                                   "toml")):
@@ -266,41 +376,10 @@ class ModelSpec:
         if got["n_pins"] != p["n_pins"]:
             bad("profile.n_pins", f"does not match the profile's [vision] n_pins "
                                   f"{got['n_pins']}", p["n_pins"])
-        t = self.trained_on
-        if not isinstance(t, dict) or t.get("data") not in DATA_SOURCES:
-            bad("trained_on.data", f"must be one of {list(DATA_SOURCES)}",
-                t.get("data") if isinstance(t, dict) else t)
-        if "held_out" in t or "heldout" in t:
-            bad("trained_on", "names its protocol under 'split' (not held_out)", sorted(t))
-        recs = t.get("recordings", [])
-        if not isinstance(recs, list):
-            bad("trained_on.recordings", "must be a list", recs)
-        for i, r in enumerate(recs):
-            if not isinstance(r, dict) or not isinstance(r.get("path"), str):
-                bad(f"trained_on.recordings[{i}]", "must be a table with a path "
-                                                   "(sha256, frames)", r)
-        for f in ("config", "training", "params", "sha256"):
-            if not isinstance(getattr(self, f), dict):
-                bad(f, "must be a table", getattr(self, f))
-        for k in ("data", "test_data"):
-            if isinstance(self.training.get(k), dict) and "window" in self.training[k]:
-                bad(f"training.{k}.window", "is an old key; the model spec names it 'T'",
-                    self.training[k]["window"])
-        for k in self.params:
-            if k in _CORE or k in LEGACY_KEYS:
-                bad(f"params.{k}", "is a spec field or an old key variant, not a parameter", k)
-        f = self.features
-        if f is not None and (not isinstance(f, dict) or isinstance(f.get("version"), bool)
-                              or not isinstance(f.get("version"), int)
-                              or not isinstance(f.get("kind"), str)):
-            bad("features", "must be a table with a whole-number version and a kind, or absent",
-                f)
-        if self.onnx is None and self.model != "rule":
-            bad("onnx", "must be the model file's name (null only for a rule model)", None)
 
     # -- (de)serialise ---------------------------------------------------------
-    def to_manifest(self, fmt: str = "tacfoot-model") -> dict:
-        """The manifest.json document (version :data:`SPEC_VERSION`)."""
+    def to_manifest(self, fmt: str = FORMAT) -> dict:
+        """The manifest document (version :data:`SPEC_VERSION`)."""
         self.check("ModelSpec")
         return {"format": fmt, "version": SPEC_VERSION, "feature_spec": self.feature_spec,
                 "kind": self.kind, "task": self.task, "model": self.model,
@@ -312,54 +391,51 @@ class ModelSpec:
                 "uses_imu": self.uses_imu, "crop_size": self.crop_size, "onnx": self.onnx,
                 "sha256": dict(self.sha256), "size_bytes": self.size_bytes,
                 "files": self.files, "variants": self.variants, "variant": self.variant,
-                "metrics": {k: self.metrics[k] for k in METRIC_KEYS}, "int8": self.int8,
+                "metrics": {k: self.metrics[k] for k in METRIC_KEYS},
                 "profile": {k: self.profile[k] for k in ("name", "n_pins", "sha256", "toml")},
-                "trained_on": self.trained_on, "config": self.config,
-                "training": self.training,
+                "config": self.config, "training": self.training,
                 **({"features": self.features} if self.features is not None else {}),
-                **self.params}
+                "params": self.params.to_doc(), "measured": self.measured.to_doc()}
 
     @classmethod
     def from_manifest(cls, doc: dict, where) -> "ModelSpec":
-        """The spec of a manifest document; SpecError naming ``where`` (the file) and
-        the field when it does not follow the schema."""
+        """The spec of a manifest document; SpecError naming ``where`` (the file), the
+        field and the value when it does not follow the schema. A version 2
+        manifest (params and measured facts as top-level keys) is read as well."""
         if not isinstance(doc, dict):
             raise SpecError(f"{where}: a manifest must be a JSON table, got {type(doc).__name__}")
         ver = doc.get("version")
-        if ver != SPEC_VERSION:
+        if ver == 2:
+            doc = _from_version_2(doc)
+        elif ver != SPEC_VERSION:
             raise SpecError(f"{where}: manifest version {ver!r} is not the model spec's "
                             f"{SPEC_VERSION}; re-export the model with this tacfoot")
         for k, new in LEGACY_KEYS.items():
             if k in doc:
                 raise SpecError(f"{where}: {k}: an old key; the model spec names it {new!r}")
-        for k in ("kind", "T", "input", "metrics", "profile", "onnx", "sha256",
-                  "feature_spec"):
+        unknown = sorted(set(doc) - set(_CORE))
+        if unknown:
+            raise SpecError(f"{where}: {unknown[0]} is not a field of the model spec (a "
+                            f"parameter goes under 'params'), got {doc[unknown[0]]!r}")
+        for k in _REQUIRED:
             if k not in doc:
                 raise SpecError(f"{where}: manifest lacks {k!r}")
         inp = doc["input"]
         shape = inp.get("shape") if isinstance(inp, dict) else None
         if (not isinstance(shape, list) or len(shape) < 2
-                or not all(isinstance(d, int) and not isinstance(d, bool) for d in shape[1:])):
-            raise SpecError(f"{where}: input.shape must be [batch, size, ...], got {shape!r}")
-        kw = {k: doc[k] for k in ("kind", "T", "metrics", "profile", "onnx", "sha256",
-                                  "feature_spec")}
-        kw.update({k: doc[k] for k in ("task", "model", "classes", "input_layout", "output",
-                                       "output_kind", "uses_imu", "crop_size", "int8",
-                                       "trained_on", "config", "training", "size_bytes",
-                                       "files", "variants", "variant", "features")
-                   if k in doc})
-        kw.setdefault("task", doc["kind"])
-        kw.setdefault("model", "")
-        kw.setdefault("classes", [])
-        kw.setdefault("input_layout", "vectors")
+                or not all(isinstance(d, int) and not isinstance(d, bool) and d >= 1
+                           for d in shape[1:])):
+            raise SpecError(f"{where}: input.shape must be [batch, size, ...] with whole-number "
+                            f"sizes, got {shape if isinstance(inp, dict) else inp!r}")
+        kw = {k: doc[k] for k in _CORE if k in doc and k not in ("format", "version", "input")}
         kw.update(n_inputs=_prod(shape[1:]), input_name=inp.get("name", "x"),
-                  input_dims=list(shape[1:]) if len(shape) > 2 else None,
-                  params={k: v for k, v in doc.items() if k not in _CORE})
+                  input_dims=list(shape[1:]) if len(shape) > 2 else None)
         spec = cls.__new__(cls)
         try:
             _init_no_check(spec, kw)
         except TypeError as exc:
             raise SpecError(f"{where}: {exc}") from None
+        spec._typed(where)
         spec.check(where)
         return spec
 
@@ -368,10 +444,43 @@ class ModelSpec:
     def n_pins(self) -> int:
         return int(self.profile["n_pins"])
 
+    @property
+    def family(self) -> str:
+        """The :data:`device.pi.models.params.PARAMS` family of the model."""
+        return family_of(self.kind, self.model)
+
     def pipeline_profile(self, where: str = ""):
         """The model's :class:`device.profile.PipelineProfile`, parsed from its text."""
         doc = tomllib.loads(self.profile["toml"])
         return parse_pipeline_profile(doc, source=where or f"{self.profile['name']}.toml")
+
+
+_REQUIRED = ("kind", "task", "model", "T", "input", "metrics", "profile", "onnx", "sha256",
+             "feature_spec")
+#: keys of a version 2 manifest that are measured facts now
+_V2_MEASURED = ("trained_on", "int8", "cost_per_decision")
+
+
+def _from_version_2(doc: dict) -> dict:
+    """A version 2 manifest in this version's shape: its top-level parameters under
+    ``params`` (the keys its family declares; any other under ``training``), its
+    measured facts under ``measured``, ``task`` and ``model`` defaulting to ``kind``."""
+    out = {k: v for k, v in doc.items() if k in _CORE or k in LEGACY_KEYS}
+    kind = doc.get("kind")
+    out.setdefault("task", kind)
+    out.setdefault("model", kind)
+    fam = family_of(str(kind), str(out["model"]))
+    names = set(field_names(fam))
+    out["params"] = {k: v for k, v in doc.items() if k in names and k not in _CORE}
+    out["measured"] = {k: doc[k] for k in _V2_MEASURED if k in doc}
+    rest = {k: v for k, v in doc.items()
+            if k not in _CORE and k not in LEGACY_KEYS and k not in names
+            and k not in _V2_MEASURED}
+    if rest:
+        out["training"] = {**(doc.get("training") or {}), **rest} \
+            if isinstance(doc.get("training", {}), dict) else doc.get("training")
+    out["version"] = SPEC_VERSION
+    return out
 
 
 def _prod(dims) -> int:

@@ -19,9 +19,9 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
-from device.pi.models.artefact import MANIFEST, ModelError, manifest_for
-from device.pi.models.spec import (ModelSpec, SpecError, check_same_profiles, profile_record,
-                                   profile_source)
+from device.pi.models.artefact import ModelError
+from device.pi.models.manifest import MANIFEST, has_manifest, manifest_for, manifest_path
+from device.pi.models.spec import SpecError, check_same_profiles, profile_record, profile_source
 from device.pi.models.classifier import Classifier
 from device.pi.models.fused import FUSED_DIR, FUSED_TASKS, load_fused
 from device.pi.models.regressor import Regressor
@@ -78,18 +78,19 @@ def _pick_localiser(folder: Path, profile: str) -> Path | None:
     return next((p for p in locs if p.name == f"localiser-{profile}"), locs[0])
 
 
-def _manifests(m: Models) -> dict:
-    """{manifest path: manifest} of every model loaded from a folder."""
+def _specs(m: Models) -> dict:
+    """{manifest path: spec} of every model loaded from a folder."""
     out = {}
     for name in ("surface", "texture", "slip", "pressure", "localiser"):
         mod = getattr(m, name)
         if mod is None:
             continue
         inner = getattr(mod, "model", None)
-        doc = getattr(inner, "manifest", None) or getattr(mod, "manifest", None)
-        folder = getattr(inner, "path", None) or getattr(mod, "path", None)
-        if doc and folder is not None:
-            out[str(Path(folder) / MANIFEST)] = doc
+        spec = getattr(inner, "spec", None) or getattr(mod, "spec", None)
+        where = getattr(inner, "source", None) or (
+            manifest_path(mod.path) if getattr(mod, "path", None) is not None else None)
+        if spec is not None and where is not None:
+            out[str(where)] = spec
     return out
 
 
@@ -98,7 +99,7 @@ def check_profiles(m: Models, profile: str | None) -> dict | None:
     hashes when two models carry different profiles, or when ``profile`` (the
     config's ``models.profile``) is another one."""
     try:
-        recs = {w: ModelSpec.from_manifest(doc, w).profile for w, doc in _manifests(m).items()}
+        recs = {w: spec.profile for w, spec in _specs(m).items()}
         given = profile_record(profile) if profile is not None and recs else None
         return check_same_profiles(recs, given) if recs else None
     except (SpecError, ValueError) as exc:
@@ -129,17 +130,15 @@ def _check_inputs(m: Models, n_pins: int) -> None:
         mod = getattr(m, name)
         if mod is None or isinstance(mod, RuleClassifier):
             continue
-        man = mod.model.manifest
-        T = int(man.get("T", getattr(mod, "T", 1)))
-        layout = man.get("input_layout", "vectors")
+        spec, where = mod.model.spec, mod.model.source
         try:
-            x = RollingWindow(T, n_pins).encode(layout, with_imu=bool(man.get("uses_imu")))
+            x = RollingWindow(spec.T, n_pins).encode(spec.input_layout, with_imu=spec.uses_imu)
         except ValueError as exc:
-            raise ModelError(f"{mod.model.path / 'manifest.json'}: {exc}") from None
+            raise ModelError(f"{where}: {exc}") from None
         if x.size != mod.n_features:
-            raise ModelError(f"{mod.model.path / 'manifest.json'}: the model takes "
-                             f"{mod.n_features} inputs, but a {layout} window of T={T} over "
-                             f"the {n_pins}-pin layout gives {x.size}")
+            raise ModelError(f"{where}: the model takes {mod.n_features} inputs, but a "
+                             f"{spec.input_layout} window of T={spec.T} over the {n_pins}-pin "
+                             f"layout gives {x.size}")
 
 
 def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int | None,
@@ -167,7 +166,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         check_model_set(d, sig.public_key, sig.allow_unsigned)
         for kind in CLASSIFIER_TASKS:
             f = d / kind
-            if (f / "manifest.json").is_file() or (f.is_dir() and any(f.iterdir())):
+            if has_manifest(f) or (f.is_dir() and any(f.iterdir())):
                 setattr(m, kind, Classifier.load(checked(manifest_for(f, variant)),
                                                  expect_kind=kind))
                 loaded.append(kind)
@@ -182,7 +181,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         name = (m.profile or {}).get("name") or cfg.models.profile
         pick = _pick_localiser(d, name)
         if pick is not None:
-            m.localiser = Localiser.load(checked(pick / "manifest.json"))
+            m.localiser = Localiser.load(checked(manifest_path(pick)))
             loaded.append(pick.name)
             m.profile, m.profile_source = runtime_profile(m, cfg)
     if profile_n_pins is None:
@@ -194,7 +193,7 @@ def load_models(models_dir: Path | str | None, variant: str, profile_n_pins: int
         # a rule file listing its classes in another order: the same thresholds,
         # evaluated in the SURFACE class order
         m.rule = m.surface = RuleClassifier(s.rule, SURFACE_CLASSES, s.T, s.n_pins,
-                                            manifest=s.manifest, path=s.path)
+                                            spec=s.spec, path=s.path)
     else:
         m.rule = rule_from_config(cfg, profile_n_pins)
     _check_inputs(m, profile_n_pins)
@@ -226,8 +225,8 @@ def check_models_folder(models_dir, fail) -> None:
     d = Path(models_dir)
     if not d.is_dir():
         return                                # load_models names the missing folder
-    if (d / "manifest.json").is_file() or any(d.glob("*.onnx")):
+    if has_manifest(d) or any(d.glob("*.onnx")):
         fail(f"--models {str(models_dir)!r} is one model's folder (it holds "
-             f"{'manifest.json' if (d / 'manifest.json').is_file() else 'an .onnx file'}); "
+             f"{MANIFEST if has_manifest(d) else 'an .onnx file'}); "
              f"give the folder that holds surface/, texture/, slip/ and pressure/, "
              f"e.g. {d.parent}")

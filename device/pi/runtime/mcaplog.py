@@ -113,10 +113,10 @@ def run_metadata(rt) -> dict:
     hashes = {}
     for name in ("surface", "texture", "slip", "pressure", "localiser"):
         mod = getattr(models, name, None)
-        doc = (getattr(getattr(mod, "model", None), "manifest", None)
-               or getattr(mod, "manifest", None))
-        if doc:
-            hashes[name] = doc.get("sha256")
+        spec = (getattr(getattr(mod, "model", None), "spec", None)
+                or getattr(mod, "spec", None))
+        if spec is not None:
+            hashes[name] = spec.sha256
     return {"version": ver, "profile": str(prof.get("name") or models.profile_source or ""),
             "profile_sha256": str(prof.get("sha256") or ""),
             "models": json.dumps(hashes, sort_keys=True),

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from device.pi.models.artefact import MANIFEST
+from device.pi.models.manifest import MANIFEST
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import RollingWindow

@@ -89,7 +89,7 @@ def test_a_failed_int8_check_keeps_the_float_model_and_says_why(monkeypatch, tmp
     assert (tmp_path / "m" / "model.onnx").is_file()
     assert not (tmp_path / "m" / "model.int8.onnx").exists()
     doc = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert doc["variant"] == "float" and doc["int8"]["agreement"] == 0.9718
+    assert doc["variant"] == "float" and doc["measured"]["int8"]["agreement"] == 0.9718
 
 
 @pytest.mark.parametrize("fields,message,want", [

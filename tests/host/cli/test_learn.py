@@ -126,6 +126,31 @@ def test_a_second_train_into_a_locked_out_folder_is_refused_with_one_line(tmp_pa
     assert json.loads((out / "manifest.json").read_text())["classes"] == ["lego", "smooth"]
 
 
+def test_one_host_train_writes_its_manifest_once_with_every_measured_fact(
+        tmp_path, capsys, monkeypatch):
+    """host train builds the spec, fills in what it measured (the int8 check, the
+    recording-identity check, the cost per decision, the training data) and writes
+    each manifest once (it used to write manifest.json three times, five with int8)."""
+    from device.pi.models.manifest import FLOAT_MANIFEST, MANIFEST
+
+    data = _texture_npz(tmp_path / "v.npz")
+    out = tmp_path / "m"
+    written = []
+    real = os.replace
+    monkeypatch.setattr(os, "replace", lambda a, b: written.append(os.path.basename(b))
+                        or real(a, b))
+    rc = main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+               "--out", str(out), "--quantise", "--json"])
+    assert rc == 0, capsys.readouterr().err
+    doc = json.loads((out / MANIFEST).read_text())
+    want = [MANIFEST, FLOAT_MANIFEST] if doc["variant"] == "int8" else [MANIFEST]
+    assert [w for w in written if w.startswith("manifest")] == want
+    m = doc["measured"]
+    assert m["int8"] and m["identity"] and m["trained_on"]["recordings"]
+    assert set(m["cost_per_decision"]["files"]) == set(doc["files"])
+    assert not {"int8", "identity", "cost_per_decision", "trained_on"} & set(doc["params"])
+
+
 def test_a_failed_train_leaves_no_empty_out_folder_it_created(tmp_path, capsys):
     data = _texture_npz(tmp_path / "v.npz", names=("smooth", "smooth"))
     out = tmp_path / "new" / "m"
@@ -289,13 +314,13 @@ def test_train_computes_every_feature_with_its_profile_and_the_model_carries_it(
     assert main(["train", "--task", "texture", "--window", "2", "--data", str(data),
                  "--profile", "tactip331", "--out", str(out), "--json"]) == 0
     man = json.loads((out / "manifest.json").read_text())
-    assert man["roughness"] is True
+    assert man["params"]["roughness"] is True
     assert man["profile"]["name"] == "tactip331" and man["profile"]["n_pins"] == 331
     assert "[vision]" in man["profile"]["toml"]
     clf = Classifier.load(out)
     assert clf.n_features == man["input"]["shape"][1] == \
         RollingWindow(2, 331).encode("vectors").size
-    assert man["trained_on"]["recordings"][0]["sha256"] and man["config"]["profile"] == \
+    assert man["measured"]["trained_on"]["recordings"][0]["sha256"] and man["config"]["profile"] == \
         "tactip331"
     assert (out / "README.md").is_file() and "331 pins" in (out / "README.md").read_text()
     # eval takes the profile from the model; another profile is an error naming both

@@ -216,7 +216,7 @@ def test_demo_labels_a_real_texture_model_with_its_manifests_figures(tmp_path):
     assert lines[1] == ("  out of domain on this simulated walk: right on 5 of 24 textured "
                         "steps, 0.19 of their contact frames")
     # a manifest that does not say what the model was trained on is not called real
-    tex["manifest"] = dict(tex["manifest"], trained_on=None)
+    tex["spec"].measured.trained_on = {"data": "unknown", "recordings": []}
     lines = _texture_label(tex, ag)
     assert "real" not in lines[0].replace("real or simulated", "")
     assert lines[0].startswith("texture: models/texture, whose manifest does not say")

@@ -51,7 +51,7 @@ def test_a_release_fuses_the_models_it_ships_and_a_broken_one_is_one_error(tmp_p
     (models / "fused").mkdir()
     (models / "fused" / "manifest.json").write_text("{}")
     built = fuse_release_models(models)
-    rows = read_spec(built["int8"])[0].params["members"]
+    rows = read_spec(built["int8"])[0].params.members
     assert {r["task"]: r["sha256"] for r in rows} == {
         t: sha256_file(models / t / "model.int8.onnx") for t in ("surface", "pressure")}
     (models / "pressure" / "model.int8.onnx").write_bytes(b"changed")

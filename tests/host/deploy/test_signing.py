@@ -44,9 +44,10 @@ def test_default_key_path_follows_the_environment(monkeypatch, tmp_path):
 def _model(folder, onnx="model.onnx", data=b"x"):
     folder.mkdir(parents=True)
     (folder / "model.onnx").write_bytes(data)
-    from host.learn.onnx_io import new_manifest
-    (folder / "manifest.json").write_text(json.dumps(new_manifest(
-        4, {"kind": "surface"}, onnx, sha256_file(folder / "model.onnx"))))
+    from host.learn.onnx_io import new_spec
+    (folder / "manifest.json").write_text(json.dumps(new_spec(
+        4, {"kind": "surface", "T": 1, "classes": ["a", "b"]}, onnx,
+        sha256_file(folder / "model.onnx")).to_manifest()))
 
 
 def test_sign_models_signs_checked_manifests_only(tmp_path):
@@ -56,9 +57,10 @@ def test_sign_models_signs_checked_manifests_only(tmp_path):
     assert [p.parent.name for p in done] == ["surface"]
     assert check_manifest(done[0], key.public_key, allow_unsigned=False)
     # a manifest naming a file outside its folder is never signed
-    from host.learn.onnx_io import new_manifest
-    (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps(new_manifest(
-        4, {"kind": "surface"}, "/etc/hostname", "0")))
+    from host.learn.onnx_io import new_spec
+    (tmp_path / "models" / "surface" / "manifest.json").write_text(json.dumps(new_spec(
+        4, {"kind": "surface", "T": 1, "classes": ["a", "b"]}, "/etc/hostname",
+        "0").to_manifest()))
     with pytest.raises(DeployInputError, match="outside the model folder"):
         sign_models(tmp_path / "models", key)
     # nor one whose file does not match its hash
@@ -93,11 +95,13 @@ def test_config_naming_another_key_is_refused(tmp_path):
 def test_a_rule_model_without_an_onnx_file_is_signed(tmp_path):
     """A rule model (``host train --model rule``) lists no ONNX file: it is signed
     like any other model, and its signature verifies."""
-    from host.learn.onnx_io import new_manifest, write_manifest
+    from device.pi.models.manifest import write_spec
+    from host.learn.onnx_io import new_spec
 
     key = SigningKey.load(tmp_path / "k.pem")
-    write_manifest(tmp_path / "models" / "surface",
-                   new_manifest(6, {"kind": "surface", "model": "rule"}))
+    write_spec(tmp_path / "models" / "surface",
+               new_spec(6, {"kind": "surface", "model": "rule", "T": 1, "classes": ["a", "b"],
+                            "n_pins": 3, "rule": {}, "rule_sha256": "x"}))
     done = sign_models(tmp_path / "models", key)
     assert [p.parent.name for p in done] == ["surface"]
     assert check_manifest(done[0], key.public_key, allow_unsigned=False)

@@ -108,22 +108,22 @@ def test_model_docs_time_the_cost_per_decision_into_the_spec_and_the_card(tmp_pa
     shutil.copytree(ROOT / "models" / "surface", folder)
     write_model_docs(folder)
     spec, _ = read_spec(folder)
-    cost = spec.params["cost_per_decision"]
+    cost = spec.measured.cost_per_decision       # a measured fact, not a parameter
     assert set(cost["files"]) == {"model.onnx", "model.int8.onnx"} and cost["threads"] == 1
     for r in cost["files"].values():
         assert 20 <= r["n"] <= 200 and 0 < r["median_ms"] <= r["p99_ms"] < 1e3
     assert "cores" in cost["machine"] and "onnxruntime" in cost["machine"]
     float_doc = json.loads((folder / "manifest.float.json").read_text())
-    assert float_doc["cost_per_decision"] == cost
+    assert float_doc["measured"]["cost_per_decision"] == cost
     text = (folder / "README.md").read_text()
     r = cost["files"]["model.int8.onnx"]
     assert (f"cost per decision, `model.int8.onnx`: median {r['median_ms']:.3g} ms, "
             f"p99 {r['p99_ms']:.3g} ms over {r['n']} runs") in text
     assert cost["machine"] in text
     doc = json.loads((folder / "manifest.json").read_text())
-    doc["cost_per_decision"]["files"]["model.onnx"] = {"median_ms": 12.5, "p99_ms": 31.25,
-                                                       "n": 77}
-    doc["cost_per_decision"]["machine"] = "a test machine"
+    doc["measured"]["cost_per_decision"]["files"]["model.onnx"] = {
+        "median_ms": 12.5, "p99_ms": 31.25, "n": 77}
+    doc["measured"]["cost_per_decision"]["machine"] = "a test machine"
     (folder / "manifest.json").write_text(json.dumps(doc))
     write_model_docs(folder, measure=False)
     text = (folder / "README.md").read_text()

@@ -16,7 +16,8 @@ import pytest
 torch = pytest.importorskip(
     "torch", reason="the CNN needs PyTorch, the optional 'cnn' extra: pip install .[cnn]")
 
-from device.pi.models.artefact import MANIFEST, load_model  # noqa: E402
+from device.pi.models.artefact import load_model  # noqa: E402
+from device.pi.models.manifest import MANIFEST  # noqa: E402
 from device.pi.models.window import encode_frames  # noqa: E402
 from host.data.simulate import simulate_to_dataset  # noqa: E402
 from host.learn.cnn import (ONNX_ATOL, OUTPUT_NAME, FrameCNN, frames_input,  # noqa: E402
@@ -123,14 +124,15 @@ def test_manifest_fields(data, trained):
     assert doc["kind"] == doc["task"] == "surface"
     assert doc["model"] == "cnn"
     assert doc["classes"] == res["classes"]
-    assert doc["T"] == T and doc["frame_size"] == doc["crop_size"] == S
+    assert doc["T"] == T and doc["training"]["frame_size"] == doc["crop_size"] == S
     assert "window" not in doc and set(doc["metrics"]) == {"train", "test", "cv"}
     assert doc["input_layout"] == "frames"
     assert doc["input"] == {"name": "x", "shape": [None, T, S, S], "dtype": "float32"}
     assert doc["output"] == OUTPUT_NAME
     assert doc["metrics"]["test"]["accuracy"] == res["metrics"]["test"]["accuracy"]
-    assert doc["cnn_params"]["hidden"] == 1000 and doc["cnn_params"]["kernel"] == 8
-    assert doc["cnn_params"]["dropout"] == 0.2
+    cnn = doc["training"]["cnn_params"]           # the run's record, not a loader parameter
+    assert cnn["hidden"] == 1000 and cnn["kernel"] == 8 and cnn["dropout"] == 0.2
+    assert doc["params"]["output_doc"].startswith(OUTPUT_NAME)
     assert doc["training"]["data"]["windows"] == len(ws_train)
     assert doc["profile"]["name"] == "roboskin" and doc["profile"]["n_pins"] == 133
     size = (out / doc["onnx"]).stat().st_size

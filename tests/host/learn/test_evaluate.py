@@ -31,16 +31,18 @@ def test_evaluate_reports_metrics_latency_size_and_kept_fraction(surface_model, 
 
 
 def _manifest(folder, variant, name="manifest.json"):
-    from host.learn.onnx_io import new_manifest, write_manifest
+    from device.pi.models.manifest import write_spec
+    from host.learn.onnx_io import new_spec
     onnx = "model.int8.onnx" if variant == "int8" else "model.onnx"
-    write_manifest(folder, new_manifest(4, {"kind": "surface", "variant": variant}, onnx,
-                                        "0" * 64), name)
+    write_spec(folder, new_spec(4, {"kind": "surface", "T": 1, "classes": ["a", "b"],
+                                    "variant": variant}, onnx, "0" * 64), name)
 
 
 def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkeypatch):
-    """evaluate picks the manifest with device.pi.models.artefact.manifest_for (one
+    """evaluate picks the manifest with device.pi.models.manifest.manifest_for (one
     picker), and refuses a variant the folder does not have."""
-    from device.pi.models import artefact
+    from device.pi.models import manifest as artefact
+    from device.pi.models.spec import ModelError
     from host.learn import evaluate
 
     picks = []
@@ -55,7 +57,7 @@ def test_the_variant_is_picked_by_the_pis_picker_and_must_exist(tmp_path, monkey
     assert evaluate.variant_manifest(q, "float") == q / "manifest.float.json"
     assert evaluate.variant_manifest(f, "float") == f / "manifest.json"
     assert picks == ["int8", "float", "float"]
-    with pytest.raises(artefact.ModelError, match="no int8 model .train with --quantise"):
+    with pytest.raises(ModelError, match="no int8 model .train with --quantise"):
         evaluate.variant_manifest(f, "int8")
     with pytest.raises(ValueError, match="variant must be one of"):
         evaluate.variant_manifest(q, "int4")

@@ -36,7 +36,7 @@ def test_the_fused_graph_gives_each_members_output_bit_for_bit(shipped):
     for variant, manifest in built.items():
         spec, _ = read_spec(manifest)
         assert spec.kind == "fused" and spec.profile["name"] == "roboskin"
-        rows = spec.params["members"]
+        rows = spec.params.members
         assert [r["task"] for r in rows] == list(TASKS)
         fused = ort_session(str(manifest.parent / spec.onnx))
         assert sha256_file(manifest.parent / spec.onnx) == spec.sha256[spec.onnx]
@@ -80,7 +80,7 @@ def test_the_graphs_hold_only_the_nodes_read_and_the_one_without_texture_is_the_
         full = onnx.load(str(manifest.parent / spec.onnx))
         assert not {"ArgMax", "ArrayFeatureExtractor"} & {n.op_type for n in full.graph.node}
         assert not any(o.endswith("/label") for n in full.graph.node for o in n.output)
-        (sub,) = spec.params["subsets"]
+        (sub,) = spec.params.subsets
         assert sub["tasks"] == ["surface", "slip", "pressure"]
         path = manifest.parent / sub["onnx"]
         assert sha256_file(path) == spec.sha256[sub["onnx"]]
@@ -88,7 +88,7 @@ def test_the_graphs_hold_only_the_nodes_read_and_the_one_without_texture_is_the_
         assert not any(n.name.startswith("texture/") for n in cut.graph.node)
         assert {n.name for n in cut.graph.node} < {n.name for n in full.graph.node}
         a, b = ort_session(str(manifest.parent / spec.onnx)), ort_session(str(path))
-        rows = {r["task"]: r for r in spec.params["members"]}
+        rows = {r["task"]: r for r in spec.params.members}
         outs = [rows[t]["output"] for t in sub["tasks"]]
         assert [o.name for o in b.get_outputs()] == outs
         for trial in range(3):
@@ -108,9 +108,9 @@ def test_a_rebuild_follows_the_members_and_fewer_than_two_give_no_graph(shipped,
     (d / "fused" / "stale.onnx").write_bytes(b"old")
     built = fuse_models(d)
     assert not (d / "fused" / "stale.onnx").exists()
-    rows = read_spec(built["int8"])[0].params["members"]
+    rows = read_spec(built["int8"])[0].params.members
     assert [r["task"] for r in rows] == ["surface", "pressure"]
-    assert read_spec(built["int8"])[0].params["subsets"] == []     # no texture member
+    assert read_spec(built["int8"])[0].params.subsets == []     # no texture member
     assert sorted(p.name for p in (d / "fused").iterdir()) == [
         "fused.float.onnx", "fused.onnx", "manifest.float.json", "manifest.json"]
     shutil.rmtree(d / "pressure")

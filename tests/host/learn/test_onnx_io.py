@@ -1,5 +1,6 @@
-"""host/learn/onnx_io.py: the one manifest writer, the float/int8 variants of a model
-folder, JSON of numpy values, and running ONNX on the host."""
+"""host/learn/onnx_io.py: the spec a writer builds (its typed params and measured
+facts), the float/int8 variants of a model folder, JSON of numpy values, and running
+ONNX on the host."""
 from __future__ import annotations
 
 import json
@@ -8,9 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from device.pi.models.artefact import MANIFEST, sha256_file
-from host.learn.onnx_io import (FLOAT_MANIFEST, FLOAT_NAME, INT8_NAME, json_default,
-                                write_manifest, write_variants)
+from device.pi.models.artefact import sha256_file
+from device.pi.models.manifest import (FLOAT_MANIFEST, MANIFEST, read_spec, write_spec,
+                                       write_variant_specs)
+from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, json_default, new_spec
 
 
 def test_json_default_writes_numpy_values_and_paths_and_refuses_the_rest():
@@ -21,17 +23,17 @@ def test_json_default_writes_numpy_values_and_paths_and_refuses_the_rest():
         json.dumps({"s": {1}}, default=json_default)
 
 
-def test_write_variants_records_both_files_and_makes_int8_the_default(tmp_path):
+def test_fill_variants_records_both_files_and_makes_int8_the_default(tmp_path):
     (tmp_path / FLOAT_NAME).write_bytes(b"float model")
     (tmp_path / INT8_NAME).write_bytes(b"int8")
-    from host.learn.onnx_io import new_manifest
-    write_manifest(tmp_path, new_manifest(4, {"kind": "surface", "n": np.int32(3)}, FLOAT_NAME,
-                                          "0" * 64, 11))
-    files = write_variants(tmp_path, int8=True, updates={"int8": {"agreement": 1.0}})
+    spec = new_spec(4, {"kind": "surface", "T": 2, "classes": ["a", "b"], "n": np.int32(3),
+                        "int8": {"agreement": 1.0}}, FLOAT_NAME, "0" * 64, 11)
+    files = fill_variants(tmp_path, spec, int8=True)
+    write_variant_specs(tmp_path, spec)
     doc = json.loads((tmp_path / MANIFEST).read_text())
     fdoc = json.loads((tmp_path / FLOAT_MANIFEST).read_text())
-    assert doc["onnx"] == INT8_NAME and doc["variant"] == "int8" and doc["n"] == 3
-    assert doc["size_bytes"] == 4 and doc["int8"] == {"agreement": 1.0}
+    assert doc["onnx"] == INT8_NAME and doc["variant"] == "int8" and doc["training"]["n"] == 3
+    assert doc["size_bytes"] == 4 and doc["measured"]["int8"] == {"agreement": 1.0}
     assert doc["variants"] == {"float": FLOAT_NAME, "int8": INT8_NAME}
     for name in (FLOAT_NAME, INT8_NAME):
         assert doc["sha256"][name] == sha256_file(tmp_path / name) == files[name]["sha256"]
@@ -39,7 +41,9 @@ def test_write_variants_records_both_files_and_makes_int8_the_default(tmp_path):
     assert fdoc["size_bytes"] == len(b"float model") and fdoc["sha256"] == doc["sha256"]
     # float only: the float file is the default and the stale float manifest goes
     (tmp_path / INT8_NAME).unlink()
-    write_variants(tmp_path, int8=False)
+    spec, _ = read_spec(tmp_path)
+    fill_variants(tmp_path, spec, int8=False)
+    write_variant_specs(tmp_path, spec)
     doc = json.loads((tmp_path / MANIFEST).read_text())
     assert doc["onnx"] == FLOAT_NAME and doc["variant"] == "float"
     assert list(doc["sha256"]) == [FLOAT_NAME] and not (tmp_path / FLOAT_MANIFEST).exists()
@@ -65,33 +69,39 @@ def test_every_onnx_runtime_session_is_set_up_by_the_pis_code(monkeypatch):
         2, 1, 3)
 
 
-def test_new_manifest_is_what_the_pi_reads_for_onnx_and_for_rule_models(tmp_path):
-    from device.pi.models.artefact import read_manifest
-    from host.learn.onnx_io import new_manifest
+def test_new_spec_is_what_the_pi_reads_for_onnx_and_for_rule_models(tmp_path):
+    onnx = new_spec(12, {"kind": "surface", "T": 3, "classes": ["hard", "soft"]}, FLOAT_NAME,
+                    "ab" * 32, 99)
+    rule = new_spec(12, {"model": "rule", "kind": "surface", "T": 2, "classes": ["hard", "soft"],
+                         "n_pins": 3, "rule": {"a": 1}, "rule_sha256": "x"})
+    assert onnx.sha256 == {FLOAT_NAME: "ab" * 32} and onnx.size_bytes == 99
+    assert rule.onnx is None and rule.sha256 == {} and rule.n_inputs == 12
+    assert rule.params.rule == {"a": 1}             # a rule's typed parameters
+    for name, spec in (("o", onnx), ("r", rule)):
+        read, _ = read_spec(write_spec(tmp_path / name, spec))
+        assert read.to_manifest() == spec.to_manifest()
 
-    onnx = new_manifest(12, {"kind": "surface", "T": 3}, FLOAT_NAME, "ab" * 32, 99)
-    rule = new_manifest(12, {"model": "rule", "kind": "surface"})
-    assert onnx["sha256"] == {FLOAT_NAME: "ab" * 32} and onnx["size_bytes"] == 99
-    assert rule["onnx"] is None and rule["sha256"] == {} and rule["input"]["shape"] == [None, 12]
-    for name, doc in (("o", onnx), ("r", rule)):
-        read, _ = read_manifest(write_manifest(tmp_path / name, doc))
-        assert read == doc
 
-
-def test_a_free_form_manifest_is_refused_by_the_writer_naming_the_field(tmp_path):
-    """The writer checks every manifest against the model spec: a dict without the
-    spec's fields, an old key variant, or a metrics key other than train/test/cv."""
+def test_a_writer_routes_measured_facts_params_and_the_rest(tmp_path):
+    """A writer's keys: the measured facts to ``measured``, the family's parameters to
+    ``params``, anything else to the run record; an old metrics key is refused."""
     from device.pi.models.spec import SpecError
-    from host.learn.onnx_io import new_manifest, new_spec
 
-    with pytest.raises(SpecError, match=r"manifest\.json: manifest version None"):
-        write_manifest(tmp_path, {"kind": "surface", "onnx": FLOAT_NAME})
-    doc = new_manifest(4, {"kind": "surface", "T": 3}, FLOAT_NAME, "0" * 64, 11)
-    with pytest.raises(SpecError, match=r"manifest\.json: window: an old key.*'T'"):
-        write_manifest(tmp_path, dict(doc, window=3))
+    spec = new_spec(4, {"kind": "pressure", "T": 1, "target_mean": 2.0,
+                        "cost_per_decision": {"files": {}}, "identity": {"warning": None},
+                        "trained_on": {"data": "real", "recordings": []}, "alpha": 3.0},
+                    FLOAT_NAME, "0" * 64)
+    assert spec.params.target_mean == 2.0 and spec.training["alpha"] == 3.0
+    assert spec.measured.cost_per_decision == {"files": {}}
+    assert spec.measured.identity == {"warning": None}
+    assert spec.measured.trained_on["data"] == "real"
+    assert "cost_per_decision" not in spec.params.to_doc()
     with pytest.raises(SpecError, match=r"metrics: keys \['heldout'\] are not among"):
-        new_spec(4, {"kind": "surface", "metrics": {"train": {}, "heldout": {}}}, FLOAT_NAME)
-    assert not (tmp_path / MANIFEST).exists()
-    spec = new_spec(4, {"kind": "surface", "metrics": {"test": {"accuracy": 0.5}}}, FLOAT_NAME)
+        new_spec(4, {"kind": "surface", "T": 1, "metrics": {"train": {}, "heldout": {}}},
+                 FLOAT_NAME)
+    with pytest.raises(SpecError, match=r"params\.target_mean is required for a regressor"):
+        new_spec(4, {"kind": "pressure", "T": 1}, FLOAT_NAME)
+    spec = new_spec(4, {"kind": "surface", "T": 1, "classes": ["a", "b"],
+                        "metrics": {"test": {"accuracy": 0.5}}}, FLOAT_NAME)
     assert spec.metrics == {"train": None, "test": {"accuracy": 0.5}, "cv": None}
     assert spec.profile["name"] == "roboskin" and spec.profile["n_pins"] == 133

@@ -59,13 +59,13 @@ def test_manifest_lists_everything_and_the_pi_loads_both_variants(surface_model,
         assert doc["sha256"][name] == sha256_file(out / name)
         assert doc["files"][name]["size_bytes"] == (out / name).stat().st_size
     assert doc["size_bytes"] == (out / "model.int8.onnx").stat().st_size
-    assert doc["int8"]["agreement"] >= 0.99
+    assert doc["measured"]["int8"]["agreement"] >= 0.99
     assert doc["metrics"]["test"]["accuracy"] == res["metrics"]["test"]["accuracy"]
     from host.learn.onnx_io import training_record
     assert doc["training"]["data"] == training_record({"data": ws_tr.summary()})["data"]
     assert doc["training"]["test_data"]["T"] == ws_te.summary()["window"]
     assert set(doc["metrics"]) == {"train", "test", "cv"} and "window" not in doc
-    assert doc["profile"]["name"] == "roboskin" and doc["trained_on"]["split"] == res["holdout"]
+    assert doc["profile"]["name"] == "roboskin" and doc["measured"]["trained_on"]["split"] == res["holdout"]
     assert doc["training"]["seed"] == 0 and doc["training"]["hidden"] == [64, 32]
     fdoc = json.loads((out / "manifest.float.json").read_text())
     assert fdoc["onnx"] == "model.onnx" and fdoc["sha256"] == doc["sha256"]
@@ -226,7 +226,7 @@ def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch,
     assert "90.00%" in res["int8"]["failed"] and res["default"] == "model.onnx"
     assert res["int8"]["agreement"] == 0.9 and res["int8"]["required"] == 0.99
     doc = json.loads((tmp_path / "b" / "manifest.json").read_text())
-    assert doc["variant"] == "float" and doc["int8"]["agreement"] == 0.9
+    assert doc["variant"] == "float" and doc["measured"]["int8"]["agreement"] == 0.9
     assert not (tmp_path / "b" / "manifest.float.json").exists()
     with pytest.raises(TrainError, match="quantise must be"):
         train_model("surface", "fnn", ws, quantise="yes", **dict(kw, out_dir=tmp_path / "c"))
@@ -258,7 +258,7 @@ def test_a_model_cannot_tell_two_recordings_of_one_surface_apart(tmp_path):
     assert res["ignored_pins"] == [0, 1, 2, 3, 4]
     assert res["metrics"]["test"]["accuracy"] < 0.7
     man = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert man["ignored_pins"] == [0, 1, 2, 3, 4]
+    assert man["params"]["ignored_pins"] == [0, 1, 2, 3, 4]
 
 
 def test_texture_on_a_non_133_pin_profile_gets_every_feature_and_carries_its_profile(tmp_path):
@@ -273,7 +273,7 @@ def test_texture_on_a_non_133_pin_profile_gets_every_feature_and_carries_its_pro
                       hidden=(8, 4), epochs=20, profile="tactip331")
     assert res["roughness"] is True
     man = json.loads((tmp_path / "m" / "manifest.json").read_text())
-    assert man["roughness"] is True and man["training"]["temporal"]["neighbours"]
+    assert man["params"]["roughness"] is True and man["training"]["temporal"]["neighbours"]
     assert man["profile"]["sha256"] == profile_record("tactip331")["sha256"]
     assert man["profile"]["n_pins"] == 331
     assert man["input"]["shape"][1] == RollingWindow(2, 331).encode("vectors").size

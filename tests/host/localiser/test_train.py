@@ -34,16 +34,17 @@ N_PINS = 133
 def test_artefact_manifest_and_size(trained):
     m = json.loads((trained["dir"] / "manifest.json").read_text())
     assert m["kind"] == "localiser"
-    assert m["n_pins"] == N_PINS and m["alpha"] == 150.0
-    assert m["size"] == 32 and 0.5 <= m["crop_factor"] <= 1.0
-    assert np.asarray(m["mean_layout_norm"]).shape == (N_PINS, 2)
-    assert m["input"]["shape"] == [None, m["size"] ** 2]
+    p = m["params"]                                 # the localiser's typed parameters
+    assert p["n_pins"] == N_PINS and m["training"]["alpha"] == 150.0
+    assert p["size"] == 32 and 0.5 <= p["crop_factor"] <= 1.0
+    assert np.asarray(p["mean_layout_norm"]).shape == (N_PINS, 2)
+    assert m["input"]["shape"] == [None, p["size"] ** 2]
     for key in ("sim_frames", "real_frames", "rejected"):
         assert key in m["training"]
     for key in ("median_px", "p90_px"):
         assert key in m["metrics"]["test"]["sim_heldout"]
-    assert set(m["metrics"]) == {"train", "test", "cv"} and m["crop_size"] == m["size"]
-    assert m["profile"]["n_pins"] == N_PINS and m["trained_on"]["data"] in (
+    assert set(m["metrics"]) == {"train", "test", "cv"} and m["crop_size"] == p["size"]
+    assert m["profile"]["n_pins"] == N_PINS and m["measured"]["trained_on"]["data"] in (
         "simulated", "real", "real+simulated")
     # under 1 MB (float16 weights, cast once by onnxruntime)
     assert trained["res"]["size_bytes"] < 1_000_000

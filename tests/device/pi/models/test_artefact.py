@@ -1,4 +1,5 @@
-"""ONNX + manifest artefacts: round trip, and refusal of bad files by name."""
+"""device/pi/models/artefact.py: ONNX + manifest artefacts: round trip, and refusal of
+bad files by name."""
 from __future__ import annotations
 
 import json
@@ -20,7 +21,7 @@ def ridge_dir(tmp_path):
     y = X @ rng.normal(size=(12, 3)) + 0.1
     est = make_pipeline(StandardScaler(), Ridge(alpha=1.0)).fit(X, y)
     out = write_model(sklearn_to_onnx(est, 12), tmp_path / "m", kind="pressure", n_features=12,
-                      extra={"targets": ["a", "b", "c"]})
+                      extra={"T": 1, "target_mean": 0.1, "targets": ["a", "b", "c"]})
     return out, est, X
 
 
@@ -29,7 +30,10 @@ def test_round_trip_matches_sklearn(ridge_dir):
     m = load_model(out, expect_kind="pressure")
     y = m.run(X)[0]
     assert np.allclose(y, est.predict(X), atol=1e-4)
-    assert m.manifest["targets"] == ["a", "b", "c"]
+    assert m.spec.params.target_mean == 0.1             # a regressor's typed parameter
+    assert m.spec.training["targets"] == ["a", "b", "c"]  # any other key: the run record
+    with pytest.raises(ModelError, match=r"manifest\.json: kind is 'pressure', expected 'surface'"):
+        load_model(out, expect_kind="surface")
 
 
 def test_truncated_model_is_refused_by_name(ridge_dir):
@@ -56,7 +60,6 @@ def test_corrupt_model_with_matching_checksum_is_refused(ridge_dir):
     (lambda d: d.update(feature_spec=99), "feature-spec version 99"),
     (lambda d: d.update(format="other"), "not a tacfoot model"),
     (lambda d: d.pop("sha256"), "lacks 'sha256'"),
-    (lambda d: d.update(kind="surface"), "expected 'pressure'"),
     # every field the loaders read has its type and a sane range
     (lambda d: d.update(onnx=5), r"onnx must be the model file's name \(null only for a rule "
                                  r"model\), got 5"),
@@ -67,13 +70,19 @@ def test_corrupt_model_with_matching_checksum_is_refused(ridge_dir):
                                 r"got 1000000000\.0"),
     (lambda d: d.update(T=10**9), r"T must be a whole number of frames in \[1, 1000\]"),
     (lambda d: d.update(T=0), r"T must be a whole number of frames"),
-    (lambda d: d.update(feature_spec="1"), r"feature_spec must be a whole number, got '1'"),
+    (lambda d: d.update(feature_spec="1"), r"feature_spec must be a whole number >= 0, got '1'"),
     (lambda d: d.update(sha256=["x"]), r"sha256 must map file names to SHA-256 hex digests"),
     (lambda d: d.update(input={"shape": "x"}), r"input\.shape must be \[batch, size, \.\.\.\] "
                                                r"with whole-number sizes, got 'x'"),
     (lambda d: d.update(input={"shape": [None, -4]}), r"input\.shape must be"),
     (lambda d: d.update(input=7), r"input\.shape must be .*got 7"),
-    (lambda d: d.update(kind=3), r"kind must be a name, got 3"),
+    (lambda d: d.update(kind=3), r"kind must be a non-empty name, got 3"),
+    (lambda d: d["params"].update(target_mean="x"), r"params\.target_mean must be a finite "
+                                                   r"number, got 'x'"),
+    (lambda d: d["params"].pop("target_mean"), r"params\.target_mean is required"),
+    (lambda d: d["params"].update(cost_per_decision={}), r"params\.cost_per_decision is not a "
+                                                        r"parameter of a regressor model"),
+    (lambda d: d.update(input_clip=[[0], [1]]), r"input_clip is not a field of the model spec"),
 ])
 def test_bad_manifest_is_refused(ridge_dir, edit, match):
     out, _, _ = ridge_dir
@@ -93,7 +102,7 @@ def test_missing_and_garbled_manifest(tmp_path):
 
 
 def test_manifest_for_picks_int8_by_default_and_float_when_there_is_one(tmp_path):
-    from device.pi.models.artefact import FLOAT_MANIFEST, MANIFEST, manifest_for
+    from device.pi.models.manifest import FLOAT_MANIFEST, MANIFEST, manifest_for
     (tmp_path / MANIFEST).write_text("{}")
     assert manifest_for(tmp_path, "int8") == tmp_path / MANIFEST
     assert manifest_for(tmp_path, "float") == tmp_path / MANIFEST       # not quantised

@@ -178,8 +178,11 @@ def test_a_manifest_whose_classes_do_not_match_the_model_output_is_refused_at_lo
 
 
 def test_a_manifest_naming_a_class_twice_is_refused_at_load(tmp_path):
-    d = _three_output_model(tmp_path / "m", ["smooth", "lego", "smooth"])
-    with pytest.raises(ModelError, match=r"m/manifest\.json: 'classes' names \['smooth'\] more "
+    d = _three_output_model(tmp_path / "m", ["smooth", "lego", "glass"])
+    doc = json.loads((d / "manifest.json").read_text())
+    doc["classes"] = ["smooth", "lego", "smooth"]
+    (d / "manifest.json").write_text(json.dumps(doc))
+    with pytest.raises(ModelError, match=r"m/manifest\.json: classes names \['smooth'\] more "
                                          r"than once"):
         Classifier.load(d)
 

@@ -78,7 +78,7 @@ def test_a_member_other_than_the_loaded_model_falls_back_naming_it(fused_dir, tm
         in why
     mf = fused_dir / FUSED_DIR / "manifest.json"
     doc = json.loads(mf.read_text())
-    doc["members"][0]["sha256"] = "0" * 64       # surface retrained since the fuse
+    doc["params"]["members"][0]["sha256"] = "0" * 64       # surface retrained since the fuse
     mf.write_text(json.dumps(doc))
     fused, why = load_fused(fused_dir, "int8", _loaded(fused_dir))
     assert fused is None and "surface member is not the loaded" in why and "rebuild" in why
@@ -140,7 +140,7 @@ def test_a_bad_subset_graph_leaves_the_individual_sessions_naming_it(with_textur
     assert fused is None and "fused.notexture.onnx" in why and "checksum" in why
     mf = with_texture / FUSED_DIR / "manifest.json"
     doc = json.loads(mf.read_text())
-    doc["subsets"][0]["tasks"] = ["surface", "depth"]
+    doc["params"]["subsets"][0]["tasks"] = ["surface", "depth"]
     mf.write_text(json.dumps(doc))
     fused, why = load_fused(with_texture, "int8", loaded)
     assert fused is None and "subset's tasks" in why and "depth" in why

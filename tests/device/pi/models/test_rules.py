@@ -26,7 +26,7 @@ def test_an_edited_rule_is_refused(tmp_path):
     train_model("surface", "rule", ws, out_dir=tmp_path / "r", progress=False)
     RuleClassifier.load(tmp_path / "r")
     doc = json.loads((tmp_path / "r" / "manifest.json").read_text())
-    doc["rule"]["contact_px"] += 1.0
+    doc["params"]["rule"]["contact_px"] += 1.0
     (tmp_path / "r" / "manifest.json").write_text(json.dumps(doc))
     with pytest.raises(ModelError, match=r"r/manifest\.json: the rule table does not match"):
         Classifier.load(tmp_path / "r")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from device.pi.models.params import ClassifierParams
 from device.pi.models.spec import (METRIC_KEYS, SPEC_VERSION, ModelSpec, SpecError,
                                    check_same_profiles, profile_from_text, profile_record)
 
@@ -20,9 +21,11 @@ def _spec(**kw) -> ModelSpec:
                 metrics={"train": {"accuracy": 1.0}, "test": {"accuracy": 0.9,
                                                              "accuracy_ci95": [0.8, 0.95],
                                                              "n_windows": 200}, "cv": None},
-                trained_on={"data": "real", "recordings": [{"path": "r/a.avi", "sha256": "ab",
-                                                            "frames": "0..100"}],
-                            "split": "later frames"},
+                measured={"trained_on": {"data": "real",
+                                         "recordings": [{"path": "r/a.avi", "sha256": "ab",
+                                                         "frames": "0..100"}],
+                                         "split": "later frames"},
+                          "int8": {"agreement": 0.99}, "cost_per_decision": {"files": {}}},
                 config={"task": "texture", "T": 15}, params={"roughness": True})
     base.update(kw)
     return ModelSpec(**base)
@@ -31,11 +34,12 @@ def _spec(**kw) -> ModelSpec:
 def test_a_spec_round_trips_through_its_manifest_with_metrics_content_unrestricted():
     spec = _spec()
     doc = json.loads(json.dumps(spec.to_manifest()))
-    assert doc["version"] == SPEC_VERSION and doc["roughness"] is True
+    assert doc["version"] == SPEC_VERSION and doc["params"]["roughness"] is True
     assert list(doc["metrics"]) == list(METRIC_KEYS)
     back = ModelSpec.from_manifest(doc, "m/manifest.json")
     assert back.metrics["test"]["accuracy_ci95"] == [0.8, 0.95]
-    assert back.params == {"roughness": True} and back.n_pins == 133
+    assert back.params == ClassifierParams(roughness=True) and back.n_pins == 133
+    assert back.measured.int8 == {"agreement": 0.99} and back.measured.identity is None
     assert back.pipeline_profile().n_pins == 133
     assert back.to_manifest() == doc
 
@@ -45,15 +49,28 @@ def test_a_spec_round_trips_through_its_manifest_with_metrics_content_unrestrict
     (lambda d: d.update(window=15), r"m/manifest\.json: window: an old key.*'T'"),
     (lambda d: d["metrics"].update(heldout={}), r"metrics must have exactly.*'heldout' is now"),
     (lambda d: d["metrics"].pop("cv"), r"m/manifest\.json: metrics must have exactly"),
-    (lambda d: d.update(T=0), r"m/manifest\.json: T must be a whole number >= 1, got 0"),
+    (lambda d: d.update(T=0), r"m/manifest\.json: T must be a whole number of frames in "
+                              r"\[1, 1000\], got 0"),
+    (lambda d: d.pop("T"), r"m/manifest\.json: manifest lacks 'T'"),
+    (lambda d: d.update(extra=1), r"m/manifest\.json: extra is not a field of the model spec"),
+    (lambda d: d["params"].update(roughness="yes"), r"m/manifest\.json: params\.roughness must "
+                                                    r"be true or false, got 'yes'"),
+    (lambda d: d["params"].update(shade=1), r"m/manifest\.json: params\.shade is not a "
+                                            r"parameter of a classifier model.*got 1"),
+    (lambda d: d["measured"].update(cost=1), r"m/manifest\.json: measured\.cost is not a "
+                                             r"measured fact.*got 1"),
+    (lambda d: d.update(classes=["a", "a"]), r"m/manifest\.json: classes names \['a'\] more "
+                                             r"than once"),
     (lambda d: d.pop("profile"), r"m/manifest\.json: manifest lacks 'profile'"),
     (lambda d: d["profile"].update(toml=d["profile"]["toml"].replace("n_pins = 133",
                                                                        "n_pins = 134")),
      r"profile\.sha256 does not match the profile's content"),
-    (lambda d: d["trained_on"].update(held_out="x"), r"trained_on names its protocol under"),
-    (lambda d: d["trained_on"].update(data="lab"), r"trained_on\.data must be one of"),
-    (lambda d: d["trained_on"]["recordings"].append("a.avi"),
-     r"trained_on\.recordings\[1\] must be a table with a path"),
+    (lambda d: d["measured"]["trained_on"].update(held_out="x"),
+     r"measured\.trained_on names its protocol under"),
+    (lambda d: d["measured"]["trained_on"].update(data="lab"),
+     r"measured\.trained_on\.data must be one of.*got 'lab'"),
+    (lambda d: d["measured"]["trained_on"]["recordings"].append("a.avi"),
+     r"measured\.trained_on\.recordings\[1\] must be a table with a path"),
 ])
 def test_a_manifest_off_the_schema_is_refused_naming_the_file_and_field(edit, match):
     doc = json.loads(json.dumps(_spec().to_manifest()))
@@ -81,7 +98,7 @@ def test_every_shipped_manifest_follows_the_spec_and_names_its_sensor():
     for m in manifests:
         spec = ModelSpec.from_manifest(json.loads(m.read_text()), m)
         assert spec.profile["name"] == "roboskin" and spec.n_pins == 133
-        assert spec.trained_on["data"] in ("real", "simulated", "real+simulated")
+        assert spec.measured.trained_on["data"] in ("real", "simulated", "real+simulated")
 
 
 def test_profile_source_loads_the_records_own_profile(tmp_path):
@@ -98,3 +115,43 @@ def test_profile_source_loads_the_records_own_profile(tmp_path):
     src = profile_source(own)
     assert src.endswith(".toml") and profile_record(src)["sha256"] == own["sha256"]
     assert profile_source(own) == src            # written once, by its hash
+
+
+def test_measured_facts_sit_in_their_own_record_never_among_the_params():
+    """cost, the int8 and identity verdicts and the training data are ``measured``;
+    a version 2 manifest's top-level cost is read into it, not into the params."""
+    doc = json.loads(json.dumps(_spec().to_manifest()))
+    assert set(doc["measured"]) == {"trained_on", "int8", "identity", "cost_per_decision"}
+    assert not set(doc["params"]) & set(doc["measured"])
+    v2 = {k: v for k, v in doc.items() if k not in ("params", "measured")}
+    v2.update(version=2, **doc["params"], **{k: v for k, v in doc["measured"].items()
+                                             if k != "identity"})
+    back = ModelSpec.from_manifest(v2, "old/manifest.json")
+    assert back.measured.cost_per_decision == {"files": {}}
+    assert back.params == ClassifierParams(roughness=True)
+    assert "cost_per_decision" not in back.params.to_doc()
+    assert back.to_manifest() == doc            # the old manifest reads as the new one
+
+
+def test_T_is_required_by_the_writer_and_the_reader():
+    """No silent T = 1: the host's spec builder and the manifest reader both refuse
+    a model without it, naming T."""
+    from host.learn.onnx_io import new_spec
+    with pytest.raises(SpecError, match=r"^T: a texture model's spec needs"):
+        new_spec(10, {"kind": "texture", "classes": ["a", "b"]}, "model.onnx", "0" * 64)
+    doc = json.loads(json.dumps(_spec().to_manifest()))
+    doc.pop("T")
+    with pytest.raises(SpecError, match=r"m/manifest\.json: manifest lacks 'T'"):
+        ModelSpec.from_manifest(doc, "m/manifest.json")
+
+
+def test_writer_and_reader_agree_on_the_default_model():
+    """A writer that names no ``model`` and an old manifest without one both get the
+    kind as the model."""
+    from host.learn.onnx_io import new_spec
+    spec = new_spec(10, {"kind": "texture", "classes": ["a", "b"], "T": 2}, "model.onnx", "0" * 64)
+    doc = json.loads(json.dumps(spec.to_manifest()))
+    assert doc["model"] == "texture"
+    v2 = {k: v for k, v in doc.items() if k not in ("params", "measured", "model")}
+    v2["version"] = 2
+    assert ModelSpec.from_manifest(v2, "old/manifest.json").model == spec.model

@@ -114,6 +114,15 @@ def test_learned_models_load_int8_by_default_and_float_on_request(model_dir, tmp
 
 
 
+def test_a_float_model_that_does_not_fit_the_layout_names_the_float_manifest(model_dir):
+    """The loader reads the spec of the manifest it loaded: with the float variant,
+    an error names manifest.float.json, not manifest.json."""
+    with pytest.raises(ModelError, match=r"surface/manifest\.float\.json: the model takes"):
+        load_models(model_dir, "float", 131, LegConfig())
+    with pytest.raises(ModelError, match=r"surface/manifest\.json: the model takes"):
+        load_models(model_dir, "int8", 131, LegConfig())
+
+
 def _signing_cfg(key, allow_unsigned):
     return parse_leg_config({"signing": {"public_key": key.public_key,
                                          "allow_unsigned": allow_unsigned}})

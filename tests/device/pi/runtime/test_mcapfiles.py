@@ -73,7 +73,8 @@ def test_a_restart_with_the_same_path_keeps_the_last_runs_log(tmp_path):
     assert complete and sum(m["topic"] == "/tacfoot/decision" for m in msgs) == 20
 
 
-def test_a_log_is_never_truncated_the_next_free_name_is_taken(tmp_path, capsys):
+def test_a_log_is_never_truncated_the_next_free_name_is_taken(tmp_path, caplog):
+    caplog.set_level("INFO", logger="device.pi.runtime.mcaplog")
     cfg = McapConfig(image_every=1, image_width=32)
     f = tmp_path / "run.mcap"
     stale = {f: b"a crashed run", tmp_path / "run-0003.mcap": b"its third file",
@@ -84,7 +85,7 @@ def test_a_log_is_never_truncated_the_next_free_name_is_taken(tmp_path, capsys):
     log.frame(*_frame_args(0))
     log.close()
     assert log.files == [str(tmp_path / "run.2.mcap")] and log.path == f
-    assert "run.2.mcap" in capsys.readouterr().err
+    assert "run.2.mcap" in caplog.text              # said in one line (INFO)
     for p, data in stale.items():                  # every earlier byte is still there
         assert p.read_bytes() == data
     # a roll file only (the first file removed by hand): the name is still taken
@@ -93,12 +94,13 @@ def test_a_log_is_never_truncated_the_next_free_name_is_taken(tmp_path, capsys):
     log = McapLog(g, cfg, clock=lambda: 0.0, keep_existing=True)
     log.close()
     assert log.files == [str(tmp_path / "leg.1.mcap")] and not g.exists()
-    assert "leg.1.mcap" in capsys.readouterr().err
+    assert "leg.1.mcap" in caplog.text
     # a free name is used as given, without a word
+    caplog.clear()
     h = tmp_path / "new.mcap"
     log = McapLog(h, cfg, clock=lambda: 0.0, keep_existing=True)
     log.close()
-    assert log.files == [str(h)] and capsys.readouterr().err == ""
+    assert log.files == [str(h)] and caplog.text == ""
 
 
 def test_a_roll_over_never_truncates_a_file_that_appeared_meanwhile(tmp_path):
@@ -149,7 +151,8 @@ def test_a_file_overshoots_its_limit_by_at_most_a_capped_chunk(tmp_path):
 
 # -- item 7: a full disk leaves no empty files ------------------------------------------
 
-def test_a_full_disk_leaves_no_empty_file_per_retry(tmp_path, capsys, monkeypatch):
+def test_a_full_disk_leaves_no_empty_file_per_retry(tmp_path, caplog, monkeypatch):
+    caplog.set_level("WARNING", logger="device.pi.runtime.mcaplog")
     now, full = [0.0], [False]
     real = mcaplog._CountingFile.write
 
@@ -168,7 +171,7 @@ def test_a_full_disk_leaves_no_empty_file_per_retry(tmp_path, capsys, monkeypatc
         log.frame(*_frame_args(k))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["w.mcap"]
     assert log.files == [str(tmp_path / "w.mcap")]
-    assert capsys.readouterr().err.count("--mcap") == 1
+    assert caplog.text.count("--mcap") == 1        # said once, not a line a retry
     full[0] = False                                # space again: the next name
     now[0] += 10.0
     log.frame(*_frame_args(20))
