@@ -65,8 +65,7 @@ SOURCE = Path(__file__).with_name("match.c")
 #: every C file of the library: the tracker's kernels, the pin detection
 #: (``detect.c``, :mod:`device.pi.vision.core`), the window features and the usual
 #: frame in one call (``frame.c``, :mod:`device.pi.vision.frame`)
-SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"),
-           SOURCE.with_name("frame.c"))
+SOURCES = tuple(SOURCE.with_name(n) for n in ("match.c", "detect.c", "winfeat.c", "frame.c"))
 #: the kernel's ABI; tf_abi_version() must return it
 ABI_VERSION = 8
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
