@@ -37,7 +37,7 @@ static int tf_cmp_pair(const void *pa, const void *pb) {
 /* at most this many cells along a side of the grid */
 #define TF_MAX_SIDE 2048.0
 
-int tf_abi_version(void) { return 7; }
+int tf_abi_version(void) { return 8; }
 
 int tf_match(const double *r, int64_t m, const double *c, int64_t n, double max_d2,
              int64_t *idx) {

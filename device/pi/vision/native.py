@@ -60,14 +60,15 @@ from device.errors import TacfootError
 __all__ = ["SOURCE", "CFLAGS", "packaged_path", "rebuild_hint", "NativeBuildError",
            "NativeFolderError", "library_path", "check_library", "build", "kernel", "load",
            "match_into", "grow_into", "active", "status", "refused", "detect_fn", "winfeat_fn",
-           "grid_fn", "advance_fn", "shear_fn", "track_fn", "SOURCES"]
+           "grid_fn", "advance_fn", "shear_fn", "track_fn", "frame_fn", "SOURCES"]
 
 SOURCE = Path(__file__).with_name("match.c")
-#: every C file of the library: the tracker's kernels and the pin detection
-#: (``detect.c``, :mod:`device.pi.vision.core`)
-SOURCES = (SOURCE, SOURCE.with_name("detect.c"), SOURCE.with_name("winfeat.c"))
+#: every C file of the library: the tracker's kernels, the pin detection
+#: (``detect.c``, :mod:`device.pi.vision.core`), the window features and the usual
+#: frame in one call (``frame.c``, :mod:`device.pi.vision.frame`)
+SOURCES = tuple(SOURCE.with_name(n) for n in ("match.c", "detect.c", "winfeat.c", "frame.c"))
 #: the kernel's ABI; tf_abi_version() must return it
-ABI_VERSION = 7
+ABI_VERSION = 8
 #: the compiler's flags: no fused multiply-add, so distances are numpy's to the bit;
 #: -O3 vectorises detect.c's integer loops (the same integers in every lane).
 #: setup.py reads SOURCE, SOURCES and CFLAGS from this file without importing it:
@@ -354,6 +355,8 @@ WINFEAT_SLOTS = 12
 
 #: the tracker's update contexts (match.c's TF_T_* integer and TF_TD_* double slots)
 TRACK_SLOTS = (22, 7)
+#: the fused frame's contexts (frame.c's TF_F_* integer and TF_FD_* double slots)
+FRAME_SLOTS = (17, 17)
 
 _P, _I, _D = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
 #: the per-frame kernels besides the matching: the attribute of the kernel function
@@ -366,6 +369,7 @@ _KERNELS = {
     "advance": ("tf_advance", [_P, _P, _P, _P, _I, _D, _D, _I, _D], None, None),
     "shear": ("tf_shear", [_P, _P, _I, _D, _P, _P], ctypes.c_int64, None),
     "track": ("tf_track", [_P, _P], ctypes.c_int64, 100 * TRACK_SLOTS[0] + TRACK_SLOTS[1]),
+    "frame": ("tf_frame", [_P], ctypes.c_int64, 100 * FRAME_SLOTS[0] + FRAME_SLOTS[1]),
 }
 
 
@@ -397,6 +401,11 @@ def advance_fn():
 def track_fn():
     """``tf_track`` (Tracker.update's usual frame), or None."""
     return _kernel("track")
+
+
+def frame_fn():
+    """``tf_frame`` (the marker pipeline's usual frame in one call), or None."""
+    return _kernel("frame")
 
 
 def shear_fn():

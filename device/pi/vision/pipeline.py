@@ -42,7 +42,9 @@ import numpy.ma  # noqa: F401
 from device.pi.faults import (FAULT_BAD_FRAME, FAULT_FRAME, FAULT_FRAME_SIZE_CHANGED,
                               FAULT_LOCALISER, FAULT_NO_DOME, FAULT_NO_REFERENCE,
                               FAULT_TOO_FEW_PINS, fault_names)
+from device.pi.vision import frame, native
 from device.pi.vision.features import ContactGrid, shear_and_sum_lost
+from device.pi.vision.frame import FrameCore
 from device.pi.vision.plausibility import FramePlausibility, stats_from_sums
 from device.profile import PipelineProfile, load_pipeline_profile
 from device.pi.vision.matching import match_pins
@@ -50,7 +52,11 @@ from device.pi.vision.tracking import Tracker
 from device.pi.vision.extract import (PinDetector, find_dome, image_shape, offset_scale,
                                       to_gray)
 
-STAGES = ("gray", "detect", "track", "localise", "grid", "features")
+#: the per-stage timers of FrameFeatures.timings_ms (besides "total"). A frame the fused
+#: call takes (device.pi.vision.frame) reports "gray", then "core" (detection, the
+#: plausibility check, tracking, the grid and the features in one call), "localise";
+#: a stage it hands back to Python keeps its own timer ("track", "grid", "features")
+STAGES = ("gray", "detect", "core", "track", "localise", "grid", "features")
 
 
 @dataclass
@@ -132,6 +138,8 @@ class MarkerStream:
         #: began, and the offset's factor from it (1.0: not scaled); see the module doc
         self.contrast = 0.0
         self.offset_scale = 1.0
+        #: the fused frame's context (device.pi.vision.frame), made when first used
+        self._frame_core: FrameCore | None = None
 
     # -- control ---------------------------------------------------------------
     def rezero(self) -> None:
@@ -247,9 +255,22 @@ class MarkerStream:
             crop = self.detector.gray_crop(a)
             t1b = clock()
             timings["gray"] = (t1b - t1) * 1e3
-            pins, _ = self.detector.detect_gray(crop)
+            fused = self._fusable(crop, steps)
+            if fused is None:
+                pins, _ = self.detector.detect_gray(crop)
         except (ValueError, TypeError):
             return self._empty(i, t_s, faults | FAULT_BAD_FRAME, timings)
+        if fused is not None:
+            ff = self._fused(i, t_s, faults, crop, steps, timings, t0, t1b, fused)
+            if ff is not None:
+                return ff
+            pins, _ = self.detector.detect_gray(crop)     # tf_frame did not detect
+        return self._detected(i, t_s, faults, pins, crop, steps, timings, t0, t1b)
+
+    def _detected(self, i, t_s, faults, pins, crop, steps, timings, t0, t1b) -> FrameFeatures:
+        """The sequential path from the detected ``pins`` on: the reference search, the
+        plausibility check, tracking, the grid and the features."""
+        clock = time.perf_counter
         if self.reference is None and self._candidates and not self._still(pins):
             self._candidates.clear()           # a new run of still frames begins here
         if self.reference is None and not self._candidates and \
@@ -258,8 +279,7 @@ class MarkerStream:
         binary = self.detector.binary
         t2 = clock()
         timings["detect"] = (t2 - t1b) * 1e3
-        if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins:
-            faults |= FAULT_TOO_FEW_PINS
+        faults |= self._pin_faults(pins)
         det = self.detector
         sums = det.sums
         # the compiled detection took the statistics' sums with the blur; numpy reads them
@@ -267,12 +287,7 @@ class MarkerStream:
                  else self.plausibility.stats(det.smooth, det.n_blobs))
         self.implausible = self.plausibility.check(stats)
         if self.implausible:
-            self._candidates.clear()
-            timings["detect"] = (t2 - t1b) * 1e3
-            ff = self._empty(i, t_s, faults | FAULT_FRAME | (
-                FAULT_NO_REFERENCE if self.reference is None else 0), timings)
-            ff.pins = pins
-            return ff
+            return self._implausible(i, t_s, faults, pins, timings)
         if self.reference is None:
             self._maybe_choose_reference(pins, binary, stats)
         if self.reference is None:
@@ -282,6 +297,27 @@ class MarkerStream:
             vectors, lost = self.tracker.update(pins, steps)
         t3 = clock()
         timings["track"] = (t3 - t2) * 1e3
+        return self._tracked(i, t_s, faults, pins, vectors, lost, timings, t0, t3)
+
+    def _pin_faults(self, pins: np.ndarray) -> int:
+        return (FAULT_TOO_FEW_PINS if len(pins) < self.profile.min_pin_fraction * self.profile.n_pins
+                else 0)
+
+    def _implausible(self, i, t_s, faults, pins, timings) -> FrameFeatures:
+        """A frame that failed the plausibility check: counted, not tracked."""
+        self._candidates.clear()
+        ff = self._empty(i, t_s, faults | FAULT_FRAME | (
+            FAULT_NO_REFERENCE if self.reference is None else 0), timings)
+        ff.pins = pins
+        return ff
+
+    def _tracked(self, i, t_s, faults, pins, vectors, lost, timings, t0, t3,
+                 core=None) -> FrameFeatures:
+        """The stages after tracking: the localiser, then the contact grid and the
+        features, or ``core`` = (grid, shear x, shear y, magnitude sum, contact) when
+        the fused call took those."""
+        clock = time.perf_counter
+        binary = self.detector.binary
         localised = None
         if self.localiser is not None:
             localised, bad = self.localiser.locate(binary, self.dome, box=self.detector.box)
@@ -289,19 +325,74 @@ class MarkerStream:
                 faults |= FAULT_LOCALISER
         t4 = clock()
         timings["localise"] = (t4 - t3) * 1e3
-        grid, grid_contact = self.grid.update(binary)
-        grid = grid.copy()          # the grid object keeps updating its own buffer
-        t5 = clock()
-        timings["grid"] = (t5 - t4) * 1e3
-        sx, sy, msum = shear_and_sum_lost(vectors, lost)
-        n_valid = len(lost) - int(np.count_nonzero(lost))
-        mean_mag = msum / n_valid if n_valid else 0.0
-        contact = bool(self.reference is not None
-                       and (grid_contact or mean_mag > self.profile.contact_px))
-        timings["features"] = (clock() - t5) * 1e3
+        if core is None:
+            grid, grid_contact = self.grid.update(binary)
+            grid = grid.copy()          # the grid object keeps updating its own buffer
+            t5 = clock()
+            timings["grid"] = (t5 - t4) * 1e3
+            sx, sy, msum = shear_and_sum_lost(vectors, lost)
+            n_valid = len(lost) - int(np.count_nonzero(lost))
+            mean_mag = msum / n_valid if n_valid else 0.0
+            contact = bool(self.reference is not None
+                           and (grid_contact or mean_mag > self.profile.contact_px))
+            timings["features"] = (clock() - t5) * 1e3
+        else:
+            grid, sx, sy, msum, contact = core
         timings["total"] = (clock() - t0) * 1e3
         return FrameFeatures(i, t_s, pins, vectors, lost, grid, contact, sx, sy,
                              math.hypot(sx, sy), msum, localised, faults, timings)
+
+    # -- the usual frame in one compiled call (device.pi.vision.frame) ---------------
+    def _fusable(self, crop, steps):
+        """The tracker's ready contexts when this frame can take ``tf_frame``: a
+        reference set, and the detection, the tracker's update, the grid and the shear
+        all compiled for it; else None (the sequential path)."""
+        det = self.detector
+        if self.reference is None or det._compiled is None or self.grid._compiled is None:
+            return None
+        fn = native.frame_fn()
+        if fn is None or native.shear_fn() is None or crop.dtype != np.uint8 \
+                or crop.strides[1] != 1 or crop.shape != det._smooth.shape \
+                or det.binary.shape != self.grid._ref.shape:
+            return None
+        fc = self._frame_core
+        if fc is None or fc.fn is not fn:
+            fc = self._frame_core = FrameCore(fn, self.plausibility.n_pins,
+                                              self.profile.contact_px)
+        return self.tracker.compiled_args(steps)
+
+    def _fused(self, i, t_s, faults, crop, steps, timings, t0, t1b, args):
+        """One ``tf_frame`` call, then the stage it names on the sequential path's
+        code; None when it detected nothing (the caller detects as ever)."""
+        clock = time.perf_counter
+        det, fc, tr = self.detector, self._frame_core, self.tracker
+        dc = det._compiled
+        ci, cd, idx = args
+        status = fc.run(dc, crop, tr, ci, cd, self.grid, self.plausibility, det.binary)
+        if status == frame.DETECT or status == frame.REFUSED:
+            return None
+        t2 = clock()
+        timings["core"] = (t2 - t1b) * 1e3
+        pins = dc.xy[:fc.pins].copy()
+        det.n_blobs = dc.n_blobs             # as detect_gray leaves the detector
+        det.sums = dc.sums
+        faults |= self._pin_faults(pins)
+        if status == frame.IMPLAUS:
+            self.implausible = fc.reason
+            return self._implausible(i, t_s, faults, pins, timings)
+        self.implausible = ""
+        if status == frame.TRACK:
+            vectors, lost = tr.update(pins, steps)
+            t3 = clock()
+            timings["track"] = (t3 - t2) * 1e3
+            return self._tracked(i, t_s, faults, pins, vectors, lost, timings, t0, t3)
+        vectors, lost = tr.compiled_done(idx)
+        if status == frame.GRID:
+            return self._tracked(i, t_s, faults, pins, vectors, lost, timings, t0, clock())
+        self.grid.bad_input = False
+        sx, sy, msum, contact = fc.features()
+        return self._tracked(i, t_s, faults, pins, vectors, lost, timings, t0, clock(),
+                             (self.grid.grid.copy(), sx, sy, msum, contact))
 
     def _empty(self, i, t_s, faults, timings) -> FrameFeatures:
         g = self.grid.update(None)[0]

@@ -48,6 +48,12 @@ _VEL_ALPHA = 0.5
 # Per-frame state
 # --------------------------------------------------------------------------
 
+
+def _steps(steps) -> int:
+    """:meth:`Tracker.update`'s ``steps``: a whole number in 1..1000, else 1."""
+    return int(steps) if isinstance(steps, (int, np.integer)) and 1 <= steps <= 1000 else 1
+
+
 _FILL_MODES = ("predict", "hold", "zero")
 _REACQUIRE_MODES = ("inline", "background")
 
@@ -349,40 +355,62 @@ class Tracker:
                        self._pitch, 1.0 - _VEL_ALPHA, 0.0], np.float64)
         return ci, cd
 
-    def _update_compiled(self, cur, steps: int):
-        """The usual frame through tf_track: (vectors, lost), or None when the
-        numpy path must take it (a jump, unusual input, no library)."""
+    def compiled_args(self, steps: int):
+        """tf_track's contexts made ready for a frame ``steps`` after the last one
+        (``steps`` as :meth:`update` takes it), all but the current pins: ``(ci, cd,
+        idx)``, ``idx`` the fresh (m,) buffer the kernel writes; None when the frame
+        must take the numpy path (no library, no reference, a background search to
+        take first, a reference pin not finite). Changes nothing the outputs read;
+        :meth:`compiled_done` takes the kernel's answer (also the fused frame's,
+        device.pi.vision.frame)."""
         fn = native.track_fn()
-        if fn is None or self._job is not None or not isinstance(cur, np.ndarray) \
-                or cur.dtype != np.float32 or cur.ndim != 2 or cur.shape[1] != 2 \
-                or not cur.flags.c_contiguous:
+        if fn is None or self._job is not None or self._ref is None:
             return None
         if self._tctx is None:
             self._tctx = self._track_context(fn) or False
             self._tcap = 0             # a new context points at no scratch yet
         if self._tctx is False:
             return None
+        steps = _steps(steps)
         ci, cd = self._tctx
         # the settings a caller may have changed since the context was made
         ci[12], ci[15] = self.grow_rounds, self._FILL_CODE[self.fill]
         cd[0], cd[2], cd[3] = self._gate, self.reacquire_frac, self.min_tracked_frac
+        idx = np.empty(self._ref.shape[0], np.int64)
+        ci[14], ci[16] = steps, idx.ctypes.data
+        cd[1] = self.velocity_gain * steps
+        cd[6] = _VEL_ALPHA / steps
+        return ci, cd, idx
+
+    def compiled_done(self, idx: np.ndarray):
+        """After tf_track returned 0 on :meth:`compiled_args`' contexts: the update's
+        counts and faults, and its (vectors, lost) as :meth:`update` returns them."""
+        n_ok = int(self._tctx[0][19])
+        self.reacquired = 0
+        self.idx = idx
+        self.n_tracked = n_ok
+        self.faults = FAULT_TOO_FEW_PINS if n_ok < self.min_tracked_frac * self._ref.shape[0] else 0
+        return self._vec.copy(), self._lost.copy()
+
+    def _update_compiled(self, cur, steps: int):
+        """The usual frame through tf_track: (vectors, lost), or None when the
+        numpy path must take it (a jump, unusual input, no library)."""
+        if not isinstance(cur, np.ndarray) or cur.dtype != np.float32 or cur.ndim != 2 \
+                or cur.shape[1] != 2 or not cur.flags.c_contiguous:
+            return None
+        args = self.compiled_args(steps)
+        if args is None:
+            return None
+        ci, cd, idx = args
         n = cur.shape[0]
         if n > self._tcap:             # the kernel's copy of the pins, grown as needed
             self._tcap = max(2 * n, 256)
             self._tcur = np.empty((self._tcap, 2), np.float64)
             ci[2] = self._tcur.ctypes.data
-        idx = np.empty(self._ref.shape[0], np.int64)
-        ci[0], ci[1], ci[14], ci[16] = cur.ctypes.data, n, steps, idx.ctypes.data
-        cd[1] = self.velocity_gain * steps
-        cd[6] = _VEL_ALPHA / steps
-        if fn(ci.ctypes.data, cd.ctypes.data) != 0:
+        ci[0], ci[1] = cur.ctypes.data, n
+        if native.track_fn()(ci.ctypes.data, cd.ctypes.data) != 0:
             return None
-        m = self._ref.shape[0]
-        n_ok = int(ci[19])
-        self.idx = idx
-        self.n_tracked = n_ok
-        self.faults = FAULT_TOO_FEW_PINS if n_ok < self.min_tracked_frac * m else 0
-        return self._vec.copy(), self._lost.copy()
+        return self.compiled_done(idx)
 
     # -- per frame ---------------------------------------------------------------
     def update(self, cur, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -400,8 +428,8 @@ class Tracker:
             return np.zeros((0, 2), np.float32), np.zeros(0, bool)
         self._settle()
         self.reacquired = 0
-        steps = steps if isinstance(steps, (int, np.integer)) and 1 <= steps <= 1000 else 1
-        done = self._update_compiled(cur, int(steps))
+        steps = _steps(steps)
+        done = self._update_compiled(cur, steps)
         if done is not None:
             return done
         faults = 0

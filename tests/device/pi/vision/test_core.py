@@ -178,8 +178,8 @@ def test_real_clips_are_identical_with_the_compiled_detection_and_grid(lib, monk
     assert _pipeline_digest(path, True) == _pipeline_digest(path, False)
 
 
-# Every C entry point (detect.c's tf_detect, match.c's tf_match and tf_grow, winfeat.c's
-# tf_winfeat) under
+# Every C entry point (detect.c's tf_detect, tf_grid and tf_shear, match.c's tf_match,
+# tf_grow, tf_advance and tf_track, winfeat.c's tf_winfeat, frame.c's tf_frame) under
 # AddressSanitizer and UndefinedBehaviorSanitizer: the library is built with both, and
 # the hypothesis equivalence tests of this file and test_native.py run against it in a
 # child Python (the sanitizer runtime preloaded). Any error report fails the child.
@@ -218,7 +218,11 @@ def test_the_c_entry_points_under_asan_and_ubsan(tmp_path):
              "tests/device/pi/vision/test_native.py::test_large_layouts_match_as_numpy_does",
              "tests/device/pi/vision/test_native.py::test_the_compiled_growth_gives_numpys_pins_and_vectors",
              "tests/device/pi/models/test_winfeat.py::test_the_compiled_features_are_numpys_to_the_bit_and_finite",
-             "tests/device/pi/models/test_winfeat.py::test_the_kernel_refuses_a_bad_context_and_writes_nothing"]
+             "tests/device/pi/models/test_winfeat.py::test_the_kernel_refuses_a_bad_context_and_writes_nothing",
+             "tests/device/pi/vision/test_frame.py::test_any_box_and_pin_count_give_the_sequential_bytes",
+             "tests/device/pi/vision/test_frame.py::test_fused_and_sequential_streams_give_the_same_bytes",
+             "tests/device/pi/vision/test_frame.py::test_a_refused_context_runs_nothing",
+             "tests/device/pi/vision/test_frame.py::test_each_refused_kernel_hands_back_its_stage"]
     run = subprocess.run([sys.executable, "-m", "pytest", "-x", "-p", "no:cacheprovider",
                           "-p", "no:xdist", *tests], env=env, capture_output=True, text=True,
                          cwd=REPO_ROOT, timeout=900)

@@ -48,7 +48,8 @@ def test_real_gray_and_bgr_frames_give_identical_features():
         a = s_bgr.process(f, i / 120.0)
         b = s_gray.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), i / 120.0)
         _same_features(a, b)
-        assert "gray" in b.timings_ms and "detect" in b.timings_ms
+        # detection's timer, or the fused call's (device.pi.vision.frame)
+        assert "gray" in b.timings_ms and ("detect" in b.timings_ms or "core" in b.timings_ms)
     assert s_gray.reference is not None and len(b.pins) > 100
 
 
