@@ -172,6 +172,7 @@ def _time_stream(profile, frames, warm=(), repeats: int = 1) -> dict:
     clock, cpu_clock = time.perf_counter, time.thread_time
     for _ in range(max(1, repeats)):
         stream = MarkerStream(profile)
+        stream.fuse = False            # each stage timed apart (a fused frame times one call)
         for f in warm:
             stream.process(f)
         for f in frames:

@@ -140,6 +140,9 @@ class MarkerStream:
         self.offset_scale = 1.0
         #: the fused frame's context (device.pi.vision.frame), made when first used
         self._frame_core: FrameCore | None = None
+        #: take the fused call when it can; False runs (and times) every stage apart,
+        #: as host.bench.scaling does to see how each stage grows with the pins
+        self.fuse = True
 
     # -- control ---------------------------------------------------------------
     def rezero(self) -> None:
@@ -348,7 +351,8 @@ class MarkerStream:
         reference set, and the detection, the tracker's update, the grid and the shear
         all compiled for it; else None (the sequential path)."""
         det = self.detector
-        if self.reference is None or det._compiled is None or self.grid._compiled is None:
+        if not self.fuse or self.reference is None or det._compiled is None \
+                or self.grid._compiled is None:
             return None
         fn = native.frame_fn()
         if fn is None or native.shear_fn() is None or crop.dtype != np.uint8 \

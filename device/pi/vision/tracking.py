@@ -204,6 +204,15 @@ class Tracker:
         self._tctx = None              # the compiled update's context, built when first used
         self._tcap, self._tcur = 0, None   # its scratch copy of a frame's pins
 
+    def __getstate__(self) -> dict:
+        # tf_track's context holds the addresses of this object's own buffers, and a
+        # worker thread's future cannot be copied: a copy takes any pending search's
+        # answer first (as the next update would) and builds its own context
+        self._settle()
+        state = dict(self.__dict__)
+        state.update(_tctx=None, _tkeep=None, _tcap=0, _tcur=None, _pool=None, _job=None)
+        return state
+
     @property
     def has_reference(self) -> bool:
         return self._ref is not None

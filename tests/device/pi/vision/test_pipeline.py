@@ -284,3 +284,18 @@ def test_a_flat_black_or_white_reference_frame_leaves_the_offset_unscaled(level,
         out = s.process(dim, float(i))
         _check_finite(out)
     assert s.offset_scale == pytest.approx(0.6, abs=0.03) and s.reference is not None
+
+
+def test_fuse_off_times_every_stage_and_changes_nothing():
+    """``fuse = False`` (host.bench.scaling) runs the stages apart: the same
+    features as the fused call, with a timer for each stage instead of 'core'."""
+    from device.pi.vision import native
+    fused, frames = referenced()
+    apart, _ = referenced()
+    apart.fuse = False
+    for i, g in enumerate(frames[-6:]):
+        a, b = fused.process(g, float(i)), apart.process(g, float(i))
+        _same_features(a, b)
+        assert "core" not in b.timings_ms and {"detect", "track", "grid"} <= set(b.timings_ms)
+        if native.frame_fn() is not None:
+            assert "core" in a.timings_ms

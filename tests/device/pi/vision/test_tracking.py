@@ -50,6 +50,27 @@ def test_tracker_tracks_a_drag_and_rezeroes():
     assert np.allclose(vec, 0.0, atol=1e-4) and vec.shape == (len(ref), 2)
 
 
+def test_a_copied_tracker_never_writes_into_the_original():
+    """The compiled update's context points at the tracker's own buffers: a deep
+    copy (a stream copied to replay from a reference) builds its own, so running the
+    copy leaves the original's state as it was."""
+    import copy
+    ref = hex_pins(4, 12.0).astype(np.float32)   # float32 pins take the compiled update
+    tr = Tracker()
+    tr.set_reference(ref)
+    for k in range(1, 4):
+        tr.update(ref + np.float32([0.8 * k, 0.0]))
+    before = {k: getattr(tr, k).copy() for k in ("_pred", "_vel", "_disp", "_work", "_vec")}
+    twin = copy.deepcopy(tr)
+    for k in range(4, 12):
+        vec, _ = twin.update(ref + np.float32([0.8 * k, 0.3 * k]))
+    assert np.allclose(vec, [8.8, 3.3], atol=1e-4)
+    for k, v in before.items():
+        assert np.array_equal(getattr(tr, k), v), k
+    vec, _ = tr.update(ref + np.float32([3.2, 0.0]))   # the original goes on from its own state
+    assert np.allclose(vec, [3.2, 0.0], atol=1e-4)
+
+
 def test_tracker_reacquires_after_a_jump():
     rng = np.random.default_rng(5)
     ref = hex_pins(8, 16.0)
