@@ -97,7 +97,10 @@ class DetectCore:
         self._order = np.empty(cap, np.int32)
         self.xy = np.empty((cap, 2), np.float32)
         self.areas = np.empty(cap, np.int32)
-        self._det = det
+        # the detector's buffers this context writes into, kept alive with it; not the
+        # detector itself, which holds this core (a cycle would wait for the cyclic
+        # collector, and a calibration's many short-lived detectors piled up)
+        self._buffers = (det._smooth, det._binary_even, det._core_mask)
         c = np.zeros(S_SLOTS, np.int64)
         c[S_BH], c[S_BW], c[S_KN] = bh, bw, k
         c[S_KERNEL] = _addr(self.kernel)
