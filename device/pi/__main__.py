@@ -115,7 +115,7 @@ def _run(args) -> int:
                 if args.foxglove else None)
         rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
                           live=live, background=True, keep_existing=True,
-                          metadata=run_metadata(rt))
+                          metadata=run_metadata(rt), records="device")
         if live is not None:
             log.info("device.pi run: Foxglove live view on ws://%s:%s", live.host, live.port)
     guard: list[threading.Timer] = []

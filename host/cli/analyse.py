@@ -106,10 +106,8 @@ def mcap_frame(log, f, line: dict, k: int, image, reference, image_every: int) -
     t_ns = max(0, int(round(float(f.t_s) * 1e9)))
     if k % image_every == 0:
         log.image(t_ns, image, f, reference)
-    g = np.asarray(f.grid, np.float64)
-    log.write("/tacfoot/grid", t_ns, {"frame": line["frame"], "n": int(g.shape[0]),
-                                      "cells": np.round(g.ravel(), 3).tolist(),
-                                      "contact": bool(f.contact)})
+    from device.pi.runtime.mcapmsg import grid_doc
+    log.write("/tacfoot/grid", t_ns, grid_doc(t_ns, f.grid))
     total = f.timings_ms.get("total")
     log.write("/tacfoot/latency", t_ns, {"frame": line["frame"], "latency_ms": None,
                                          "pipeline_ms": None if total is None

@@ -118,6 +118,7 @@ def cmd_export_mcap(args) -> None:
 def export_trial(log, trial: dict, i: int, doc: dict, t_base: float,
                  image_every: int) -> float:
     """Trial ``i`` into ``log`` from ``t_base`` s; the time of its last frame, s."""
+    from device.pi.runtime.mcapmsg import grid_doc
     from device.pi.vision.encoder import FrameEncoder
 
     info = trial["info"]
@@ -143,10 +144,7 @@ def export_trial(log, trial: dict, i: int, doc: dict, t_base: float,
         ff = ef.features
         if k % image_every == 0:
             log.image(ns, frames[k], ff, enc.stream.reference)
-        g = np.asarray(ff.grid, np.float64)
-        log.write("/tacfoot/grid", ns, {"frame": k, "n": int(g.shape[0]),
-                                        "cells": np.round(g.ravel(), 3).tolist(),
-                                        "contact": bool(ff.contact)})
+        log.write("/tacfoot/grid", ns, grid_doc(ns, ff.grid))
         if "imu" in trial:
             v = np.asarray(trial["imu"][k], np.float64)
             log.write("/tacfoot/imu", ns, {"frame": k, "acc_g": np.round(v[:3], 5).tolist(),

@@ -1,7 +1,8 @@
 """The Foxglove layout for the leg's channels, built from code with foxglove-sdk's
 ``foxglove.layouts`` (the viz extra), so it cannot drift from what the runtime logs.
 
-Two columns: the TacTip image with the pins and vectors over it above the faults;
+Two columns: the TacTip image with the pins and vectors over it above the faults
+and the runtime's log lines;
 then the decision timelines, the confidences, pressure and shear, the IMU and the
 latency. Every topic and field a panel names is checked against the channels the
 runtime writes (:func:`device.pi.runtime.mcapmsg.channels`) when the layout is
@@ -32,6 +33,7 @@ PATH_RE = re.compile(r"(/[A-Za-z0-9_/]+?)(?:\.(\w+)(?:\[\d+\])?)?$")
 IMAGE = ("image", "TacTip: pins and vectors", {"topic": "/tacfoot/image",
                                               "annotations": ["/tacfoot/pins"]})
 FAULTS = ("raw", "Faults", {"topic": "/tacfoot/faults"})
+LOG = ("log", "Runtime log", {"topic": "/tacfoot/log"})
 DECISIONS = ("states", "Decisions", {"series": [
     ("/tacfoot/decision.class", "surface"), ("/tacfoot/decision.texture", "texture"),
     ("/tacfoot/decision.slip", "slip"), ("/tacfoot/decision.contact", "contact")]})
@@ -49,7 +51,7 @@ PLOTS = [
         ("/tacfoot/latency.pipeline_ms", "frame to log")]}),
 ]
 #: the columns, left to right, each its panels top to bottom
-COLUMNS = [[IMAGE, FAULTS], [DECISIONS, *PLOTS]]
+COLUMNS = [[IMAGE, FAULTS, LOG], [DECISIONS, *PLOTS]]
 
 
 class LayoutError(InputError):
@@ -71,7 +73,7 @@ def references(doc) -> list[tuple[str, str | None]]:
     out = []
     if isinstance(doc, dict):
         for key, value in doc.items():
-            if key in ("imageTopic", "topicPath") and isinstance(value, str):
+            if key in ("imageTopic", "topicPath", "topicToRender") and isinstance(value, str):
                 out.append(parse_path(value))
             elif key == "annotations" and isinstance(value, dict):
                 out.extend((topic, None) for topic in value)
@@ -108,6 +110,8 @@ def _panel(fl, kind: str, title: str, what: dict):
     if kind == "raw":
         return fl.RawMessagesPanel(title=title, config=fl.RawMessagesConfig(
             topic_path=what["topic"]))
+    if kind == "log":
+        return fl.LogPanel(title=title, config=fl.LogConfig(topic_to_render=what["topic"]))
     if kind == "states":
         return fl.StateTransitionsPanel(title=title, config=fl.StateTransitionsConfig(
             paths=[fl.StateTransitionsSeries(value=v, label=lab) for v, lab in what["series"]]))

@@ -1,5 +1,6 @@
 """The files of the leg's MCAP log (:mod:`device.pi.runtime.mcaplog`): their names,
-the counting file they are written through, and reading them back.
+the counting file they are written through, the run's Metadata record
+(:func:`run_metadata`), and reading them back.
 
 Names: ``run.mcap``, then ``run-0001.mcap``, ``run-0002.mcap`` ... as the log rolls
 over (:func:`roll_name`). The runtime's log never truncates a file: when ``run.mcap``
@@ -101,6 +102,31 @@ class CountingFile:
 
     def close(self) -> None:
         self.fh.close()
+
+
+def run_metadata(rt) -> dict:
+    """The ``tacfoot`` Metadata record of a run (MCAP metadata values are strings):
+    the package version, the sensor profile's name and hash, each loaded model's
+    hashes (its manifest's ``sha256``, JSON) and the leg config (JSON)."""
+    from dataclasses import asdict
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        ver = version("tacfoot")
+    except PackageNotFoundError:
+        ver = "unknown"
+    models = rt.models
+    prof = models.profile or {}
+    hashes = {}
+    for name in ("surface", "texture", "slip", "pressure", "localiser"):
+        mod = getattr(models, name, None)
+        spec = (getattr(getattr(mod, "model", None), "spec", None)
+                or getattr(mod, "spec", None))
+        if spec is not None:
+            hashes[name] = spec.sha256
+    return {"version": ver, "profile": str(prof.get("name") or models.profile_source or ""),
+            "profile_sha256": str(prof.get("sha256") or ""),
+            "models": json.dumps(hashes, sort_keys=True),
+            "config": json.dumps(asdict(rt.cfg), sort_keys=True, default=str)}
 
 
 #: the first 8 bytes of every MCAP file

@@ -1,21 +1,24 @@
 """The leg's MCAP log: ``python -m device.pi run --mcap FILE`` (docs/viewing.md).
 
 What the leg senses, in the format Foxglove and ROS 2 read, one channel per kind
-(all JSON-encoded; the two images ones use Foxglove's well-known schemas, so the
-Image panel draws the pins and vectors over the frame):
+(all JSON-encoded; Foxglove's well-known schemas where one fits, so the Image panel
+draws the pins and vectors over the frame, the 3D panel the grid, the Log panel the
+lines):
 
 ===========================  =========================  ==============================
 topic                        schema                     when
 ===========================  =========================  ==============================
 ``/tacfoot/image``           ``foxglove.CompressedImage``  every ``image_every``-th frame
 ``/tacfoot/pins``            ``foxglove.ImageAnnotations`` with each image
-``/tacfoot/grid``            ``tacfoot.ContactGrid``    every frame
+``/tacfoot/grid``            ``foxglove.Grid``          every frame (float32 ``contact``)
 ``/tacfoot/decision``        ``tacfoot.Decision``       every frame (the --json-log line)
 ``/tacfoot/imu``             ``tacfoot.Imu``            every frame
 ``/tacfoot/latency``         ``tacfoot.Latency``        every frame
 ``/tacfoot/packets/out``     ``tacfoot.Packet``         every packet sent
 ``/tacfoot/packets/in``      ``tacfoot.Packet``         every packet received
 ``/tacfoot/faults``          ``tacfoot.Faults``         every FAULT packet sent
+``/tacfoot/log``             ``foxglove.Log``           each FAULT sent, and the runtime's
+                                                        log records (``records``)
 ===========================  =========================  ==============================
 
 Times are Unix-epoch ns (so a log lines up with the robot's other logs): the
@@ -77,7 +80,7 @@ from device.pi import protocol as P
 from device.pi.runtime import mcapmsg as M
 from device.pi.runtime.mcapfiles import (  # noqa: F401  (the names this module had)
     INSTALL_HINT, MAGIC, MAX_MB_MAX, MAX_MB_MIN, McapLogError, free_name, read_log, recover,
-    roll_name)
+    roll_name, run_metadata)
 from device.pi.runtime.mcapfiles import CountingFile as _CountingFile
 from device.pi.runtime.mcapfiles import writer_module as _mcap
 from device.pi.runtime.mcapmsg import (  # noqa: F401  (the names this module had)
@@ -96,31 +99,6 @@ WRITER_POLL_S = 0.02
 CLOSE_WAIT_S = 10.0
 #: ... and leaves one that handled nothing this long (a stalled disk), counted lost, s
 CLOSE_STALL_S = 0.5
-
-
-def run_metadata(rt) -> dict:
-    """The ``tacfoot`` Metadata record of a run (MCAP metadata values are strings):
-    the package version, the sensor profile's name and hash, each loaded model's
-    hashes (its manifest's ``sha256``, JSON) and the leg config (JSON)."""
-    from dataclasses import asdict
-    from importlib.metadata import PackageNotFoundError, version
-    try:
-        ver = version("tacfoot")
-    except PackageNotFoundError:
-        ver = "unknown"
-    models = rt.models
-    prof = models.profile or {}
-    hashes = {}
-    for name in ("surface", "texture", "slip", "pressure", "localiser"):
-        mod = getattr(models, name, None)
-        spec = (getattr(getattr(mod, "model", None), "spec", None)
-                or getattr(mod, "spec", None))
-        if spec is not None:
-            hashes[name] = spec.sha256
-    return {"version": ver, "profile": str(prof.get("name") or models.profile_source or ""),
-            "profile_sha256": str(prof.get("sha256") or ""),
-            "models": json.dumps(hashes, sort_keys=True),
-            "config": json.dumps(asdict(rt.cfg), sort_keys=True, default=str)}
 
 
 def _copy(a):
@@ -146,7 +124,8 @@ class McapLog:
 
     def __init__(self, path, cfg, *, max_mb: float = 256.0, clock=None, channels=None,
                  live=None, background: bool = False, keep_existing: bool = False,
-                 prog: str = "device.pi run", metadata: dict | None = None):
+                 prog: str = "device.pi run", metadata: dict | None = None,
+                 records: str | None = None):
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
         self.channels = {**M.channels(), **(channels or {})}
         self.live = live             # a LiveView (--foxglove), or None
@@ -189,6 +168,10 @@ class McapLog:
                                "or both; got neither")
         if path is not None:
             self._open_first(path, max_mb)
+        self._records = None
+        if records is not None:          # the runtime's log lines on /tacfoot/log
+            self._records = (logging.getLogger(records), _Records(self))
+            self._records[0].addHandler(self._records[1])
         if background:
             self._q = deque()
             self._wake = threading.Event()
@@ -467,7 +450,7 @@ class McapLog:
         if img is not None and (self._on("/tacfoot/image") or self._on("/tacfoot/pins")):
             self._image(t, *img)
         if self._on("/tacfoot/grid"):
-            self._write("/tacfoot/grid", t, M.grid_bytes(k, grid, contact))
+            self._write("/tacfoot/grid", t, M.grid_bytes(t, grid))
         if self._on("/tacfoot/decision"):
             self._write("/tacfoot/decision", t, M.decision_bytes(dec, tex_conf))
         if self._on("/tacfoot/imu"):
@@ -490,7 +473,7 @@ class McapLog:
         c0 = time.thread_time()
         fault = direction == "out" and isinstance(msg, P.Fault)
         self._do(self._packet, (f"/tacfoot/packets/{direction}", msg, self._t_ns(clock_s),
-                                seq, t_ms, fault), 2 if fault else 1)
+                                seq, t_ms, fault), 3 if fault else 1)
         self.loop_cpu_s += time.thread_time() - c0
 
     def _packet(self, topic, msg, t, seq, t_ms, fault) -> None:
@@ -498,12 +481,22 @@ class McapLog:
             self._write(topic, t, M.packet_bytes(msg, seq, t_ms))
         if fault and self._on("/tacfoot/faults"):
             self._write("/tacfoot/faults", t, M.faults_bytes(msg))
+        if fault and self._on("/tacfoot/log"):
+            level, text = M.fault_line(msg)
+            self._write("/tacfoot/log", t, M.log_bytes(t, level, text, "tacfoot.faults"))
+
+    def _record(self, t, level, text, name, file, line) -> None:
+        if self._on("/tacfoot/log"):
+            self._write("/tacfoot/log", t, M.log_bytes(t, level, text, name, file, line))
 
     def close(self) -> None:
         """Write what is queued, end the file with its summary and stop the live
         view. The writer thread gets at most :data:`CLOSE_WAIT_S` (or until
         ``close_by``), and is left when it handles nothing for :data:`CLOSE_STALL_S`
         (a stalled disk): what it had not written is counted lost."""
+        if self._records is not None:
+            self._records[0].removeHandler(self._records[1])
+            self._records = None
         if self._thread is not None:
             self._q.append((lambda: self._w is not None and self._finish(), 0))  # + summary
             self._closing = True
@@ -570,5 +563,30 @@ class McapLog:
         return st
 
 
-# the live view moved to device/pi/runtime/liveview.py; its names stay importable here
+class _Records(logging.Handler):
+    """The runtime's log records (INFO and up) as foxglove.Log lines on
+    ``/tacfoot/log``, at the runtime clock's log time; a record emitted while one is
+    being written (the log's own warning) is not logged again."""
+
+    def __init__(self, mlog: McapLog):
+        super().__init__(logging.INFO)
+        self.mlog = mlog
+        self._inside = threading.local()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if getattr(self._inside, "on", False):
+            return
+        self._inside.on = True
+        try:
+            m = self.mlog
+            t = m._t_ns(m._now())
+            m._do(m._record, (t, M.log_level(record.levelno), record.getMessage(),
+                              record.name, record.pathname or "", record.lineno or 0), 1)
+        except Exception:
+            pass
+        finally:
+            self._inside.on = False
+
+
+# the live view is device/pi/runtime/liveview.py; its names stay importable here
 from device.pi.runtime.liveview import LiveView, parse_hostport  # noqa: E402,F401

@@ -27,7 +27,9 @@ FRAME_ID = "tactip"
 #: the topics that carry Foxglove's well-known messages -> their schema names; the
 #: schemas are Foxglove's own, built from the installed ``foxglove-sdk`` (:func:`channels`)
 FOXGLOVE = {"/tacfoot/image": "foxglove.CompressedImage",
-            "/tacfoot/pins": "foxglove.ImageAnnotations"}
+            "/tacfoot/pins": "foxglove.ImageAnnotations",
+            "/tacfoot/grid": "foxglove.Grid",
+            "/tacfoot/log": "foxglove.Log"}
 POINTS, LINE_LIST = 1, 4
 
 
@@ -57,8 +59,7 @@ _PACKET["description"] = ("a packet decoded, with its header's seq and t_ms; bot
 CHANNELS = {
     "/tacfoot/image": {"title": FOXGLOVE["/tacfoot/image"], "type": "object"},
     "/tacfoot/pins": {"title": FOXGLOVE["/tacfoot/pins"], "type": "object"},
-    "/tacfoot/grid": _obj("tacfoot.ContactGrid", frame=_INT, n=_INT, cells=_NNUMS,
-                          contact=_BOOL),
+    "/tacfoot/grid": {"title": FOXGLOVE["/tacfoot/grid"], "type": "object"},
     "/tacfoot/decision": _obj("tacfoot.Decision", frame=_INT, index=_INT, t_s=_NUM,
                               **{"class": _STR}, class_id=_INT, probs=_NUMS,
                               surface_conf=_NUM, contact=_BOOL, slip=_BOOL, slip_conf=_NUM,
@@ -76,6 +77,7 @@ CHANNELS = {
     "/tacfoot/packets/in": _PACKET,
     "/tacfoot/faults": _obj("tacfoot.Faults", faults=_INT, names=_STRS, raised=_STRS,
                             pins_lost=_INT),
+    "/tacfoot/log": {"title": FOXGLOVE["/tacfoot/log"], "type": "object"},
 }
 
 # protobuf field types (google/protobuf/descriptor.proto) -> JSON schema, as Foxglove's
@@ -162,7 +164,10 @@ def _json(doc) -> bytes:
 
 _IMU = '{"frame":%d,"acc_g":[%.5f,%.5f,%.5f],"gyro_dps":[%.4f,%.4f,%.4f],"faults":%d}'
 _LAT = '{"frame":%d,"latency_ms":%s,"pipeline_ms":%.4f}'
-_GRID = '{"frame":%d,"n":%d,"cells":[%s],"contact":%s}'
+_GRID = ('{"timestamp":%s,"frame_id":"' + FRAME_ID + '","pose":{"position":{"x":0.0,"y":0.0,'
+         '"z":0.0},"orientation":{"x":0.0,"y":0.0,"z":0.0,"w":1.0}},"column_count":%d,'
+         '"cell_size":{"x":%s,"y":%s},"row_stride":%d,"cell_stride":4,"fields":[{"name":'
+         '"contact","offset":0,"type":7}],"data":"%s"}')     # type 7: FLOAT32
 _STAMP = '{"sec":%d,"nsec":%d}'
 _IMAGE = '{"timestamp":%s,"frame_id":"' + FRAME_ID + '","format":"jpeg","data":"%s"}'
 _PTS = ('{"timestamp":%s,"type":%d,"points":[%s],"outline_color":%s,"outline_colors":[],'
@@ -220,15 +225,35 @@ def latency_bytes(k: int, latency_ms, pipeline_ms: float) -> bytes:
     return (_LAT % (k, _num(latency_ms, 4), p)).encode()
 
 
-def grid_bytes(k: int, grid, contact: bool) -> bytes:
-    """``/tacfoot/grid``: the n x n contact grid, row-major, 3 places."""
-    g = np.asarray(grid, np.float64)
-    n = int(g.shape[0]) if g.ndim else 0
-    cells = g.ravel()
-    if not _finite(cells):
-        return _json({"frame": k, "n": n, "cells": _nums(cells, 3), "contact": bool(contact)})
-    body = _joined("%.3f", cells.size) % tuple(cells.tolist())
-    return (_GRID % (k, n, body, "true" if contact else "false")).encode()
+def grid_doc(t_ns: int, grid) -> dict:
+    """``/tacfoot/grid``: the n x n contact grid as foxglove.Grid (what Foxglove's 3D
+    panel draws): one float32 field ``contact`` per cell, row-major from the image's
+    top-left, little-endian, base64 in JSON (a cell that is not finite stays NaN in
+    the bytes; the JSON has no number that is not). The grid spans the pad as a
+    1 x 1 square in the ``tactip`` frame (each cell 1/n wide)."""
+    g = np.asarray(grid, "<f4")
+    n = int(g.shape[-1]) if g.ndim else 0
+    return json.loads(_grid_text(t_ns, g, n))
+
+
+def _grid_text(t_ns: int, g: np.ndarray, n: int) -> str:
+    c = repr(1.0 / n) if n else "1.0"
+    return _GRID % (stamp(t_ns), n, c, c, 4 * n,
+                    base64.b64encode(np.ascontiguousarray(g).tobytes()).decode("ascii"))
+
+
+def grid_cells(doc: dict) -> np.ndarray:
+    """A foxglove.Grid message's (:func:`grid_doc`) cells back as an n x n float32 array."""
+    n = int(doc["column_count"])
+    cells = np.frombuffer(base64.b64decode(doc["data"]), "<f4")
+    return cells.reshape(-1, n) if n else cells
+
+
+def grid_bytes(t_ns: int, grid) -> bytes:
+    """:func:`grid_doc` as JSON bytes (one format call)."""
+    g = np.asarray(grid, "<f4")
+    n = int(g.shape[-1]) if g.ndim else 0
+    return _grid_text(t_ns, g, n).encode()
 
 
 def decision_bytes(dec: dict, texture_conf) -> bytes:
@@ -300,6 +325,38 @@ def faults_bytes(msg) -> bytes:
     """``/tacfoot/faults``: a FAULT packet's bits, by name."""
     return _json({"faults": int(msg.faults), "names": fault_names(msg.faults),
                   "raised": fault_names(msg.raised), "pins_lost": int(msg.pins_lost)})
+
+
+#: Python logging levels -> foxglove.Log.Level (DEBUG 1, INFO 2, WARNING 3, ERROR 4, FATAL 5)
+LOG_LEVELS = ((40, 4), (30, 3), (20, 2), (1, 1))
+
+
+def log_level(levelno: int) -> int:
+    """foxglove.Log's level of a Python logging level (CRITICAL -> FATAL)."""
+    if levelno >= 50:
+        return 5
+    for floor, level in LOG_LEVELS:
+        if levelno >= floor:
+            return level
+    return 0
+
+
+def log_bytes(t_ns: int, level: int, message: str, name: str, file: str = "",
+              line: int = 0) -> bytes:
+    """``/tacfoot/log``: one foxglove.Log line (``level`` is foxglove.Log's)."""
+    return _json({"timestamp": {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000},
+                  "level": int(level), "message": str(message), "name": str(name),
+                  "file": str(file), "line": max(0, int(line))})
+
+
+def fault_line(msg) -> tuple[int, str]:
+    """A FAULT packet as a foxglove.Log line: WARNING when it raised a bit, INFO when
+    it only cleared some; the message names the bits now set and those raised."""
+    now, raised = fault_names(msg.faults), fault_names(msg.raised)
+    text = (f"FAULT now {', '.join(now) or 'none'}"
+            + (f"; raised {', '.join(raised)}" if raised else "")
+            + f"; pins lost {int(msg.pins_lost)}")
+    return (3 if raised else 2), text
 
 
 def annotations(stamp: dict, ff, reference, scale: float, vector_scale: float) -> dict:

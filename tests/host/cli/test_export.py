@@ -35,7 +35,7 @@ def test_export_mcap_writes_the_leg_channels_and_the_labels(tmp_path, capsys):
     assert res["messages"] == sum(len(v) for v in by.values())
     assert {t: v[0][0] for t, v in by.items()} == {
         "/tacfoot/image": "foxglove.CompressedImage",
-        "/tacfoot/pins": "foxglove.ImageAnnotations", "/tacfoot/grid": "tacfoot.ContactGrid",
+        "/tacfoot/pins": "foxglove.ImageAnnotations", "/tacfoot/grid": "foxglove.Grid",
         "/tacfoot/imu": "tacfoot.Imu", "/tacfoot/labels": "tacfoot.Labels"}
     for topic in ("/tacfoot/grid", "/tacfoot/imu", "/tacfoot/labels"):
         assert len(by[topic]) == sum(n), topic

@@ -47,11 +47,11 @@ def test_every_panel_names_a_channel_and_field_the_runtime_writes(tmp_path):
             for v in node:
                 walk(v)
     walk(doc)
-    assert len(panels) == sum(len(col) for col in fl.COLUMNS) == 7
+    assert len(panels) == sum(len(col) for col in fl.COLUMNS) == 8
     assert all(fl.references(p) for p in panels), [p["title"] for p in panels]
     refs = fl.references(doc)
     assert {"/tacfoot/image", "/tacfoot/pins", "/tacfoot/imu", "/tacfoot/decision",
-            "/tacfoot/latency", "/tacfoot/faults"} <= {t for t, _ in refs}
+            "/tacfoot/latency", "/tacfoot/faults", "/tacfoot/log"} <= {t for t, _ in refs}
     log = tmp_path / "run.mcap"
     subprocess.run(sim_run_command(tmp_path, "--mcap", log, frames=30), check=True,
                    capture_output=True, timeout=120)

@@ -23,6 +23,7 @@ from device.pi import protocol as P  # noqa: E402
 from device.pi.runtime import mcaplog  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcaplog import CHANNELS, McapLog, read_log, recover, roll_name  # noqa
+from device.pi.runtime.mcapmsg import grid_cells  # noqa: E402
 from tests.mcapread import frame_args, sim_run_command  # noqa: E402
 
 FRAMES = 60
@@ -71,7 +72,12 @@ def test_one_message_per_frame_and_an_image_every_nth(run):
     m = _by_topic(run.file)
     for topic in ("/tacfoot/decision", "/tacfoot/grid", "/tacfoot/imu", "/tacfoot/latency"):
         assert len(m[topic]) == FRAMES, topic
-        assert [x[4]["frame"] for x in m[topic]] == list(range(FRAMES))
+        if topic != "/tacfoot/grid":             # foxglove.Grid has no frame number
+            assert [x[4]["frame"] for x in m[topic]] == list(range(FRAMES))
+    # the grid at its frame's time, stamped with it
+    assert [x[3] for x in m["/tacfoot/grid"]] == [x[3] for x in m["/tacfoot/decision"]]
+    assert all(divmod(x[3], 10**9) == (x[4]["timestamp"]["sec"], x[4]["timestamp"]["nsec"])
+               for x in m["/tacfoot/grid"])
     every = McapConfig().image_every
     n_img = -(-FRAMES // every)
     assert len(m["/tacfoot/image"]) == len(m["/tacfoot/pins"]) == n_img
@@ -89,6 +95,10 @@ def test_one_message_per_frame_and_an_image_every_nth(run):
     assert len(m["/tacfoot/packets/in"]) > 0                  # loop:// echoes them back
     faults_out = [p for p in out if p["type"] == "fault"]
     assert len(m["/tacfoot/faults"]) == len(faults_out) >= 1
+    # each FAULT also a foxglove.Log line, WARNING when it raised a bit
+    flines = [x[4] for x in m["/tacfoot/log"] if x[4]["name"] == "tacfoot.faults"]
+    assert len(flines) == len(faults_out)
+    assert [ln["level"] for ln in flines] == [3 if p["raised"] else 2 for p in faults_out]
     assert run.status["mcap_messages_lost"] == 0
     assert run.status["mcap_messages_written"] == sum(len(v) for v in m.values())
 
@@ -394,7 +404,8 @@ def test_in_the_background_close_writes_everything_queued(tmp_path):
     assert len(m["/tacfoot/image"]) == len(m["/tacfoot/pins"]) == 20
     assert len(m["/tacfoot/packets/out"]) == len(m["/tacfoot/faults"]) == 40
     assert log.dropped == 0 and log.messages_lost == 0
-    assert log.messages_written == sum(len(v) for v in m.values()) == 40 * 6 + 20 * 2
+    assert len(m["/tacfoot/log"]) == 40                # each FAULT also a log line
+    assert log.messages_written == sum(len(v) for v in m.values()) == 40 * 7 + 20 * 2
 
 
 def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path):
@@ -409,7 +420,7 @@ def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path
     args[3].features.pins[:] = -50.0
     log.close()
     m = _by_topic(tmp_path / "cp.mcap")
-    assert m["/tacfoot/grid"][0][4]["cells"] == [0.5] * 9
+    assert grid_cells(m["/tacfoot/grid"][0][4]).ravel().tolist() == [0.5] * 9
     assert m["/tacfoot/pins"][0][4]["points"][0]["points"][0] == {"x": 5.0, "y": 10.0}
 
 
@@ -435,3 +446,21 @@ def test_the_live_view_asks_the_server_about_viewers_at_most_every_live_check_s(
     now[0] += 1.01 * liveview.LIVE_CHECK_S
     live.any()
     assert len(calls) == 2 * len(CHANNELS)
+
+
+def test_the_runtimes_log_lines_go_on_the_log_topic_until_close(tmp_path):
+    """records=LOGGER: that logger's records (INFO and up) as foxglove.Log lines on
+    /tacfoot/log; none after close (the handler is removed)."""
+    import logging
+    lg = logging.getLogger("tacfoot_test_records")
+    lg.setLevel(logging.DEBUG)
+    log = McapLog(tmp_path / "rec.mcap", McapConfig(), clock=lambda: 1.5, records=lg.name)
+    lg.debug("not this one")
+    lg.warning("camera %s reopened", "v4l2")
+    log.close()
+    lg.warning("after close")
+    m = _by_topic(tmp_path / "rec.mcap")
+    (line,) = [x[4] for x in m["/tacfoot/log"]]
+    assert line["message"] == "camera v4l2 reopened" and line["level"] == 3
+    assert line["name"] == lg.name and line["line"] > 0
+    assert not lg.handlers

@@ -53,8 +53,12 @@ def test_small_messages_read_back_as_their_fields():
         "frame": 3, "latency_ms": None, "pipeline_ms": 2.5}
     assert json.loads(M.latency_bytes(3, 1.23456, 2.5))["latency_ms"] == 1.2346
     g = np.arange(9, dtype=np.float64).reshape(3, 3) / 7
-    assert json.loads(M.grid_bytes(5, g, True)) == {
-        "frame": 5, "n": 3, "cells": np.round(g.ravel(), 3).tolist(), "contact": True}
+    doc = json.loads(M.grid_bytes(5_000_000_123, g))
+    assert doc == M.grid_doc(5_000_000_123, g)
+    assert doc["timestamp"] == {"sec": 5, "nsec": 123} and doc["frame_id"] == M.FRAME_ID
+    assert (doc["column_count"], doc["row_stride"], doc["cell_stride"]) == (3, 12, 4)
+    assert doc["fields"] == [{"name": "contact", "offset": 0, "type": 7}]     # FLOAT32
+    assert np.array_equal(M.grid_cells(doc), g.astype(np.float32))
     d = json.loads(M.decision_bytes({"frame": 1, "probs": [0.1, 0.9]}, 0.75))
     assert d == {"frame": 1, "probs": [0.1, 0.9], "surface_conf": 0.9, "texture_conf": 0.75}
 
@@ -62,8 +66,9 @@ def test_small_messages_read_back_as_their_fields():
 def test_a_value_that_is_not_finite_is_null_not_invalid_json():
     imu = json.loads(M.imu_bytes(0, [np.nan, 0, 1, np.inf, 0, 0], 0))
     assert imu["acc_g"] == [None, 0.0, 1.0] and imu["gyro_dps"] == [None, 0.0, 0.0]
-    g = json.loads(M.grid_bytes(0, np.array([[np.nan, 1.0], [2.0, -np.inf]]), False))
-    assert g["cells"] == [None, 1.0, 2.0, None] and g["n"] == 2
+    g = json.loads(M.grid_bytes(0, np.array([[np.nan, 1.0], [2.0, -np.inf]])))
+    cells = M.grid_cells(g).ravel()                # in the bytes, not in the JSON
+    assert np.isnan(cells[0]) and cells[1:3].tolist() == [1.0, 2.0] and cells[3] == -np.inf
     lat = json.loads(M.latency_bytes(0, float("nan"), float("inf")))
     assert lat == {"frame": 0, "latency_ms": None, "pipeline_ms": 0.0}
     ann = json.loads(M.annotations_bytes(0, [[np.nan, 2.0]], [[0, 0]], [False], None, 1, 1))
@@ -145,6 +150,26 @@ def test_foxglove_topics_carry_foxglove_sdk_schemas():
     assert {"timestamp", "type", "points", "outline_color", "outline_colors", "fill_color",
             "thickness", "metadata"} <= set(pts)
     assert ch["/tacfoot/image"]["properties"]["data"]["contentEncoding"] == "base64"
+    # the contact grid and the log lines: Foxglove's Grid and Log, whole
+    grid, line = ch["/tacfoot/grid"], ch["/tacfoot/log"]
+    assert (grid["title"], line["title"]) == ("foxglove.Grid", "foxglove.Log")
+    assert {"timestamp", "frame_id", "pose", "column_count", "cell_size", "row_stride",
+            "cell_stride", "fields", "data"} <= set(grid["properties"])
+    assert {"timestamp", "level", "message", "name", "file", "line"} <= set(line["properties"])
+
+
+def test_grid_and_log_lines_validate_against_foxglove_schemas():
+    jsonschema = pytest.importorskip("jsonschema")
+    pytest.importorskip("foxglove")
+    ch = M.channels()
+    g = json.loads(M.grid_bytes(7, np.full((4, 4), np.nan)))
+    jsonschema.validate(g, ch["/tacfoot/grid"])
+    level, text = M.fault_line(P.Fault(faults=1, raised=1, pins_lost=2))
+    ln = json.loads(M.log_bytes(3 * 10**9 + 5, level, text, "tacfoot.faults"))
+    jsonschema.validate(ln, ch["/tacfoot/log"])
+    assert ln["level"] == 3 and ln["timestamp"] == {"sec": 3, "nsec": 5}
+    assert "raised" in ln["message"] and "pins lost 2" in ln["message"]
+    assert [M.log_level(x) for x in (10, 20, 30, 40, 50)] == [1, 2, 3, 4, 5]
 
 
 def test_a_sim_run_validates_is_monotonic_in_epoch_ns_with_metadata(tmp_path):
