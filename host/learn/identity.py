@@ -271,13 +271,17 @@ def verdict_lines(check: dict) -> list[str]:
         return [f"skipped: {check['skipped']}"]
     lines = []
     for c, e in sorted((check.get("classes") or {}).items()):
-        head = f"{c} ({e.get('mode', '?')}): {e.get('verdict', '?')}"
+        verdict = e.get("verdict") or ("flagged" if e.get("flagged") else "not run"
+                                       if "skipped" in e else "inconclusive"
+                                       if e.get("inconclusive") else "not flagged")
+        head = f"{c} ({e.get('mode', '?')}): {verdict}"
         if "balanced_accuracy" in e:
             ci = e.get("balanced_accuracy_ci95") or [float("nan")] * 2
             head += (f", balanced accuracy {e['balanced_accuracy']:.2f} [{ci[0]:.2f}, "
                      f"{ci[1]:.2f}] on {e['n_windows']} windows, chance {e['chance']:.2f}")
-        if e.get("settle"):
-            head += f"; {e['settle']}"
+        why = e.get("settle") or e.get("skipped") or e.get("inconclusive")
+        if why:
+            head += f"; {why}"
         lines.append(head)
     a = check.get("across_classes")
     if a:
