@@ -30,6 +30,27 @@ def layout_for_profile(profile: str) -> np.ndarray:
 # Per-frame features of one recording
 # ----------------------------------------------------------------------------
 
+#: the per-frame session statistics of :attr:`ClipFeatures.session`: the image's mean
+#: gray level, its standard deviation (both over every 4th pixel and row) and the
+#: time since the previous frame in seconds (the first frame: the next interval; 0
+#: with no frame times)
+SESSION_STATS = ("brightness", "contrast", "interval_s")
+
+
+def frame_stats(image: np.ndarray) -> tuple[float, float]:
+    """(mean, standard deviation) of an image's values, over every 4th pixel and row."""
+    a = np.asarray(image)[::4, ::4].astype(np.float32)
+    return float(a.mean()), float(a.std())
+
+
+def frame_intervals(t_s: list) -> np.ndarray:
+    """(F,) seconds between frames from their times (None: unknown -> 0); the first
+    frame takes the second's interval."""
+    t = np.array([np.nan if x is None else float(x) for x in t_s], np.float64)
+    dt = np.diff(t)
+    dt = np.concatenate([dt[:1], dt]) if len(dt) else np.zeros(len(t))
+    return np.nan_to_num(dt, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+
 @dataclass
 class ClipFeatures:
     """Per-frame features of one recording, frame 0 .. n_frames-1."""
@@ -44,6 +65,9 @@ class ClipFeatures:
     fps: float | None
     seconds: float = 0.0          # time spent extracting
     imu: np.ndarray | None = None  # (F, 6) from the simulator's truth, sim:// only
+    #: (F, 3) float32 per-frame statistics that carry a recording session, not the
+    #: surface: :data:`SESSION_STATS` (the recording-identity check reads them)
+    session: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -63,6 +87,7 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
                        layout_px=None if mapper is None else mapper.layout_px)
     stream = enc.stream
     vecs, losts, grids, crops, contact, ready, faults = [], [], [], [], [], [], []
+    stats, times = [], []
     t0 = time.perf_counter()
     with tqdm(total=n_frames, desc=desc or "features", unit="frame", file=sys.stderr,
               disable=(not progress) or None, leave=False) as bar:   # None: off if no tty
@@ -70,6 +95,8 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
             image = getattr(fr, "image", fr)
             t_s = getattr(fr, "t_s", None)
             ef = enc.encode(image, t_s)
+            stats.append(frame_stats(image))
+            times.append(t_s if t_s is not None else (len(times) / fps if fps else None))
             ff = ef.features
             vecs.append(ef.vectors.copy())
             losts.append(ef.lost.copy())
@@ -92,4 +119,6 @@ def extract_features(frames: Iterable, profile: str = "roboskin", frame_size: in
         grids=stack(grids, (g, g), np.float32),
         frames=stack(crops, (frame_size, frame_size), np.uint8) if frame_size else None,
         contact=np.array(contact, bool).reshape(F), ready=np.array(ready, bool).reshape(F),
-        faults=np.array(faults, np.int32).reshape(F), fps=fps, seconds=seconds)
+        faults=np.array(faults, np.int32).reshape(F), fps=fps, seconds=seconds,
+        session=np.column_stack([np.array(stats, np.float32).reshape(F, 2),
+                                 frame_intervals(times)]).astype(np.float32))

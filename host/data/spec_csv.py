@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import parse_qsl, urlsplit
@@ -21,6 +21,8 @@ from host.data.recordings import file_recording, source_recording
 from host.data.spec_npz import load_npz
 from host.data.windows import (IMU_CHANNELS, DataError, TrialPart, WindowSet, check_labels,
                                finalise, keep_contact, stack_parts, window_ends, window_labels)
+
+_log = logging.getLogger(__name__)
 
 MANIFEST_COLUMNS = ("path", "label", "start_frame", "end_frame", "imu")
 
@@ -271,7 +273,7 @@ def load_manifest(path: Path, task: str, T: int, stride: int, contact_only: bool
         if imu_missing and arrays["imu"] is None and len(imu_missing) < len(clip_rows):
             msg = (f"{path}: imu dropped for every window: rows {imu_missing} have no imu "
                    f"(give every row an imu .npy, or none)")
-            warnings.warn(msg, stacklevel=3)
+            _log.warning("%s", msg)           # one log line, not a UserWarning
             notes.append(msg)
         src = {"specs": [str(path)], "trials": [dict(v, group=i) for i, v in
                                                 enumerate(trials.values())],

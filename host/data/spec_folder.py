@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from host.data.dataset import DatasetError, load_trial, read_index
-from host.data.extract import extract_features
+from host.data.extract import extract_features, frame_intervals
 from host.data.recordings import sim_recording
 from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
                                check_labels, finalise, keep_contact, stack_parts, window_ends,
@@ -25,6 +25,12 @@ def trial_recording(path: Path, entry: dict) -> dict:
     if entry.get("scene") is not None and entry.get("seed") is not None:
         return sim_recording(entry["scene"], entry["seed"])
     return {"id": f"trial:{path.resolve() / entry.get('file', '')}"}
+
+
+def _names(paths: list[str], most: int = 5) -> str:
+    names = [Path(p).name for p in paths]
+    return str(names[:most])[:-1] + (f", ... {len(names) - most} more]" if len(names) > most
+                                     else "]")
 
 
 def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
@@ -67,6 +73,9 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
                                     fps=float(entry.get("fps") or 0) or None)
             truth = {k: tr[k] for k in ("contact", "surface", "texture", "slip", "load_n", "imu")
                      if k in tr}
+            t_s = tr.get("t_s") if hasattr(tr, "get") else None
+            if t_s is not None and len(t_s) == clip.n_frames and clip.session is not None:
+                clip.session[:, -1] = frame_intervals(list(np.asarray(t_s, np.float64)))
             cache[key] = (clip, truth)
         F = clip.n_frames
         need = {"surface": "surface", "texture": "texture", "slip": "slip",
@@ -114,6 +123,13 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
                      "seed": entry.get("seed"), "recording": rec}
         parts.append(TrialPart(clip, ends, labels, targets, contact, imu, i, 0, F,
                                rec["id"], int(rec.get("start_frame") or 0)))
+    with_imu = [trials[p.trial]["path"] for p in parts if p.imu is not None]
+    if with_imu and len(with_imu) < len(parts):
+        without = [trials[p.trial]["path"] for p in parts if p.imu is None]
+        raise DataError(f"{path}: trials {_names(with_imu)} have an IMU and "
+                        f"{_names(without)} have none, so the IMU would be dropped for "
+                        f"every trial: record every trial with --imu, or move the trials "
+                        f"without it to a folder of their own")
     parts, cut, kept = keep_contact(parts, contact_only)
     arrays = stack_parts(parts, task, T, trials)
     notes = [f"{dropped_ref} windows dropped: they start before the reference frame"] \

@@ -44,7 +44,7 @@ DEFAULT_FRAME_SIZE = 32
 # ----------------------------------------------------------------------------
 
 _PER_WINDOW = ("vectors", "lost", "imu", "grids", "frames", "contact", "labels", "targets",
-               "groups", "t_index", "trial_len", "recordings", "frame_index")
+               "groups", "t_index", "trial_len", "recordings", "frame_index", "session")
 
 
 @dataclass
@@ -79,6 +79,9 @@ class WindowSet:
     source: dict = field(default_factory=dict)
     recordings: np.ndarray | None = None   # (N,) str (object) recording id
     frame_index: np.ndarray | None = None  # (N,) int64, last frame in the recording
+    #: (N, T, 3) float32 per-frame session statistics (host.data.extract.SESSION_STATS:
+    #: brightness, contrast, interval between frames), None when the loader has none
+    session: np.ndarray | None = None
 
     def recording_ids(self) -> np.ndarray:
         """(N,) recording id of each window; without ``recordings``, one per trial
@@ -134,7 +137,7 @@ class WindowSet:
                                 f"{first.n_pins}; use one profile / pin layout")
         notes = []
         out = {}
-        for k in ("imu", "grids", "frames"):
+        for k in ("imu", "grids", "frames", "session"):
             have = [getattr(s, k) is not None for s in sets]
             if all(have):
                 shapes = {getattr(s, k).shape[2:] for s in sets}
@@ -143,7 +146,7 @@ class WindowSet:
                 out[k] = np.concatenate([getattr(s, k) for s in sets])
             else:
                 out[k] = None
-                if any(have):
+                if any(have) and k != "session":
                     notes.append(f"{k} dropped: sets {[i for i, h in enumerate(have) if not h]} "
                                  f"have none")
         for k in ("labels", "targets"):
@@ -246,13 +249,15 @@ def stack_parts(parts: list[TrialPart], task: str, T: int, trials: dict) -> dict
     keys = list(trials)
     out = {k: [] for k in ("vectors", "lost", "grids", "frames", "imu", "contact", "labels",
                            "targets", "groups", "t_index", "trial_len", "recordings",
-                           "frame_index")}
+                           "frame_index", "session")}
     for p in parts:
         ix = p.ends[:, None] + offs[None, :]
         out["vectors"].append(p.clip.vectors[ix])
         out["lost"].append(p.clip.lost[ix])
         out["grids"].append(p.clip.grids[ix])
         out["frames"].append(None if p.clip.frames is None else p.clip.frames[ix])
+        sess = getattr(p.clip, "session", None)
+        out["session"].append(None if sess is None else sess[ix])
         out["imu"].append(None if p.imu is None else p.imu[ix].astype(np.float32))
         out["contact"].append(p.contact)
         out["labels"].append(p.labels)

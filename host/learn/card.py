@@ -113,11 +113,40 @@ def _rec(path, frames=None) -> dict:
             "frames": frames}
 
 
+def _folder_recordings(p: Path) -> list[dict]:
+    """A dataset folder's trials, one row each: the trial file, and the clip it was
+    recorded from with that clip's sha256 (``host record``); a trial without a clip
+    (a simulated run, a rig trial) gives its own file's. Without a readable
+    dataset.json: the folder, with dataset.json's checksum."""
+    try:
+        trials = json.loads((p / "dataset.json").read_text()).get("trials") or []
+    except (OSError, ValueError, AttributeError):
+        trials = None
+    if not isinstance(trials, list) or not trials:
+        return [dict(_rec(p / "dataset.json"), path=str(p))]
+    out = []
+    for t in trials:
+        t = t if isinstance(t, dict) else {}
+        rec = t.get("recording") if isinstance(t.get("recording"), dict) else {}
+        row = _rec(p / str(t.get("file", "")))
+        start, n = rec.get("start_frame"), t.get("frames")
+        if rec.get("sha256"):
+            row.update(sha256=rec["sha256"], clip=rec.get("file") or rec.get("id"))
+        elif rec.get("id"):
+            row["clip"] = rec["id"]
+        if isinstance(start, int) and isinstance(n, int):
+            row["frames"] = f"{start}..{start + n}"
+        out.append(row)
+    return out
+
+
 def recordings_of(specs) -> list[dict]:
     """The recordings of data ``specs``: each row of a CSV manifest (its file, with the
     frame range when the row gives one), a dataset folder (its dataset.json), an
     ``.npz``. Each ``{"path", "sha256", "frames"}``; sha256 null where the source is
-    not a file (``sim://``, a folder of images) or is missing."""
+    not a file (``sim://``, a folder of images) or is missing. A dataset folder
+    gives one row per trial, with ``clip``: the clip it was recorded from and that
+    clip's sha256 (:func:`_folder_recordings`)."""
     out = []
     for spec in specs or []:
         p = Path(spec)
@@ -134,7 +163,7 @@ def recordings_of(specs) -> list[dict]:
                     out.append(_rec(full, frames) if "://" not in src else
                                {"path": src, "sha256": None, "frames": frames})
         elif p.is_dir():
-            out.append(dict(_rec(p / "dataset.json"), path=str(p)))
+            out += _folder_recordings(p)
         else:
             out.append(_rec(p))
     return out
@@ -224,16 +253,32 @@ def _int8_line(spec: ModelSpec) -> str:
 
 
 def _identity_lines(spec: ModelSpec) -> list[str]:
-    """The recording-identity check's warning (host.learn.identity), where the spec's
-    metrics carry one."""
-    out = []
+    """The recording-identity check (host.learn.identity): its verdict per class, or
+    why there is none (not run, a rule, one recording a class), and its warning,
+    where the spec's metrics carry one."""
+    from host.learn.identity import verdict_lines
+    check = spec.measured.identity
+    if isinstance(check, dict) and (check.get("classes") or check.get("skipped")):
+        verdict = check.get("verdict") or ("flagged" if check.get("flagged") else
+                                           "no verdict" if check.get("skipped") else
+                                           "not flagged")
+        out = [f"- recording-identity check: {verdict}"
+               + (f" ({check['skipped']})" if check.get("skipped") else "")]
+        out += [f"  - {line}" for line in verdict_lines(check) if not check.get("skipped")]
+    elif spec.model == "rule":
+        out = ["- recording-identity check: not run (a rule learns no recording)"]
+    else:
+        out = ["- recording-identity check: not run (`host train --no-identity-check`, "
+               "or a model made before the check)"]
+    warned = False
     for k in ("test", "cv", "train"):
         w = (spec.metrics.get(k) or {}).get("identity_warning")
         if w and f"- warning: {w}" not in out:
             out.append(f"- warning: {w}")
-    if out:
-        out.append("  - the recording-identity check (host.learn.identity): the same model "
-                   "kind tells apart recordings of one class; test on a separate recording")
+            warned = True
+    if warned:
+        out.append("  - the recording-identity check (host.learn.identity): a simple probe "
+                   "tells apart recordings of one class; test on a separate recording")
     return out
 
 
@@ -276,8 +321,8 @@ def card_text(spec: ModelSpec, name: str = "") -> str:
              + (f", {t['trials_per_kind']} trials per kind" if t.get("trials_per_kind")
                 else "")]
     if recs:
-        lines += ["", "| recording | sha256 | frames |", "|---|---|---|"]
-        lines += [f"| {r['path']} | {str(r.get('sha256') or '-')[:12]} | "
+        lines += ["", "| recording | clip | sha256 | frames |", "|---|---|---|---|"]
+        lines += [f"| {r['path']} | {r.get('clip') or '-'} | {r.get('sha256') or '-'} | "
                   f"{r.get('frames') if r.get('frames') is not None else 'all'} |"
                   for r in recs]
     lines += ["", "## Protocol", "", f"- {t.get('split') or 'not recorded'}"]

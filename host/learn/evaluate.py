@@ -30,7 +30,7 @@ from host.learn.metrics import (add_intervals, classification_metrics, regressio
                                 slip_latency)
 from host.learn.tasks import label_ids
 
-__all__ = ["evaluate_model", "load_variant", "percentiles", "variant_manifest", "VARIANTS"]
+__all__ = ["evaluate_model", "eval_summary", "load_variant", "percentiles", "variant_manifest", "VARIANTS"]
 
 
 def variant_manifest(model_dir, variant: str | None) -> Path:
@@ -191,3 +191,34 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     res["decision_delay_ms"] = {f"{fps}fps": round(1000.0 * ws.window / fps, 3)
                                 for fps in (30, 120)}
     return res
+
+
+def eval_summary(res: dict) -> str:
+    """A short text summary of an :func:`evaluate_model` result (``host eval`` prints it
+    without ``--json``): the model, the headline figure with its interval and number of
+    windows, per-class recall, the latency, and the recording-identity check's verdict
+    lines when the result carries one."""
+    m = res.get("metrics") or {}
+    head = f"{res.get('model_dir')} ({res.get('task')} {res.get('model')}, " \
+           f"{res.get('variant')}, T={res.get('T')}) on {res.get('n_windows')} windows:"
+    figs = []
+    for k in ("accuracy", "macro_f1", "mae"):
+        if isinstance(m.get(k), (int, float)):
+            ci = m.get(f"{k}_ci95")
+            figs.append(f"{k} {m[k]:.4g}" + (f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %)"
+                                             if isinstance(ci, list) and len(ci) == 2 else ""))
+    lines = [f"{head} " + ", ".join(figs or ["no metrics"])]
+    per = m.get("per_class")
+    if isinstance(per, dict) and per:
+        lines.append("  recall: " + ", ".join(
+            f"{c} {v['recall']:.3g}" for c, v in per.items()
+            if isinstance(v, dict) and isinstance(v.get("recall"), (int, float))))
+    lat = res.get("latency_ms") or {}
+    if lat.get("p50") is not None:
+        lines.append(f"  latency: median {lat['p50']:.3g} ms, p99 {lat['p99']:.3g} ms "
+                     f"(one thread); --json prints every figure")
+    check = res.get("identity_check")
+    if isinstance(check, dict):
+        from host.learn.identity import verdict_lines
+        lines += [f"  identity check: {line}" for line in verdict_lines(check)]
+    return "\n".join(lines)

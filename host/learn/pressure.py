@@ -44,10 +44,27 @@ import numpy as np
 
 from host.learn.tasks import TrainError
 
-__all__ = ["KINDS", "tracked_class", "pressure_pipeline", "nested_alpha", "fit_pressure",
+__all__ = ["check_pin_count", "KINDS", "tracked_class", "pressure_pipeline", "nested_alpha", "fit_pressure",
            "cross_validate_pressure", "bootstrap_mae", "checked_onnx", "export_pressure",
            "hard_plate", "hard_plate_npz",
            "main"]
+
+
+def check_pin_count(ws, profile, where: str = "the data") -> None:
+    """Refuse, in one line, windows whose marker count is not the sensor profile's
+    pin count (e.g. 133-marker data with a 130-pin profile): the leg refuses such a
+    model, so training should not make it. ``profile``: a built-in name, a ``.toml``
+    path or a profile record (with ``n_pins``)."""
+    if isinstance(profile, dict):
+        n, name = int(profile["n_pins"]), profile.get("name", "?")
+    else:
+        from device.profile import load_pipeline_profile
+        prof = load_pipeline_profile(profile if profile is not None else "roboskin")
+        n, name = prof.n_pins, profile
+    if ws.n_pins != n:
+        raise TrainError(f"{where} has {ws.n_pins} markers a frame but the profile {name} "
+                         f"has n_pins={n}: give the profile the data was recorded with "
+                         f"(--profile), or record the data with this one")
 
 KINDS = ("gbt", "ridge", "ridge150-raw")
 #: the alphas :func:`nested_alpha` chooses from

@@ -48,3 +48,28 @@ def test_loader_features_equal_the_encoders(drag_frames):
     # the drag moves the pins: the encoding is not all zeros once in contact
     assert np.abs(clip.vectors[-1]).max() > 0.5
 
+
+
+def test_each_frame_carries_the_statistics_of_its_session(sim_ds, cache):
+    """Brightness, contrast and the interval between frames, per frame, reach the
+    windows (the recording-identity check reads them): a darker copy of a trial and
+    its frames twice as far apart show in them."""
+    from types import SimpleNamespace
+
+    from host.data.extract import SESSION_STATS
+    frames = load_trial(sim_ds, 0)["frames"][:20]
+    a = extract_features([SimpleNamespace(image=f, t_s=i / 120) for i, f in enumerate(frames)],
+                         progress=False)
+    b = extract_features([SimpleNamespace(image=(f * np.float32(0.5)).astype(np.uint8),
+                                          t_s=i / 60) for i, f in enumerate(frames)],
+                         progress=False)
+    assert a.session.shape == (20, len(SESSION_STATS))
+    bright, contrast, dt = SESSION_STATS.index("brightness"), SESSION_STATS.index("contrast"), \
+        SESSION_STATS.index("interval_s")
+    np.testing.assert_allclose(b.session[:, bright], a.session[:, bright] / 2, atol=0.6)
+    assert (b.session[:, contrast] < 0.6 * a.session[:, contrast]).all()
+    np.testing.assert_allclose(a.session[:, dt], 1 / 120, rtol=1e-4)
+    np.testing.assert_allclose(b.session[:, dt], 1 / 60, rtol=1e-4)
+    ws = load_spec(str(sim_ds), "surface", 3, progress=False, cache=cache)
+    assert ws.session is not None and ws.session.shape == (len(ws), 3, len(SESSION_STATS))
+    assert ws.subset([0, 1]).session.shape[0] == 2

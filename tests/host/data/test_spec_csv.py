@@ -114,7 +114,7 @@ def test_bad_pressure_labels_and_imu_files(tmp_path, write_csv):
 
 @pytest.mark.real
 def test_real_roboskin_smooth_vs_concrete_manifest(tmp_path, write_csv,
-                                                   assert_time_split_ok):
+                                                   assert_time_split_ok, caplog):
     from tests.realdata import real_data_dir
     base = real_data_dir("roboskin/smooth.avi", "roboskin/concrete.avi",
                          "roboskin/concrete_gyro.npy") / "roboskin"
@@ -126,11 +126,14 @@ def test_real_roboskin_smooth_vs_concrete_manifest(tmp_path, write_csv,
     ])
     cache = {}
     T = 5
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level("WARNING"):
         warnings.simplefilter("always")
         ws = load_spec(str(m), "texture", T, contact_only=True, progress=False, cache=cache)
-    # smooth.avi has no IMU: imu is dropped for all rather than leaking the label
-    assert ws.imu is None and any("imu dropped" in str(w.message) for w in caught)
+    # smooth.avi has no IMU: imu is dropped for all rather than leaking the label, said
+    # in one log line naming the rows (no Python UserWarning with its source line)
+    assert ws.imu is None and not [w for w in caught if "imu" in str(w.message)]
+    said = [r.getMessage() for r in caplog.records if "imu dropped" in r.getMessage()]
+    assert len(said) == 1 and "rows [1]" in said[0] and "\n" not in said[0]
     assert ws.classes == ["concrete", "smooth"]
     assert ws.vectors.shape[1:] == (T, 133, 2) and np.isfinite(ws.vectors).all()
     assert np.isfinite(ws.grids).all() and ws.frames.shape[1:] == (T, 32, 32)

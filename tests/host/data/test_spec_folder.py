@@ -107,3 +107,26 @@ def test_a_dataset_listing_a_trial_twice_is_refused_before_any_window_leaks(sim_
     (ds / "dataset.json").write_text(json.dumps(doc))
     with pytest.raises(DataError, match=r"listed twice: trials\[3\] trial_0000\.npz"):
         load_spec(str(ds), "surface", 2, progress=False)
+
+
+def test_a_folder_mixing_trials_with_and_without_an_imu_is_refused_naming_them(
+        sim_ds, tmp_path):
+    """One trial with an IMU and one without would train without the IMU, silently:
+    refused in one line naming the trials of each kind."""
+    from host.data.dataset import DatasetWriter, read_index
+    index = read_index(sim_ds)
+    meta = {k: v for k, v in index.items() if k not in ("trials", "format", "version")}
+    out = tmp_path / "mixed"
+    with DatasetWriter(out, meta=meta) as w:
+        for i, keep_imu in ((0, True), (2, False)):
+            tr = load_trial(sim_ds, i)
+            truth = {k: tr[k] for k in ("contact", "surface", "texture", "slip", "load_n",
+                                         "imu") if k in tr and (k != "imu" or keep_imu)}
+            w.add_trial(np.asarray(tr["frames"]), truth,
+                        {k: v for k, v in tr["info"].items() if k not in ("file", "bytes",
+                                                                          "frames")})
+    with pytest.raises(DataError) as exc:
+        load_spec(str(out), "surface", 3, progress=False)
+    msg = str(exc.value)
+    assert "\n" not in msg and "['trial_0000.npz'] have an IMU" in msg
+    assert "['trial_0001.npz'] have none" in msg

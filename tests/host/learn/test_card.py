@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+
+import numpy as np
 from pathlib import Path
 
 import pytest
@@ -142,3 +144,48 @@ def test_measure_cost_times_given_inputs_and_refuses_too_few_runs():
     c = measure_cost(folder, spec, inputs=x, runs=20, budget_s=0.0)
     assert c["inputs"] == "a window of its own inputs"
     assert all(r["n"] == 20 for r in c["files"].values())
+
+
+def test_the_card_records_the_identity_verdict_or_why_there_is_none():
+    """The check's verdict per class (host.learn.identity) is on the card; one
+    recording a class gives 'no verdict' and what would settle it; no check recorded
+    says it was not run."""
+    import dataclasses
+    from host.learn.identity import identity_check
+    from tests.windows import synthetic
+    spec, _ = read_spec(ROOT / "models" / "texture")
+    ws = synthetic(n_groups=2, per_group=60, classes=("a", "b"), imu=False)
+    ws.recordings = np.array(["ra", "rb"], object)[ws.groups]
+    check = identity_check(ws, "texture", "fnn")
+    spec = dataclasses.replace(spec, measured=dataclasses.replace(spec.measured,
+                                                                  identity=check))
+    text = card_text(spec, "texture")
+    assert "- recording-identity check: no verdict" in text
+    assert "record a second session of a to check" in text
+    none = dataclasses.replace(spec, measured=dataclasses.replace(spec.measured, identity=None))
+    assert "- recording-identity check: not run" in card_text(none, "texture")
+
+
+def test_a_dataset_folder_names_each_clip_with_its_checksum(tmp_path):
+    """A dataset folder's recordings are its trials, each with the clip it was
+    recorded from and that clip's full sha256, on the card too."""
+    import dataclasses
+    import json
+    sha = hashlib.sha256(b"clip").hexdigest()
+    (tmp_path / "trial_0000.npz").write_bytes(b"t0")
+    (tmp_path / "trial_0001.npz").write_bytes(b"t1")
+    (tmp_path / "dataset.json").write_text(json.dumps({"trials": [
+        {"file": "trial_0000.npz", "frames": 100,
+         "recording": {"id": "a.avi sha256:x", "file": "a.avi", "sha256": sha,
+                       "start_frame": 5}},
+        {"file": "trial_0001.npz", "frames": 50, "recording": {"id": "simulated:walk seed 1"}},
+    ]}))
+    recs = recordings_of([str(tmp_path)])
+    assert recs[0] == {"path": str(tmp_path / "trial_0000.npz"), "sha256": sha,
+                       "frames": "5..105", "clip": "a.avi"}
+    assert recs[1]["sha256"] == hashlib.sha256(b"t1").hexdigest()
+    assert recs[1]["clip"] == "simulated:walk seed 1"
+    spec, _ = read_spec(ROOT / "models" / "texture")
+    t = dict(spec.measured.trained_on, recordings=recs)
+    spec = dataclasses.replace(spec, measured=dataclasses.replace(spec.measured, trained_on=t))
+    assert f"| a.avi | {sha} | 5..105 |" in card_text(spec, "texture")

@@ -102,3 +102,24 @@ def test_windows_of_another_pin_count_name_the_models_profile_as_the_fix(tmp_pat
                                          r"'roboskin' has 133: load the data with the model's "
                                          r"profile"):
         evaluate_model(tmp_path / "m", other)
+
+
+def test_the_text_summary_is_short_and_carries_the_headline_with_its_interval(
+        surface_model, surface_sets):
+    """host eval without --json prints this summary, not the JSON: a few lines, the
+    accuracy with its interval and window count, and the identity verdict lines."""
+    import json
+
+    from host.learn.evaluate import eval_summary
+    res = evaluate_model(surface_model[1], surface_sets[1])
+    text = eval_summary(res)
+    lines = text.splitlines()
+    assert 2 <= len(lines) <= 4 and not text.lstrip().startswith("{")
+    acc, ci = res["metrics"]["accuracy"], res["metrics"]["accuracy_ci95"]
+    assert f"accuracy {acc:.4g} [{ci[0]:.4g}, {ci[1]:.4g}] (95 %)" in lines[0]
+    assert f"on {res['n_windows']} windows" in lines[0]
+    res["identity_check"] = {"flagged": False, "warning": None, "classes": {"a": {
+        "mode": "one recording", "verdict": "no verdict", "settle": "record a second session"}}}
+    assert "identity check: a (one recording): no verdict; record a second session" in \
+        eval_summary(res)
+    json.dumps(res)

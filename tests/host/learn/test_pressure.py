@@ -104,3 +104,16 @@ def test_hard_plate_grouped_cv_mae_at_most_180_and_beats_the_raw_ridge():
     assert res["mae"] <= 180 and res["mae_ci95"][1] <= 180, res
     assert res["mae"] < base["mae"], (res, base)
     assert res["mae"] <= 0.1 * res["mae_predict_mean"]
+
+
+def test_data_whose_marker_count_is_not_the_profiles_pin_count_is_refused_in_one_line():
+    """133-marker windows with a 130-pin profile: one line naming both counts (the
+    leg would refuse the model); the profile's own count passes."""
+    from host.learn.pressure import check_pin_count
+    from tests.windows import synthetic
+    ws = synthetic(n_groups=2, per_group=4, n_pins=133, targets=True)
+    check_pin_count(ws, "roboskin")
+    with pytest.raises(TrainError) as exc:
+        check_pin_count(ws, {"name": "mine", "n_pins": 130}, "plate.npz")
+    msg = str(exc.value)
+    assert "\n" not in msg and "plate.npz has 133 markers" in msg and "n_pins=130" in msg
