@@ -112,7 +112,7 @@ def augment_rates(ws, keeps=RATE_KEEPS, seed: int = 0):
         return parts[0]
     cat = {}
     for name in ("vectors", "lost", "imu", "contact", "labels", "targets", "groups", "t_index",
-                 "trial_len", "recordings", "frame_index"):
+                 "trial_len", "recordings", "frame_index", "session"):
         vals = [getattr(p, name) for p in parts]
         cat[name] = None if any(v is None for v in vals) else np.concatenate(vals)
     return replace(ws, **cat, grids=None, frames=None,
