@@ -404,3 +404,14 @@ def test_the_fused_graph_with_texture_decides_as_one_session_per_model_in_and_ou
     runs = fused.fused.graph_runs
     assert set(runs) == {("surface", "texture", "slip", "pressure"), ("surface", "slip", "pressure")}, runs
     assert all(n > 0 for n in runs.values())
+
+
+def test_the_log_names_both_contacts_and_the_decision_needs_the_pipelines(tmp_path):
+    """`contact` (the decision's) is never set without `pipeline_contact` (the marker
+    pipeline's), and a texture is only ever logged on a pipeline contact (issue 33)."""
+    recs, _ = _decisions(tmp_path, None, frames=60, scene="press-hard")
+    assert all(isinstance(r["pipeline_contact"], bool) for r in recs)
+    assert any(r["pipeline_contact"] for r in recs)
+    assert all(r["pipeline_contact"] for r in recs if r["contact"])
+    assert all(r["pipeline_contact"] for r in recs if r["texture"] is not None)
+
