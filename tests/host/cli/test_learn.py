@@ -205,10 +205,9 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
                                         "make install-cnn")
     import functools
 
-    import host.cli.learn as learn
+    import host.learn.cnn as cnn
     from device.pi.models.artefact import load_model
     from host.data.simulate import simulate_to_dataset
-    from host.learn.cnn import train_cnn
 
     ds = tmp_path / "ds"
     for preset in ("hard", "soft"):
@@ -216,8 +215,8 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
         scene.write_text(_TINY_PRESS.format(preset=preset))
         simulate_to_dataset(str(scene), ds, seed=0, trials=2, progress=False)
     # a small, short training (the command's own defaults take minutes)
-    monkeypatch.setattr(learn, "train_cnn",
-                        functools.partial(train_cnn, epochs=2, hidden=16, filters=2))
+    monkeypatch.setattr(cnn, "train_cnn",
+                        functools.partial(cnn.train_cnn, epochs=2, hidden=16, filters=2))
     # two simulated runs (recordings) per class: whole recordings are held out
     for extra, holdout in (([], "grouped split"), (["--test", str(ds)], "given")):
         out = tmp_path / f"m{len(extra)}"
