@@ -37,6 +37,8 @@ MARGIN = 0.2
 MIN_WINDOWS = 5
 #: most training epochs of the check's MLP (the model's own setting when lower)
 MAX_EPOCHS = 100
+#: a class's windows are thinned evenly to at most this many; the interval's resamples
+MAX_WINDOWS, N_BOOT = 3000, 1000
 
 
 def _position(ws, idx: np.ndarray) -> np.ndarray:
@@ -67,8 +69,7 @@ def _pseudo_recordings(ws, idx: np.ndarray, T: int) -> tuple[np.ndarray, np.ndar
 
 
 def identity_check(ws, task: str, model: str, hp: dict | None = None,
-                   uses_imu: bool = False, seed: int = 0, margin: float = MARGIN,
-                   max_windows: int = 3000, n_boot: int = 1000) -> dict:
+                   uses_imu: bool = False, seed: int = 0, margin: float = MARGIN) -> dict:
     """Run the check on the windows ``ws`` with the model kind ``model`` (its
     hyperparameters ``hp``, default :func:`hyperparameters`). Returns a JSON-able
     dict: ``classes`` (per class: the recordings or halves, ``mode``,
@@ -94,8 +95,8 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
     rng = np.random.default_rng(seed)
     for c in sorted(set(labels.tolist()) - {NO_TOUCH}):
         idx = np.flatnonzero(labels == c)
-        if len(idx) > max_windows:              # an even thinning keeps the time order
-            idx = idx[np.sort(rng.choice(len(idx), max_windows, replace=False))]
+        if len(idx) > MAX_WINDOWS:              # an even thinning keeps the time order
+            idx = idx[np.sort(rng.choice(len(idx), MAX_WINDOWS, replace=False))]
         idx, pseudo, mode = _pseudo_recordings(ws, idx, T)
         ids = sorted(set(pseudo.tolist()))
         train, test = np.zeros(len(idx), bool), np.zeros(len(idx), bool)
@@ -113,15 +114,14 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
             continue
         X = model_inputs(ws.subset(idx), LAYOUT[model], uses_imu)
         y = np.array([ids.index(r) for r in pseudo], np.int64)
-        pipe, _ = fit_estimator(task, model, X[train], y[train], len(ids), hp, seed, False,
-                                f"identity {c}")
+        pipe, _ = fit_estimator(task, model, X[train], y[train], len(ids), hp, seed)
         pred = np.asarray(pipe.predict(X[test])).reshape(-1).astype(np.int64)
         correct = (pred == y[test]).astype(np.float64)
         te_idx = np.flatnonzero(test)
         order = {r: np.flatnonzero(pseudo[te_idx] == r)[
             np.argsort(_position(ws, idx[te_idx[pseudo[te_idx] == r]]), kind="stable")]
             for r in ids}
-        rids, sums, counts, _ = block_bootstrap(correct, pseudo[te_idx], T, order, n_boot,
+        rids, sums, counts, _ = block_bootstrap(correct, pseudo[te_idx], T, order, N_BOOT,
                                                 seed)
         per = {r: float(correct[pseudo[te_idx] == r].mean()) for r in rids}
         bal = float(np.mean(list(per.values())))

@@ -182,9 +182,8 @@ def cross_validation(run, p: Plan) -> dict | None:
     if cfg.cv is None:
         return None
     t0 = time.perf_counter()
-    out = cross_validate_model(cfg.task, cfg.model, run.train, cfg.cv, cfg.seed, p.uses_imu,
-                               run.progress, classes=run.classes or None, augment=cfg.augment,
-                               profile=cfg.profile, **p.hp)
+    out = cross_validate_model(cfg, run.train, p.hp, uses_imu=p.uses_imu,
+                               classes=run.classes or None, progress=run.progress)
     out["cv_s"] = round(time.perf_counter() - t0, 3)
     return out
 
@@ -194,8 +193,8 @@ def fit_export(run, p: Plan, e: Encoded) -> tuple[bytes, dict]:
     its fit record."""
     cfg = run.cfg
     pipe, fit_info = fit_estimator(cfg.task, cfg.model, e.X, e.y, len(run.classes), p.hp,
-                                   cfg.seed, run.progress,
-                                   f"{cfg.task} {cfg.model} T={run.train.window}")
+                                   cfg.seed, f"{cfg.task} {cfg.model} T={run.train.window}"
+                                   if run.progress else None)
     if cfg.model == "gbt":
         onnx_model, fit_info["onnx_parity"] = checked_onnx(pipe, e.X, e.y)
     else:
