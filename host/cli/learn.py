@@ -235,10 +235,12 @@ def figure_text(res: dict) -> str:
     if held.get("given"):
         parts.append(f"given test data ({held['given']} windows)")
     cv = metrics.get("cv") or {}
-    cv_text = ", ".join(f"{k} {cv[k]:.4g}" for k in ("accuracy", "macro_f1", "mae")
+    cv_text = ", ".join(f"{k} {cv[k]:.4g}" + _interval(cv, k)
+                        for k in ("accuracy", "macro_f1", "mae")
                         if isinstance(cv.get(k), (int, float)))
     if cv_text:
-        parts.append(f"{cv.get('k', '')}-fold grouped CV {cv_text}".lstrip("-"))
+        parts.append(f"grouped {cv.get('folds')}-fold CV (--cv, on the training windows): "
+                     f"{cv_text}")
     int8 = res.get("int8")
     if isinstance(int8, dict) and "agreement" in int8:
         parts.append(f"int8 agreement {int8['agreement']:.4f}")
@@ -274,7 +276,8 @@ def _interval(m: dict, key: str) -> str:
     ci = m.get(f"{key}_ci95")
     if not (isinstance(ci, list) and len(ci) == 2):
         return ""
-    return f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %), n={m.get('n_windows')} windows"
+    n = m.get("n_windows", m.get("n"))
+    return f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %)" + (f", n={n} windows" if n else "")
 
 
 def cmd_eval(args):

@@ -200,7 +200,9 @@ duration_s = 0.1
 def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch):
     """--model cnn --quantise, with the default held-out split and with --test: the
     int8 model is calibrated on the training windows and becomes the default; both
-    variants load. (Before the fix: an index out of range, or an unbound name.)"""
+    variants load, and each manifest is written once, as for the other kinds (the
+    CNN's used to be written three times). (Before the fix: an index out of range,
+    or an unbound name.)"""
     pytest.importorskip("torch", reason="the CNN needs PyTorch, the optional 'cnn' extra: "
                                         "make install-cnn")
     import functools
@@ -218,14 +220,23 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
     monkeypatch.setattr(cnn, "train_cnn",
                         functools.partial(cnn.train_cnn, epochs=2, hidden=16, filters=2))
     # two simulated runs (recordings) per class: whole recordings are held out
+    written = []
+    real = os.replace
+    monkeypatch.setattr(os, "replace", lambda a, b: written.append(os.path.basename(b))
+                        or real(a, b))
     for extra, holdout in (([], "grouped split"), (["--test", str(ds)], "given")):
         out = tmp_path / f"m{len(extra)}"
+        written.clear()
         rc = main(["train", "--task", "surface", "--model", "cnn", "--window", "2",
                    "--data", str(ds), *extra, "--quantise", "--out", str(out), "--json"])
         res = json.loads(capsys.readouterr().out)
         assert rc == 0 and res["holdout"].startswith(holdout)
         assert "agreement" in res["int8"]
+        assert [w for w in written if w.startswith("manifest")] == \
+            ["manifest.json", "manifest.float.json"]
         man = json.loads((out / "manifest.json").read_text())
+        assert man["measured"]["int8"]["agreement"] == res["int8"]["agreement"]
+        assert set(man["measured"]["cost_per_decision"]["files"]) == set(man["files"])
         assert man["variant"] == "int8" and man["model"] == "cnn"
         assert man["classes"] == ["hard", "no-touch", "soft"]
         for m in ("manifest.json", "manifest.float.json"):
@@ -442,3 +453,56 @@ def test_the_shipped_pressure_model_replays_from_its_train_toml(tmp_path, capsys
                                                    ROOT / "models" / "pressure" / "train.toml"))
     assert {k: again[k] for k in ("module", "name", "task", "model", "T", "seed")} == \
         {k: shipped[k] for k in ("module", "name", "task", "model", "T", "seed")}
+
+
+# -- the recording is the unit (issue 33): what host train prints --------------------
+
+def test_train_prints_the_held_out_recordings_and_its_cv_figure_beside_it(tmp_path, capsys):
+    """Four recordings (trials of an .npz) a class: whole recordings are held out,
+    the printed figure names them with their window counts, and --cv's figure is
+    printed beside the held-out one."""
+    data = _texture_npz(tmp_path / "v.npz")
+    out = tmp_path / "m"
+    rc = main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+               "--cv", "2", "--no-identity-check", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    man = json.loads((out / "manifest.json").read_text())
+    held = man["metrics"]["test"]["held_out"]
+    assert held["inside"] == {} and len(held["whole"]) >= 2
+    assert man["metrics"]["test"]["protocol"] == "leave-recordings-out"
+    shown = ", ".join(f"{r} ({n} windows)" for r, n in sorted(held["whole"].items()))
+    assert f"held-out recordings: {shown}" in text
+    assert "optimistic" not in text
+    cv = man["metrics"]["cv"]
+    assert re.search(rf"held-out accuracy {man['metrics']['test']['accuracy']:.4g} .*; "
+                     rf"grouped 2-fold CV \(--cv, on the training windows\): accuracy "
+                     rf"{cv['accuracy']:.4g} \[", text), text
+
+
+def test_train_holds_out_a_whole_recording_of_a_class_with_two_and_says_the_other_is_split_inside(
+        tmp_path, clips, capsys):
+    """Class rough has two recordings (two clips), class smooth one: a whole rough
+    clip is held out, smooth's clip is split in time, and the printed figure says
+    which is which, the split inside one recording marked optimistic."""
+    spec = tmp_path / "tex.csv"
+    spec.write_text("path,label,start_frame,end_frame\n"
+                    f"{clips / 'smooth.avi'},smooth,0,200\n"
+                    f"{clips / 'concrete.avi'},rough,0,200\n"
+                    f"{clips / 'lego_train.avi'},rough,0,200\n")
+    out = tmp_path / "m"
+    rc = main(["train", "--task", "texture", "--model", "fnn", "--window", "3", "--data",
+               str(spec), "--no-identity-check", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    test = json.loads((out / "manifest.json").read_text())["metrics"]["test"]
+    held = test["held_out"]
+    (whole,) = held["whole"]
+    (inside,) = held["inside"]
+    assert whole.split(" sha256:")[0] in ("concrete.avi", "lego_train.avi")
+    assert inside.startswith("smooth.avi sha256:")
+    assert test["protocol"].startswith("leave-recordings-out where a class has two")
+    assert (f"held-out recordings: {whole.split(' sha256:')[0]} ({held['whole'][whole]} "
+            f"windows)") in text
+    assert (f"split inside one recording (optimistic: the same session): smooth.avi "
+            f"({held['inside'][inside]} windows)") in text
