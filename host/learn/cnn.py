@@ -101,9 +101,11 @@ def conv_out(size: int, kernel: int, stride: int, pool: int) -> int:
 # The estimator
 # ----------------------------------------------------------------------------
 
-def _build_net(torch, T: int, S: int, n_classes: int, filters: int, kernel: int,
-               stride: int, pool: int, hidden: int, dropout: float):
+def _build_net(torch, T: int, S: int, n_classes: int, est: "FrameCNN"):
+    """The network of the FrameCNN ``est``'s sizes for T frames of S x S."""
     nn = torch.nn
+    filters, kernel, stride, pool = est.filters, est.kernel, est.stride, est.pool
+    hidden, dropout = est.hidden, est.dropout
     side = conv_out(S, kernel, stride, pool)
     return nn.Sequential(
         nn.Conv2d(T, filters, kernel, stride=stride, padding=max(0, (kernel - stride) // 2)),
@@ -230,8 +232,7 @@ class FrameCNN:
         rng = np.random.default_rng(self.seed)
         self.loss_ = []
         with _TorchState(torch, self.seed, self.threads):
-            net = _build_net(torch, T, S, len(cls), self.filters, self.kernel, self.stride,
-                             self.pool, self.hidden, self.dropout)
+            net = _build_net(torch, T, S, len(cls), self)
             opt = torch.optim.Adam(net.parameters(), lr=self.lr,
                                    weight_decay=self.weight_decay)
             loss_fn = torch.nn.CrossEntropyLoss()

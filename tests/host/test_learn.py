@@ -14,7 +14,6 @@ MAX_PARAMS = 8
 KNOWN = {
     "host/learn/cnn.py:FrameCNN.__init__": "an estimator's hyperparameters, as keywords "
                                            "(scikit-learn's get_params convention)",
-    "host/learn/cnn.py:_build_net": "the network's sizes, from FrameCNN's hyperparameters",
 }
 
 

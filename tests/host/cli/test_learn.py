@@ -363,6 +363,35 @@ def test_train_config_replays_the_model_and_refuses_flags_beside_it(tmp_path, ca
     assert rc == 2 and "needs --task and --data" in capsys.readouterr().err
 
 
+def test_train_builds_one_config_from_the_flags_or_a_train_toml_and_leaves_args_alone(
+        tmp_path):
+    """The config is built once, from the flags (task defaults filled) or from a
+    train.toml; the parsed arguments are not changed (they used to be set onto)."""
+    import copy
+
+    from host.cli import build_parser
+    from host.cli.learn import train_config
+    from host.learn.config import TrainConfig
+
+    data = _texture_npz(tmp_path / "v.npz")
+    args = build_parser().parse_args(["train", "--task", "texture", "--data", str(data),
+                                      "--out", str(tmp_path / "m"), "--no-identity-check"])
+    before = copy.deepcopy(vars(args))
+    cfg = train_config(args)
+    assert vars(args) == before
+    assert cfg == TrainConfig("texture", DEFAULT_MODEL["texture"], T=DEFAULT_WINDOW["texture"],
+                              data=(str(data),), identity=False, measure=True)
+    toml = tmp_path / "train.toml"
+    from host.learn.card import write_train_toml
+    write_train_toml(tmp_path, cfg.but(seed=5).replay())
+    args = build_parser().parse_args(["train", "--config", str(toml), "--out",
+                                      str(tmp_path / "n")])
+    before = copy.deepcopy(vars(args))
+    again = train_config(args)
+    assert vars(args) == before
+    assert again == cfg.but(seed=5, data=(str(data.resolve()),), identity=True)
+
+
 @pytest.mark.real
 @pytest.mark.slow
 def test_train_pressure_default_reports_grouped_cv_mae_at_most_180_on_the_hard_plate(
