@@ -25,8 +25,9 @@ import numpy as np
 from device.checks import whole_number
 from device.errors import TacfootError
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "OPTIONAL_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "TASK_HIDDEN",
-           "TASK_RATES", "LAYOUT", "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "OPTIONAL_MODELS", "DEFAULT_MODEL",
+           "DEFAULT_WINDOW", "TASK_HIDDEN", "TASK_RATES", "LAYOUT", "TrainError",
+           "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
 MODELS = ("rule", "ridge", "fnn", "grid-fnn", "gbt", "cnn")

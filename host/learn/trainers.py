@@ -35,13 +35,12 @@ from host.learn.estimators import (default_uses_imu, fit_estimator, fit_rule, hy
                                    pipeline_to_onnx, rule_probs)
 from host.learn.identity import identity_check
 from host.learn.inputs import augment_rotations, model_inputs
-from host.learn.metrics import add_intervals, class_report, regression_metrics
+from host.learn.metrics import add_intervals
 from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, new_spec, run_onnx, session
 from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
 from host.learn.rates import augment_rates
-from host.learn.tasks import (LAYOUT, TASK_HIDDEN, TASK_RATES, QuantisationError, TrainError,
-                              label_ids)
+from host.learn.tasks import LAYOUT, TASK_HIDDEN, TASK_RATES, QuantisationError, TrainError
 
 __all__ = ["train_estimator", "train_rule", "train_frames_cnn", "fnn_temporal_spec",
            "recording_lost_pins", "texture_neighbours", "MAX_LOST_SHARE"]
