@@ -367,9 +367,10 @@ def train_frames_cnn(run) -> dict:
     check = (Xt, yt, run.test) if Xt is not None else (X, y, run.train)
     int8, qbytes = int8_step(run, fbytes, X[calibration_rows(
         run, len(X), min(cfg.calibration_windows, CNN_CALIBRATION))], check)
-    metrics = dict(res["metrics"], train=run.score(run.train, y, run_onnx(session(fbytes), X)))
+    sess = session(fbytes)                     # scored as the other kinds, by ONNX Runtime
+    metrics = dict(res["metrics"], train=run.score(run.train, y, run_onnx(sess, X)))
     if Xt is not None:
-        metrics["test"] = run.score(run.test, yt, run_onnx(session(fbytes), Xt))
+        metrics["test"] = run.score(run.test, yt, run_onnx(sess, Xt))
     result = dict(res, **run.result(metrics, "frames", int8, None))
     T, S = res["T"], res["frame_size"]
     keys = dict(cnn_spec_keys(res), metrics=metrics, int8=int8, **run.spec_keys(),
