@@ -28,7 +28,7 @@ from host.bench.sweep import Cell, aggregate, run_cells, time_models
 from host.data.dataset import atomic_write_text
 from host.data.load import load_specs
 from host.data.splits import split_holdout
-from host.learn.tasks import TASK_MODELS
+from host.learn.tasks import OPTIONAL_MODELS, TASK_MODELS
 from host.extras import need
 
 __all__ = ["REAL_WINDOWS", "SEEDS", "SIM_WINDOWS", "SIM_SEEDS", "TASK_KINDS",
@@ -63,8 +63,8 @@ def _have_torch() -> bool:
 
 
 def models_for(task: str, cnn: bool = True) -> list[str]:
-    models = list(TASK_MODELS[task])
-    if cnn and task != "pressure" and _have_torch():
+    models = [m for m in TASK_MODELS[task] if m not in OPTIONAL_MODELS]
+    if cnn and "cnn" in TASK_MODELS[task] and _have_torch():
         models.append("cnn")
     return models
 

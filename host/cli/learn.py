@@ -15,24 +15,21 @@ from host.cli.common import (SEED, UserError, emit, json_default, out_folder, re
                              whole, whole_list)
 from host.data.dataset import DatasetLocked, lock_folder
 from host.data.load import load_specs
-from host.data.splits import split_holdout
 from host.data.windows import DataError
 from host.learn.card import data_source, read_train_toml, recordings_of, write_model_docs
-from host.learn.cnn import quantise_cnn, train_cnn
 from host.learn.evaluate import evaluate_model
 from host.learn.onnx_io import models_profile
-from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, TrainError
-from host.learn.train import check_classes, train_model
+from host.learn.config import TrainConfig
+from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, MODELS, TASKS, TrainError
+from host.learn.train import train
 
 _log = logging.getLogger(__name__)
 
 
-def _load_windows(args, task: str, window: int, min_classes: int = 2, specs=None):
+def _load_windows(args, specs, task: str, window: int, profile: str, contact_only: bool):
     try:
-        return load_specs(specs or args.data, task=task, window=window,
-                          contact_only=getattr(args, "contact_only", False),
-                          profile=args.profile, progress=not args.json,
-                          min_classes=min_classes)
+        return load_specs(specs, task=task, window=window, contact_only=contact_only,
+                          profile=profile, progress=not args.json, min_classes=1)
     except FileNotFoundError as exc:       # a spec that names a missing file
         raise UserError(str(exc)) from None
 
@@ -41,10 +38,11 @@ def _jsonable(res: dict) -> dict:
     return {k: v for k, v in res.items() if k not in ("onnx", "estimator", "pipeline")}
 
 
-def _lock_out(args) -> int:
+def _lock_out(args) -> tuple[int, bool]:
     """The ``--out`` folder, created and locked (:func:`host.data.dataset.lock_folder`)
     for this run: a second ``host train`` into it is refused (exit 2) instead of the
-    two writing over each other. The descriptor holding the lock."""
+    two writing over each other. The descriptor holding the lock, and whether the
+    folder was created here."""
     out = out_folder(args.out, force=args.force)
     created = not out.exists()
     try:
@@ -60,39 +58,39 @@ def _lock_out(args) -> int:
     except OSError as exc:
         raise UserError(f"--out {out}: cannot lock the folder ({exc.strerror or exc})") \
             from None
-    args.out_created = created
     try:
         out_folder(out, force=args.force)   # filled by a run that ended since the first check
     except BaseException:
         os.close(fd)
         raise
-    return fd
+    return fd, created
 
 
-#: the settings of host train that train.toml holds (flag name -> config key)
-CONFIG_KEYS = {"task": "task", "model": "model", "window": "T", "data": "data",
-               "test": "test", "cv": "cv", "quantise": "quantise",
-               "contact_only": "contact_only", "profile": "profile", "seed": "seed"}
+#: the flags of host train that a train.toml replaces (flag name -> config key)
+CONFIG_FLAGS = {"task": "task", "model": "model", "window": "T", "data": "data",
+                "test": "test", "cv": "cv", "quantise": "quantise",
+                "contact_only": "contact_only", "profile": "profile", "seed": "seed"}
 
 
-def train_config(args) -> dict:
-    """The config that replays this ``host train`` (train.toml): every setting of
-    :data:`CONFIG_KEYS`, data paths made absolute."""
-    def absolute(specs):
-        return [d if "://" in d else str(Path(d).resolve()) for d in specs or []]
-    prof = args.profile
-    prof = str(Path(prof).resolve()) if prof.endswith(".toml") else prof
-    return {"task": args.task, "model": args.model, "T": args.window,
-            "data": absolute(args.data), "test": absolute(args.test), "cv": args.cv,
-            "quantise": bool(args.quantise), "contact_only": bool(args.contact_only),
-            "profile": prof, "seed": args.seed}
-
-
-def _apply_config(args) -> None:
-    """``--config FILE`` (a model's train.toml): its settings replace the defaults.
-    Given alone: a training flag beside it is an error naming the flag (only --out,
-    --force and --json go with it)."""
-    given = [f"--{k.replace('_', '-')}" for k in CONFIG_KEYS
+def train_config(args) -> TrainConfig | dict:
+    """The run's one config, built once from the flags, or from ``--config FILE`` (a
+    model's train.toml) and the run's own flags; ``args`` is not changed. A shipped
+    model's train.toml (its ``module`` one of :data:`REBUILDERS`) is returned as its
+    dict, to be replayed by the module that made it. ``--config`` goes alone: a
+    training flag beside it is an error naming the flag (only --out, --force, --json
+    and --no-identity-check go with it)."""
+    run = {"identity": not getattr(args, "no_identity_check", False), "measure": True}
+    if not getattr(args, "config", None):
+        if not args.task or not args.data:
+            raise UserError("host train needs --task and --data (or --config FILE, a "
+                            "model's train.toml)")
+        return TrainConfig(task=args.task, model=args.model,
+                           T=args.window or DEFAULT_WINDOW[args.task], data=args.data,
+                           test=args.test or (), cv=args.cv, quantise=bool(args.quantise),
+                           contact_only=bool(args.contact_only),
+                           profile=args.profile or "roboskin",
+                           seed=0 if args.seed is None else args.seed, **run)
+    given = [f"--{k.replace('_', '-')}" for k in CONFIG_FLAGS
              if getattr(args, k) not in (None, False)]
     if given:
         raise UserError(f"--config {args.config} replays a config; it takes no "
@@ -102,20 +100,8 @@ def _apply_config(args) -> None:
     except ConfigError as exc:
         raise UserError(f"--config: {exc}") from None
     if doc.get("module") in REBUILDERS:       # a shipped model's train.toml
-        args.rebuild = doc
-        return
-    inverse = {v: k for k, v in CONFIG_KEYS.items()}
-    unknown = sorted(set(doc) - set(inverse))
-    if unknown:
-        raise UserError(f"--config {args.config}: unknown setting(s) {unknown}; host train "
-                        f"replays {sorted(inverse)}")
-    for key, v in doc.items():
-        setattr(args, inverse[key], v)
-    if not isinstance(args.data, list) or not args.data:
-        raise UserError(f"--config {args.config}: data must be a non-empty list of data specs")
-    if args.task not in DEFAULT_MODEL:
-        raise UserError(f"--config {args.config}: task must be one of {sorted(DEFAULT_MODEL)}, "
-                        f"got {args.task!r}")
+        return doc
+    return TrainConfig.from_replay(doc, args.config, **run)
 
 
 #: the ``module`` of a shipped model's train.toml -> what replays it
@@ -123,12 +109,12 @@ REBUILDERS = {"host.bench.shipped": "_rebuild_shipped",
               "host.localiser.train": "_rebuild_localiser"}
 
 
-def _rebuild(args) -> None:
-    """Replay a shipped model's train.toml (written by the module it names, in its own
-    settings) into ``--out``: the same training its ``command`` runs."""
+def _rebuild(args, doc: dict) -> None:
+    """Replay a shipped model's train.toml ``doc`` (written by the module it names, in
+    its own settings) into ``--out``: the same training its ``command`` runs."""
     import shutil
     import tempfile
-    doc, out = args.rebuild, Path(args.out)
+    out = Path(args.out)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=".replay-", dir=out) as tmp:
         folder = globals()[REBUILDERS[doc["module"]]](doc, Path(tmp), args)
@@ -188,60 +174,35 @@ def _rebuild_localiser(doc: dict, tmp: Path, args) -> Path:
 
 
 def cmd_train(args):
-    if getattr(args, "config", None):
-        _apply_config(args)
-        if getattr(args, "rebuild", None):
-            fd = _lock_out(args)
-            try:
-                _rebuild(args)
-            finally:
-                os.close(fd)
-            return 0
-    elif not args.task or not args.data:
-        raise UserError("host train needs --task and --data (or --config FILE, a model's "
-                        "train.toml)")
-    args.profile = args.profile or "roboskin"
-    args.seed = 0 if args.seed is None else args.seed
-    args.model = args.model or DEFAULT_MODEL[args.task]
-    if args.window is None:
-        args.window = DEFAULT_WINDOW[args.task]
-    fd = _lock_out(args)
+    cfg = train_config(args)
+    fd, created = _lock_out(args)
     try:
-        _train(args)
+        if isinstance(cfg, dict):
+            _rebuild(args, cfg)
+        else:
+            _train(args, cfg)
     except BaseException:
         out = Path(args.out)
-        if args.out_created and out.is_dir() and not any(out.iterdir()):
+        if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()                 # nothing written: leave no empty folder behind
         raise
     finally:
         os.close(fd)
+    return 0
 
 
-def _train(args):
-    ws = _load_windows(args, args.task, args.window, min_classes=1)
-    ws_test = (_load_windows(args, args.task, args.window, min_classes=1, specs=args.test)
-               if args.test else None)
-    recs = recordings_of(args.data)
-    made = {"profile": args.profile, "config": train_config(args),
+def _train(args, cfg: TrainConfig) -> None:
+    load = lambda specs: _load_windows(args, specs, cfg.task, cfg.window,  # noqa: E731
+                                       cfg.profile, cfg.contact_only)
+    ws = load(cfg.data)
+    ws_test = load(cfg.test) if cfg.test else None
+    recs = recordings_of(cfg.data)
+    made = {"config": cfg.replay(),
             "trained_on": {"data": data_source(recs), "recordings": recs,
-                           "test_recordings": recordings_of(args.test) if args.test else []}}
-    if args.model == "cnn":
-        res = _train_cnn(args, ws, ws_test, made)
-    else:
-        res = train_model(args.task, args.model, ws, ws_test, cv=args.cv,
-                          quantise=args.quantise, seed=args.seed, out_dir=args.out,
-                          progress=not args.json,
-                          identity=not getattr(args, "no_identity_check", False),
-                          measure=True, **made)
-    # README.md and train.toml; train_model timed the model and wrote its manifest
-    # once, the CNN's manifest gets its cost here
-    write_model_docs(args.out, measure=args.model == "cnn")
-    res = _jsonable(res)
-    m = res.get("metrics", {})
-    m = m.get("test") or {}
-    headline = ", ".join(f"held-out {k} {m[k]:.4g}" + _interval(m, k)
-                         for k in ("accuracy", "macro_f1", "mae")
-                         if isinstance(m.get(k), (int, float)))
+                           "test_recordings": recordings_of(cfg.test) if cfg.test else []}}
+    res = _jsonable(train(cfg, ws, ws_test, args.out, not args.json, made))
+    # README.md and train.toml; the run timed the model and wrote its manifest once
+    write_model_docs(args.out, measure=False)
     check = res.get("identity_check") or {}
     if check and not args.json:
         for line in identity_lines(check):
@@ -249,10 +210,43 @@ def _train(args):
     if check.get("warning") and not args.json:
         _log.warning("host train: warning: %s (host eval --identity shows the figures)",
                      check["warning"])
-    if "int8" in res and isinstance(res["int8"], dict) and "agreement" in res["int8"]:
-        headline += f"; int8 agreement {res['int8']['agreement']:.4f}"
-    emit(args, res, f"wrote {args.out} ({args.task} {args.model}, T={args.window}): "
-                    f"{headline}; held out: {res.get('holdout')}")
+    emit(args, res, f"wrote {args.out} ({cfg.task} {cfg.model}, T={cfg.window}): "
+                    f"{figure_text(res)}")
+
+
+def figure_text(res: dict) -> str:
+    """The figures host train prints: the held-out one with its interval and what was
+    held out (whole recordings, or a split inside one recording: optimistic), the
+    --cv one beside it, and the int8 agreement."""
+    metrics = res.get("metrics") or {}
+    m = metrics.get("test") or {}
+    parts = [", ".join(f"held-out {k} {m[k]:.4g}" + _interval(m, k)
+                       for k in ("accuracy", "macro_f1", "mae")
+                       if isinstance(m.get(k), (int, float)))]
+    held = m.get("held_out") or {}
+    name = lambda r: str(r).split(" sha256:")[0]  # noqa: E731
+    if held.get("whole"):
+        parts.append("held-out recordings: " + ", ".join(
+            f"{name(r)} ({n} windows)" for r, n in sorted(held["whole"].items())))
+    if held.get("inside"):
+        parts.append("split inside one recording (optimistic: the same session): " +
+                     ", ".join(f"{name(r)} ({n} windows)"
+                               for r, n in sorted(held["inside"].items())))
+    if held.get("given"):
+        parts.append(f"given test data ({held['given']} windows)")
+    cv = metrics.get("cv") or {}
+    cv_text = ", ".join(f"{k} {cv[k]:.4g}" + _interval(cv, k)
+                        for k in ("accuracy", "macro_f1", "mae")
+                        if isinstance(cv.get(k), (int, float)))
+    if cv_text:
+        parts.append(f"grouped {cv.get('folds')}-fold CV (--cv, on the training windows): "
+                     f"{cv_text}")
+    int8 = res.get("int8")
+    if isinstance(int8, dict) and "agreement" in int8:
+        parts.append(f"int8 agreement {int8['agreement']:.4f}")
+    if not held:
+        parts.append(f"held out: {res.get('holdout')}")
+    return "; ".join(p for p in parts if p)
 
 
 def identity_lines(check: dict) -> list[str]:
@@ -282,44 +276,24 @@ def _interval(m: dict, key: str) -> str:
     ci = m.get(f"{key}_ci95")
     if not (isinstance(ci, list) and len(ci) == 2):
         return ""
-    return f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %), n={m.get('n_windows')} windows"
-
-
-def _train_cnn(args, ws, ws_test=None, made=None):
-    if args.task == "pressure":
-        raise TrainError("the CNN classifies; use --model ridge for --task pressure")
-    labels = ws.labels                     # every class of the data, before the split
-    if ws_test is None:
-        tr, te, how = split_holdout(ws, 0.3, seed=args.seed)
-        ws, ws_test = ws.subset(tr), ws.subset(te)
-    else:
-        how = "given"
-    check_classes(ws, ws_test, labels)
-    made = dict(made or {})
-    made["trained_on"] = dict(made.get("trained_on") or {"data": "unknown"}, split=how)
-    res = train_cnn(ws, ws_test, seed=args.seed, out_dir=args.out, progress=not args.json,
-                    **made)
-    res["holdout"] = how
-    if args.quantise:                      # calibrated on the training windows
-        res["int8"] = quantise_cnn(res["onnx_path"], ws, Path(args.out) / "model.int8.onnx",
-                                   seed=args.seed)
-    return res
+    n = m.get("n_windows", m.get("n"))
+    return f" [{ci[0]:.4g}, {ci[1]:.4g}] (95 %)" + (f", n={n} windows" if n else "")
 
 
 def cmd_eval(args):
     spec, mpath = read_spec(args.model_dir)
-    args.profile, _ = models_profile({mpath: spec}, args.profile)
-    ws = _load_windows(args, spec.kind, spec.T, min_classes=1)
+    profile, _ = models_profile({mpath: spec}, args.profile)
+    ws = _load_windows(args, args.data, spec.kind, spec.T, profile, args.contact_only)
     try:
         res = evaluate_model(args.model_dir, ws, variant=args.variant)
         if args.identity:
-            res["identity_check"] = _identity(spec, ws, args)
+            res["identity_check"] = _identity(spec, ws, profile)
     except ValueError as exc:      # windows that do not fit the model: host.learn.evaluate
         raise UserError(str(exc)) from None      # and the identity check raise ValueError
     emit(args, res, json.dumps(res, indent=1, default=json_default))
 
 
-def _identity(spec, ws, args) -> dict:
+def _identity(spec, ws, profile: str) -> dict:
     """host eval --identity: the recording-identity check (host.learn.identity) of
     the model's kind on the evaluation windows."""
     from host.learn.estimators import hyperparameters
@@ -331,7 +305,7 @@ def _identity(spec, ws, args) -> dict:
         return {"skipped": f"model {model}: host eval --identity checks fnn, grid-fnn or "
                            f"ridge models", "flagged": False, "warning": None}
     uses_imu = bool(spec.uses_imu) and ws.imu is not None
-    tspec = (fnn_temporal_spec(spec.kind, ws, ws.window, uses_imu, args.profile)
+    tspec = (fnn_temporal_spec(spec.kind, ws, ws.window, uses_imu, profile)
              if model == "fnn" and ws.window >= 2 else None)
     hp = hyperparameters(model, TASK_HIDDEN.get(spec.kind) if model != "ridge" else None,
                          None, None, tspec)
@@ -385,9 +359,9 @@ def register(sub) -> None:
     s.add_argument("--config", metavar="FILE",
                    help="replay a model's train.toml (the config that made it); given alone "
                         "(with --out, --force, --json only)")
-    s.add_argument("--task", choices=["surface", "texture", "slip", "pressure"],
+    s.add_argument("--task", choices=list(TASKS),
                    help="required unless --config")
-    s.add_argument("--model", choices=["rule", "ridge", "fnn", "grid-fnn", "gbt", "cnn"],
+    s.add_argument("--model", choices=list(MODELS),
                    help="model kind (default per task: " +
                    ", ".join(f"{t} {m}" for t, m in DEFAULT_MODEL.items()) + ")")
     s.add_argument("--window", type=whole(1, MAX_T),

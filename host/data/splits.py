@@ -2,10 +2,13 @@
 :func:`group_kfold`) or, within each trial, earlier frames to train and later ones to
 test with a gap (:func:`split_time`). Each returns index arrays into a WindowSet.
 :func:`split_holdout` picks between the two so that no class is lost, and says which
-protocol it used (:data:`LEAVE_RECORDINGS_OUT` or :data:`LATER_FRAMES`): whole
-*recordings* (:meth:`WindowSet.recording_ids`) are held out where every class has
-two or more of them; otherwise the later frames of the same recordings, which is
-optimistic, since the test windows share the training windows' session."""
+protocol it used (:data:`LEAVE_RECORDINGS_OUT`, :data:`LATER_FRAMES` or
+:data:`MIXED`): the recording is the unit, so whole *recordings*
+(:meth:`WindowSet.recording_ids`) are held out of each class that has two or more of
+them; a class with one recording is tested on the later frames of it, which is
+optimistic, since the test windows share the training windows' session.
+:func:`held_out_recordings` says, per recording, which of the two its test windows
+are."""
 from __future__ import annotations
 
 from typing import Iterator
@@ -30,6 +33,8 @@ def _group_labels(ws: WindowSet, uniq: np.ndarray, inv: np.ndarray) -> np.ndarra
 #: the held-out protocols of :func:`split_holdout` (a model's ``metrics.test.protocol``)
 LEAVE_RECORDINGS_OUT = "leave-recordings-out"
 LATER_FRAMES = "later-frames-same-recordings (optimistic)"
+MIXED = ("leave-recordings-out where a class has two or more recordings, else "
+         "later-frames-same-recordings (optimistic)")
 
 
 def split_grouped(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, keys=None
@@ -123,13 +128,48 @@ def _pick_recordings(ws: WindowSet, rec: np.ndarray, frac: float, seed: int) -> 
 
 
 def holdout_protocol(how: str) -> str:
-    """The protocol (:data:`LEAVE_RECORDINGS_OUT`, :data:`LATER_FRAMES`, ``given``
-    or ``none``) that a :func:`split_holdout` account ``how`` names."""
+    """The protocol (:data:`LEAVE_RECORDINGS_OUT`, :data:`LATER_FRAMES`, :data:`MIXED`,
+    ``given`` or ``none``) that a :func:`split_holdout` account ``how`` names."""
     if how.startswith("grouped split"):
         return LEAVE_RECORDINGS_OUT
     if how.startswith("time split"):
         return LATER_FRAMES
+    if how.startswith("mixed split"):
+        return MIXED
     return how.split(":", 1)[0]
+
+
+def held_out_recordings(ws_train: WindowSet, ws_test: WindowSet) -> dict:
+    """Which recordings the test windows ``ws_test`` come from, and how: ``whole``,
+    the recordings held out whole ({recording: test windows}), and ``inside``, the
+    recordings split inside (the later frames tested: optimistic). Recordings are
+    compared by id (:meth:`WindowSet.recording_ids`), so the two sets must name them."""
+    seen = set(ws_train.recording_ids().astype(str).tolist())
+    rid, n = np.unique(ws_test.recording_ids().astype(str), return_counts=True)
+    out: dict = {"whole": {}, "inside": {}}
+    for r, k in zip(rid.tolist(), n.tolist()):
+        out["inside" if r in seen else "whole"][r] = int(k)
+    return out
+
+
+def _mixed_split(ws: WindowSet, rec: np.ndarray, few: list[str], test_frac: float,
+                 grouped_frac: float, seed: int):
+    """(train_idx, test_idx): whole recordings of each class that has two or more
+    (:func:`_pick_recordings`), and the later frames (:func:`split_time`) of the one
+    recording of each class in ``few``; None when no such split exists."""
+    lab = ws.labels.astype(str)
+    alone = np.unique(rec[np.isin(lab, few)])            # the recordings of those classes
+    inside = np.flatnonzero(np.isin(rec, alone))
+    try:
+        tr_in, te_in = split_time(ws.subset(inside), 1.0 - test_frac)
+    except DataError:
+        return None
+    te_whole = _pick_recordings(ws.subset(np.flatnonzero(~np.isin(rec, alone))),
+                                rec[~np.isin(rec, alone)], grouped_frac, seed)
+    rest = np.flatnonzero(~np.isin(rec, alone))
+    te = np.sort(np.concatenate([inside[te_in], rest[te_whole]]))
+    tr = np.sort(np.concatenate([inside[tr_in], np.setdiff1d(rest, rest[te_whole])]))
+    return tr, te
 
 
 def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: int = 32,
@@ -140,8 +180,11 @@ def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: i
     Where every class has two or more recordings, whole recordings go to one side
     (:func:`split_grouped` on the recording ids, holding out ``grouped_frac`` of
     them; up to ``tries`` seeds from ``seed``) when that keeps every class in train
-    and test: ``how`` starts with "grouped split" and names :data:`LEAVE_RECORDINGS_OUT`. Otherwise, as with
-    one recording per class, each trial is split in time (:func:`split_time`): its
+    and test: ``how`` starts with "grouped split" and names :data:`LEAVE_RECORDINGS_OUT`.
+    Where some classes have two or more recordings and others one, the first lose
+    whole recordings to the test side and the one recording of each of the others is
+    split in time as below: ``how`` starts with "mixed split" and names :data:`MIXED`.
+    Otherwise, as with one recording per class, each trial is split in time (:func:`split_time`): its
     first ``1 - test_frac`` to train, its last ``test_frac`` to test, with a gap of T
     frames; ``how`` starts with "time split within each trial", names
     :data:`LATER_FRAMES` and says "same recordings: optimistic". ``how`` says why (:func:`holdout_protocol` reads the protocol back).
@@ -153,6 +196,18 @@ def split_holdout(ws: WindowSet, test_frac: float = 0.3, seed: int = 0, tries: i
     per_class = recordings_per_class(ws)
     few = sorted(c for c, n in per_class.items() if n < 2)
     why = f"{n_rec} recording(s)"
+    if few and len(few) < len(per_class):
+        for k in range(tries):                 # the recording is the unit where it can be
+            got = _mixed_split(ws, rec, few, test_frac, grouped_frac, seed + k)
+            if got is None:
+                break
+            tr, te = got
+            if not missing_classes(ws, tr, classes) + missing_classes(ws, te, classes):
+                whole = sorted(set(rec[te]) - set(rec[tr]))
+                return tr, te, (f"mixed split ({MIXED}): {len(whole)} of {n_rec} recordings "
+                                f"held out whole; class(es) {few} have one recording each, "
+                                f"split inside it in time (last {test_frac:.0%} after a gap "
+                                f"of {ws.window} frames): optimistic for them")
     if few:
         why = (f"class(es) {few} have only one recording each "
                f"({', '.join(f'{c}: {per_class[c]}' for c in few[:5])})")

@@ -50,7 +50,7 @@ from host.learn.quantise import quantise_model
 from host.learn.tasks import check_int
 
 __all__ = ["MODEL", "OUTPUT_NAME", "INPUT_NAME", "ONNX_ATOL", "FrameCNN", "require_torch",
-           "train_cnn", "quantise_cnn", "frames_input"]
+           "train_cnn", "cnn_spec_keys", "quantise_cnn", "frames_input"]
 
 MODEL = "cnn"
 INPUT_NAME = "x"
@@ -101,9 +101,11 @@ def conv_out(size: int, kernel: int, stride: int, pool: int) -> int:
 # The estimator
 # ----------------------------------------------------------------------------
 
-def _build_net(torch, T: int, S: int, n_classes: int, filters: int, kernel: int,
-               stride: int, pool: int, hidden: int, dropout: float):
+def _build_net(torch, T: int, S: int, n_classes: int, est: "FrameCNN"):
+    """The network of the FrameCNN ``est``'s sizes for T frames of S x S."""
     nn = torch.nn
+    filters, kernel, stride, pool = est.filters, est.kernel, est.stride, est.pool
+    hidden, dropout = est.hidden, est.dropout
     side = conv_out(S, kernel, stride, pool)
     return nn.Sequential(
         nn.Conv2d(T, filters, kernel, stride=stride, padding=max(0, (kernel - stride) // 2)),
@@ -230,8 +232,7 @@ class FrameCNN:
         rng = np.random.default_rng(self.seed)
         self.loss_ = []
         with _TorchState(torch, self.seed, self.threads):
-            net = _build_net(torch, T, S, len(cls), self.filters, self.kernel, self.stride,
-                             self.pool, self.hidden, self.dropout)
+            net = _build_net(torch, T, S, len(cls), self)
             opt = torch.optim.Adam(net.parameters(), lr=self.lr,
                                    weight_decay=self.weight_decay)
             loss_fn = torch.nn.CrossEntropyLoss()
@@ -330,19 +331,20 @@ def _check_rows(n: int, k: int, seed: int) -> np.ndarray:
 # Training entry point
 # ----------------------------------------------------------------------------
 
-def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
-              out_dir: Path | str | None = None, progress: bool = True,
-              check_windows: int = 64, profile=None, trained_on: dict | None = None,
-              config: dict | None = None, **params) -> dict:
+def train_cnn(ws_train, ws_test=None, seed: int = 0, out_dir: Path | str | None = None,
+              progress: bool = True, made: dict | None = None, check_windows: int = 64,
+              **params) -> dict:
     """Train the CNN on ``ws_train`` (a :class:`host.data.windows.WindowSet` of a
     classification task, with frames) and export it.
 
     ``ws_test``: held-out windows (e.g. from :func:`host.data.splits.split_grouped`); their
     metrics come from ONNX Runtime running the exported model, as on the Pi.
-    ``params`` go to :class:`FrameCNN` (``hidden``, ``filters``, ``lr``, ...).
-    ``out_dir``: write model.onnx + its manifest there (kind = the task), a model
-    spec carrying ``profile`` (the sensor profile: name, path or record; default
-    roboskin), ``trained_on`` and ``config`` (:mod:`device.pi.models.spec`).
+    ``params`` go to :class:`FrameCNN` (``epochs``, default 20, ``hidden``,
+    ``filters``, ``lr``, ...). ``out_dir``: write model.onnx + its manifest there
+    (kind = the task), a model spec (:func:`cnn_spec_keys`) carrying what ``made``
+    holds: ``profile`` (the sensor profile: name, path or record; default roboskin),
+    ``trained_on`` and ``config`` (:mod:`device.pi.models.spec`). ``host train``
+    writes the folder itself (:func:`host.learn.trainers.train_frames_cnn`).
 
     Returns a dict: ``task``, ``classes``, ``T``, ``frame_size``, ``params``,
     ``n_params``, ``size_bytes`` (the ONNX), ``train_s``, ``loss`` (per epoch),
@@ -365,7 +367,7 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
     check_windows = check_int("check_windows", check_windows, 1)
     X = frames_input(ws_train.frames)
     y = ws_train.labels.astype(str)
-    est = FrameCNN(epochs=epochs, seed=seed, progress=progress, **params)
+    est = FrameCNN(**dict({"epochs": 20}, **params), seed=seed, progress=progress)
     est.fit(X, y, classes=ws_train.classes)
     fit_s = time.perf_counter() - t0
     classes = est.classes_
@@ -408,22 +410,29 @@ def train_cnn(ws_train, ws_test=None, epochs: int = 20, seed: int = 0,
               "onnx_vs_torch_max_abs": diff,
               "out_dir": None, "onnx_path": None, "onnx": onx, "estimator": est}
     if out_dir is not None:
-        extra = {
-            "task": task, "model": MODEL, "classes": list(classes), "T": T,
-            "crop_size": S, "input_layout": "frames", "uses_imu": False,
-            "output": OUTPUT_NAME, "output_kind": "probabilities", "variant": "float",
-            "output_doc": f"{OUTPUT_NAME} (N, {len(classes)}): softmax over classes",
-            "frame_size": S, "opset": OPSET, "cnn_params": est.get_params(),
-            "n_params": est.n_params_, "onnx_vs_torch_max_abs": diff, "metrics": metrics,
-            "profile": profile, "trained_on": trained_on, "config": config or {},
-            "training": {"data": ws_train.summary(), "seed": seed, "train_s": train_s,
-                         "test_data": None if ws_test is None else ws_test.summary()},
-        }
+        extra = dict(cnn_spec_keys(result), metrics=metrics, variant="float",
+                     training={"data": ws_train.summary(), "seed": seed, "train_s": train_s,
+                               "test_data": None if ws_test is None else ws_test.summary()},
+                     **{k: v for k, v in (made or {}).items()
+                        if k in ("profile", "trained_on", "config")})
         out = write_model(onx, out_dir, kind=task, n_features=T * S * S, extra=extra,
                           input_name=INPUT_NAME, input_dims=[T, S, S])
         result["out_dir"] = str(out)
         result["onnx_path"] = str(Path(out) / "model.onnx")
     return result
+
+
+def cnn_spec_keys(result: dict) -> dict:
+    """The spec's fields of a trained CNN (a :func:`train_cnn` result): its task,
+    classes, T, frame size, layout, output and network parameters."""
+    S = result["frame_size"]
+    return {"task": result["task"], "model": MODEL, "classes": list(result["classes"]),
+            "T": result["T"], "crop_size": S, "input_layout": "frames", "uses_imu": False,
+            "output": OUTPUT_NAME, "output_kind": "probabilities",
+            "output_doc": f"{OUTPUT_NAME} (N, {len(result['classes'])}): softmax over "
+                          f"classes", "frame_size": S, "opset": OPSET,
+            "cnn_params": result["params"], "n_params": result["n_params"],
+            "onnx_vs_torch_max_abs": result["onnx_vs_torch_max_abs"]}
 
 
 def quantise_cnn(float_onnx: Path | str, ws_calib, out_path: Path | str,

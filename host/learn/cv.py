@@ -23,17 +23,19 @@ __all__ = ["cross_validate_model", "CI_OVER_TRIALS"]
 CI_OVER_TRIALS = "bootstrap over trials (groups), 2000 resamples, percentile 95 %"
 
 
-def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
-                         uses_imu: bool | None = None, progress: bool = True,
-                         classes: list[str] | None = None, augment: int = 0,
-                         profile: str = "roboskin", **hp) -> dict:
-    """Grouped K-fold CV (whole trials per fold, :func:`host.data.splits.group_kfold`):
-    pooled held-out metrics plus each fold's accuracy (or MAE; a regressor's pooled
-    MAE also gets ``mae_ci95``, its 95 % interval resampling whole trials). ``augment``
-    rotated copies are added to each fold's training part only."""
+def cross_validate_model(cfg, ws, hp: dict | None = None, uses_imu: bool | None = None,
+                         classes: list[str] | None = None, progress: bool = True) -> dict:
+    """Grouped K-fold CV (whole trials per fold, :func:`host.data.splits.group_kfold`)
+    of the kind ``cfg.model`` (a :class:`host.learn.config.TrainConfig`: its task,
+    ``cv`` folds, seed, ``augment``, profile) with hyperparameters ``hp``
+    (:func:`hyperparameters`; None: the kind's defaults): pooled held-out metrics plus
+    each fold's accuracy (or MAE; a regressor's pooled MAE also gets ``mae_ci95``, its
+    95 % interval resampling whole trials). ``augment`` rotated copies are added to
+    each fold's training part only."""
     tqdm = need("tqdm").tqdm
 
-    k = check_int("cv", k, 2)
+    task, model, seed, augment, profile = cfg.task, cfg.model, cfg.seed, cfg.augment, cfg.profile
+    k = check_int("cv", cfg.cv, 2)
     if len(ws) < k:
         raise TrainError(f"cv={k} folds need at least {k} windows, the data have {len(ws)}")
     try:
@@ -43,7 +45,7 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
     layout = LAYOUT[model]
     uses_imu = default_uses_imu(model, ws) if uses_imu is None else uses_imu
     X = model_inputs(ws, layout, uses_imu)
-    hp = hyperparameters(model, **hp)
+    hp = hyperparameters(model) if hp is None else hp
     regression = task == "pressure"
     if not regression:
         classes = classes or sorted({str(x) for x in ws.labels})
@@ -73,7 +75,7 @@ def cross_validate_model(task: str, model: str, ws, k: int, seed: int = 0,
                 yf = (np.asarray(a.targets, np.float64) if regression
                       else label_ids(a.labels, classes))
             pipe, _ = fit_estimator(task, model, Xf, yf, 0 if regression else len(classes), hp,
-                                    seed, False, f"fold {f}")
+                                    seed)
             if regression:
                 out = pipe.predict(X[te]).reshape(-1)
             else:

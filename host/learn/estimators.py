@@ -77,16 +77,22 @@ class Plateau:
         return self.stale >= self.patience
 
 
-def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alpha: float,
-            seed: int, epochs: int, progress: bool, desc: str, temporal: dict | None = None,
-            patience: int = 15, tol: float = 1e-4):
-    """[TemporalFeatures +] scaler + MLP, the MLP fitted epoch by epoch
-    (``partial_fit``) with a tqdm bar; stops when the training loss has not
-    improved by ``tol`` for ``patience`` epochs. Returns (pipeline, epochs run,
-    final loss)."""
+#: the MLP stops when its training loss has not improved by PLATEAU_TOL for
+#: PLATEAU_PATIENCE epochs in a row
+PLATEAU_TOL, PLATEAU_PATIENCE = 1e-4, 15
+
+
+def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hp: dict, seed: int,
+            desc: str | None = None):
+    """[TemporalFeatures +] scaler + MLP (``hp``: ``hidden``, ``alpha``, ``epochs``,
+    ``temporal``, :func:`hyperparameters`), the MLP fitted epoch by epoch
+    (``partial_fit``) with a tqdm bar named ``desc`` (None: no bar); stops when the
+    training loss has not improved by :data:`PLATEAU_TOL` for
+    :data:`PLATEAU_PATIENCE` epochs. Returns (pipeline, epochs run, final loss)."""
     from sklearn.pipeline import Pipeline
     tqdm = need("tqdm").tqdm
 
+    hidden, alpha, epochs, temporal = hp["hidden"], hp["alpha"], hp["epochs"], hp.get("temporal")
     steps = []
     if temporal:
         tf = temporal_class()(**temporal).fit(X)
@@ -95,11 +101,11 @@ def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alp
     scaler = scaler_class()().fit(X)
     Xs = scaler.transform(X)
     mlp = _mlp(task, hidden, alpha, seed, len(X))
-    plateau, n = Plateau(tol, patience), 0
+    plateau, n = Plateau(PLATEAU_TOL, PLATEAU_PATIENCE), 0
     classes = np.arange(n_classes)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        with tqdm(total=epochs, desc=desc, unit="epoch", disable=not progress or None,
+        with tqdm(total=epochs, desc=desc, unit="epoch", disable=desc is None or None,
                   file=sys.stderr, leave=False) as bar:
             for n in range(1, epochs + 1):
                 if task == "pressure":
@@ -117,8 +123,9 @@ def fit_mlp(task: str, X: np.ndarray, y: np.ndarray, n_classes: int, hidden, alp
 
 
 def fit_estimator(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes: int, hp: dict,
-                  seed: int, progress: bool, desc: str):
-    """A fitted sklearn Pipeline (scaler + estimator) and fit info."""
+                  seed: int, desc: str | None = None):
+    """A fitted sklearn Pipeline (scaler + estimator) and fit info; an MLP shows a
+    progress bar named ``desc`` (None: none)."""
     t0 = time.perf_counter()
     if model == "ridge":
         pipe = ridge_pipeline(hp["alpha"]).fit(X, y)
@@ -130,8 +137,7 @@ def fit_estimator(task: str, model: str, X: np.ndarray, y: np.ndarray, n_classes
         pipe, _ = fit_pressure("gbt", X, y, None, hp["window"], hp["n_pins"], seed)
         info = {}
     else:
-        pipe, epochs, loss = fit_mlp(task, X, y, n_classes, hp["hidden"], hp["alpha"], seed,
-                                     hp["epochs"], progress, desc, hp.get("temporal"))
+        pipe, epochs, loss = fit_mlp(task, X, y, n_classes, hp, seed, desc)
         info = {"epochs": epochs, "loss": round(loss, 6)}
     info["fit_s"] = round(time.perf_counter() - t0, 3)
     return pipe, info

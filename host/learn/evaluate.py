@@ -89,8 +89,49 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
     labels are not all classes of the model.
     """
     pred_obj, spec, kind = load_variant(model_dir, variant)
-    task = spec.kind
-    T = spec.T
+    task, T, layout, uses_imu = spec.kind, spec.T, spec.input_layout, spec.uses_imu
+    X = _fitting_inputs(pred_obj, spec, kind, ws)
+    lat, outs = _decide(pred_obj, kind, X, warmup)
+    enc = _encode_times(ws, layout, uses_imu, encode_samples)
+    res = {"model_dir": str(model_dir), "task": task, "model": spec.model,
+           "variant": spec.variant if kind != "rule" else "rule", "T": T,
+           "input_layout": layout, "uses_imu": uses_imu, "n_windows": int(len(ws))}
+    if kind == "regressor":
+        pred = np.array(outs, np.float64)
+        res["metrics"] = regression_metrics(ws.targets, pred)
+        add_intervals(res["metrics"], ws, np.abs(pred - np.asarray(ws.targets, np.float64)),
+                      key="mae")
+        res["faults"] = 0
+    else:
+        classes = list(pred_obj.classes)
+        probs = np.stack([o[1] for o in outs])
+        pred = np.array([o[0] for o in outs], np.int64)
+        if not np.isfinite(probs).all():
+            raise ModelError(f"{model_dir}: non-finite probabilities")  # never expected
+        true = label_ids(ws.labels, classes)
+        res["classes"] = classes
+        res["metrics"] = classification_metrics(true, pred, classes, ws.labels)
+        add_intervals(res["metrics"], ws, true == pred)
+        if task == "slip" and "slip" in classes:
+            res["metrics"]["slip_f1"] = res["metrics"]["per_class"]["slip"]["f1"]
+            res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))
+    folder = Path(model_dir) if Path(model_dir).is_dir() else Path(model_dir).parent
+    onnx_name = spec.onnx
+    res["model_bytes"] = int(model_file(folder, onnx_name).stat().st_size) if onnx_name else 0
+    res["manifest_bytes"] = int(manifest_path(folder).stat().st_size)
+    res["latency_ms"] = percentiles(lat)
+    res["encode_ms"] = percentiles(enc)
+    res["threads"] = 1
+    res["kept_fraction"] = round(float(ws.kept_fraction), 6)
+    res["decision_delay_ms"] = {f"{fps}fps": round(1000.0 * ws.window / fps, 3)
+                                for fps in (30, 120)}
+    return res
+
+
+def _fitting_inputs(pred_obj, spec, kind: str, ws) -> np.ndarray:
+    """The model inputs of ``ws``, after checking that the windows fit the model
+    (task, T, IMU, labels among its classes, input size); ValueError otherwise."""
+    task, T, layout, uses_imu = spec.kind, spec.T, spec.input_layout, spec.uses_imu
     if len(ws) == 0:
         raise ValueError("ws holds no windows")
     if ws.task != task:
@@ -131,8 +172,12 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         raise ValueError(f"the windows encode to {tuple(X.shape[1:])} inputs, the model "
                          f"expects {tuple(shape)} (pin count, grid or frame size differs)"
                          + pins)
+    return X
 
-    # -- one decision per window, timed as on the Pi --------------------------
+
+def _decide(pred_obj, kind: str, X: np.ndarray, warmup: int) -> tuple[list, list]:
+    """(latency ms, output) of one decision per window, timed as on the Pi after
+    ``warmup`` untimed ones."""
     if kind == "regressor":
         def call(x):
             return pred_obj.predict_one(x)
@@ -148,8 +193,14 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         o = call(X[i])
         lat.append((clock() - t0) * 1e3)
         outs.append(o)
+    return lat, outs
+
+
+def _encode_times(ws, layout: str, uses_imu: bool, samples: int) -> list:
+    """The time (ms) the Pi's encoder takes on ``samples`` windows spread over ``ws``."""
+    clock = time.perf_counter
     enc = []
-    idx = np.linspace(0, len(ws) - 1, min(encode_samples, len(ws))).astype(int)
+    idx = np.linspace(0, len(ws) - 1, min(samples, len(ws))).astype(int)
     for i in idx:
         parts = {"vectors": ws.vectors[i], "grids": None if ws.grids is None else ws.grids[i],
                  "frames": None if ws.frames is None else ws.frames[i],
@@ -157,40 +208,7 @@ def evaluate_model(model_dir, ws, variant: str | None = None, warmup: int = 20,
         t0 = clock()
         encode(layout, **parts)
         enc.append((clock() - t0) * 1e3)
-
-    res = {"model_dir": str(model_dir), "task": task, "model": spec.model,
-           "variant": spec.variant if kind != "rule" else "rule", "T": T,
-           "input_layout": layout, "uses_imu": uses_imu, "n_windows": int(len(ws))}
-    if kind == "regressor":
-        pred = np.array(outs, np.float64)
-        res["metrics"] = regression_metrics(ws.targets, pred)
-        add_intervals(res["metrics"], ws, np.abs(pred - np.asarray(ws.targets, np.float64)),
-                      key="mae")
-        res["faults"] = 0
-    else:
-        classes = list(pred_obj.classes)
-        probs = np.stack([o[1] for o in outs])
-        pred = np.array([o[0] for o in outs], np.int64)
-        if not np.isfinite(probs).all():
-            raise ModelError(f"{model_dir}: non-finite probabilities")  # never expected
-        true = label_ids(ws.labels, classes)
-        res["classes"] = classes
-        res["metrics"] = classification_metrics(true, pred, classes, ws.labels)
-        add_intervals(res["metrics"], ws, true == pred)
-        if task == "slip" and "slip" in classes:
-            res["metrics"]["slip_f1"] = res["metrics"]["per_class"]["slip"]["f1"]
-            res["metrics"]["latency"] = slip_latency(ws, pred == classes.index("slip"))
-    folder = Path(model_dir) if Path(model_dir).is_dir() else Path(model_dir).parent
-    onnx_name = spec.onnx
-    res["model_bytes"] = int(model_file(folder, onnx_name).stat().st_size) if onnx_name else 0
-    res["manifest_bytes"] = int(manifest_path(folder).stat().st_size)
-    res["latency_ms"] = percentiles(lat)
-    res["encode_ms"] = percentiles(enc)
-    res["threads"] = 1
-    res["kept_fraction"] = round(float(ws.kept_fraction), 6)
-    res["decision_delay_ms"] = {f"{fps}fps": round(1000.0 * ws.window / fps, 3)
-                                for fps in (30, 120)}
-    return res
+    return enc
 
 
 def eval_summary(res: dict) -> str:

@@ -50,6 +50,8 @@ WARNING = "the model may learn the recording, not the surface"
 MARGIN = 0.2
 #: contiguous blocks per recording: the folds of the grouped cross-validation
 N_BLOCKS = 5
+#: a class's windows are thinned evenly to at most this many; the interval's resamples
+MAX_WINDOWS, N_BOOT = 3000, 1000
 #: fewest windows a block needs
 MIN_BLOCK = 5
 #: PCA components of the model's inputs the probe reads (fewer with fewer windows)
@@ -176,8 +178,7 @@ def _thin(idx: np.ndarray, most: int, rng) -> np.ndarray:
 
 
 def identity_check(ws, task: str, model: str, hp: dict | None = None,
-                   uses_imu: bool = False, seed: int = 0, margin: float = MARGIN,
-                   max_windows: int = 3000, n_boot: int = 1000) -> dict:
+                   uses_imu: bool = False, seed: int = 0, margin: float = MARGIN) -> dict:
     """Run the check on the windows ``ws`` for a model of kind ``model`` (its input
     layout; ``hp`` is accepted for the callers' sake, the probe is the same for every
     kind). Returns a JSON-able dict: ``classes`` (per class: ``mode`` ``recordings``
@@ -202,7 +203,7 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
     need = N_BLOCKS * MIN_BLOCK
     Xm = Xs = None
     for c in classes:
-        idx = _thin(np.flatnonzero(labels == c), max_windows, rng)
+        idx = _thin(np.flatnonzero(labels == c), MAX_WINDOWS, rng)
         ids = sorted(set(rec[idx].tolist()))
         entry = {"mode": "recordings" if len(ids) >= 2 else "one recording", "recordings": ids}
         out["classes"][c] = entry
@@ -222,12 +223,12 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
         if Xm is None:
             Xm, Xs = _inputs(ws, model, uses_imu), session_features(ws)
         entry.update(_probe(Xm[idx], Xs[idx], rec[idx], _position(ws, idx), T, margin, seed,
-                            n_boot))
+                            N_BOOT))
         if entry["verdict"] == "inconclusive":
             entry["settle"] = entry["inconclusive"] = (
                 f"the interval spans chance + {margin}: longer recordings of {c} (more "
                 f"windows) narrow it")
-    _across(out, ws, labels, rec, classes, T, margin, seed, n_boot, rng, max_windows)
+    _across(out, ws, classes, margin, seed, rng)
     verdicts = [e["verdict"] for e in out["classes"].values()]
     out["verdict"] = next((v for v in ("flagged", "inconclusive", "clear") if v in verdicts),
                           "no verdict")
@@ -240,12 +241,14 @@ def identity_check(ws, task: str, model: str, hp: dict | None = None,
     return out
 
 
-def _across(out, ws, labels, rec, classes, T, margin, seed, n_boot, rng, most) -> None:
+def _across(out, ws, classes, margin, seed, rng) -> None:
     """Where every class has one recording: the session statistics alone (not lost
     pins, which contact moves) across the classes' recordings."""
+    labels, rec, T = ws.labels.astype(str), ws.recording_ids().astype(str), ws.window
     if len(classes) < 2 or any(e["mode"] != "one recording" for e in out["classes"].values()):
         return
-    idx = np.concatenate([_thin(np.flatnonzero(labels == c), most, rng) for c in classes])
+    idx = np.concatenate([_thin(np.flatnonzero(labels == c), MAX_WINDOWS, rng)
+                          for c in classes])
     Xs = session_features(ws, with_lost=False)
     if not Xs.shape[1]:
         out["across_classes"] = {"skipped": "these windows carry no session statistics"}
@@ -254,7 +257,7 @@ def _across(out, ws, labels, rec, classes, T, margin, seed, n_boot, rng, most) -
         out["across_classes"] = {"skipped": "too few windows"}
         return
     res = _probe(np.zeros((len(idx), 0)), Xs[idx], rec[idx], _position(ws, idx), T, margin,
-                 seed, n_boot)
+                 seed, N_BOOT)
     res["told_apart"] = res.pop("verdict") == "flagged"
     res.pop("flagged")
     res["note"] = ("the classes' recordings differ in brightness, contrast or frame "

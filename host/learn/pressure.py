@@ -315,15 +315,17 @@ def checked_onnx(pipe, X, y):
     return model, parity
 
 
-def export_pressure(X, y, groups, out_dir, kind: str = "gbt", T: int = 1,
-                    n_pins: int | None = None, seed: int = 0, extra: dict | None = None):
+def export_pressure(X, y, groups, out_dir, kind: str = "gbt", shape: tuple = (1, None),
+                    seed: int = 0, extra: dict | None = None):
     """Fit ``kind`` on all windows and write ONNX + manifest (kind ``pressure``,
-    ``input_layout`` vectors, T) to ``out_dir``, after checking that ONNX Runtime
+    ``input_layout`` vectors, ``shape`` = (T, pins), pins None: from X) to
+    ``out_dir``, after checking that ONNX Runtime
     gives scikit-learn's predictions within ``PARITY_OF_RANGE`` of the target
     range (TrainError otherwise). Returns (folder, pipeline, parity record)."""
     from host.learn.onnx_io import write_model
 
     X, y, groups = _check_xy(X, y, groups)
+    T, n_pins = shape
     n_pins = n_pins or X.shape[1] // (2 * T)
     pipe, info = fit_pressure(kind, X, y, groups, T, n_pins, seed)
     model, parity = checked_onnx(pipe, X, y)
@@ -429,7 +431,7 @@ def main(argv=None) -> int:
                     "config": {"module": "host.learn.pressure", "vectors": str(a.vectors),
                                "pressures": str(a.pressures), "model": a.model,
                                "cv": a.cv, "seed": a.seed, "profile": a.profile}}
-            out, _, parity = export_pressure(X, y, groups, a.out, a.model, 1, M, a.seed,
+            out, _, parity = export_pressure(X, y, groups, a.out, a.model, (1, M), a.seed,
                                              spec)
             res["model"] = {"out": str(out), "onnx_parity": parity}
     except (TrainError, OSError, ValueError) as exc:

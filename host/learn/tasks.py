@@ -14,6 +14,8 @@ fnn         MLP over T frames of ``encode_vectors`` (+ IMU when present), two
             (:class:`host.learn.layers.TemporalFeatures` ``neighbours``)
 grid-fnn    the same MLP over ``encode_grids`` (contact-grid maps and their
             frame-to-frame changes): texture, surface, slip
+cnn         the paper's CNN over T stacked binary frames (:mod:`host.learn.cnn`,
+            PyTorch, the ``cnn`` extra): texture, surface, slip
 ==========  =====================================================================
 """
 from __future__ import annotations
@@ -23,14 +25,18 @@ import numpy as np
 from device.checks import whole_number
 from device.errors import TacfootError
 
-__all__ = ["TASKS", "MODELS", "TASK_MODELS", "DEFAULT_MODEL", "DEFAULT_WINDOW", "TASK_HIDDEN",
-           "TASK_RATES", "LAYOUT", "TrainError", "QuantisationError", "check_choice", "check_int", "label_ids"]
+__all__ = ["TASKS", "MODELS", "TASK_MODELS", "OPTIONAL_MODELS", "DEFAULT_MODEL",
+           "DEFAULT_WINDOW", "TASK_HIDDEN", "TASK_RATES", "LAYOUT", "TrainError",
+           "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
-MODELS = ("rule", "ridge", "fnn", "grid-fnn", "gbt")
-#: which models serve which task
-TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn"), "texture": ("fnn", "grid-fnn"),
-               "slip": ("rule", "fnn", "grid-fnn"), "pressure": ("gbt", "ridge", "fnn")}
+MODELS = ("rule", "ridge", "fnn", "grid-fnn", "gbt", "cnn")
+#: which models serve which task (the trainer of each kind: host.learn.train.TRAINERS)
+TASK_MODELS = {"surface": ("rule", "fnn", "grid-fnn", "cnn"),
+               "texture": ("fnn", "grid-fnn", "cnn"),
+               "slip": ("rule", "fnn", "grid-fnn", "cnn"), "pressure": ("gbt", "ridge", "fnn")}
+#: the kinds that need an optional extra (the CNN: PyTorch)
+OPTIONAL_MODELS = ("cnn",)
 #: ``host train`` without ``--model``: the kind that does best on real recordings where
 #: they exist (texture: roboskin clips; pressure: the hard-plate vectors, grouped 5-fold
 #: CV MAE 55.5 for gbt against 70.1 for ridge, ``python -m host.learn.pressure``), else
@@ -39,7 +45,7 @@ DEFAULT_MODEL = {"surface": "fnn", "texture": "fnn", "slip": "fnn", "pressure": 
 #: ``host train`` without ``--window``: frames per window T
 DEFAULT_WINDOW = {"surface": 3, "texture": 15, "slip": 3, "pressure": 1}
 LAYOUT = {"rule": "vectors", "ridge": "vectors", "fnn": "vectors", "grid-fnn": "grids",
-          "gbt": "vectors"}
+          "gbt": "vectors", "cnn": "frames"}
 DEFAULT_HIDDEN = (64, 32)
 #: tasks whose MLP has other hidden layers by default: texture reads T = 15 frames
 #: (about 8000 inputs with its temporal layer); (16, 16) keeps it under 1 MB and fast

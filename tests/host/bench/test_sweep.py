@@ -70,16 +70,16 @@ def test_kept_models_are_timed_with_vision_added(tmp_path):
 def test_a_failed_int8_check_keeps_the_float_model_and_says_why(monkeypatch, tmp_path):
     """When the int8 copy fails its check the float model is still written (trained
     once); the verdict carries the agreement reached, from the check's fields."""
-    import host.learn.train
+    import host.learn.trainers
 
     def failing_quantise(*a, **k):
         raise QuantisationError("int8 check failed: the agreement is too low",
                                 kind="classifier", agreement=0.9718, required=0.99)
 
     fits = []
-    real_fit = host.learn.train.fit_estimator
-    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
-    monkeypatch.setattr(host.learn.train, "fit_estimator",
+    real_fit = host.learn.trainers.fit_estimator
+    monkeypatch.setattr(host.learn.trainers, "quantise_model", failing_quantise)
+    monkeypatch.setattr(host.learn.trainers, "fit_estimator",
                         lambda *a, **k: fits.append(1) or real_fit(*a, **k))
     ws = synthetic()
     why = sweep.train_row("surface", "fnn", ws, ws, tmp_path / "m", 0)

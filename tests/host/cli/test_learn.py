@@ -200,15 +200,16 @@ duration_s = 0.1
 def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch):
     """--model cnn --quantise, with the default held-out split and with --test: the
     int8 model is calibrated on the training windows and becomes the default; both
-    variants load. (Before the fix: an index out of range, or an unbound name.)"""
+    variants load, and each manifest is written once, as for the other kinds (the
+    CNN's used to be written three times). (Before the fix: an index out of range,
+    or an unbound name.)"""
     pytest.importorskip("torch", reason="the CNN needs PyTorch, the optional 'cnn' extra: "
                                         "make install-cnn")
     import functools
 
-    import host.cli.learn as learn
+    import host.learn.cnn as cnn
     from device.pi.models.artefact import load_model
     from host.data.simulate import simulate_to_dataset
-    from host.learn.cnn import train_cnn
 
     ds = tmp_path / "ds"
     for preset in ("hard", "soft"):
@@ -216,17 +217,26 @@ def test_train_cnn_quantise_from_the_command_line(tmp_path, capsys, monkeypatch)
         scene.write_text(_TINY_PRESS.format(preset=preset))
         simulate_to_dataset(str(scene), ds, seed=0, trials=2, progress=False)
     # a small, short training (the command's own defaults take minutes)
-    monkeypatch.setattr(learn, "train_cnn",
-                        functools.partial(train_cnn, epochs=2, hidden=16, filters=2))
+    monkeypatch.setattr(cnn, "train_cnn",
+                        functools.partial(cnn.train_cnn, epochs=2, hidden=16, filters=2))
     # two simulated runs (recordings) per class: whole recordings are held out
+    written = []
+    real = os.replace
+    monkeypatch.setattr(os, "replace", lambda a, b: written.append(os.path.basename(b))
+                        or real(a, b))
     for extra, holdout in (([], "grouped split"), (["--test", str(ds)], "given")):
         out = tmp_path / f"m{len(extra)}"
+        written.clear()
         rc = main(["train", "--task", "surface", "--model", "cnn", "--window", "2",
                    "--data", str(ds), *extra, "--quantise", "--out", str(out), "--json"])
         res = json.loads(capsys.readouterr().out)
         assert rc == 0 and res["holdout"].startswith(holdout)
         assert "agreement" in res["int8"]
+        assert [w for w in written if w.startswith("manifest")] == \
+            ["manifest.json", "manifest.float.json"]
         man = json.loads((out / "manifest.json").read_text())
+        assert man["measured"]["int8"]["agreement"] == res["int8"]["agreement"]
+        assert set(man["measured"]["cost_per_decision"]["files"]) == set(man["files"])
         assert man["variant"] == "int8" and man["model"] == "cnn"
         assert man["classes"] == ["hard", "no-touch", "soft"]
         for m in ("manifest.json", "manifest.float.json"):
@@ -353,6 +363,35 @@ def test_train_config_replays_the_model_and_refuses_flags_beside_it(tmp_path, ca
     assert rc == 2 and "needs --task and --data" in capsys.readouterr().err
 
 
+def test_train_builds_one_config_from_the_flags_or_a_train_toml_and_leaves_args_alone(
+        tmp_path):
+    """The config is built once, from the flags (task defaults filled) or from a
+    train.toml; the parsed arguments are not changed (they used to be set onto)."""
+    import copy
+
+    from host.cli import build_parser
+    from host.cli.learn import train_config
+    from host.learn.config import TrainConfig
+
+    data = _texture_npz(tmp_path / "v.npz")
+    args = build_parser().parse_args(["train", "--task", "texture", "--data", str(data),
+                                      "--out", str(tmp_path / "m"), "--no-identity-check"])
+    before = copy.deepcopy(vars(args))
+    cfg = train_config(args)
+    assert vars(args) == before
+    assert cfg == TrainConfig("texture", DEFAULT_MODEL["texture"], T=DEFAULT_WINDOW["texture"],
+                              data=(str(data),), identity=False, measure=True)
+    toml = tmp_path / "train.toml"
+    from host.learn.card import write_train_toml
+    write_train_toml(tmp_path, cfg.but(seed=5).replay())
+    args = build_parser().parse_args(["train", "--config", str(toml), "--out",
+                                      str(tmp_path / "n")])
+    before = copy.deepcopy(vars(args))
+    again = train_config(args)
+    assert vars(args) == before
+    assert again == cfg.but(seed=5, data=(str(data.resolve()),), identity=True)
+
+
 @pytest.mark.real
 @pytest.mark.slow
 def test_train_pressure_default_reports_grouped_cv_mae_at_most_180_on_the_hard_plate(
@@ -443,3 +482,56 @@ def test_the_shipped_pressure_model_replays_from_its_train_toml(tmp_path, capsys
                                                    ROOT / "models" / "pressure" / "train.toml"))
     assert {k: again[k] for k in ("module", "name", "task", "model", "T", "seed")} == \
         {k: shipped[k] for k in ("module", "name", "task", "model", "T", "seed")}
+
+
+# -- the recording is the unit (issue 33): what host train prints --------------------
+
+def test_train_prints_the_held_out_recordings_and_its_cv_figure_beside_it(tmp_path, capsys):
+    """Four recordings (trials of an .npz) a class: whole recordings are held out,
+    the printed figure names them with their window counts, and --cv's figure is
+    printed beside the held-out one."""
+    data = _texture_npz(tmp_path / "v.npz")
+    out = tmp_path / "m"
+    rc = main(["train", "--task", "texture", "--window", "2", "--data", str(data),
+               "--cv", "2", "--no-identity-check", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    man = json.loads((out / "manifest.json").read_text())
+    held = man["metrics"]["test"]["held_out"]
+    assert held["inside"] == {} and len(held["whole"]) >= 2
+    assert man["metrics"]["test"]["protocol"] == "leave-recordings-out"
+    shown = ", ".join(f"{r} ({n} windows)" for r, n in sorted(held["whole"].items()))
+    assert f"held-out recordings: {shown}" in text
+    assert "optimistic" not in text
+    cv = man["metrics"]["cv"]
+    assert re.search(rf"held-out accuracy {man['metrics']['test']['accuracy']:.4g} .*; "
+                     rf"grouped 2-fold CV \(--cv, on the training windows\): accuracy "
+                     rf"{cv['accuracy']:.4g} \[", text), text
+
+
+def test_train_holds_out_a_whole_recording_of_a_class_with_two_and_says_the_other_is_split_inside(
+        tmp_path, clips, capsys):
+    """Class rough has two recordings (two clips), class smooth one: a whole rough
+    clip is held out, smooth's clip is split in time, and the printed figure says
+    which is which, the split inside one recording marked optimistic."""
+    spec = tmp_path / "tex.csv"
+    spec.write_text("path,label,start_frame,end_frame\n"
+                    f"{clips / 'smooth.avi'},smooth,0,200\n"
+                    f"{clips / 'concrete.avi'},rough,0,200\n"
+                    f"{clips / 'lego_train.avi'},rough,0,200\n")
+    out = tmp_path / "m"
+    rc = main(["train", "--task", "texture", "--model", "fnn", "--window", "3", "--data",
+               str(spec), "--no-identity-check", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0
+    test = json.loads((out / "manifest.json").read_text())["metrics"]["test"]
+    held = test["held_out"]
+    (whole,) = held["whole"]
+    (inside,) = held["inside"]
+    assert whole.split(" sha256:")[0] in ("concrete.avi", "lego_train.avi")
+    assert inside.startswith("smooth.avi sha256:")
+    assert test["protocol"].startswith("leave-recordings-out where a class has two")
+    assert (f"held-out recordings: {whole.split(' sha256:')[0]} ({held['whole'][whole]} "
+            f"windows)") in text
+    assert (f"split inside one recording (optimistic: the same session): smooth.avi "
+            f"({held['inside'][inside]} windows)") in text

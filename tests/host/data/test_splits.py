@@ -152,12 +152,35 @@ def test_split_holdout_leaves_whole_recordings_out_never_a_part_of_one():
         assert len(tr) + len(te) == len(ws)
 
 
-def test_split_holdout_with_one_recording_of_a_class_says_optimistic():
-    """Class b has one recording (split into two trials): the split is by time
-    within the recordings, and says so: 'same recordings: optimistic'."""
-    from host.data.splits import LATER_FRAMES, holdout_protocol
+def test_split_holdout_holds_out_whole_recordings_of_a_class_that_has_two():
+    """The recording is the unit (issue 33): class a has two recordings, class b one
+    (cut into two trials). One recording of a is held out whole; b's one recording is
+    split in time, and the account says both, b's part "optimistic"."""
+    from host.data.splits import MIXED, held_out_recordings, holdout_protocol
     ws = synthetic([40] * 4, 3)
     ws.recordings = np.array(["a1", "b1", "a2", "b1"], object)[ws.groups]
+    for seed in range(4):
+        tr, te, how = split_holdout(ws, 0.3, seed=seed)
+        assert holdout_protocol(how) == MIXED and "1 of 3 recordings held out whole" in how
+        assert "['b'] have one recording each" in how and "optimistic" in how
+        held = held_out_recordings(ws.subset(tr), ws.subset(te))
+        assert set(held["inside"]) == {"b1"} and len(held["whole"]) == 1
+        (whole,) = held["whole"]
+        assert whole in ("a1", "a2") and whole not in set(ws.recordings[tr])
+        assert held["whole"][whole] == int((ws.recordings == whole).sum())
+        # b1's test windows are its later frames, after a gap of T
+        b_tr, b_te = (ws.t_index[i][ws.recordings[i] == "b1"] for i in (tr, te))
+        assert (b_te - 3 + 1).min() - b_tr.max() >= 3
+
+
+def test_split_holdout_with_one_recording_of_every_class_says_optimistic():
+    """Every class has one recording: the split is by time within the recordings,
+    and says so: 'same recordings: optimistic'."""
+    from host.data.splits import LATER_FRAMES, held_out_recordings, holdout_protocol
+    ws = synthetic([40] * 4, 3)
+    ws.recordings = np.array(["a1", "b1", "a1", "b1"], object)[ws.groups]
     tr, te, how = split_holdout(ws, 0.3, seed=0)
     assert holdout_protocol(how) == LATER_FRAMES and "same recordings: optimistic" in how
-    assert "['b'] have only one recording" in how
+    assert "['a', 'b'] have only one recording" in how
+    held = held_out_recordings(ws.subset(tr), ws.subset(te))
+    assert held["whole"] == {} and set(held["inside"]) == {"a1", "b1"}

@@ -10,6 +10,7 @@ import pytest
 from device.pi.models.regressor import Regressor
 from device.pi.models.window import RollingWindow
 from host.data.spec_npz import load_npz
+from host.learn.config import TrainConfig
 from host.learn.cv import CI_OVER_TRIALS, cross_validate_model
 from host.learn.estimators import hyperparameters
 from host.learn.tasks import DEFAULT_MODEL, LAYOUT, TASK_MODELS, TrainError
@@ -79,5 +80,5 @@ def test_cv_of_a_regressor_refuses_too_few_trials(tmp_path):
     ws = load_npz(press_npz(tmp_path / "p.npz", n_trials=3, T=1), "pressure", 1, False,
                   "roboskin")
     with pytest.raises(TrainError, match="cv=5"):
-        cross_validate_model("pressure", "gbt", ws, 5, progress=False, window=1,
-                             n_pins=ws.n_pins)
+        cross_validate_model(TrainConfig("pressure", "gbt", cv=5), ws,
+                             hyperparameters("gbt", window=1, n_pins=ws.n_pins), progress=False)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import host.learn.train
+import host.learn.trainers
 from device.pi.models.artefact import FEATURE_SPEC_VERSION, sha256_file
 from device.pi.models.classifier import Classifier
 from device.pi.models.regressor import Regressor
@@ -216,7 +216,7 @@ def test_quantise_if_passes_keeps_float_and_strict_mode_still_fails(monkeypatch,
         raise QuantisationError("int8 check failed: agrees with the float model on 90.00%",
                                 kind="classifier", agreement=0.9, required=0.99)
 
-    monkeypatch.setattr(host.learn.train, "quantise_model", failing_quantise)
+    monkeypatch.setattr(host.learn.trainers, "quantise_model", failing_quantise)
     ws = synthetic()
     kw = dict(out_dir=None, progress=False, hidden=(8, 4), epochs=20)
     with pytest.raises(QuantisationError, match="90.00%"):
