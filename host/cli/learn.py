@@ -1,7 +1,6 @@
 """``host train``, ``eval`` and ``report``: models from windows of frames."""
 from __future__ import annotations
 
-import json
 import logging
 import os
 import time
@@ -11,13 +10,13 @@ from device.pi.models.artefact import MAX_T
 from device.pi.models.manifest import read_spec
 from device.config import ConfigError
 from host.bench.report import TASK_KINDS, build_report
-from host.cli.common import (SEED, UserError, emit, json_default, out_folder, real_data_dir,
-                             whole, whole_list)
+from host.cli.common import (SEED, UserError, emit, out_folder, real_data_dir, whole,
+                             whole_list)
 from host.data.dataset import DatasetLocked, lock_folder
 from host.data.load import load_specs
 from host.data.windows import DataError
 from host.learn.card import data_source, read_train_toml, recordings_of, write_model_docs
-from host.learn.evaluate import evaluate_model
+from host.learn.evaluate import eval_summary, evaluate_model
 from host.learn.onnx_io import models_profile
 from host.learn.config import TrainConfig
 from host.learn.tasks import DEFAULT_MODEL, DEFAULT_WINDOW, MODELS, TASKS, TrainError
@@ -196,6 +195,11 @@ def _train(args, cfg: TrainConfig) -> None:
                                        cfg.profile, cfg.contact_only)
     ws = load(cfg.data)
     ws_test = load(cfg.test) if cfg.test else None
+    if cfg.task == "pressure":              # the leg would refuse such a model
+        from host.learn.pressure import check_pin_count
+        for w, where in ((ws, "--data"), (ws_test, "--test")):
+            if w is not None:
+                check_pin_count(w, cfg.profile, where)
     recs = recordings_of(cfg.data)
     made = {"config": cfg.replay(),
             "trained_on": {"data": data_source(recs), "recordings": recs,
@@ -203,13 +207,7 @@ def _train(args, cfg: TrainConfig) -> None:
     res = _jsonable(train(cfg, ws, ws_test, args.out, not args.json, made))
     # README.md and train.toml; the run timed the model and wrote its manifest once
     write_model_docs(args.out, measure=False)
-    check = res.get("identity_check") or {}
-    if check and not args.json:
-        for line in identity_lines(check):
-            _log.info("host train: identity check: %s", line)
-    if check.get("warning") and not args.json:
-        _log.warning("host train: warning: %s (host eval --identity shows the figures)",
-                     check["warning"])
+    _log_identity("host train", res.get("identity_check"), args.json)
     emit(args, res, f"wrote {args.out} ({cfg.task} {cfg.model}, T={cfg.window}): "
                     f"{figure_text(res)}")
 
@@ -249,28 +247,6 @@ def figure_text(res: dict) -> str:
     return "; ".join(p for p in parts if p)
 
 
-def identity_lines(check: dict) -> list[str]:
-    """One line per class of a recording-identity check (host.learn.identity): its
-    balanced accuracy against chance, or why it did not conclude; a whole check
-    skipped is one line."""
-    if check.get("skipped"):
-        return [f"skipped: {check['skipped']}"]
-    lines = []
-    for c, e in sorted((check.get("classes") or {}).items()):
-        what = f"{c} ({e.get('mode', '?')})"
-        if "skipped" in e:
-            lines.append(f"{what}: not run, {e['skipped']}")
-            continue
-        ci = e.get("balanced_accuracy_ci95") or [float("nan")] * 2
-        verdict = ("FLAGGED: may learn the recording" if e.get("flagged")
-                   else f"inconclusive, {e['inconclusive']}" if e.get("inconclusive")
-                   else "not told apart far above chance")
-        lines.append(f"{what}: balanced accuracy {e['balanced_accuracy']:.2f} "
-                     f"[{ci[0]:.2f}, {ci[1]:.2f}] on {e['n_windows']} windows, chance "
-                     f"{e['chance']:.2f}: {verdict}")
-    return lines
-
-
 def _interval(m: dict, key: str) -> str:
     """' [lo, hi] (95 %), n=N windows' for a metric that has its interval."""
     ci = m.get(f"{key}_ci95")
@@ -284,13 +260,24 @@ def cmd_eval(args):
     spec, mpath = read_spec(args.model_dir)
     profile, _ = models_profile({mpath: spec}, args.profile)
     ws = _load_windows(args, args.data, spec.kind, spec.T, profile, args.contact_only)
-    try:
-        res = evaluate_model(args.model_dir, ws, variant=args.variant)
-        if args.identity:
-            res["identity_check"] = _identity(spec, ws, profile)
-    except ValueError as exc:      # windows that do not fit the model: host.learn.evaluate
-        raise UserError(str(exc)) from None      # and the identity check raise ValueError
-    emit(args, res, json.dumps(res, indent=1, default=json_default))
+    res = evaluate_model(args.model_dir, ws, variant=args.variant)
+    if args.identity:
+        res["identity_check"] = _identity(spec, ws, profile)
+    _log_identity("host eval", res.get("identity_check"), args.json)
+    emit(args, res, eval_summary(res))
+
+
+def _log_identity(cmd: str, check: dict | None, quiet: bool) -> None:
+    """The recording-identity check's verdict lines (INFO) and, when it flagged, its
+    one-line warning (WARNING) on stderr; nothing with --json, whose output holds it."""
+    from host.learn.identity import verdict_lines, warning_line
+    if not check or quiet:
+        return
+    for line in verdict_lines(check):
+        _log.info("%s: identity check: %s", cmd, line)
+    warn = warning_line(check)
+    if warn:
+        _log.warning("%s: warning: %s", cmd, warn)
 
 
 def _identity(spec, ws, profile: str) -> dict:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from device.errors import InputError
 from device.pi.models.artefact import ModelError, model_file
 from device.pi.models.manifest import VARIANTS, manifest_for, manifest_path, read_spec
 from device.pi.models.classifier import Classifier
@@ -133,22 +134,22 @@ def _fitting_inputs(pred_obj, spec, kind: str, ws) -> np.ndarray:
     (task, T, IMU, labels among its classes, input size); ValueError otherwise."""
     task, T, layout, uses_imu = spec.kind, spec.T, spec.input_layout, spec.uses_imu
     if len(ws) == 0:
-        raise ValueError("ws holds no windows")
+        raise InputError("ws holds no windows")
     if ws.task != task:
-        raise ValueError(f"the windows were loaded for task {ws.task!r}, the model is for "
+        raise InputError(f"the windows were loaded for task {ws.task!r}, the model is for "
                          f"task {task!r}")
     if T is not None and ws.window != T:
-        raise ValueError(f"the windows have T={ws.window} frames, the model sees T={T}")
+        raise InputError(f"the windows have T={ws.window} frames, the model sees T={T}")
     layout = spec.input_layout
     uses_imu = spec.uses_imu
     if uses_imu and ws.imu is None:
-        raise ValueError("the model uses the IMU but the windows carry none")
+        raise InputError("the model uses the IMU but the windows carry none")
     if kind != "regressor" and ws.labels is not None:
         unknown = sorted({str(x) for x in ws.labels} - {str(c) for c in pred_obj.classes})
         if NO_TOUCH in unknown:
             # not a wrong label: the windows without contact, which the loader labels
             # no-touch, and a model trained on contact windows only (--contact-only)
-            raise ValueError(
+            raise InputError(
                 f"the model has no {NO_TOUCH} class (its classes: {list(pred_obj.classes)}; "
                 f"it was trained on contact windows only, e.g. with --contact-only), and "
                 f"{int((ws.labels == NO_TOUCH).sum())} of the {len(ws)} windows have no "
@@ -156,7 +157,7 @@ def _fitting_inputs(pred_obj, spec, kind: str, ws) -> np.ndarray:
                 + (f"; the data also hold label(s) {[u for u in unknown if u != NO_TOUCH]} "
                    f"that the model does not know" if len(unknown) > 1 else ""))
         if unknown:
-            raise ValueError(f"the data hold label(s) {unknown} that the model does not know "
+            raise InputError(f"the data hold label(s) {unknown} that the model does not know "
                              f"(its classes: {list(pred_obj.classes)}); a score over them would "
                              f"mean nothing: fix the labels or evaluate a model trained on them")
     X = model_inputs(ws, layout, uses_imu)
@@ -169,7 +170,7 @@ def _fitting_inputs(pred_obj, spec, kind: str, ws) -> np.ndarray:
                 f"{prof.get('name')!r} has {prof.get('n_pins')}: load the data with the "
                 f"model's profile (host eval does, unless --profile says otherwise)"
                 if prof and ws.n_pins != prof.get("n_pins") else "")
-        raise ValueError(f"the windows encode to {tuple(X.shape[1:])} inputs, the model "
+        raise InputError(f"the windows encode to {tuple(X.shape[1:])} inputs, the model "
                          f"expects {tuple(shape)} (pin count, grid or frame size differs)"
                          + pins)
     return X

@@ -104,6 +104,21 @@ def _texture_npz(path, names=("smooth", "lego"), n=24, T=2, M=6, seed=0):
     return path
 
 
+def test_pressure_data_off_the_profiles_pin_count_is_refused_in_one_line(tmp_path, capsys):
+    """Pressure windows with another marker count than the profile's pins (the leg
+    would refuse the model) are refused before training, naming both (issue 33)."""
+    rng = np.random.default_rng(0)
+    p = tmp_path / "p.npz"
+    np.savez(p, vectors=rng.normal(0, 0.3, (40, 2, 6, 2)), targets=rng.uniform(0, 5, 40),
+             contact=np.ones(40, bool), groups=np.arange(40) // 10)
+    out = tmp_path / "m"
+    assert main(["train", "--task", "pressure", "--model", "ridge", "--window", "2",
+                 "--data", str(p), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "6 markers a frame" in err[0] and "n_pins=133" in err[0]
+    assert not (out / "model.onnx").exists()
+
+
 def test_a_second_train_into_a_locked_out_folder_is_refused_with_one_line(tmp_path, capsys):
     """While one host train holds --out (here: the test holds its lock), another is
     exit 2 with one line and writes nothing; once it is free, training proceeds."""
@@ -262,6 +277,11 @@ def test_eval_without_contact_only_says_to_pass_it_not_to_fix_the_labels(tmp_pat
     assert "evaluate with --contact-only" in err and "fix the labels" not in err
     assert main(["eval", str(out), "--data", str(p), "--contact-only", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["n_windows"] == 8
+    # without --json: a short text summary, not the JSON document (issue 33)
+    assert main(["eval", str(out), "--data", str(p), "--contact-only"]) == 0
+    text = capsys.readouterr().out
+    assert not text.lstrip().startswith("{") and "on 8 windows" in text
+    assert "accuracy" in text and "--json prints every figure" in text
 
 
 # -- host report on the user's own data specs and profile --
@@ -415,27 +435,6 @@ def test_train_pressure_default_reports_grouped_cv_mae_at_most_180_on_the_hard_p
     lo, hi = cv["mae_ci95"]
     assert lo <= cv["mae"] <= hi <= 180, cv
     assert cv["mae"] <= 0.1 * cv["mae_predict_mean"], cv
-
-
-def test_identity_lines_give_each_class_its_verdict_and_figures():
-    """host train prints the identity check per class without --json: a flagged
-    class, an inconclusive one with its reason, a class not run and why."""
-    from host.cli.learn import identity_lines
-    check = {"classes": {
-        "lego": {"mode": "halves", "balanced_accuracy": 0.97,
-                 "balanced_accuracy_ci95": [0.91, 1.0], "chance": 0.5, "n_windows": 40,
-                 "flagged": True},
-        "smooth": {"mode": "recordings", "balanced_accuracy": 0.6,
-                   "balanced_accuracy_ci95": [0.4, 0.8], "chance": 0.5, "n_windows": 12,
-                   "flagged": False, "inconclusive": "a recording has 6 test windows"},
-        "concrete": {"mode": "halves", "skipped": "too few windows"}}}
-    lines = identity_lines(check)
-    assert lines[0] == "concrete (halves): not run, too few windows"
-    assert lines[1].startswith("lego (halves): balanced accuracy 0.97 [0.91, 1.00] on 40 "
-                               "windows, chance 0.50: FLAGGED")
-    assert "inconclusive, a recording has 6 test windows" in lines[2]
-    assert identity_lines({"skipped": "a rule learns no recording"}) == [
-        "skipped: a rule learns no recording"]
 
 
 # ---------------------------------------------------------------------------
