@@ -9,7 +9,7 @@ import numpy as np
 
 from host.data.dataset import DatasetError, load_trial, read_index
 from host.data.extract import extract_features, frame_intervals
-from host.data.recordings import sim_recording
+from host.data.recordings import profile_ref, sim_recording
 from host.data.windows import (IMU_CHANNELS, SLIP_LABELS, DataError, TrialPart, WindowSet,
                                check_labels, finalise, keep_contact, stack_parts, window_ends,
                                window_labels)
@@ -50,9 +50,9 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
     contact_from: set = set()
     for i, entry in enumerate(entries):
         fname = entry.get("file", f"trial {i}")
-        if entry.get("profile") not in (None, profile) and not str(profile).endswith(".toml"):
-            raise DataError(f"{path / fname}: recorded with profile {entry.get('profile')!r}, "
-                            f"features asked for profile {profile!r}")
+        why = _other_profile(entry, profile)
+        if why:
+            raise DataError(f"{path / fname}: {why}")
         if int(entry.get("frames", T)) < T:
             raise DataError(f"{path / fname}: window T={T} frames is longer than the trial "
                             f"({entry.get('frames')} frames)")
@@ -141,3 +141,21 @@ def load_dataset(path: Path, task: str, T: int, stride: int, contact_only: bool,
            "extract_s": sum(p.clip.seconds for p in parts)}
     return finalise(WindowSet(task=task, window=T, classes=[], source=src, **arrays),
                      min_classes, str(path))
+
+
+def _other_profile(entry: dict, profile) -> str:
+    """Why a trial recorded for one sensor profile cannot give features for
+    ``profile``, or ''. A trial that kept its profile's checksum (``host record``) is
+    compared by it, so a .toml of another sensor is refused as a built-in name is."""
+    rec, rec_sha = entry.get("profile"), entry.get("profile_sha256")
+    if rec is None:
+        return ""
+    if rec_sha:
+        want = profile_ref(profile)["sha256"]
+        if want is None or want == rec_sha:
+            return ""
+    elif rec == profile or str(profile).endswith(".toml"):
+        return ""
+    return (f"recorded with profile {rec!r}, features asked for profile {profile!r} (another "
+            f"sensor description): record with --profile {profile}, or train with --profile "
+            f"{rec}")

@@ -130,3 +130,34 @@ def test_a_folder_mixing_trials_with_and_without_an_imu_is_refused_naming_them(
     msg = str(exc.value)
     assert "\n" not in msg and "['trial_0000.npz'] have an IMU" in msg
     assert "['trial_0001.npz'] have none" in msg
+
+
+def test_a_trial_recorded_for_another_profile_is_refused_even_as_a_toml(sim_ds, tmp_path):
+    """host record keeps the profile's checksum: a folder recorded for roboskin and
+    read with another sensor's .toml is refused naming both (issue 33: it was
+    accepted without a word); the same description under another file name is not."""
+    from device.profile import PROFILE_DIR
+    from host.data.dataset import DatasetWriter, read_index
+    from host.data.recordings import profile_ref
+    index = read_index(sim_ds)
+    meta = {k: v for k, v in index.items() if k not in ("trials", "format", "version")}
+    out = tmp_path / "rec"
+    with DatasetWriter(out, meta=meta) as w:
+        tr = load_trial(sim_ds, 0)
+        truth = {k: tr[k] for k in ("contact", "surface", "texture", "slip", "load_n")
+                 if k in tr}
+        info = {k: v for k, v in tr["info"].items() if k not in ("file", "bytes", "frames")}
+        info.update(profile="roboskin", profile_sha256=profile_ref("roboskin")["sha256"])
+        w.add_trial(np.asarray(tr["frames"]), truth, info)
+    text = (PROFILE_DIR / "roboskin.toml").read_text()
+    same = tmp_path / "copy-of-roboskin.toml"
+    same.write_text(text)
+    other = tmp_path / "mine.toml"
+    other.write_text(text.replace('name = "roboskin"', 'name = "mine"'))
+    with pytest.raises(DataError) as exc:
+        load_spec(str(out), "surface", 3, progress=False, profile=str(other))
+    msg = str(exc.value)
+    assert "\n" not in msg and "recorded with profile 'roboskin'" in msg and "mine.toml" in msg
+    ws = load_spec(str(out), "surface", 3, progress=False, profile=str(same),
+                   min_classes=1)
+    assert len(ws) > 0
