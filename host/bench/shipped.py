@@ -51,7 +51,7 @@ from host.bench.benchmarks import BENCH_MODELS
 from host.bench.scenes import simulate_scenes
 from host.data.load import load_spec
 from host.learn.card import measure_cost, write_model_docs
-from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, session
+from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, replace_graphs, session
 from host.learn.tasks import (DEFAULT_ALPHA, DEFAULT_EPOCHS, DEFAULT_MODEL, DEFAULT_WINDOW,
                               TASK_HIDDEN, TASK_RATES, TrainError)
 from host.learn.train import train_model
@@ -198,7 +198,6 @@ def regraph(folder, seed: int = 0) -> dict:
     import numpy as np
     import onnx
 
-    from host.data.dataset import atomic_write
     from host.learn.layers import replace_temporal_graph
 
     folder = Path(folder)
@@ -212,7 +211,7 @@ def regraph(folder, seed: int = 0) -> dict:
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
     X = np.random.default_rng(seed).normal(0, 3, (256, spec.n_inputs))
     X = X.astype(np.float32)
-    out, new_bytes = {}, {}
+    new_bytes = {}
     for name in names:                  # every file is checked before any is written
         old = onnx.load(str(folder / name))
         new = replace_temporal_graph(old, params, seed)
@@ -225,15 +224,7 @@ def regraph(folder, seed: int = 0) -> dict:
         if not (np.array_equal(a[0], b[0]) and np.allclose(a[1], b[1], atol=1e-4)):
             raise TrainError(f"{folder / name}: the rewritten graph gives other outputs")
         new_bytes[name] = new.SerializeToString()
-        out[name] = ((folder / name).stat().st_size, len(new_bytes[name]))
-    for name, data in new_bytes.items():
-        atomic_write(folder / name, lambda fh, data=data: fh.write(data))
-    q = spec.measured.int8
-    if INT8_NAME in out and isinstance(q, dict):
-        spec.measured.int8 = dict(q, float_bytes=out[FLOAT_NAME][1], int8_bytes=out[INT8_NAME][1])
-    fill_variants(folder, spec, INT8_NAME in out and spec.variant == "int8")
-    write_variant_specs(folder, spec)
-    return out
+    return replace_graphs(folder, spec, new_bytes)
 
 
 def shipped_config(name: str, task: str, model: str, T: int, seed: int, **more) -> dict:

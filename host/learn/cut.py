@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from device.pi.models.artefact import ModelError
-from device.pi.models.manifest import has_manifest, read_spec, write_variant_specs
+from device.pi.models.manifest import has_manifest, read_spec
 from device.pi.models.winfeat import FeatureSpec, window_stats
 from host.learn.layers import layer_in_graph
 from host.learn.tasks import TrainError
@@ -128,8 +128,7 @@ def cut_folder(folder, seed: int = 0) -> dict:
     Returns {file: (bytes before, bytes after)}; {} when it is cut already."""
     import onnx
 
-    from host.data.dataset import atomic_write
-    from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, session
+    from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, replace_graphs, session
 
     folder = Path(folder)
     mspec, mpath = read_spec(folder)
@@ -142,7 +141,7 @@ def cut_folder(folder, seed: int = 0) -> dict:
     names = [n for n in (FLOAT_NAME, INT8_NAME) if (folder / n).is_file()]
     X = _windows(spec, 512, seed + 1)
     F = window_stats(spec, X)
-    out, new_bytes = {}, {}
+    new_bytes = {}
     for name in names:                  # every file is checked before any is written
         old = onnx.load(str(folder / name))
         new = cut_features(old, spec, seed)
@@ -156,17 +155,9 @@ def cut_folder(folder, seed: int = 0) -> dict:
             raise TrainError(f"{folder / name}: the cut graph gives other outputs (max "
                              f"probability change {np.abs(pa - pb).max():.3g})")
         new_bytes[name] = new.SerializeToString()
-        out[name] = ((folder / name).stat().st_size, len(new_bytes[name]))
-    for name, data in new_bytes.items():
-        atomic_write(folder / name, lambda fh, data=data: fh.write(data))
     mspec.features = spec.record()
     mspec.n_inputs = spec.n_features
-    q = mspec.measured.int8
-    if INT8_NAME in out and isinstance(q, dict):
-        mspec.measured.int8 = dict(q, float_bytes=out[FLOAT_NAME][1], int8_bytes=out[INT8_NAME][1])
-    fill_variants(folder, mspec, INT8_NAME in out and mspec.variant == "int8")
-    write_variant_specs(folder, mspec)
-    return out
+    return replace_graphs(folder, mspec, new_bytes)
 
 
 def main(argv=None) -> int:

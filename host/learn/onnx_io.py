@@ -166,6 +166,24 @@ def fill_variants(folder: Path | str, spec: ModelSpec, int8: bool) -> dict:
     return files
 
 
+def replace_graphs(folder: Path | str, spec: ModelSpec, new_bytes: dict) -> dict:
+    """Write the rewritten graphs ``new_bytes`` (file name -> bytes) of a model
+    folder atomically, then record them in ``spec`` (the int8 verdict's byte counts,
+    :func:`fill_variants`) and write its manifests. Returns, per file, its
+    (old size, new size) in bytes."""
+    from device.pi.models.manifest import write_variant_specs
+    folder = Path(folder)
+    out = {n: ((folder / n).stat().st_size, len(b)) for n, b in new_bytes.items()}
+    for name, data in new_bytes.items():
+        atomic_write(folder / name, lambda fh, data=data: fh.write(data))
+    q = spec.measured.int8
+    if INT8_NAME in out and isinstance(q, dict):
+        spec.measured.int8 = dict(q, float_bytes=out[FLOAT_NAME][1], int8_bytes=out[INT8_NAME][1])
+    fill_variants(folder, spec, INT8_NAME in out and spec.variant == "int8")
+    write_variant_specs(folder, spec)
+    return out
+
+
 def model_bytes(m) -> bytes:
     """The serialised model of a ModelProto, bytes or a path."""
     if hasattr(m, "SerializeToString"):
