@@ -386,7 +386,10 @@ class MarkerStream:
             return self._implausible(i, t_s, faults, pins, timings)
         self.implausible = ""
         if status == frame.TRACK:
-            vectors, lost = tr.update(pins, steps)
+            # tf_track handed the frame back: a jump or unusable pins (numpy takes
+            # it, no second tf_track), or more pins than its scratch holds (the
+            # compiled update grows the scratch and takes it)
+            vectors, lost = tr.update(pins, steps, compiled=len(pins) > tr._tcap)
             t3 = clock()
             timings["track"] = (t3 - t2) * 1e3
             return self._tracked(i, t_s, faults, pins, vectors, lost, timings, t0, t3)

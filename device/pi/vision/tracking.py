@@ -422,10 +422,12 @@ class Tracker:
         return self.compiled_done(idx)
 
     # -- per frame ---------------------------------------------------------------
-    def update(self, cur, steps: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def update(self, cur, steps: int = 1, compiled: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
         """Track one frame's pins ``cur`` (n, 2) px, ``steps`` frames after the last
         one tracked (more than 1 when frames were dropped in between: the prediction
-        goes that many frames ahead).
+        goes that many frames ahead). ``compiled`` False goes straight to the numpy
+        path (the fused frame, whose tf_track already handed this frame back).
 
         Returns ``vectors`` float32 (m, 2) (current minus reference position,
         px) and ``lost`` bool (m,). Both are fresh arrays (copies of the
@@ -438,7 +440,7 @@ class Tracker:
         self._settle()
         self.reacquired = 0
         steps = _steps(steps)
-        done = self._update_compiled(cur, steps)
+        done = self._update_compiled(cur, steps) if compiled else None
         if done is not None:
             return done
         faults = 0
