@@ -110,14 +110,10 @@ def _run(args) -> int:
               "none (--rules-only)" if args.rules_only else (args.models or "the package's"))
 
     if args.mcap or args.foxglove:
-        from device.pi.runtime.mcaplog import LiveView, McapLog, parse_hostport, run_metadata
-        live = (LiveView(*parse_hostport(args.foxglove), max_clients=args.foxglove_max_clients)
-                if args.foxglove else None)
-        rt.mcap = McapLog(args.mcap, rt.cfg.mcap, max_mb=args.mcap_max_mb, clock=rt.clock,
-                          live=live, background=True, keep_existing=True,
-                          metadata=run_metadata(rt), records="device")
-        if live is not None:
-            log.info("device.pi run: Foxglove live view on ws://%s:%s", live.host, live.port)
+        rt.mcap = _open_log(args, rt)
+        if args.foxglove:
+            log.info("device.pi run: Foxglove live view on ws://%s:%s", rt.mcap.host,
+                     rt.mcap.port)
     guard: list[threading.Timer] = []
 
     def stop(signum, frame):
@@ -158,10 +154,29 @@ def _run(args) -> int:
     return rc
 
 
+def _open_log(args, rt):
+    """The MCAP log and live view: written by a child process (``[mcap] writer``,
+    device/pi/runtime/mcapproc.py), or by a thread of this one."""
+    from device.pi.runtime.liveview import LiveView, parse_hostport
+    from device.pi.runtime.mcaplog import McapLog, run_metadata
+    addr = parse_hostport(args.foxglove) if args.foxglove else None
+    kw = dict(max_mb=args.mcap_max_mb, clock=rt.clock, keep_existing=True,
+              metadata=run_metadata(rt), records="device")
+    if rt.cfg.mcap.writer == "process":
+        from device.pi.runtime.mcapproc import McapProcess
+        return McapProcess(args.mcap, rt.cfg.mcap, foxglove=addr,
+                           max_clients=args.foxglove_max_clients, **kw)
+    live = None if addr is None else LiveView(*addr, max_clients=args.foxglove_max_clients)
+    mlog = McapLog(args.mcap, rt.cfg.mcap, live=live, background=True, **kw)
+    mlog.host, mlog.port = (None, None) if live is None else (live.host, live.port)
+    return mlog
+
+
 def _check_mcap(args) -> str | None:
     """Why ``--mcap`` or ``--foxglove`` cannot work (checked before the sources open),
     or None."""
-    from device.pi.runtime.mcaplog import INSTALL_HINT, MAX_MB_MAX, MAX_MB_MIN, parse_hostport
+    from device.pi.runtime.liveview import parse_hostport
+    from device.pi.runtime.mcaplog import INSTALL_HINT, MAX_MB_MAX, MAX_MB_MIN
     mb = args.mcap_max_mb
     if not (math.isfinite(mb) and MAX_MB_MIN <= mb <= MAX_MB_MAX):
         return (f"--mcap-max-mb must be a number of MB from {MAX_MB_MIN:g} to "

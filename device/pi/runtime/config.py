@@ -31,7 +31,9 @@ Sections and keys (units in the names)::
                camera frame, with its pin annotations), image_width (px, the logged
                JPEG's width; the height keeps the aspect), jpeg_quality (1..100),
                vector_scale (the pin vectors drawn this many times their length),
-               chunk_kb (MCAP chunk size: a crash loses at most the last chunk)
+               chunk_kb (MCAP chunk size: a crash loses at most the last chunk),
+               writer ("process": a child process encodes and writes, off the
+               loop's core; "thread": a thread of the runtime, for a one-core board)
     [signing]  public_key (base64 Ed25519 public key that model manifests must be
                signed with; ``host deploy`` fills it in), allow_unsigned (bool: load
                models that carry no signature; true by default, for development,
@@ -115,6 +117,7 @@ class McapConfig:
     jpeg_quality: int = 75
     vector_scale: float = 3.0
     chunk_kb: int = 1024
+    writer: str = "process"
 
 
 @dataclass
@@ -224,7 +227,8 @@ def parse_leg_config(doc: dict, source: str = "") -> LegConfig:
         image_width=x.integer("image_width", d.mcap.image_width, min=16, max=8192),
         jpeg_quality=x.integer("jpeg_quality", d.mcap.jpeg_quality, min=1, max=100),
         vector_scale=x.number("vector_scale", d.mcap.vector_scale, min=0.0, max=1000.0),
-        chunk_kb=x.integer("chunk_kb", d.mcap.chunk_kb, min=1, max=1_048_576))
+        chunk_kb=x.integer("chunk_kb", d.mcap.chunk_kb, min=1, max=1_048_576),
+        writer=x.string("writer", d.mcap.writer, choices=("process", "thread")))
     x.done()
 
     k = top.sub("signing", {})

@@ -1,8 +1,8 @@
 """``--foxglove [HOST:]PORT``: the leg's channels served live to Foxglove viewers, with
 bounds the SDK's own server lacks: a client limit, a handshake deadline, a per-viewer
-queue whose overflow is dropped and counted (docs/viewing.md). Split from
-:mod:`device.pi.runtime.mcaplog`, which re-exports :class:`LiveView` and
-:func:`parse_hostport`.
+queue whose overflow is dropped and counted (docs/viewing.md). The runtime runs it in
+the MCAP writer's process (:mod:`device.pi.runtime.mcapproc`), or beside a writer
+thread (:mod:`device.pi.runtime.mcaplog`).
 """
 from __future__ import annotations
 

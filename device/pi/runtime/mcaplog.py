@@ -43,12 +43,13 @@ write (``[mcap] chunk_kb``), so a crash loses at most the chunk being filled and
 what the writer thread had not yet taken (below; normally nothing). A file whose
 first chunk cannot be written (a full disk) is removed and its name tried again.
 
-The loop does not wait on the log (``background=True``, the runtime's): per frame it
-copies the values the messages need and queues them; a writer thread encodes them
-(the small messages from templates, :mod:`device.pi.runtime.mcapmsg`; the JPEG only
-on an image frame), compresses the chunks and writes them. When the writer falls
+The loop does not wait on the log (``background=True``): per frame it copies the
+values the messages need and queues them; a writer thread encodes them (templates,
+:mod:`device.pi.runtime.mcapmsg`; the JPEG only on an image frame), compresses the
+chunks and writes them. The runtime's default moves that writer to a child process
+(:mod:`device.pi.runtime.mcapproc`), off the loop's GIL. When the writer falls
 :data:`QUEUE_ITEMS` frames and packets behind, the oldest is dropped and counted
-(``mcap_dropped``, and its messages in ``mcap_messages_lost``): the newest wins.
+(``mcap_dropped``, its messages in ``mcap_messages_lost``): the newest wins.
 
 The log is not the job: :class:`McapLog` never raises into the loop. A failed
 write (a full disk, a vanished mount, a bad frame) is counted in ``messages_lost``
@@ -126,9 +127,21 @@ class McapLog:
                  live=None, background: bool = False, keep_existing: bool = False,
                  prog: str = "device.pi run", metadata: dict | None = None,
                  records: str | None = None):
+        self._setup(cfg, clock, prog, keep_existing, metadata, channels)
+        self.live = live             # a LiveView (--foxglove), or None
+        self.path = None if path is None else Path(path)
+        self._file_on = path is not None
+        if path is None and live is None:
+            raise McapLogError("McapLog needs a file (--mcap), a live view (--foxglove) "
+                               "or both; got neither")
+        if path is not None:
+            self._open_first(path, max_mb)
+        self._start(records, background)
+
+    def _setup(self, cfg, clock, prog, keep_existing, metadata, channels) -> None:
+        """The counters and the time line's anchor (the front, which the loop drives)."""
         #: topic -> JSON schema: :data:`CHANNELS` and any more (``host export mcap``)
         self.channels = {**M.channels(), **(channels or {})}
-        self.live = live             # a LiveView (--foxglove), or None
         #: the "tacfoot" Metadata record of every file (name -> string, :func:`run_metadata`)
         self.metadata = {k: str(v) for k, v in (metadata or {}).items()}
         #: Unix-epoch ns at runtime clock 0: the one offset that makes log times epoch ns
@@ -147,29 +160,22 @@ class McapLog:
         self._done = 0               # items the writer thread has handled
         self._busy = None            # (messages, written + lost) of the item in hand
         self._abandoned = False
-        self._head = self._file_msgs = self._file_kept = 0
-        self.messages_written = 0
+        self._head = self._file_msgs = self._file_kept = self.messages_written = 0
         self._lost = 0               # the writer's failures (its thread)
         self._dropped_msgs = 0       # messages of the items dropped from the queue
         self.dropped = 0             # queue items (frames, packets) dropped
-        self.warned = False
-        self._w = None
-        self._retry_at = None
+        self.warned, self._w, self._retry_at = False, None, None
         self._offset_s = None        # frame time - runtime clock, at the last frame
         self._frames = 0
         self._q: deque | None = None
         self._thread = None
         self.loop_cpu_s = 0.0        # CPU the loop's thread spent in frame() and packet()
         self.writer_cpu_s = 0.0      # CPU of the writer thread (background=True)
-        self.path = None if path is None else Path(path)
-        self._file_on = path is not None
-        if path is None and live is None:
-            raise McapLogError("McapLog needs a file (--mcap), a live view (--foxglove) "
-                               "or both; got neither")
-        if path is not None:
-            self._open_first(path, max_mb)
+
+    def _start(self, records, background: bool) -> None:
+        """The runtime's log records on /tacfoot/log, and the writer thread."""
         self._records = None
-        if records is not None:          # the runtime's log lines on /tacfoot/log
+        if records is not None:
             self._records = (logging.getLogger(records), _Records(self))
             self._records[0].addHandler(self._records[1])
         if background:
@@ -179,6 +185,9 @@ class McapLog:
             self._thread = threading.Thread(target=self._drain, name="mcap-writer",
                                             daemon=True)
             self._thread.start()
+
+    def _anyone(self) -> bool:      # the file, or a live viewer
+        return self._file_on or self.live.any()
 
     def _open_first(self, path, max_mb) -> None:
         self._writer_mod = _mcap()
@@ -303,10 +312,11 @@ class McapLog:
         c0 = time.thread_time()
         while not self._abandoned:
             self.writer_cpu_s = time.thread_time() - c0
+            closing = self._closing      # read first: what close() queued is then taken
             try:
                 fn, *args, n = q.popleft()
             except IndexError:
-                if self._closing:
+                if closing:
                     return
                 wake.wait(WRITER_POLL_S)     # woken early only by close()
                 continue
@@ -425,7 +435,7 @@ class McapLog:
             self._frame_ns = self._epoch_ns + int(round((t_avail - t_s) * 1e9))
         n = self._frames
         self._frames += 1
-        if not self._file_on and not self.live.any():     # no file, no viewer: nothing
+        if not self._anyone():     # no file, no viewer: nothing
             return
         try:
             tex = getattr(decision, "texture", None)
@@ -460,7 +470,8 @@ class McapLog:
                         M.latency_bytes(k, dec.get("latency_ms"), pipeline_ms))
 
     def _image(self, t: int, image, pins, vectors, lost, reference) -> None:
-        jpg, s = M.jpeg(image, self.cfg.image_width, self.cfg.jpeg_quality)
+        jpg, s = (image if isinstance(image, tuple)      # (JPEG, scale) made by the sender
+                  else M.jpeg(image, self.cfg.image_width, self.cfg.jpeg_quality))
         self._write("/tacfoot/image", t, M.image_bytes(t, jpg))
         self._write("/tacfoot/pins", t, M.annotations_bytes(t, pins, vectors, lost, reference,
                                                             s, self.cfg.vector_scale))
@@ -468,7 +479,7 @@ class McapLog:
     def packet(self, direction: str, msg, clock_s: float, seq=None, t_ms=None) -> None:
         """A packet sent (``direction`` "out") or received ("in"), decoded; a FAULT
         sent is also logged on ``/tacfoot/faults``."""
-        if not self._file_on and not self.live.any():
+        if not self._anyone():
             return
         c0 = time.thread_time()
         fault = direction == "out" and isinstance(msg, P.Fault)
@@ -586,7 +597,3 @@ class _Records(logging.Handler):
             pass
         finally:
             self._inside.on = False
-
-
-# the live view is device/pi/runtime/liveview.py; its names stay importable here
-from device.pi.runtime.liveview import LiveView, parse_hostport  # noqa: E402,F401

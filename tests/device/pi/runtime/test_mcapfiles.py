@@ -266,8 +266,9 @@ sys.exit(main(sys.argv[2:]))
 
 def test_sigterm_with_a_stalled_mcap_disk_exits_0_and_counts_the_loss(tmp_path):
     mark = tmp_path / "stalled"
+    # the thread writer (the process writer's stall: test_mcapproc.py)
     cmd = _run(tmp_path, "--mcap", tmp_path / "run.mcap", frames=None,
-               config="[mcap]\nchunk_kb = 4\nimage_every = 1\n")
+               config="[mcap]\nchunk_kb = 4\nimage_every = 1\nwriter = \"thread\"\n")
     cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
     cmd = [sys.executable, "-c", STALL, str(mark)] + cmd[3:]
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT)}

@@ -9,7 +9,9 @@ import json
 import re
 import signal
 import subprocess
+import threading
 import time
+from collections import deque
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,7 +22,7 @@ mcap = pytest.importorskip("mcap")
 from mcap.reader import make_reader  # noqa: E402
 
 from device.pi import protocol as P  # noqa: E402
-from device.pi.runtime import mcaplog  # noqa: E402
+from device.pi.runtime import liveview, mcaplog  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcaplog import CHANNELS, McapLog, read_log, recover, roll_name  # noqa
 from device.pi.runtime.mcapmsg import grid_cells  # noqa: E402
@@ -168,9 +170,11 @@ def test_files_roll_over_by_size_and_each_reads_back(tmp_path):
 
 
 def test_a_killed_run_leaves_a_readable_prefix(tmp_path):
+    # the thread writer dies with the runtime (the process writer ends the file:
+    # tests/device/pi/runtime/test_mcapproc.py)
     f = tmp_path / "killed.mcap"
     cmd = _run(tmp_path, "--mcap", f, frames=None,
-               config="[mcap]\nchunk_kb = 4\nimage_every = 1\n")
+               config="[mcap]\nchunk_kb = 4\nimage_every = 1\nwriter = \"thread\"\n")
     cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -306,13 +310,13 @@ def test_the_live_view_alone_builds_only_what_a_viewer_subscribed_to(monkeypatch
                                        ("0.0.0.0:9000", ("0.0.0.0", 9000)),
                                        (":0", ("127.0.0.1", 0))])
 def test_parse_hostport(text, want):
-    assert mcaplog.parse_hostport(text) == want
+    assert liveview.parse_hostport(text) == want
 
 
 @pytest.mark.parametrize("text", ["x", "host:", "1:70000", "-1"])
 def test_parse_hostport_refuses_a_bad_port_naming_it(text):
     with pytest.raises(ValueError, match=re.escape(repr(text))):
-        mcaplog.parse_hostport(text)
+        liveview.parse_hostport(text)
 
 
 def test_a_websocket_client_receives_the_live_channels(tmp_path):
@@ -408,6 +412,49 @@ def test_in_the_background_close_writes_everything_queued(tmp_path):
     assert log.messages_written == sum(len(v) for v in m.values()) == 40 * 7 + 20 * 2
 
 
+class _LateQueue(deque):
+    """A queue whose first empty take lets the loop queue ``frames`` and call close()
+    before the writer looks at ``_closing``: the race a busy machine can hit."""
+
+    def __init__(self, late):
+        super().__init__()
+        self.late = late
+
+    def popleft(self):
+        if not self and self.late is not None:
+            late, self.late = self.late, None
+            late()                  # after the writer found it empty
+            raise IndexError("empty")
+        return super().popleft()
+
+
+def test_close_right_after_the_last_frame_still_writes_it(tmp_path):
+    """Items queued while the writer found the queue empty are written, not left
+    behind because close() had set ``_closing`` meanwhile."""
+    log = McapLog(tmp_path / "late.mcap", McapConfig(image_every=2, image_width=32),
+                  clock=lambda: 0.0)
+    log._q = None
+
+    def late():                                   # the loop's frames, then close()'s flag
+        for k in range(3):
+            log._put((log._frame, *_late_args(log, k)), 4)
+        log._closing = True
+    log._q = _LateQueue(late)
+    log._wake, log._closing = threading.Event(), False
+    log._drain()                                  # the writer's loop, here
+    log._q = None
+    log.close()
+    m = _by_topic(tmp_path / "late.mcap")
+    assert [x[4]["frame"] for x in m["/tacfoot/decision"]] == [0, 1, 2]
+
+
+def _late_args(log, k):
+    """What McapLog.frame queues for frame ``k`` (no image)."""
+    dec = {"frame": k, "t_s": 0.01 * k, "probs": [0.5, 0.5], "texture": None, "pins": 2,
+           "latency_ms": 1.0}
+    return (dec, None, 10_000 + k, None, np.zeros((3, 3)), False, np.zeros(6), 0, 1.0)
+
+
 def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path):
     """The writer encodes later: a frame's grid and image are copied at frame() so a
     buffer the loop overwrites afterwards does not change what was logged."""
@@ -427,7 +474,7 @@ def test_the_frame_values_are_copied_before_the_loop_reuses_its_buffers(tmp_path
 def test_the_live_view_asks_the_server_about_viewers_at_most_every_live_check_s(monkeypatch):
     """With no viewer the loop's only cost is LiveView.any(); it asks the server (one
     call per channel) at most every LIVE_CHECK_S, not per frame and packet."""
-    live = object.__new__(mcaplog.LiveView)
+    live = object.__new__(liveview.LiveView)
     calls = []
 
     class Ch:
@@ -437,12 +484,11 @@ def test_the_live_view_asks_the_server_about_viewers_at_most_every_live_check_s(
     live._ch = {t: Ch() for t in CHANNELS}
     live._any, live._any_at = False, float("-inf")
     now = [100.0]
-    monkeypatch.setattr(mcaplog.time, "perf_counter", lambda: now[0])
+    monkeypatch.setattr(liveview.time, "perf_counter", lambda: now[0])
     assert live.any() is False and len(calls) == len(CHANNELS)
     for _ in range(50):                            # within LIVE_CHECK_S: no more asks
         assert live.any() is False
     assert len(calls) == len(CHANNELS)
-    from device.pi.runtime import liveview
     now[0] += 1.01 * liveview.LIVE_CHECK_S
     live.any()
     assert len(calls) == 2 * len(CHANNELS)
