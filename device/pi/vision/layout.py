@@ -29,9 +29,11 @@ class LayoutError(TacfootError, ValueError):
 
 
 #: The fitted alignment's bounds, from what a second session of one sensor can change:
-#: re-seating the dome or refocusing the camera moves the camera-to-pins distance by
-#: a millimetre or two of some 20-30 mm, so the image scale by a few percent (10 % at
-#: most), and a dome seated on its keyed mount turns by a degree or two. A fit beyond
+#: re-seating the dome or refocusing the camera moves the pins along the optical axis
+#: by a millimetre or so of a few centimetres, so the image scale by a few percent, and
+#: a dome seated on its mount turns by a degree or two. The bounds are wider than that
+#: and stop where the rim pins (some 12 pitches from the centre) would move by about a
+#: pitch, where "which pin is which" has no answer from positions alone. A fit beyond
 #: them is a bad reference (a pressed skin, a half-found frame), not a new session,
 #: and is refused: the layout is then only shifted, as before, and the reason kept.
 MAX_SCALE_CHANGE = 0.10
@@ -45,7 +47,8 @@ class LayoutAlignment:
     """How a recording's reference (rest) pins line up with the profile's layout.
 
     The layout pin ``p`` sits at ``scale * R(rotation_deg) (p - c) + c + shift_px``
-    in the reference frame, ``c`` the layout's centroid. ``assignment`` is, for each
+    in the reference frame, ``c`` the layout's centroid (image axes: x right, y down,
+    so a positive rotation turns x toward y, clockwise on screen). ``assignment`` is, for each
     layout pin, the reference pin it stands for or -1; ``matched`` how many have
     one; ``residual_px`` the median distance of those to their aligned layout pin
     (0 with none). ``kind`` is ``similarity`` (shift, scale and rotation fitted),
