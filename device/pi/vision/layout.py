@@ -131,9 +131,8 @@ def fit_layout_alignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_p
        the gate, until the assignment stops changing.
     3. The fit is kept when its scale is within 1 +- :data:`MAX_SCALE_CHANGE`, its
        rotation within +-:data:`MAX_ROTATION_DEG` degrees, it rests on at least
-       :data:`MIN_FIT_PINS` pins and matches at least 90 % as many pins as the
-       shift alone (which can pair a pin with its neighbour within the gate);
-       otherwise the shift alone is used and ``reason`` says why.
+       :data:`MIN_FIT_PINS` pins and matches at least as many pins as the shift
+       alone; otherwise the shift alone is used and ``reason`` says why.
 
     Reference or layout rows that are NaN, infinite or beyond ``MAX_COORD_PX`` never
     match; any input gives finite numbers.
@@ -218,7 +217,7 @@ def fit_layout_alignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_p
     if n_fit < MIN_FIT_PINS:
         return shift_only(f"the fit matched {n_fit} pins, a scale and rotation need "
                           f"{MIN_FIT_PINS}")
-    if n_fit < 0.9 * n_base:        # a right fit can drop a pin or two the shift paired
+    if n_fit < n_base:
         return shift_only(f"the fit matched {n_fit} pins, the shift alone {n_base}")
     return result(idx, scale, theta, t, "similarity", "")
 
