@@ -478,10 +478,18 @@ class LegRuntime:
                 "rules_only": not self.models.loaded,
                 "models_fused": self.models.fused is not None,
                 "tracker": self._tracker_status(),
+                "layout_alignment": self._layout_status(),
                 "gc": self.gc.status(), "packets_pending": w.pending, "faults_coalesced": w.faults_coalesced,
                 "link_write_errors": w.write_errors, "json_log_lines_lost":
                     0 if self.json_log is None else self.json_log.lines_lost,
                 **({} if self.mcap is None else self.mcap.status())}
+
+    def _layout_status(self) -> dict | None:
+        """How the current reference lined up with the profile's pin layout (shift,
+        scale, rotation, residual, matched pins; :class:`LayoutAlignment`), or None
+        before the first reference."""
+        a = self.encoder.mapper.alignment
+        return None if a is None else a.summary()
 
     def _tracker_status(self) -> dict:
         t = self.stream.tracker

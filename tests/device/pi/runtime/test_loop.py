@@ -637,3 +637,18 @@ def test_the_status_says_how_the_tracker_runs(tmp_path, monkeypatch):
                   "reacquire_errors": 0}
     monkeypatch.setattr(native, "_FN", None)
     assert rt.status()["tracker"]["matcher"] == "numpy"
+
+
+def test_the_status_says_how_the_reference_lined_up_with_the_layout(tmp_path):
+    """status()["layout_alignment"]: null before a reference, then the fitted shift,
+    scale, rotation, residual and matched pins of the current one."""
+    rt, _, _ = make_runtime(tmp_path)
+    assert rt.status()["layout_alignment"] is None
+    run_for(rt, frames=20)
+    la = rt.status()["layout_alignment"]
+    assert la["kind"] == "similarity" and la["reason"] == "", la
+    assert la["layout_pins"] == rt.n_pins and la["matched"] >= 0.8 * rt.n_pins
+    assert abs(la["scale"] - 1.0) < 0.02 and abs(la["rotation_deg"]) < 1.0
+    assert la["residual_px"] < 1.0
+    import json
+    json.dumps(rt.status())
