@@ -17,7 +17,16 @@ after a gap of T frames:
 ``rate-drops``  3 of 5 kept, then 10 % of the rest dropped at random (seeded);
 ``gain-0.8``, ``gain-1.25``, ``gamma-0.7``, ``gamma-1.4``, ``offset+25``: the
                 exposure of every frame changed before the marker pipeline (the rest
-                frame too, as in a session with another exposure).
+                frame too, as in a session with another exposure);
+``gain-0.6``, ``blur-1.5``, ``noise-6``, ``layout-rot4``: stand-ins that ``host
+                train``'s session copies (:mod:`host.learn.sessions`) do not draw from:
+                an exposure beyond their gain range, a Gaussian blur (sigma 1.5 px, a
+                dome out of focus), Gaussian noise (sd 6 grey levels, seeded), and the
+                pin layout rotated 4 degrees and moved 6 px before the reference pins
+                are assigned to it (they draw up to 1 degree and 3 px). The session
+                copies' exposure range covers gain 0.8-1.25, so ``gain-0.8`` and
+                ``gain-1.25`` are inside what a model trained with them has seen;
+                gamma 0.7 / 1.4 and offset +25 lie just outside theirs.
 
 Three tasks, as the figures of issue 23 name them: Lego vs smooth, concrete vs
 smooth, and all three (whose per-recording recall is the share of contact frames
@@ -69,23 +78,32 @@ TASKS = {"lego-vs-smooth": ("lego", "smooth"), "concrete-vs-smooth": ("concrete"
 class Variant:
     """How a proxy session differs from the recording: which frames the camera
     delivers (``keep``: ``all``, ``3of5``, or ``3of5+dropP`` with P percent dropped
-    at random) and the exposure (``gain``, ``offset`` in grey levels, ``gamma``)."""
+    at random), the exposure (``gain``, ``offset`` in grey levels, ``gamma``), a
+    Gaussian ``blur`` (sigma px) and ``noise`` (sd, grey levels), and the pin layout
+    rotated ``layout_deg`` about its centre and moved ``layout_px`` (along x)."""
 
     name: str
     keep: str = "all"
     gain: float = 1.0
     offset: float = 0.0
     gamma: float = 1.0
+    blur: float = 0.0
+    noise: float = 0.0
+    layout_deg: float = 0.0
+    layout_px: float = 0.0
 
     @property
     def exposed(self) -> bool:
-        return (self.gain, self.offset, self.gamma) != (1.0, 0.0, 1.0)
+        return ((self.gain, self.offset, self.gamma) != (1.0, 0.0, 1.0)
+                or self.blur > 0 or self.noise > 0)
 
 
 VARIANTS = (Variant("later"), Variant("rate-3of5", "3of5"), Variant("rate-drops", "3of5+drop10"),
             Variant("gain-0.8", gain=0.8), Variant("gain-1.25", gain=1.25),
             Variant("gamma-0.7", gamma=0.7), Variant("gamma-1.4", gamma=1.4),
-            Variant("offset+25", offset=25.0))
+            Variant("offset+25", offset=25.0), Variant("gain-0.6", gain=0.6),
+            Variant("blur-1.5", blur=1.5), Variant("noise-6", noise=6.0),
+            Variant("layout-rot4", layout_deg=4.0, layout_px=6.0))
 
 
 def keep_indices(n: int, keep: str, seed: int = 0) -> np.ndarray:
@@ -126,7 +144,10 @@ def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 
 
     path = Path(path)
     key = (f"{path.stem}-{variant.keep}-g{variant.gain}-o{variant.offset}-y{variant.gamma}"
-           f"-s{seed}-{Path(profile).stem}.npz")
+           + (f"-b{variant.blur}-n{variant.noise}-l{variant.layout_deg}_{variant.layout_px}"
+              if (variant.blur, variant.noise, variant.layout_deg, variant.layout_px)
+              != (0.0, 0.0, 0.0, 0.0) else "")
+           + f"-s{seed}-{Path(profile).stem}.npz")
     hit = Path(cache_dir) / key if cache_dir else None
     if hit is not None and hit.is_file():
         z = np.load(hit)
@@ -139,13 +160,15 @@ def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 
         wanted = np.zeros(n, bool)
         wanted[keep] = True
 
+        rng = np.random.default_rng(seed)
+
         def frames():
             for fr in cam:
                 if fr.index < n and wanted[fr.index]:
-                    yield (expose(fr.image, variant.gain, variant.offset, variant.gamma)
-                           if variant.exposed else fr.image)
+                    yield _changed(fr.image, variant, rng) if variant.exposed else fr.image
 
-        clip = extract_features(frames(), profile, None, progress=False)
+        clip = extract_features(frames(), profile, None, progress=False,
+                                mapper=_variant_mapper(variant, profile))
     orig = keep[:clip.n_frames]
     if hit is not None:
         hit.parent.mkdir(parents=True, exist_ok=True)
@@ -155,11 +178,36 @@ def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 
     return clip, orig
 
 
+def _changed(image: np.ndarray, v: Variant, rng) -> np.ndarray:
+    """A frame as variant ``v`` changes it: exposure, then blur, then noise."""
+    import cv2
+    out = expose(image, v.gain, v.offset, v.gamma)
+    if v.blur > 0:
+        out = cv2.GaussianBlur(out, (0, 0), v.blur)
+    if v.noise > 0:
+        out = np.clip(out + rng.normal(0.0, v.noise, out.shape), 0, 255).astype(np.uint8)
+    return out
+
+
+def _variant_mapper(v: Variant, profile: str):
+    """The layout mapper of a variant that moves the pin layout, else None."""
+    if (v.layout_deg, v.layout_px) == (0.0, 0.0):
+        return None
+    from device.pi.vision.layout import LayoutMapper
+    from host.data.extract import layout_for_profile
+    from host.learn.sessions import SessionDraw, perturbed_layout
+    lay = perturbed_layout(layout_for_profile(profile),
+                           SessionDraw(dx=v.layout_px, rot_deg=v.layout_deg))
+    return LayoutMapper(lay, load_pipeline_profile(profile).match_gate_px)
+
+
 def clip_windows(clip, orig: np.ndarray, label: str, T: int, first: int, last: int,
-                 key: str = "clip") -> WindowSet | None:
+                 key: str = "clip", file=None) -> WindowSet | None:
     """Contact windows of T delivered frames of ``clip`` whose frames all lie in the
     recording's frames ``first`` .. ``last - 1`` (``orig``: the recording's index of
-    each delivered frame), labelled ``label``; None when there are none."""
+    each delivered frame), labelled ``label``; None when there are none. ``file``:
+    the recording, named in the windows' trial so that training can read its frames
+    again (:mod:`host.learn.sessions`)."""
     ends, _ = window_ends(clip.ready, 0, clip.n_frames, T, 1)
     ends = ends[(orig[ends - T + 1] >= first) & (orig[ends] < last) & clip.contact[ends]]
     if not len(ends):
@@ -168,8 +216,11 @@ def clip_windows(clip, orig: np.ndarray, label: str, T: int, first: int, last: i
                      None, key, 0, clip.n_frames)
     arrays = stack_parts([part], "texture", T, {key: {}})
     arrays["t_index"] = orig[ends]             # the recording's frame, not the delivered one
-    return WindowSet(task="texture", window=T, classes=[], source={"trials": [
-        {"path": key, "group": 0}], "contact_only": True}, **arrays)
+    trial = ({"path": key, "group": 0} if file is None else
+             {"path": str(Path(file).resolve()), "kind": "clip", "span_start": 0, "group": 0})
+    return WindowSet(task="texture", window=T, classes=[], source={"trials": [trial],
+                                                                  "contact_only": True},
+                     **arrays)
 
 
 def block_bootstrap(right: np.ndarray, block: int, n_boot: int = 1000,
@@ -204,10 +255,11 @@ def score(right: np.ndarray, T: int) -> dict:
             "n": int(len(right))}
 
 
-def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer, rates=None):
+def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer, fit=None):
     """A predict(ws) -> class ids and the classes, from ``trainer`` (default: the
     default texture model of ``host train``, float, written to a temporary folder;
-    ``rates``: its frame-rate copies, None = host train's)."""
+    ``fit``: its ``rates`` (frame-rate copies) and ``sessions`` (session copies),
+    each None = host train's, and the ``profile``)."""
     if trainer is not None:
         return trainer(ws_train, ws_test, seed)
     from host.learn.inputs import model_inputs
@@ -218,7 +270,7 @@ def _train(ws_train: WindowSet, ws_test: WindowSet, seed: int, trainer, rates=No
     with tempfile.TemporaryDirectory(prefix="tacfoot-robust-") as tmp:
         res = train_model("texture", DEFAULT_MODEL["texture"], ws_train, ws_test,
                           quantise=False, seed=seed, out_dir=tmp, progress=False,
-                          rates=rates)
+                          **(fit or {}))
         sess = session((Path(tmp) / FLOAT_NAME).read_bytes())
 
     def predict(ws):
@@ -274,13 +326,14 @@ def _pooled(per: dict) -> dict:
 
 def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VARIANTS,
                tasks=tuple(TASKS), identity: bool = True, trainer=None,
-               profile: str = "roboskin", progress=None, rates=None) -> dict:
+               profile: str = "roboskin", progress=None, rates=None, sessions=None) -> dict:
     """The proxy figures (module doc) as a JSON-able dict: for each task and proxy,
     the accuracy over its windows and per recording (accuracy, ci95, n); and the
     identity check per recording. ``trainer(ws_train, ws_test, seed) -> (predict,
     classes)`` replaces the default model (for comparisons); ``rates`` the default
     model's frame-rate copies (:mod:`host.learn.rates`; None = host train's, () =
-    none, as before they were added)."""
+    none, as before they were added) and ``sessions`` its session copies
+    (:mod:`host.learn.sessions`; None = host train's, False = none)."""
     T = DEFAULT_WINDOW["texture"] if T is None else int(T)
     load_pipeline_profile(profile)     # a profile that does not load fails before any clip
     root = Path(data).expanduser() / "roboskin"
@@ -300,9 +353,11 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
     n_frames = {lab: int(orig[-1]) + 1 for lab, (_, orig) in base.items()}
     cut = {lab: int(TRAIN_FRAC * n) for lab, n in n_frames.items()}
 
+    fit = {"rates": rates, "sessions": sessions, "profile": profile}
+
     def train_set(lab):
         clip, orig = base[lab]
-        return clip_windows(clip, orig, lab, T, 0, cut[lab], lab)
+        return clip_windows(clip, orig, lab, T, 0, cut[lab], lab, paths[lab])
 
     def test_set(lab, variant):
         clip, orig = (base[lab] if variant.name == "later" else
@@ -320,7 +375,7 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
         tr = WindowSet.concat([train_set(lab) for lab in labs])
         te = WindowSet.concat([tests["later"][lab] for lab in labs
                                if tests["later"][lab] is not None])
-        predict, classes = _train(tr, te, seed, trainer, rates)
+        predict, classes = _train(tr, te, seed, trainer, fit)
         res = {"train_windows": len(tr), "proxies": {}}
         for v in variants:
             per = _per_clip(predict, classes, {lab: tests[v.name][lab] for lab in labs}, T)
@@ -330,25 +385,28 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
         for lab in paths:
             say(f"identity {lab}")
             out["identity"][lab] = identity_check(base[lab], n_frames[lab], T, seed, trainer,
-                                                  rates)
+                                                  dict(fit, file=paths[lab]))
     return out
 
 
 def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None,
-                   rates=None) -> dict:
+                   fit=None) -> dict:
     """Can the model tell the first half of a recording from its second half? Each
     half is cut into chunks of ``4 T`` frames; the windows inside even chunks are
     trained on, and those of odd chunks at least T frames from either chunk end are
-    tested (so no test window shares a frame with, or touches, a training one). The
+    tested (so no test window shares a frame with, or touches, a training one).
+    ``fit``: as :func:`_train` takes it, with ``file`` the recording. The
     accuracy over the test windows (0.5 is chance; near 1 means the windows carry
     what tells one part of a session from another)."""
     clip, orig = clip_orig
+    fit = dict(fit or {})
+    file = fit.pop("file", None)
     half, chunk = n // 2, 4 * T
     tr, te = [], []
     for lab, (a, b) in {"first-half": (0, half), "second-half": (half, n)}.items():
         for i, c0 in enumerate(range(a, b, chunk)):
             c1 = min(c0 + chunk, b)
-            got = (clip_windows(clip, orig, lab, T, c0, c1, lab) if i % 2 == 0 else
+            got = (clip_windows(clip, orig, lab, T, c0, c1, lab, file) if i % 2 == 0 else
                    clip_windows(clip, orig, lab, T, c0 + T, c1 - T, lab))
             if got is not None:
                 (tr if i % 2 == 0 else te).append(got)
@@ -357,7 +415,7 @@ def identity_check(clip_orig, n: int, T: int, seed: int = 0, trainer=None,
         return {"accuracy": None, "ci95": None, "n": 0,
                 "note": "a half has no contact windows to train or test on"}
     ws_te = WindowSet.concat(te)
-    predict, classes = _train(WindowSet.concat(tr), ws_te, seed, trainer, rates)
+    predict, classes = _train(WindowSet.concat(tr), ws_te, seed, trainer, fit)
     want = np.array([classes.index(str(x)) for x in ws_te.labels])
     return score(predict(ws_te) == want, T)
 
@@ -396,6 +454,9 @@ def main(argv=None) -> int:
     p.add_argument("--rates", default=None,
                    help="frame-rate copies the trained model fits, comma-separated "
                         "(e.g. 3of5,3of5+drop10); 'none' for none (default: host train's)")
+    p.add_argument("--sessions", default=None, choices=("none", "default"),
+                   help="recording-session copies the trained model fits "
+                        "(host.learn.sessions): 'none' for none (default: host train's)")
     p.add_argument("--profile", default="roboskin",
                    help="the pipeline profile the frames go through: a built-in name or a "
                         "TOML path (e.g. one with [vision] contrast_ref, to compare the "
@@ -409,7 +470,9 @@ def main(argv=None) -> int:
             tasks = ["all-three"]
         rates = (None if args.rates is None else () if args.rates.strip() == "none" else
                  tuple(r.strip() for r in args.rates.split(",") if r.strip()))
+        sessions = {None: None, "default": True, "none": False}[args.sessions]
         res = robustness(args.data, args.work, T, args.seed, tasks=tasks, rates=rates,
+                         sessions=sessions,
                          identity=not args.no_identity and not args.model, trainer=trainer,
                          profile=args.profile,
                          progress=lambda m: print(f"texture-robustness: {m}", file=sys.stderr))

@@ -295,6 +295,23 @@ def _cost_lines(spec: ModelSpec) -> list[str]:
     return out
 
 
+def _augment_lines(training: dict) -> list[str]:
+    """The copies the fit added: frame-rate (host.learn.rates) and session
+    (host.learn.sessions) copies, as the spec's ``training`` records them."""
+    out = []
+    if training.get("rates"):
+        out.append(f"- trained also on frame-rate copies: {', '.join(training['rates'])}")
+    s = training.get("sessions")
+    if s:
+        out.append(f"- trained also on {s.get('copies')} session copies (host.learn.sessions): "
+                   f"gain {s.get('gain')}, gamma {s.get('gamma')}, offset {s.get('offset')}, "
+                   f"layout up to {s.get('shift_px')} px / {s.get('scale')} scale / "
+                   f"{s.get('rotate_deg')} deg, lost pins {s.get('lost')}; "
+                   f"{s.get('frame_level_trials')} re-extracted, "
+                   f"{s.get('lost_pins_only_trials')} with lost pins only")
+    return out
+
+
 def card_text(spec: ModelSpec, name: str = "") -> str:
     """The model card (markdown) of ``spec``; ``name`` is the model folder's name."""
     t = spec.measured.trained_on
@@ -326,6 +343,7 @@ def card_text(spec: ModelSpec, name: str = "") -> str:
                   f"{r.get('frames') if r.get('frames') is not None else 'all'} |"
                   for r in recs]
     lines += ["", "## Protocol", "", f"- {t.get('split') or 'not recorded'}"]
+    lines += _augment_lines(getattr(spec, "training", None) or {})
     if isinstance(t.get("real_accuracy"), (int, float)):
         lines.append(f"- accuracy on real frames: {_num(t['real_accuracy'])}")
     lines += ["", "## Accuracy", ""] + _metric_lines(spec) + _identity_lines(spec)

@@ -16,6 +16,7 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 from device.checks import finite_number
+from host.learn.sessions import session_settings
 from host.learn.tasks import (DEFAULT_MODEL, DEFAULT_WINDOW, MIN_AGREEMENT, MODELS, TASK_MODELS,
                               TASKS, TrainError, check_choice, check_int)
 
@@ -23,7 +24,7 @@ __all__ = ["TrainConfig", "REPLAY_KEYS", "QUANTISE"]
 
 #: the settings a model's train.toml records (replayed by ``host train --config``)
 REPLAY_KEYS = ("task", "model", "T", "data", "test", "cv", "quantise", "contact_only",
-               "profile", "seed")
+               "profile", "seed", "sessions")
 #: ``quantise``: no int8 file, an int8 file that must pass its check, or one kept only
 #: when it passes (else the float model is the default and the manifest says why)
 QUANTISE = (False, True, "if-passes")
@@ -50,7 +51,8 @@ class TrainConfig:
     grouped K-fold CV (None: none); ``quantise`` one of :data:`QUANTISE`;
     ``identity`` run the recording-identity check; ``measure`` time the cost per
     decision. The fit: ``augment`` rotated copies, ``rates`` frame-keeping rules
-    (None: the task's), ``uses_imu`` and ``temporal`` (None: the kind's default),
+    (None: the task's), ``sessions`` recording-session copies (None: the task's,
+    False: none, True or a table: :func:`host.learn.sessions.session_settings`), ``uses_imu`` and ``temporal`` (None: the kind's default),
     ``hidden``, ``alpha``, ``epochs`` (None: the kind's); the int8 calibration:
     ``calibration_windows``, ``calibrate_method``, ``min_agreement``.
     """
@@ -69,6 +71,7 @@ class TrainConfig:
     measure: bool = False
     augment: int = 0
     rates: tuple | None = None
+    sessions: bool | dict | None = None
     uses_imu: bool | None = None
     temporal: bool | None = None
     hidden: tuple | None = None
@@ -106,6 +109,7 @@ class TrainConfig:
                                               self.calibration_windows, 1))
         set_("data", _strings("data", self.data))
         set_("test", _strings("test", self.test))
+        set_("sessions", session_settings(self.sessions))
         if self.T is not None:
             set_("T", check_int("T", self.T, 1))
         if self.cv is not None:
@@ -130,7 +134,9 @@ class TrainConfig:
                 "data": absolute(self.data), "test": absolute(self.test), "cv": self.cv,
                 "quantise": bool(self.quantise), "contact_only": self.contact_only,
                 "profile": str(Path(prof).resolve()) if prof.endswith(".toml") else prof,
-                "seed": self.seed}
+                "seed": self.seed,
+                "sessions": None if self.sessions is None else
+                (dict(self.sessions) if self.sessions else False)}
 
     @classmethod
     def from_replay(cls, doc: dict, source: str, **run) -> "TrainConfig":

@@ -26,7 +26,7 @@ from device.checks import whole_number
 from device.errors import TacfootError
 
 __all__ = ["TASKS", "MODELS", "TASK_MODELS", "OPTIONAL_MODELS", "DEFAULT_MODEL",
-           "DEFAULT_WINDOW", "TASK_HIDDEN", "TASK_RATES", "LAYOUT", "TrainError",
+           "DEFAULT_WINDOW", "TASK_HIDDEN", "TASK_RATES", "TASK_SESSIONS", "LAYOUT", "TrainError",
            "QuantisationError", "check_choice", "check_int", "label_ids"]
 
 TASKS = ("surface", "texture", "slip", "pressure")
@@ -58,6 +58,12 @@ TASK_HIDDEN = {"texture": (16, 16)}
 #: 3-of-5 replays, and lower the gain 0.8 / gamma 0.7 exposure proxies
 #: (``python -m host.bench.texture_robust --rates ...``; docs/BENCHMARKS.md)
 TASK_RATES: dict = {"texture": ("3of5", "3of5+drop10")}
+#: tasks whose fnn trains by default on copies of its windows as other recording
+#: sessions would give them (:func:`host.learn.sessions.augment_sessions`: exposure,
+#: pin layout offset, lost pins; ``True`` = its default settings). Texture: recordings
+#: of one surface are told apart by exactly these (host.learn.identity), and a second
+#: session of a surface scored below later frames of the first (docs/BENCHMARKS.md)
+TASK_SESSIONS: dict = {"texture": True}
 DEFAULT_ALPHA = {"ridge": 150.0, "fnn": 1e-3, "grid-fnn": 1e-3}
 DEFAULT_EPOCHS = 300
 MIN_AGREEMENT = 0.99

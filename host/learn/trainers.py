@@ -40,7 +40,9 @@ from host.learn.onnx_io import FLOAT_NAME, INT8_NAME, fill_variants, new_spec, r
 from host.learn.pressure import checked_onnx
 from host.learn.quantise import quantise_model
 from host.learn.rates import augment_rates
-from host.learn.tasks import LAYOUT, TASK_HIDDEN, TASK_RATES, QuantisationError, TrainError
+from host.learn.sessions import augment_sessions, session_settings
+from host.learn.tasks import (LAYOUT, TASK_HIDDEN, TASK_RATES, TASK_SESSIONS, QuantisationError,
+                              TrainError)
 
 __all__ = ["train_estimator", "train_rule", "train_frames_cnn", "fnn_temporal_spec",
            "recording_lost_pins", "texture_neighbours", "MAX_LOST_SHARE"]
@@ -99,7 +101,8 @@ def recording_lost_pins(ws) -> list[int]:
 @dataclass
 class Plan:
     """What an estimator kind reads: its input layout, the IMU, the temporal layer
-    (``tspec``, the pins it ignores), hyperparameters and frame-rate copies."""
+    (``tspec``, the pins it ignores), hyperparameters, frame-rate copies and
+    recording-session copies (``sessions``: their settings, or False)."""
     layout: str
     uses_imu: bool
     temporal: bool
@@ -107,6 +110,7 @@ class Plan:
     ignored: list
     hp: dict
     rates: tuple
+    sessions: dict | bool = False
 
 
 @dataclass
@@ -153,7 +157,20 @@ def plan(run) -> Plan:
     rates = cfg.rates
     if rates is None:
         rates = TASK_RATES.get(cfg.task, ()) if cfg.model == "fnn" else ()
-    return Plan(layout, bool(uses_imu), bool(temporal), tspec, ignored, hp, tuple(rates))
+    return Plan(layout, bool(uses_imu), bool(temporal), tspec, ignored, hp, tuple(rates),
+                _sessions(cfg, layout))
+
+
+def _sessions(cfg, layout: str):
+    """The session copies' settings the run fits (:mod:`host.learn.sessions`), or False."""
+    if cfg.sessions is None:
+        return (session_settings(TASK_SESSIONS.get(cfg.task)) or False) \
+            if cfg.model == "fnn" else False
+    if cfg.sessions and (layout != "vectors" or cfg.model == "rule"):
+        what = "learns no weights" if cfg.model == "rule" else f"reads {layout}"
+        raise TrainError(f"sessions: session copies are pin-vector windows to fit; model "
+                         f"{cfg.model} {what} (set sessions = false)")
+    return cfg.sessions
 
 
 def encode(run, p: Plan) -> Encoded:
@@ -161,6 +178,8 @@ def encode(run, p: Plan) -> Encoded:
     encodes them, and the targets; a TrainError when nothing can be learnt."""
     cfg = run.cfg
     ws_fit = augment_rates(run.train, p.rates, cfg.seed) if p.rates else run.train
+    if p.sessions:
+        ws_fit = augment_sessions(run.train, p.sessions, cfg.profile, cfg.seed, onto=ws_fit)
     ws_fit = augment_rotations(ws_fit, cfg.augment, cfg.profile) if cfg.augment else ws_fit
     X = model_inputs(ws_fit, p.layout, p.uses_imu)
     Xt = model_inputs(run.test, p.layout, p.uses_imu) if run.test is not None else None
@@ -299,6 +318,7 @@ def train_estimator(run) -> dict:
             "training": run.training_info(dict(
                 p.hp, **fit_info, augment=run.cfg.augment, rates=list(p.rates),
                 augmented_deg=e.ws_fit.source.get("augmented_deg"),
+                sessions=e.ws_fit.source.get("augmented_sessions") or False,
                 fit_windows=int(len(e.X))))}
     if run.regression:
         keys.update({"target_mean": float(e.y.mean()),
@@ -351,7 +371,8 @@ def train_frames_cnn(run) -> dict:
     so its folder is written once too."""
     from host.learn.cnn import INPUT_NAME, cnn_spec_keys, frames_input, train_cnn
     cfg = run.cfg
-    unread = [k for k in ("cv", "augment", "rates", "uses_imu", "temporal", "alpha", "hidden")
+    unread = [k for k in ("cv", "augment", "rates", "sessions", "uses_imu", "temporal", "alpha",
+                          "hidden")
               if getattr(cfg, k) not in (None, 0, False, ())]
     if unread:
         raise TrainError(f"model cnn: the CNN does not take {', '.join(unread)}; drop "

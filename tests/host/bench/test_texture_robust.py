@@ -170,3 +170,36 @@ def test_the_profile_option_reaches_the_pipeline_and_a_bad_one_is_exit_2(monkeyp
     assert main(["--data", str(tmp_path), "--profile", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "contrast_ref" in err and "Traceback" not in err
+
+
+def test_the_sessions_option_and_the_held_out_stand_ins(monkeypatch):
+    """--sessions none trains without session copies (default: host train's); the
+    stand-ins the copies never draw (blur, noise, a layout turned further than they
+    turn it) change the frames or the layout they say."""
+    import host.bench.texture_robust as tr
+    from host.learn.sessions import DEFAULT_SESSIONS
+    seen = []
+
+    def fake(*a, **kw):
+        seen.append(kw["sessions"])
+        return {"T": 15, "train_frac": 0.7, "tasks": {}, "identity": {}}
+    monkeypatch.setattr(tr, "robustness", fake)
+    for arg, want in ((["--sessions", "none"], False), ([], None)):
+        assert main(["--data", "x", "--no-identity", *arg]) == 0
+        assert seen[-1] is want
+    monkeypatch.undo()
+    v = {x.name: x for x in tr.VARIANTS}
+    assert v["gain-0.6"].gain < DEFAULT_SESSIONS["gain"][0]
+    assert v["layout-rot4"].layout_deg > DEFAULT_SESSIONS["rotate_deg"]
+    assert v["layout-rot4"].layout_px > DEFAULT_SESSIONS["shift_px"]
+    img = np.zeros((40, 40), np.uint8)
+    img[20, 20] = 255
+    rng = np.random.default_rng(0)
+    blurred = tr._changed(img, v["blur-1.5"], rng)
+    assert blurred[20, 20] < 255 and blurred[20, 22] > 0
+    assert tr._changed(img, v["noise-6"], rng).std() > 3
+    lay = tr._variant_mapper(v["layout-rot4"], "roboskin").layout_px
+    from host.data.extract import layout_for_profile
+    base = layout_for_profile("roboskin")
+    assert np.allclose((lay - base).mean(axis=0), [6.0, 0.0], atol=1e-6)
+    assert tr._variant_mapper(v["later"], "roboskin") is None
