@@ -68,7 +68,8 @@ def _lock_out(args) -> tuple[int, bool]:
 #: the flags of host train that a train.toml replaces (flag name -> config key)
 CONFIG_FLAGS = {"task": "task", "model": "model", "window": "T", "data": "data",
                 "test": "test", "cv": "cv", "quantise": "quantise",
-                "contact_only": "contact_only", "profile": "profile", "seed": "seed"}
+                "contact_only": "contact_only", "profile": "profile", "seed": "seed",
+                "no_session_copies": "sessions"}
 
 
 def train_config(args) -> TrainConfig | dict:
@@ -88,7 +89,9 @@ def train_config(args) -> TrainConfig | dict:
                            test=args.test or (), cv=args.cv, quantise=bool(args.quantise),
                            contact_only=bool(args.contact_only),
                            profile=args.profile or "roboskin",
-                           seed=0 if args.seed is None else args.seed, **run)
+                           seed=0 if args.seed is None else args.seed,
+                           **({"sessions": False} if getattr(args, "no_session_copies", False)
+                              else {}), **run)
     given = [f"--{k.replace('_', '-')}" for k in CONFIG_FLAGS
              if getattr(args, k) not in (None, False)]
     if given:
@@ -374,6 +377,10 @@ def register(sub) -> None:
     s.add_argument("--no-identity-check", action="store_true",
                    help="skip the recording-identity check (can the model kind tell the "
                         "recordings of one class apart? host.learn.identity), for speed")
+    s.add_argument("--no-session-copies", action="store_true",
+                   help="fit no recording-session copies of the training windows (texture "
+                        "fits two by default: exposure, layout offset, lost pins; "
+                        "host.learn.sessions), for speed")
     s.add_argument("--quantise", action="store_true", help="also write an int8 model")
     s.add_argument("--contact-only", action="store_true",
                    help="drop windows without contact instead of labelling them no-touch")

@@ -38,11 +38,14 @@ def test_one_clip_per_class_trains_with_a_time_split_that_keeps_both_classes(
     out = tmp_path / "model"
     # the identity check has its own tests (tests/host/learn/test_identity.py and
     # test_train.py); this one is about the split
+    # (and the session copies theirs, tests/host/learn/test_sessions.py)
     rc = main(["train", "--task", "texture", "--data", str(spec), "--contact-only",
-               "--no-identity-check", "--out", str(out), "--json"])
+               "--no-identity-check", "--no-session-copies", "--out", str(out), "--json"])
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     assert res["model"] == DEFAULT_MODEL["texture"] and res["T"] == DEFAULT_WINDOW["texture"]
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["training"]["sessions"] is False             # the flag reached the spec
     assert res["holdout"].startswith("time split within each trial")
     test = res["metrics"]["test"]
     assert set(test["per_class"]) == {"concrete", "smooth"}
@@ -534,7 +537,8 @@ def test_train_holds_out_a_whole_recording_of_a_class_with_two_and_says_the_othe
                     f"{clips / 'lego_train.avi'},rough,0,200\n")
     out = tmp_path / "m"
     rc = main(["train", "--task", "texture", "--model", "fnn", "--window", "3", "--data",
-               str(spec), "--no-identity-check", "--out", str(out)])
+               str(spec), "--no-identity-check", "--no-session-copies",
+               "--out", str(out)])
     text = capsys.readouterr().out
     assert rc == 0
     test = json.loads((out / "manifest.json").read_text())["metrics"]["test"]
