@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from device.pi.vision import core, frame, native
+from device.pi.vision import core, frame, native, tracking
 from device.pi.vision.pipeline import MarkerStream
 from device.profile import parse_pipeline_profile
 from tests import REPO_ROOT
@@ -275,6 +275,22 @@ def test_each_refused_kernel_hands_back_its_stage(lib, monkeypatch):
     assert np.array_equal(s.grid.grid, grid)
 
 
+def _same_neighbours_once(monkeypatch) -> None:
+    """The tracker's layout neighbours (numpy, O(m^2) for a reference of m pins) worked
+    out once per layout and handed to both streams: the fused and the sequential
+    stream set the same reference, and a 5,000-pin one took most of this test's time.
+    Each caller gets its own copy, so neither stream can change the other's."""
+    real, seen = tracking.layout_neighbours, {}
+
+    def once(ref, k=6, max_dist_px=None):
+        r = np.ascontiguousarray(ref)
+        key = (r.dtype.str, r.shape, r.tobytes(), k, max_dist_px)
+        if key not in seen:
+            seen[key] = real(ref, k, max_dist_px)
+        return tuple(a.copy() for a in seen[key])
+    monkeypatch.setattr(tracking, "layout_neighbours", once)
+
+
 @settings(max_examples=FUZZ, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(h=st.integers(8, 48), w=st.integers(8, 48), seed=st.integers(0, 2**31),
@@ -304,6 +320,7 @@ def test_any_box_and_pin_count_give_the_sequential_bytes(lib, monkeypatch, h, w,
             a[:] = {"black": 0, "white": 255, "flat": 90}[kind]
         frames.append(a)
     layout = rng.uniform(0, max(h, w), (m, 2))
+    _same_neighbours_once(monkeypatch)
     out = {}
     for fused in (True, False):
         use(monkeypatch, lib, fused)
