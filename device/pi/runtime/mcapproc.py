@@ -11,7 +11,8 @@ thread hands the queue to the child in batches, one pickled list every
 :data:`~device.pi.runtime.mcaplog.WRITER_POLL_S`. The child
 (``python -m device.pi.runtime.mcapproc``, started with the runtime's interpreter)
 is an :class:`McapLog` that writes in its own thread, with the live view
-(``--foxglove``) in it too; it runs on another core.
+(``--foxglove``) in it too; it runs on another core, at a lower priority
+(:data:`WRITER_NICE`): the leg's loop comes first.
 
 What the thread writer promised holds here:
 
@@ -49,7 +50,7 @@ from device.pi.runtime import mcapmsg as M
 from device.pi.runtime.mcapfiles import McapLogError
 from device.pi.runtime.mcaplog import CLOSE_WAIT_S, WRITER_POLL_S, McapLog
 
-__all__ = ["McapProcess", "START_WAIT_S", "STATUS_EVERY_S", "serve"]
+__all__ = ["McapProcess", "START_WAIT_S", "STATUS_EVERY_S", "WRITER_NICE", "serve"]
 
 _log = logging.getLogger(__name__)
 
@@ -57,6 +58,9 @@ _log = logging.getLogger(__name__)
 START_WAIT_S = 30.0
 #: the child sends its counts this often, s
 STATUS_EVERY_S = 0.25
+#: the child's nice value: the log yields the CPU to the leg's loop, never the reverse
+#: (when it falls behind, the oldest frames are dropped and counted)
+WRITER_NICE = 10
 #: the messages the child takes (McapLog's writing methods); nothing else is called
 _CALLS = ("_frame", "_packet", "_record", "_write_doc", "_image")
 
@@ -304,6 +308,10 @@ def serve(inp: Connection, out: Connection) -> int:
     parent that is gone) end the file and send the last count."""
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)      # the parent decides when the log ends
+    try:
+        os.nice(WRITER_NICE)
+    except OSError:
+        pass
     try:
         spec = inp.recv()
         logging.getLogger("device").setLevel(spec["log_level"])

@@ -44,6 +44,15 @@ def test_every_frame_reaches_the_file_in_order_and_the_counts_agree(tmp_path):
     assert m._proc.poll() == 0                                # the child ended by itself
 
 
+def test_the_writer_runs_below_the_loops_priority(tmp_path):
+    m = _log(tmp_path)
+    try:
+        fields = open(f"/proc/{m._proc.pid}/stat").read().rsplit(")", 1)[1].split()
+        assert int(fields[16]) == min(19, os.nice(0) + mcapproc.WRITER_NICE)   # its nice
+    finally:
+        m.close()
+
+
 def test_a_bad_path_is_refused_at_start_in_one_line(tmp_path):
     with pytest.raises(McapLogError, match="does not exist") as e:
         McapProcess(tmp_path / "nowhere" / "run.mcap", McapConfig(), clock=time.monotonic)
