@@ -17,9 +17,11 @@ def q(s) -> str:
 
 
 def runtime_argv(o: DeployOptions) -> list[str]:
-    """The runtime command line the service runs (through PREFIX/current)."""
+    """The runtime command line the service runs (through PREFIX/current). Python runs
+    isolated (``-I``): a PYTHONPATH or user site of the Pi's shell cannot put other code
+    in front of the release's venv."""
     cur = f"{o.prefix}/current"
-    argv = [f"{cur}/venv/bin/python", "-m", o.runtime_module, "run",
+    argv = [f"{cur}/venv/bin/python", "-I", "-m", o.runtime_module, "run",
             "--camera", o.camera, "--imu", o.imu, "--serial", o.serial]
     if o.models_dir() is not None:
         argv += ["--models", f"{cur}/models"]

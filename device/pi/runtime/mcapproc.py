@@ -106,9 +106,9 @@ class McapProcess(McapLog):
             [_package_root()] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
             self._proc = subprocess.Popen(
-                [sys.executable, "-m", "device.pi.runtime.mcapproc", str(from_parent),
-                 str(to_parent)], pass_fds=(from_parent, to_parent), env=env,
-                stdin=subprocess.DEVNULL)
+                [sys.executable, *(["-I"] if sys.flags.isolated else []), "-m",
+                 "device.pi.runtime.mcapproc", str(from_parent), str(to_parent)],
+                pass_fds=(from_parent, to_parent), env=env, stdin=subprocess.DEVNULL)
         except OSError as exc:
             for fd in (to_child, from_parent, from_child, to_parent):
                 os.close(fd)

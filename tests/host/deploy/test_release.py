@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from tests.host.deploy.sshd_fixture import Pi, SshServer, missing_reason  # noqa: E402
+from tests.wheel import clean_env  # noqa: E402
 
 from host.deploy.options import DeployError, project_version  # noqa: E402
 from host.deploy.release import Deployer, run  # noqa: E402
@@ -100,7 +101,7 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
     # the venv runs the installed copy of the code, not this checkout
     r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-c",
                         "import device.pi.runtime.sdnotify as m; print(m.__file__)"],
-                       capture_output=True, text=True, cwd=pi.root)
+                       capture_output=True, text=True, cwd=pi.root, env=clean_env())
     assert r.stdout.startswith(str(pi.prefix / "current" / "venv" / "lib")), r.stdout + r.stderr
     assert str(REPO) not in r.stdout
     # pip compiled the frame core on the leg, into the release's venv (listed in its RECORD)
@@ -108,7 +109,8 @@ def test_first_deploy_runs_and_packets_flow(pi, capsys):
         r = subprocess.run([str(pi.prefix / "current" / "venv" / "bin" / "python"), "-m",
                             "device.pi.vision.native", "status"],
                            capture_output=True, text=True, cwd=pi.root,
-                           env={k: v for k, v in os.environ.items() if not k.startswith("TACFOOT_NATIVE")})
+                           env={k: v for k, v in clean_env().items()
+                                if not k.startswith("TACFOOT_NATIVE")})
         assert r.returncode == 0, r.stdout + r.stderr
         lib = Path(r.stdout.split("compiled (", 1)[1].rsplit(")", 1)[0]).resolve()
         assert lib.is_relative_to((pi.prefix / "releases" / "r1" / "venv").resolve()), r.stdout

@@ -30,7 +30,7 @@ def test_unit_has_the_required_settings():
         assert want in lines, want
     assert "@" not in "".join(l for l in lines if not l.startswith("#")), "unfilled field"
     (exec_line,) = [l for l in lines if l.startswith("ExecStart=")]
-    assert exec_line.startswith("ExecStart=/opt/tacfoot/current/venv/bin/python -m device.pi run ")
+    assert exec_line.startswith("ExecStart=/opt/tacfoot/current/venv/bin/python -I -m device.pi run ")
     assert "--status /opt/tacfoot/run/status.json" in exec_line
     assert "--camera sim://walk" in exec_line
     # root runs without User=; $ and % are escaped for systemd
