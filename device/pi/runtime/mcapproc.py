@@ -105,8 +105,8 @@ class McapProcess(McapLog):
         env["PYTHONPATH"] = os.pathsep.join(
             [_package_root()] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
-            self._proc = subprocess.Popen(
-                [sys.executable, *(["-I"] if sys.flags.isolated else []), "-m",
+            self._proc = subprocess.Popen(     # with this interpreter's flags (-I ...)
+                [sys.executable, *subprocess._args_from_interpreter_flags(), "-m",
                  "device.pi.runtime.mcapproc", str(from_parent), str(to_parent)],
                 pass_fds=(from_parent, to_parent), env=env, stdin=subprocess.DEVNULL)
         except OSError as exc:
@@ -124,6 +124,7 @@ class McapProcess(McapLog):
             reply = ("error", None)
         if reply[0] != "ready":
             self._stop_child(0.0)
+            self._in.close()
             why = reply[1] or f"the MCAP writer process did not start within {START_WAIT_S:g} s"
             raise McapLogError(why)
         self._take(reply[1])
@@ -187,7 +188,7 @@ class McapProcess(McapLog):
                 try:
                     self._out.send(batch)
                     self._sent += n
-                except (OSError, ValueError):
+                except (OSError, ValueError, TypeError):    # the child gone, or close()
                     self._died()
             if self._dead:
                 self._dropped_msgs += n if batch else 0
@@ -208,7 +209,8 @@ class McapProcess(McapLog):
 
     def close(self) -> None:
         """Send what is queued, have the child end its file and stop its live view,
-        and wait for its last count, within ``CLOSE_WAIT_S`` or ``close_by``."""
+        and wait for its last count, within ``CLOSE_WAIT_S`` or ``close_by``: the end
+        is the pipe's end (which never blocks); a child not done by then is stopped."""
         if self._records is not None:
             self._records[0].removeHandler(self._records[1])
             self._records = None
@@ -221,47 +223,57 @@ class McapProcess(McapLog):
         self._closing = True
         self._wake.set()
         self._thread.join(max(0.0, end - time.monotonic()))
-        if not self._thread.is_alive() and not self._dead:
-            try:
-                self._out.send(None)             # the end: the child finishes its file
-            except (OSError, ValueError):
-                self._died()
+        if self._thread.is_alive():              # stuck sending to a stuck child:
+            self._dead = True                    # its send fails once the child is gone
+            self._proc.kill()
+            self._thread.join(0.5)
+        self._out.close()                        # the end: the child finishes its file
         while not self._final and not self._dead and time.monotonic() < end:
             if self._in.poll(min(0.05, max(0.0, end - time.monotonic()))):
                 self._read()
         if not self._final:                      # too late: stopped, its rest lost
             self._dead = True
-        self._stop_child(0.5)
+        self._stop_child(max(0.0, end - time.monotonic()))
+        if not self._thread.is_alive():
+            self._read()                         # a last count sent while it ended
+            self._in.close()
         if self._q:                              # never sent
             self._dropped_msgs += sum(x[-1] for x in self._q)
             self._q.clear()
         self._thread = None
 
     def _stop_child(self, wait_s: float) -> None:
-        for fh in ("_out",):
-            try:
-                getattr(self, fh).close()
-            except Exception:
-                pass
+        try:
+            self._out.close()
+        except Exception:
+            pass
         try:
             self._proc.wait(wait_s)
         except subprocess.TimeoutExpired:
             self._proc.kill()
             self._proc.wait()
 
+    def _counts(self) -> tuple[int, int]:
+        """(written, lost). A child that died without its last count lost what it had
+        been sent since its last count, and the chunk it had not yet written."""
+        c = self._child
+        written = c.get("mcap_messages_written", 0)
+        lost = c.get("mcap_messages_lost", 0) + self._dropped_msgs
+        if self._dead and not self._final:
+            lost += max(0, self._sent - written - c.get("mcap_messages_lost", 0))
+            unflushed = min(written, c.get("mcap_unflushed", 0))
+            written, lost = written - unflushed, lost + unflushed
+        return written, lost
+
     @property
     def messages_lost(self) -> int:
-        c = self._child
-        lost = c.get("mcap_messages_lost", 0) + self._dropped_msgs
-        if self._dead and not self._final:   # handed to a child that died with them
-            lost += max(0, self._sent - c.get("mcap_messages_written", 0)
-                        - c.get("mcap_messages_lost", 0))
-        return lost
+        return self._counts()[1]
 
     def status(self) -> dict:
         c = self._child
-        st = {"mcap_messages_written": c.get("mcap_messages_written", 0),
-              "mcap_messages_lost": self.messages_lost, "mcap_dropped": self.dropped,
+        written, lost = self._counts()
+        st = {"mcap_messages_written": written,
+              "mcap_messages_lost": lost, "mcap_dropped": self.dropped,
               "mcap_files": list(self.files),
               "mcap_file": self.files[-1] if self.files else None,
               "mcap_loop_cpu_s": round(self.loop_cpu_s, 4),
@@ -281,6 +293,7 @@ _CPU0 = [0.0]       # the child's CPU when its log was open (its start-up is not
 def _child_status(log: McapLog) -> dict:
     st = log.status()
     st["mcap_writer_cpu_s"] = round(time.process_time() - _CPU0[0], 4)
+    st["mcap_unflushed"] = log._file_msgs - log._file_kept    # in the chunk being filled
     if log.live is not None:
         st["foxglove_any"] = log.live.any()
         st["foxglove_host"] = log.live.host
@@ -306,8 +319,12 @@ def serve(inp: Connection, out: Connection) -> int:
     """The child: open the log, write each batch the parent sends, send the counts
     every :data:`STATUS_EVERY_S`; at the end (``None``, or the pipe closed by a
     parent that is gone) end the file and send the last count."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, signal.SIG_IGN)      # the parent decides when the log ends
+    try:                # not the loop's real-time policy (the unit's option), lower nice
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
     try:
         os.nice(WRITER_NICE)
     except OSError:

@@ -88,6 +88,9 @@ def test_a_writer_that_dies_is_counted_and_warned_once(tmp_path, caplog):
     # frames 5.. never reached a file: each frame's 4 or 6 messages are counted lost
     assert st["mcap_messages_lost"] >= 55 * 4
     assert st["mcap_messages_written"] + st["mcap_messages_lost"] >= 60 * 4
+    # "written" is what reached the file: the chunk the child was filling is lost
+    msgs, _ = read_log(tmp_path / "run.mcap")
+    assert st["mcap_messages_written"] == len(msgs)
 
 
 def test_close_is_bounded_when_the_writer_stalls(tmp_path):
@@ -105,7 +108,8 @@ def test_close_is_bounded_when_the_writer_stalls(tmp_path):
             os.kill(m._proc.pid, signal.SIGCONT)
         except ProcessLookupError:
             pass
-    assert took < 3.0
+    # within close_by, and so within the runtime's 0.8 s grace after SIGTERM
+    assert took < 0.75
     assert m._proc.poll() is not None                  # stopped, not left behind
     assert m.status()["mcap_messages_lost"] >= 20 * 4
 
