@@ -36,6 +36,27 @@ def sim_run_command(tmp_path, *extra, frames=20, config=None) -> list[str]:
     return cmd + [str(x) for x in extra]
 
 
+def kill_when_logged(tmp_path, f, size: int, writer: str = "process") -> None:
+    """Run the runtime on ``sim://walk`` in real time with ``--mcap f`` (4 kB chunks,
+    every frame an image, ``writer``) until ``f`` holds ``size`` bytes, then SIGKILL it."""
+    import signal
+    import subprocess
+    import time
+    cmd = sim_run_command(tmp_path, "--mcap", f, frames=None,
+                          config=f"[mcap]\nchunk_kb = 4\nimage_every = 1\n"
+                                 f"writer = \"{writer}\"\n")
+    cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t_end = time.monotonic() + 60
+        while time.monotonic() < t_end and (not f.exists() or f.stat().st_size < size):
+            assert proc.poll() is None, "the runtime ended before it was killed"
+            time.sleep(0.02)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=10)
+
+
 def frame_args(k=0, t_s=0.01, reference=None) -> tuple:
     """``McapLog.frame``'s arguments for frame ``k``: two pins (the second lost), a
     64x48 image, a 3x3 grid, no contact, and ``reference`` pins (or None)."""

@@ -26,7 +26,7 @@ from device.pi.runtime import liveview, mcaplog  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcaplog import CHANNELS, McapLog, read_log, recover, roll_name  # noqa
 from device.pi.runtime.mcapmsg import grid_cells  # noqa: E402
-from tests.mcapread import frame_args, sim_run_command  # noqa: E402
+from tests.mcapread import frame_args, kill_when_logged, sim_run_command  # noqa: E402
 
 FRAMES = 60
 
@@ -173,18 +173,7 @@ def test_a_killed_run_leaves_a_readable_prefix(tmp_path):
     # the thread writer dies with the runtime (the process writer ends the file:
     # tests/device/pi/runtime/test_mcapproc.py)
     f = tmp_path / "killed.mcap"
-    cmd = _run(tmp_path, "--mcap", f, frames=None,
-               config="[mcap]\nchunk_kb = 4\nimage_every = 1\nwriter = \"thread\"\n")
-    cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        t_end = time.monotonic() + 60
-        while time.monotonic() < t_end and (not f.exists() or f.stat().st_size < 80_000):
-            assert proc.poll() is None, "the runtime ended before it was killed"
-            time.sleep(0.02)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=10)
+    kill_when_logged(tmp_path, f, 80_000, writer="thread")
     msgs, complete = read_log(f)
     assert not complete                           # no footer: cut short
     frames = [x["data"]["frame"] for x in msgs if x["topic"] == "/tacfoot/decision"]

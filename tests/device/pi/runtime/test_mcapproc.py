@@ -9,7 +9,6 @@ import json
 import logging
 import os
 import signal
-import subprocess
 import time
 
 import pytest
@@ -20,7 +19,7 @@ from device.pi.runtime import mcapproc  # noqa: E402
 from device.pi.runtime.config import McapConfig  # noqa: E402
 from device.pi.runtime.mcaplog import McapLogError, read_log  # noqa: E402
 from device.pi.runtime.mcapproc import McapProcess  # noqa: E402
-from tests.mcapread import frame_args, read_mcap, sim_run_command  # noqa: E402
+from tests.mcapread import frame_args, kill_when_logged, read_mcap  # noqa: E402
 
 
 def _log(tmp_path, **kw):
@@ -116,20 +115,7 @@ def test_close_is_bounded_when_the_writer_stalls(tmp_path):
 
 def test_a_killed_runtime_still_leaves_a_complete_file(tmp_path):
     f = tmp_path / "killed.mcap"
-    cfg = tmp_path / "leg.toml"
-    cmd = sim_run_command(tmp_path, "--mcap", f, frames=None,
-                          config="[mcap]\nchunk_kb = 4\nimage_every = 1\n")
-    cmd[cmd.index("sim://walk")] = "sim://walk?realtime=1"
-    assert cfg.is_file()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        t_end = time.monotonic() + 60
-        while time.monotonic() < t_end and (not f.exists() or f.stat().st_size < 40_000):
-            assert proc.poll() is None, "the runtime ended before it was killed"
-            time.sleep(0.02)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=10)
+    kill_when_logged(tmp_path, f, 40_000)
     t_end = time.monotonic() + 30                      # the writer ends the file
     complete = False
     while time.monotonic() < t_end and not complete:
