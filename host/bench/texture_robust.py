@@ -59,9 +59,10 @@ from device.config import ConfigError
 from device.profile import load_pipeline_profile
 from host.data.windows import DataError, TrialPart, WindowSet, stack_parts, window_ends
 from host.learn.rates import kept_frames
+from host.learn.sessions import exposure
 from host.learn.tasks import DEFAULT_WINDOW, TrainError
 
-__all__ = ["Variant", "VARIANTS", "CLIPS", "TASKS", "keep_indices", "expose",
+__all__ = ["Variant", "VARIANTS", "CLIPS", "TASKS", "keep_indices",
            "clip_variant", "clip_windows", "block_bootstrap", "model_trainer", "robustness",
            "main"]
 
@@ -119,20 +120,6 @@ def keep_indices(n: int, keep: str, seed: int = 0) -> np.ndarray:
     return idx
 
 
-def expose(image: np.ndarray, gain: float = 1.0, offset: float = 0.0,
-           gamma: float = 1.0) -> np.ndarray:
-    """``image`` (uint8) as a camera with another exposure would give it:
-    ``255 * clip((gain * x + offset) / 255, 0, 1) ** gamma``, uint8."""
-    if not (gain > 0 and gamma > 0 and np.isfinite(offset)):
-        raise DataError(f"exposure needs gain > 0, gamma > 0 and a finite offset, got "
-                        f"gain={gain!r}, gamma={gamma!r}, offset={offset!r}")
-    x = np.clip((np.asarray(image, np.float32) * np.float32(gain) + np.float32(offset))
-                / np.float32(255.0), 0.0, 1.0)
-    if gamma != 1.0:
-        x = x ** np.float32(gamma)
-    return np.round(x * 255.0).astype(np.uint8)
-
-
 def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 0,
                  cache_dir=None):
     """(features, frame index of each) of the recording ``path`` as ``variant``
@@ -181,7 +168,7 @@ def clip_variant(path, variant: Variant, profile: str = "roboskin", seed: int = 
 def _changed(image: np.ndarray, v: Variant, rng) -> np.ndarray:
     """A frame as variant ``v`` changes it: exposure, then blur, then noise."""
     import cv2
-    out = expose(image, v.gain, v.offset, v.gamma)
+    out = exposure(image, v.gain, v.gamma, v.offset)
     if v.blur > 0:
         out = cv2.GaussianBlur(out, (0, 0), v.blur)
     if v.noise > 0:

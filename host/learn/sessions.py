@@ -153,12 +153,19 @@ def draw_session(settings: dict, rng: np.random.Generator) -> SessionDraw:
 def exposure(image: np.ndarray, gain: float = 1.0, gamma: float = 1.0,
              offset: float = 0.0) -> np.ndarray:
     """``image`` (uint8) as a camera of another exposure gives it:
-    ``255 * clip((gain x + offset) / 255, 0, 1) ** gamma``, uint8."""
+    ``255 * clip((gain x + offset) / 255, 0, 1) ** gamma``, uint8, in float32 (the
+    training copies here and the bench's proxies, :mod:`host.bench.texture_robust`)."""
+    from host.data.windows import DataError
+    if not (gain > 0 and gamma > 0 and np.isfinite(offset)):
+        raise DataError(f"exposure needs gain > 0, gamma > 0 and a finite offset, got "
+                        f"gain={gain!r}, gamma={gamma!r}, offset={offset!r}")
     if (gain, gamma, offset) == (1.0, 1.0, 0.0):
         return image
-    lut = np.arange(256, dtype=np.float64) * gain + offset
-    lut = np.clip(lut / 255.0, 0.0, 1.0) ** gamma
-    return np.round(lut * 255.0).astype(np.uint8)[np.asarray(image, np.uint8)]
+    x = np.clip((np.arange(256, dtype=np.float32) * np.float32(gain) + np.float32(offset))
+                / np.float32(255.0), 0.0, 1.0)
+    if gamma != 1.0:
+        x = x ** np.float32(gamma)
+    return np.round(x * 255.0).astype(np.uint8)[np.asarray(image, np.uint8)]
 
 
 def perturbed_layout(layout_px, draw: SessionDraw) -> np.ndarray:

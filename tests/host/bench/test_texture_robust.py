@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.bench.texture_robust import (Variant, block_bootstrap, clip_windows, expose,
+from host.learn.sessions import exposure as expose  # the proxies' exposure
+from host.bench.texture_robust import (Variant, block_bootstrap, clip_windows,
                                        format_robustness, keep_indices, main, model_trainer,
                                        robustness)
 from host.data.extract import ClipFeatures
