@@ -294,21 +294,16 @@ def model_trainer(folder):
     return trainer, spec.T
 
 
-def _per_clip(predict, classes, sets: dict, T: int) -> dict:
-    out = {}
+def _scored(predict, classes, sets: dict, T: int) -> dict:
+    """The score over all the recordings' windows (with its interval: blocks of T
+    windows, each recording's in time order) and ``per_recording``."""
+    per, right = {}, [np.zeros(0, bool)]
     for label, ws in sets.items():
-        if ws is None:
-            out[label] = score(np.zeros(0, bool), T)
-            continue
         want = classes.index(label) if label in classes else -1
-        out[label] = score(predict(ws) == want, T)
-    return out
-
-
-def _pooled(per: dict) -> dict:
-    n = sum(v["n"] for v in per.values())
-    acc = (sum(v["accuracy"] * v["n"] for v in per.values() if v["n"]) / n) if n else None
-    return {"accuracy": None if acc is None else round(acc, 4), "n": n}
+        r = np.zeros(0, bool) if ws is None else predict(ws) == want
+        per[label] = score(r, T)
+        right.append(r)
+    return {**score(np.concatenate(right), T), "per_recording": per}
 
 
 def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VARIANTS,
@@ -365,8 +360,8 @@ def robustness(data, work=None, T: int | None = None, seed: int = 0, variants=VA
         predict, classes = _train(tr, te, seed, trainer, fit)
         res = {"train_windows": len(tr), "proxies": {}}
         for v in variants:
-            per = _per_clip(predict, classes, {lab: tests[v.name][lab] for lab in labs}, T)
-            res["proxies"][v.name] = {**_pooled(per), "per_recording": per}
+            res["proxies"][v.name] = _scored(predict, classes,
+                                             {lab: tests[v.name][lab] for lab in labs}, T)
         out["tasks"][task] = res
     if identity:
         for lab in paths:
@@ -418,7 +413,9 @@ def format_robustness(res: dict) -> str:
                 f"{lab} {v['accuracy'] if v['n'] else '-'} "
                 f"[{v['ci95'][0] if v['n'] else '-'}, {v['ci95'][1] if v['n'] else '-'}] "
                 f"n={v['n']}" for lab, v in p["per_recording"].items())
-            lines.append(f"  {name:11s} all {p['accuracy']}  {cells}")
+            ci = p.get("ci95") or ["-", "-"]
+            lines.append(f"  {name:11s} all {p['accuracy']} [{ci[0]}, {ci[1]}] n={p['n']}  "
+                         f"{cells}")
     if res.get("identity"):
         lines.append("identity check: first vs second half of one recording (0.5 = chance)")
         for lab, r in res["identity"].items():

@@ -128,6 +128,11 @@ def test_robustness_on_the_real_clips_reports_each_proxy_with_counts_and_interva
         assert later[lab]["n"] >= 15 and 0 < slow[lab]["n"] < later[lab]["n"]
         lo, hi = later[lab]["ci95"]
         assert lo <= later[lab]["accuracy"] <= hi
+    # the figure over both recordings has its interval and count too
+    pooled = res["tasks"]["lego-vs-smooth"]["proxies"]["later"]
+    assert pooled["n"] == later["lego"]["n"] + later["smooth"]["n"]
+    assert pooled["ci95"][0] <= pooled["accuracy"] <= pooled["ci95"][1]
+    assert f"n={pooled['n']}" in format_robustness(res)
     assert "rate-3of5" in format_robustness(res)
     assert any(p.suffix == ".npz" for p in tmp_path.iterdir())     # features cached
 
