@@ -171,11 +171,10 @@ def exposure(image: np.ndarray, gain: float = 1.0, gamma: float = 1.0,
 def perturbed_layout(layout_px, draw: SessionDraw) -> np.ndarray:
     """The layout (M, 2) px scaled, rotated about its centre and shifted as ``draw``
     says."""
+    from device.pi.vision.layout import similarity
     p = np.asarray(layout_px, np.float64).reshape(-1, 2)
-    c = p.mean(axis=0)
-    th = math.radians(draw.rot_deg)
-    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
-    return (p - c) @ R.T * draw.scale + c + np.array([draw.dx, draw.dy])
+    return similarity(p, p.mean(axis=0), draw.scale, math.radians(draw.rot_deg),
+                      np.array([draw.dx, draw.dy]))
 
 
 def lose_pins(vectors: np.ndarray, lost: np.ndarray, share: tuple, rng) -> None:

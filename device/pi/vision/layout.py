@@ -20,7 +20,7 @@ from device.profile import load_layout
 from device.errors import TacfootError
 
 __all__ = ["LayoutError", "LayoutAlignment", "fit_layout_alignment", "layout_assignment",
-           "to_layout", "LayoutMapper", "layout_for_profile", "binary_crop",
+           "similarity", "to_layout", "LayoutMapper", "layout_for_profile", "binary_crop",
            "MAX_SCALE_CHANGE", "MAX_ROTATION_DEG", "MIN_FIT_PINS"]
 
 
@@ -74,9 +74,9 @@ class LayoutAlignment:
                 "layout_pins": int(len(self.assignment)), "reason": self.reason}
 
 
-def _apply(pts: np.ndarray, c: np.ndarray, scale: float, theta: float,
-           shift: np.ndarray) -> np.ndarray:
-    """``scale * R(theta) (pts - c) + c + shift`` for (k, 2) ``pts``."""
+def similarity(pts: np.ndarray, c, scale: float, theta: float, shift) -> np.ndarray:
+    """``scale * R(theta) (pts - c) + c + shift`` for (k, 2) ``pts``, with
+    ``R(theta) = [[cos, -sin], [sin, cos]]`` (``theta`` in radians)."""
     co, si = np.cos(theta) * scale, np.sin(theta) * scale
     d = pts - c
     return np.column_stack((co * d[:, 0] - si * d[:, 1], si * d[:, 0] + co * d[:, 1])) + c + shift
@@ -97,8 +97,7 @@ def _fit_similarity(src: np.ndarray, dst: np.ndarray, c: np.ndarray):
     q = float((a0[:, 0] * b0[:, 1] - a0[:, 1] * b0[:, 0]).sum())     # sum a x b
     theta = float(np.arctan2(q, p))
     scale = float(np.hypot(p, q) / var)
-    co, si = np.cos(theta) * scale, np.sin(theta) * scale
-    shift = bm - np.array([co * am[0] - si * am[1], si * am[0] + co * am[1]]) - c
+    shift = bm - similarity(am[None, :], 0.0, scale, theta, 0.0)[0] - c
     return scale, theta, shift
 
 
@@ -155,7 +154,7 @@ def fit_layout_alignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_p
         ok = idx >= 0
         res = 0.0
         if ok.any():
-            d = _apply(L[ok], c, scale, theta, shift) - r[idx[ok]]
+            d = similarity(L[ok], c, scale, theta, shift) - r[idx[ok]]
             res = float(np.median(np.hypot(d[:, 0], d[:, 1])))
         out[lay_rows[ok]] = ref_rows[idx[ok]]
         return LayoutAlignment(out, (float(shift[0]), float(shift[1])), float(scale),
@@ -190,13 +189,13 @@ def fit_layout_alignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_p
         if not (abs(scale - 1.0) <= 2 * MAX_SCALE_CHANGE
                 and abs(np.degrees(theta)) <= 2 * MAX_ROTATION_DEG):
             break                      # far outside the bounds: refused below
-        new = match_pins(_apply(L, c, scale, theta, t), r, gate_px)
+        new = match_pins(similarity(L, c, scale, theta, t), r, gate_px)
         if idx is not None and np.array_equal(new, idx):
             break
         idx = new
         ok = idx >= 0
         if ok.sum() >= MIN_FIT_PINS:
-            d = _apply(L[ok], c, scale, theta, t) - r[idx[ok]]
+            d = similarity(L[ok], c, scale, theta, t) - r[idx[ok]]
             near = np.hypot(d[:, 0], d[:, 1]) <= 0.5 * gate_px
             if near.sum() >= MIN_FIT_PINS:
                 got = _fit_similarity(L[ok][near], r[idx[ok]][near], c)
@@ -212,7 +211,7 @@ def fit_layout_alignment(reference_px: np.ndarray, layout_px: np.ndarray, gate_p
     if abs(deg) > MAX_ROTATION_DEG:
         return shift_only(f"fitted rotation {deg:.2f} deg outside +-{MAX_ROTATION_DEG:g} deg: "
                           f"a bad reference, not a new session")
-    idx = match_pins(_apply(L, c, scale, theta, t), r, gate_px)
+    idx = match_pins(similarity(L, c, scale, theta, t), r, gate_px)
     n_fit = int((idx >= 0).sum())
     if n_fit < MIN_FIT_PINS:
         return shift_only(f"the fit matched {n_fit} pins, a scale and rotation need "
