@@ -167,9 +167,7 @@ def _open_log(args, rt):
         return McapProcess(args.mcap, rt.cfg.mcap, foxglove=addr,
                            max_clients=args.foxglove_max_clients, **kw)
     live = None if addr is None else LiveView(*addr, max_clients=args.foxglove_max_clients)
-    mlog = McapLog(args.mcap, rt.cfg.mcap, live=live, background=True, **kw)
-    mlog.host, mlog.port = (None, None) if live is None else (live.host, live.port)
-    return mlog
+    return McapLog(args.mcap, rt.cfg.mcap, live=live, background=True, **kw)
 
 
 def _check_mcap(args) -> str | None:

@@ -52,7 +52,8 @@ class TrainConfig:
     ``identity`` run the recording-identity check; ``measure`` time the cost per
     decision. The fit: ``augment`` rotated copies, ``rates`` frame-keeping rules
     (None: the task's), ``sessions`` recording-session copies (None: the task's,
-    False: none, True or a table: :func:`host.learn.sessions.session_settings`), ``uses_imu`` and ``temporal`` (None: the kind's default),
+    False: none, True or a table: :func:`host.learn.sessions.session_settings`),
+    ``uses_imu`` and ``temporal`` (None: the kind's default),
     ``hidden``, ``alpha``, ``epochs`` (None: the kind's); the int8 calibration:
     ``calibration_windows``, ``calibrate_method``, ``min_agreement``.
     """

@@ -129,6 +129,7 @@ class McapLog:
                  records: str | None = None):
         self._setup(cfg, clock, prog, keep_existing, metadata, channels)
         self.live = live             # a LiveView (--foxglove), or None
+        self.host, self.port = (None, None) if live is None else (live.host, live.port)
         self.path = None if path is None else Path(path)
         self._file_on = path is not None
         if path is None and live is None:

@@ -258,6 +258,8 @@ def test_the_foxglove_layout_names_only_logged_topics_and_fields():
 
 
 class _FakeLive:
+    host, port = "127.0.0.1", 0
+
     def __init__(self, topics=()):
         self.topics, self.got = set(topics), []
 
